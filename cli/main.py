@@ -1,0 +1,110 @@
+"""The `dempipe` command: a thin click layer over the library.
+
+Each subcommand lives in its own module and only parses options, calls the
+library, and shows progress. Errors derived from :class:`dempipe.DempipeError`
+become one line on stderr and a non-zero exit; tracebacks only with ``--debug``.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import warnings
+
+import click
+
+import dempipe
+from dempipe.errors import DempipeError
+
+# subcommand name -> (module, attribute); imported only when that command runs,
+# so `dempipe --help` stays fast and never imports pxr or numba.cuda.
+COMMANDS = {
+    "spheres": ("dempipe_cli.spheres_cmd", "spheres"),
+    "cache": ("dempipe_cli.cache_cmd", "cache"),
+    "bake": ("dempipe_cli.bake_cmd", "bake"),
+    "check": ("dempipe_cli.check_cmd", "check"),
+    "report": ("dempipe_cli.report_cmd", "report"),
+}
+
+HELP = {
+    "spheres": "Build (and cache) sphere sets of meshes or built-in shapes.",
+    "cache": "Inspect or clear the sphere-set cache.",
+    "bake": "Simulate a scene and write the animation to USD.",
+    "check": "Predict stability problems of a scene without simulating.",
+    "report": "Measure error against run time for a scene's settings.",
+}
+
+
+class LazyGroup(click.Group):
+    def list_commands(self, ctx):
+        return [name for name, (mod, _) in COMMANDS.items() if _module_exists(mod)]
+
+    def get_command(self, ctx, name):
+        if name not in COMMANDS or not _module_exists(COMMANDS[name][0]):
+            return None
+        from importlib import import_module
+
+        module, attr = COMMANDS[name]
+        return getattr(import_module(module), attr)
+
+    def format_commands(self, ctx, formatter):
+        # Short help without importing every subcommand module.
+        rows = [(name, HELP[name]) for name in self.list_commands(ctx)]
+        if rows:
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
+
+
+def _module_exists(module: str) -> bool:
+    from importlib.util import find_spec
+
+    return find_spec(module) is not None
+
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    click.echo(f"warning: {message}", err=True)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(dempipe.__version__, prog_name="dempipe")
+@click.option("--debug", is_flag=True, help="Show full tracebacks on errors.")
+@click.pass_context
+def app(ctx, debug):
+    """dempipe: rigid bodies as sphere sets (Harada et al. 2007), baked to USD."""
+    ctx.ensure_object(dict)
+    ctx.obj["debug"] = debug
+    warnings.showwarning = _show_warning
+
+
+def main(argv=None):
+    """Console entry point: run the app, turn DempipeError into one line + exit code."""
+    debug = "--debug" in (argv if argv is not None else sys.argv[1:])
+    try:
+        app.main(args=argv, prog_name="dempipe", standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("Aborted.", err=True)
+        sys.exit(130)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except DempipeError as exc:
+        if debug:
+            raise
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(exc.exit_code)
+    except KeyboardInterrupt:
+        click.echo("Interrupted.", err=True)
+        sys.exit(130)
+    except Exception as exc:  # a bug: still one line unless --debug
+        if debug:
+            raise
+        click.echo(
+            f"internal error: {type(exc).__name__}: {exc} (rerun with --debug for the traceback)",
+            err=True,
+        )
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()
