@@ -1,0 +1,385 @@
+"""CPU target: the paper's eight stages as numba njit/prange drivers.
+
+Each stage is one parallel loop; the formulas come from physics.py compiled
+with ``numba.njit(inline="always")``. ``run_steps`` loops over steps inside
+compiled code, so a frame of hundreds of steps costs one Python call.
+
+Determinism: every parallel loop writes only its own index (gather, no
+scatter, no atomics); the counting sort is serial and stable; each body sums
+its spheres in index order. The output is bit-identical for any thread count.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numba import prange
+
+from .compile import compile_formulas
+
+F = compile_formulas(numba.njit(inline="always", cache=False))
+quat_rotate = F.quat_rotate
+angular_velocity = F.angular_velocity
+sphere_kinematics = F.sphere_kinematics
+sphere_pair_force = F.sphere_pair_force
+sphere_wall_force = F.sphere_wall_force
+body_step = F.body_step
+
+# Cell coordinates are packed into one int64 key, 21 bits per axis, so the world
+# spans ±2^20 cells per axis (±10 km at 1 cm spheres). Beyond that a sphere is
+# clamped into the outermost cell: still correct (distances are exact), only slow.
+_CELL_BITS = 21
+_CELL_OFF = 1 << (_CELL_BITS - 1)
+_CELL_MAX = (1 << _CELL_BITS) - 1
+
+
+@numba.njit(inline="always", cache=True)
+def cell_coord(x, inv_d):
+    c = np.int64(np.floor(x * inv_d)) + _CELL_OFF
+    if c < 0:
+        c = 0
+    elif c > _CELL_MAX:
+        c = _CELL_MAX
+    return c
+
+
+@numba.njit(inline="always", cache=True)
+def cell_key(cx, cy, cz):
+    return (cx << 42) | (cy << 21) | cz
+
+
+@numba.njit(inline="always", cache=True)
+def cell_hash(cx, cy, cz, mask):
+    # Teschner et al. 2003 spatial hash; mask = table size - 1 (a power of two).
+    return ((cx * 73856093) ^ (cy * 19349663) ^ (cz * 83492791)) & mask
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
+                          body_v, body_w):
+    """V = P/M and W = I(t)⁻¹ L (eq. 5-6) for each dynamic body."""
+    for b in prange(n_bodies):
+        im = body_inv_mass[b]
+        body_v[b, 0] = body_P[b, 0] * im
+        body_v[b, 1] = body_P[b, 1] * im
+        body_v[b, 2] = body_P[b, 2] * im
+        ii = body_inv_inertia[b]
+        q = body_q[b]
+        wx, wy, wz = angular_velocity(q[0], q[1], q[2], q[3], ii[0], ii[1], ii[2], ii[3],
+                                      ii[4], ii[5], body_L[b, 0], body_L[b, 1], body_L[b, 2])
+        body_w[b, 0] = wx
+        body_w[b, 1] = wy
+        body_w[b, 2] = wz
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d, mask,
+                  sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash):
+    """Stage 1 (eq. 19-21) and each sphere's grid cell (stage 2's input)."""
+    for i in prange(sphere_body.shape[0]):
+        b = sphere_body[i]
+        q = body_q[b]
+        x, y, z, vx, vy, vz, rx, ry, rz = sphere_kinematics(
+            body_x[b, 0], body_x[b, 1], body_x[b, 2], q[0], q[1], q[2], q[3],
+            body_v[b, 0], body_v[b, 1], body_v[b, 2], body_w[b, 0], body_w[b, 1], body_w[b, 2],
+            sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2])
+        sphere_x[i, 0] = x
+        sphere_x[i, 1] = y
+        sphere_x[i, 2] = z
+        sphere_v[i, 0] = vx
+        sphere_v[i, 1] = vy
+        sphere_v[i, 2] = vz
+        sphere_r[i, 0] = rx
+        sphere_r[i, 1] = ry
+        sphere_r[i, 2] = rz
+        cx = cell_coord(x, inv_d)
+        cy = cell_coord(y, inv_d)
+        cz = cell_coord(z, inv_d)
+        sphere_key[i] = cell_key(cx, cy, cz)
+        sphere_hash[i] = cell_hash(cx, cy, cz, mask)
+
+
+@numba.njit(cache=True)
+def stage_grid_sort(sphere_hash, bucket_start, bucket_fill, sorted_idx):
+    """Stage 2: counting sort of the spheres by hash bucket (serial, stable).
+
+    bucket_start[h]:bucket_start[h+1] are the slots of bucket h; within a bucket
+    the spheres stay in index order, which keeps everything downstream
+    independent of the thread count.
+    """
+    nb = bucket_start.shape[0] - 1
+    for h in range(nb + 1):
+        bucket_start[h] = 0
+    for i in range(sphere_hash.shape[0]):
+        bucket_start[sphere_hash[i] + 1] += 1
+    for h in range(nb):
+        bucket_start[h + 1] += bucket_start[h]
+    for h in range(nb):
+        bucket_fill[h] = bucket_start[h]
+    for i in range(sphere_hash.shape[0]):
+        h = sphere_hash[i]
+        sorted_idx[bucket_fill[h]] = i
+        bucket_fill[h] += 1
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
+                      sorted_x, sorted_v, sorted_key, sorted_body):
+    """Copy sphere data into sorted order, so neighbours are read from contiguous memory."""
+    for s in prange(sorted_idx.shape[0]):
+        i = sorted_idx[s]
+        sorted_x[s, 0] = sphere_x[i, 0]
+        sorted_x[s, 1] = sphere_x[i, 1]
+        sorted_x[s, 2] = sphere_x[i, 2]
+        sorted_v[s, 0] = sphere_v[i, 0]
+        sorted_v[s, 1] = sphere_v[i, 1]
+        sorted_v[s, 2] = sphere_v[i, 2]
+        sorted_key[s] = sphere_key[i]
+        sorted_body[s] = sphere_body[i]
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_contacts(diameter, inv_d, mask, bucket_start, sorted_idx, sorted_x, sorted_v,
+                   sorted_key, sorted_body, body_w, body_inv_mass, body_material,
+                   pair_k, pair_zeta, pair_mu, kt_ratio, friction,
+                   wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
+                   sphere_f, sphere_t, sphere_overlap):
+    """Stages 3-4: neighbour search over the 27 cells and contact forces (eq. 11-14).
+
+    Each sphere gathers the forces on itself from every touching sphere of
+    another body and from the walls; writes sphere_f, sphere_t (torque about the
+    sphere's centre) and sphere_overlap (largest overlap this step, [m]).
+    """
+    d2 = diameter * diameter
+    radius = 0.5 * diameter
+    n_walls = wall_normal.shape[0]
+    for s in prange(sorted_idx.shape[0]):
+        i = sorted_idx[s]
+        bi = sorted_body[s]
+        xi = sorted_x[s, 0]
+        yi = sorted_x[s, 1]
+        zi = sorted_x[s, 2]
+        vxi = sorted_v[s, 0]
+        vyi = sorted_v[s, 1]
+        vzi = sorted_v[s, 2]
+        imi = body_inv_mass[bi]
+        mi = body_material[bi]
+        wxi = body_w[bi, 0]
+        wyi = body_w[bi, 1]
+        wzi = body_w[bi, 2]
+        fx = 0.0
+        fy = 0.0
+        fz = 0.0
+        tx = 0.0
+        ty = 0.0
+        tz = 0.0
+        max_ov = 0.0
+        cx0 = cell_coord(xi, inv_d)
+        cy0 = cell_coord(yi, inv_d)
+        cz0 = cell_coord(zi, inv_d)
+        for dz in range(-1, 2):
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    cx = cx0 + dx
+                    cy = cy0 + dy
+                    cz = cz0 + dz
+                    key = cell_key(cx, cy, cz)
+                    h = cell_hash(cx, cy, cz, mask)
+                    for t in range(bucket_start[h], bucket_start[h + 1]):
+                        if sorted_key[t] != key:
+                            continue        # another cell sharing the bucket
+                        bj = sorted_body[t]
+                        if bj == bi:
+                            continue        # spheres of one body never collide
+                        rx = sorted_x[t, 0] - xi
+                        ry = sorted_x[t, 1] - yi
+                        rz = sorted_x[t, 2] - zi
+                        dist2 = rx * rx + ry * ry + rz * rz
+                        if dist2 >= d2:
+                            continue
+                        imj = body_inv_mass[bj]
+                        im_sum = imi + imj
+                        if im_sum == 0.0:
+                            continue        # two static colliders
+                        mj = body_material[bj]
+                        k = pair_k[mi, mj]
+                        root = np.sqrt(k / im_sum)
+                        eta = 2.0 * pair_zeta[mi, mj] * root
+                        mu = pair_mu[mi, mj] if friction else 0.0
+                        dist = np.sqrt(dist2)
+                        pfx, pfy, pfz, ptx, pty, ptz = sphere_pair_force(
+                            rx, ry, rz, dist, diameter,
+                            sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
+                            wxi + body_w[bj, 0], wyi + body_w[bj, 1], wzi + body_w[bj, 2],
+                            k, eta, kt_ratio * root, mu)
+                        fx += pfx
+                        fy += pfy
+                        fz += pfz
+                        tx += ptx
+                        ty += pty
+                        tz += ptz
+                        ov = diameter - dist
+                        if ov > max_ov:
+                            max_ov = ov
+        if imi > 0.0:
+            for w in range(n_walls):
+                nx = wall_normal[w, 0]
+                ny = wall_normal[w, 1]
+                nz = wall_normal[w, 2]
+                dist = nx * xi + ny * yi + nz * zi - wall_offset[w]
+                if dist >= radius or dist <= -wall_depth[w]:
+                    continue
+                if (xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
+                        or yi > wall_hi[w, 1] or zi < wall_lo[w, 2] or zi > wall_hi[w, 2]):
+                    continue
+                mj = wall_material[w]
+                k = pair_k[mi, mj]
+                root = np.sqrt(k / imi)
+                eta = 2.0 * pair_zeta[mi, mj] * root
+                mu = pair_mu[mi, mj] if friction else 0.0
+                pfx, pfy, pfz, ptx, pty, ptz = sphere_wall_force(
+                    -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
+                    k, eta, kt_ratio * root, mu)
+                fx += pfx
+                fy += pfy
+                fz += pfz
+                tx += ptx
+                ty += pty
+                tz += ptz
+                ov = radius - dist
+                if ov > max_ov:
+                    max_ov = ov
+        sphere_f[i, 0] = fx
+        sphere_f[i, 1] = fy
+        sphere_f[i, 2] = fz
+        sphere_t[i, 0] = tx
+        sphere_t[i, 1] = ty
+        sphere_t[i, 2] = tz
+        if max_ov > sphere_overlap[i]:
+            sphere_overlap[i] = max_ov
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
+                 body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L):
+    """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10)."""
+    for b in prange(n_bodies):
+        m = body_mass[b]
+        FX = m * gx
+        FY = m * gy
+        FZ = m * gz
+        TX = 0.0
+        TY = 0.0
+        TZ = 0.0
+        for i in range(body_sphere_start[b], body_sphere_start[b + 1]):
+            fx = sphere_f[i, 0]
+            fy = sphere_f[i, 1]
+            fz = sphere_f[i, 2]
+            rx = sphere_r[i, 0]
+            ry = sphere_r[i, 1]
+            rz = sphere_r[i, 2]
+            FX += fx
+            FY += fy
+            FZ += fz
+            TX += (ry * fz - rz * fy) + sphere_t[i, 0]
+            TY += (rz * fx - rx * fz) + sphere_t[i, 1]
+            TZ += (rx * fy - ry * fx) + sphere_t[i, 2]
+        ii = body_inv_inertia[b]
+        x = body_x[b]
+        q = body_q[b]
+        P = body_P[b]
+        L = body_L[b]
+        (x[0], x[1], x[2], q[0], q[1], q[2], q[3], P[0], P[1], P[2], L[0], L[1], L[2]) = body_step(
+            x[0], x[1], x[2], q[0], q[1], q[2], q[3], P[0], P[1], P[2], L[0], L[1], L[2],
+            FX, FY, FZ, TX, TY, TZ, body_inv_mass[b],
+            ii[0], ii[1], ii[2], ii[3], ii[4], ii[5], dt)
+
+
+@numba.njit(cache=True)
+def run_steps(n_steps, dt, diameter, n_bodies, gravity,
+              sphere_body, sphere_offset, body_sphere_start, body_mass, body_inv_mass,
+              body_inv_inertia, body_material, pair_k, pair_zeta, pair_mu, kt_ratio, friction,
+              wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
+              body_x, body_q, body_P, body_L,
+              body_v, body_w, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash,
+              bucket_start, bucket_fill, sorted_idx, sorted_x, sorted_v, sorted_key,
+              sorted_body, sphere_f, sphere_t, sphere_overlap):
+    """Advance ``n_steps`` steps of the eight stages; everything stays in compiled code."""
+    inv_d = 1.0 / diameter
+    mask = bucket_start.shape[0] - 2
+    gx = gravity[0]
+    gy = gravity[1]
+    gz = gravity[2]
+    for _ in range(n_steps):
+        stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
+                              body_v, body_w)
+        stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d, mask,
+                      sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash)
+        stage_grid_sort(sphere_hash, bucket_start, bucket_fill, sorted_idx)
+        stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
+                          sorted_x, sorted_v, sorted_key, sorted_body)
+        stage_contacts(diameter, inv_d, mask, bucket_start, sorted_idx, sorted_x, sorted_v,
+                       sorted_key, sorted_body, body_w, body_inv_mass, body_material,
+                       pair_k, pair_zeta, pair_mu, kt_ratio, friction,
+                       wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
+                       sphere_f, sphere_t, sphere_overlap)
+        stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
+                     body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L)
+
+
+class CpuBackend:
+    """Owns the scratch arrays of one Model and advances States with ``run_steps``."""
+
+    name = "cpu"
+
+    def __init__(self, model):
+        self.model = model
+        nb = model.body_mass.shape[0]
+        ns = model.n_spheres
+        table = 1
+        while table < max(2 * ns, 16):
+            table *= 2
+        self.body_v = np.zeros((nb, 3))
+        self.body_w = np.zeros((nb, 3))
+        self.sphere_x = np.zeros((ns, 3))
+        self.sphere_v = np.zeros((ns, 3))
+        self.sphere_r = np.zeros((ns, 3))
+        self.sphere_key = np.zeros(ns, dtype=np.int64)
+        self.sphere_hash = np.zeros(ns, dtype=np.int64)
+        self.bucket_start = np.zeros(table + 1, dtype=np.int64)
+        self.bucket_fill = np.zeros(table, dtype=np.int64)
+        self.sorted_idx = np.zeros(ns, dtype=np.int32)
+        self.sorted_x = np.zeros((ns, 3))
+        self.sorted_v = np.zeros((ns, 3))
+        self.sorted_key = np.zeros(ns, dtype=np.int64)
+        self.sorted_body = np.zeros(ns, dtype=np.int32)
+        self.sphere_f = np.zeros((ns, 3))
+        self.sphere_t = np.zeros((ns, 3))
+        self.sphere_overlap = np.zeros(ns)
+
+    def step(self, state, n_steps: int) -> None:
+        m = self.model
+        run_steps(
+            int(n_steps), m.dt, m.diameter, m.n_bodies, m.gravity,
+            m.sphere_body, m.sphere_offset, m.body_sphere_start, m.body_mass, m.body_inv_mass,
+            m.body_inv_inertia, m.body_material, m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio,
+            m.features.friction,
+            m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth, m.wall_material,
+            state.body_x, state.body_q, state.body_P, state.body_L,
+            self.body_v, self.body_w, self.sphere_x, self.sphere_v, self.sphere_r,
+            self.sphere_key, self.sphere_hash, self.bucket_start, self.bucket_fill,
+            self.sorted_idx, self.sorted_x, self.sorted_v, self.sorted_key, self.sorted_body,
+            self.sphere_f, self.sphere_t, self.sphere_overlap)
+
+    def velocities(self, state):
+        """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""
+        m = self.model
+        stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
+                              m.body_inv_mass, m.body_inv_inertia, self.body_v, self.body_w)
+        return self.body_v[: m.n_bodies].copy(), self.body_w[: m.n_bodies].copy()
+
+    def take_max_overlap(self) -> float:
+        """Largest overlap since the last call [m], then reset."""
+        v = float(self.sphere_overlap.max()) if self.sphere_overlap.size else 0.0
+        self.sphere_overlap[:] = 0.0
+        return v

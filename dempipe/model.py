@@ -1,0 +1,510 @@
+"""Model: what a scene IS, as frozen arrays the kernels read.
+
+Build one with :class:`ModelBuilder` (shapes, materials, bodies, colliders, then
+``finalize()``), or from a scene file with :func:`build_model`. A Model never
+changes during a bake; where things are lives in :class:`dempipe.state.State`.
+
+Body indexing: dynamic bodies 0..n_bodies-1 in scene order, then one static
+pseudo-body per static mesh collider (zero inverse mass and inertia) whose
+spheres sit in the grid like any other but are never integrated.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import materials as mat
+from typing import TYPE_CHECKING
+
+from .errors import SceneError, StabilityError
+from .state import State
+
+if TYPE_CHECKING:  # spheres imports numba; the model only needs the type
+    from .spheres import SphereSet
+
+#: Planes are half-spaces: a sphere up to this many diameters *behind* a plane is
+#: still pushed out; deeper than that it is taken to be elsewhere (the far side of
+#: an incline's infinite extension) and ignored.
+PLANE_DEPTH_DIAMETERS = 2.0
+
+
+def _frozen(a, dtype=np.float64):
+    a = np.ascontiguousarray(a, dtype=dtype)
+    a.flags.writeable = False
+    return a
+
+
+@dataclass(frozen=True)
+class ShapeInstance:
+    """A shape used by bodies: its mesh in the body frame and its sphere set.
+
+    vertices : (V, 3) mesh vertices minus the centre of mass, mesh axes [m]
+    faces : (F, 3) int triangle indices
+    com : (3,) centre of mass in the mesh's own coordinates [m]
+    """
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    com: np.ndarray
+    sphere_set: "SphereSet"
+
+
+@dataclass(frozen=True)
+class BoxCollider:
+    """Axis-aligned container: inward-facing walls (and floor) from ``lo`` to ``hi`` [m]."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    open_top: bool = True
+    thickness: float = 0.0
+    material: int = 0
+
+
+@dataclass(frozen=True)
+class StaticMesh:
+    """A static mesh collider, in world coordinates [m], voxelized into static spheres."""
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    body: int  # its pseudo-body index
+
+
+@dataclass(frozen=True)
+class Features:
+    """What the scene uses; the kernels skip what it does not."""
+
+    friction: bool
+    rotation: bool
+    walls: bool
+    static_spheres: bool
+    gravity: bool
+
+
+@dataclass(frozen=True, eq=False)
+class Model:
+    """Frozen description of a scene.
+
+    Per body (dynamic first, then static pseudo-bodies; B = n_bodies + n_static):
+      body_mass (B,) [kg]; body_inv_mass (B,) [1/kg] (0 for static);
+      body_inv_inertia (B, 6) inverse inertia about the centre of mass in the body
+        frame, entries (xx, yy, zz, xy, xz, yz) [1/(kg m²)];
+      body_material (B,) int32; body_sphere_start (B+1,) int32, spheres of body b
+        are body_sphere_start[b]:body_sphere_start[b+1].
+    Per dynamic body (n_bodies,): body_shape, body_group, body_group_index.
+    Per sphere (S,): sphere_body int32; sphere_offset (S, 3) from the body's centre
+      of mass, body frame [m].
+    Walls (planes and box walls) as bounded half-spaces (W,): wall_normal (W, 3)
+      unit, pointing into the free side; wall_offset (W,) [m], n·x = offset on the
+      surface; wall_lo, wall_hi (W, 3) box the sphere centre must be in [m];
+      wall_depth (W,) [m] how far behind the surface a sphere still touches it;
+      wall_material (W,).
+    Materials: pair_k, pair_zeta, pair_mu (M, M); kt_ratio.
+    Time: dt [s], steps_per_frame, fps, n_frames, first_frame.
+    """
+
+    diameter: float
+    n_bodies: int
+    n_static: int
+    shapes: tuple
+    materials: tuple
+    group_names: tuple
+    body_mass: np.ndarray
+    body_inv_mass: np.ndarray
+    body_inv_inertia: np.ndarray
+    body_material: np.ndarray
+    body_sphere_start: np.ndarray
+    body_shape: np.ndarray
+    body_group: np.ndarray
+    body_group_index: np.ndarray
+    body_radius: np.ndarray
+    sphere_body: np.ndarray
+    sphere_offset: np.ndarray
+    wall_normal: np.ndarray
+    wall_offset: np.ndarray
+    wall_lo: np.ndarray
+    wall_hi: np.ndarray
+    wall_depth: np.ndarray
+    wall_material: np.ndarray
+    plane_point: np.ndarray
+    plane_normal: np.ndarray
+    boxes: tuple
+    static_meshes: tuple
+    pair_k: np.ndarray
+    pair_zeta: np.ndarray
+    pair_mu: np.ndarray
+    kt_ratio: float
+    gravity: np.ndarray
+    dt: float
+    steps_per_frame: int
+    fps: float
+    n_frames: int
+    first_frame: int
+    up_axis: str
+    meters_per_unit: float
+    omega_max: float
+    features: Features
+    initial_x: np.ndarray
+    initial_q: np.ndarray
+    initial_v: np.ndarray
+    initial_w: np.ndarray
+    stiffness_auto: tuple = ()
+    notes: tuple = field(default=())
+
+    @property
+    def n_spheres(self) -> int:
+        return int(self.sphere_body.shape[0])
+
+    @property
+    def n_walls(self) -> int:
+        return int(self.wall_normal.shape[0])
+
+    @property
+    def contact_time(self) -> float:
+        """Duration of the stiffest contact [s] (inf when nothing can touch)."""
+        return math.pi / self.omega_max if self.omega_max > 0 else math.inf
+
+    def initial_state(self) -> State:
+        """State at frame 0: positions, orientations, momenta from the initial velocities."""
+        nb = self.body_mass.shape[0]
+        x = np.array(self.initial_x, dtype=np.float64)
+        q = np.array(self.initial_q, dtype=np.float64)
+        P = self.body_mass[:, None] * self.initial_v
+        P[self.n_bodies:] = 0.0
+        L = np.zeros((nb, 3))
+        for b in range(self.n_bodies):
+            L[b] = _world_inertia(q[b], self.body_inv_inertia[b]) @ self.initial_w[b]
+        return State(body_x=x, body_q=q, body_P=P, body_L=L)
+
+
+def _sym6_to_mat(s):
+    return np.array([[s[0], s[3], s[4]], [s[3], s[1], s[5]], [s[4], s[5], s[2]]])
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    """Rotation matrix of the unit quaternion (w, x, y, z)."""
+    w, x, y, z = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _world_inertia(q, inv_inertia6):
+    """World-frame inertia tensor R I0 Rᵀ from the body-frame inverse (6 entries)."""
+    inv = _sym6_to_mat(inv_inertia6)
+    if not inv.any():
+        return np.zeros((3, 3))
+    R = quat_to_matrix(q)
+    return R @ np.linalg.inv(inv) @ R.T
+
+
+def rotational_mass_factor(offsets: np.ndarray, inertia: np.ndarray) -> float:
+    """max over spheres and normal directions of (r×n)ᵀ I⁻¹ (r×n), per unit mass⁻¹.
+
+    With ``inertia`` per unit mass, a contact at offset r with normal n sees the
+    effective mass 1 / (1/m + (r×n)ᵀ I⁻¹ (r×n)) = m / (1 + this). The rotational
+    mode of a light, long body is stiffer than its translation; dt="auto" uses it.
+    """
+    if offsets.shape[0] <= 1:
+        return 0.0
+    inv = np.linalg.inv(inertia)
+    rx, ry, rz = offsets[:, 0], offsets[:, 1], offsets[:, 2]
+    z = np.zeros_like(rx)
+    S = np.stack([np.stack([z, -rz, ry], -1), np.stack([rz, z, -rx], -1),
+                  np.stack([-ry, rx, z], -1)], -2)           # [r]x per sphere
+    M = np.einsum("sji,jk,skl->sil", S, inv, S)               # [r]xᵀ I⁻¹ [r]x
+    return float(np.linalg.eigvalsh(M)[:, -1].max())
+
+
+class ModelBuilder:
+    """Collects shapes, materials, bodies and colliders, then ``finalize()`` → Model.
+
+    All lengths in metres, in the simulation's world frame.
+    """
+
+    def __init__(self, diameter: float, gravity=(0.0, 0.0, -9.81)):
+        if not (diameter > 0 and math.isfinite(diameter)):
+            raise SceneError(f"sphere diameter must be positive and finite, got {diameter!r}")
+        self.diameter = float(diameter)
+        self.gravity = np.asarray(gravity, dtype=np.float64)
+        self._shapes: list[ShapeInstance] = []
+        self._materials: list[mat.Material] = [mat.DEFAULT_MATERIAL]
+        self._groups: list[dict] = []
+        self._walls: list[tuple] = []
+        self._planes: list[tuple] = []
+        self._boxes: list[BoxCollider] = []
+        self._static: list[tuple] = []
+
+    # -- inputs ---------------------------------------------------------------
+    def add_material(self, material: mat.Material) -> int:
+        for i, m in enumerate(self._materials):
+            if m.name == material.name:
+                self._materials[i] = material
+                return i
+        self._materials.append(material)
+        return len(self._materials) - 1
+
+    def add_shape(self, name: str, mesh, sphere_set: "SphereSet") -> int:
+        """Register a shape: its mesh (mesh coordinates) and its sphere set."""
+        com = np.asarray(sphere_set.com, dtype=np.float64)
+        verts = np.asarray(mesh.vertices, dtype=np.float64) - com
+        self._shapes.append(ShapeInstance(name, _frozen(verts), _frozen(mesh.faces, np.int32),
+                                          _frozen(com), sphere_set))
+        return len(self._shapes) - 1
+
+    def add_bodies(self, group: str, shape: int, material: int, positions, rotations=None,
+                   velocities=None, angular_velocities=None) -> None:
+        """Add a group of bodies of one shape.
+
+        positions : (n, 3) where each body's *mesh origin* goes [m] (as a DCC places it)
+        rotations : (n, 4) unit quaternions (w, x, y, z); identity if None
+        velocities, angular_velocities : (n, 3) [m/s], [rad/s], world frame
+        """
+        p = np.atleast_2d(np.asarray(positions, dtype=np.float64))
+        n = p.shape[0]
+        q = np.tile([1.0, 0, 0, 0], (n, 1)) if rotations is None else np.atleast_2d(
+            np.asarray(rotations, dtype=np.float64))
+        q = q / np.linalg.norm(q, axis=1, keepdims=True)
+        v = np.zeros((n, 3)) if velocities is None else np.broadcast_to(
+            np.asarray(velocities, dtype=np.float64), (n, 3))
+        w = np.zeros((n, 3)) if angular_velocities is None else np.broadcast_to(
+            np.asarray(angular_velocities, dtype=np.float64), (n, 3))
+        self._groups.append(dict(name=group, shape=shape, material=material, p=p, q=q,
+                                 v=np.array(v), w=np.array(w)))
+
+    def add_plane(self, point, normal, material: int = 0) -> None:
+        n = np.asarray(normal, dtype=np.float64)
+        n = n / np.linalg.norm(n)
+        p = np.asarray(point, dtype=np.float64)
+        self._planes.append((p, n))
+        depth = PLANE_DEPTH_DIAMETERS * self.diameter
+        self._walls.append((n, float(n @ p), np.full(3, -np.inf), np.full(3, np.inf), depth,
+                            material))
+
+    def add_box(self, lo, hi, open_top: bool = True, material: int = 0,
+                thickness: float | None = None, up: int = 2) -> None:
+        """Axis-aligned container with inward walls; ``up`` is the up axis index."""
+        lo = np.asarray(lo, dtype=np.float64)
+        hi = np.asarray(hi, dtype=np.float64)
+        t = float(thickness) if thickness else PLANE_DEPTH_DIAMETERS * self.diameter
+        self._boxes.append(BoxCollider(_frozen(lo), _frozen(hi), open_top, t, material))
+        r = 0.5 * self.diameter
+        for axis in range(3):
+            for sign in (+1.0, -1.0):
+                if axis == up and sign < 0 and open_top:
+                    continue  # no lid
+                n = np.zeros(3)
+                n[axis] = sign                      # inward: +x on the lo side, -x on hi
+                surface = lo[axis] if sign > 0 else hi[axis]
+                wlo = lo - r
+                whi = hi + r
+                wlo[axis] = -np.inf
+                whi[axis] = np.inf
+                if axis != up:                       # side walls reach up over an open top
+                    whi[up] = np.inf if open_top else whi[up]
+                self._walls.append((n, sign * surface, wlo, whi, t, material))
+
+    def add_static_mesh(self, name: str, mesh, sphere_set: "SphereSet", material: int = 0) -> None:
+        """A static mesh collider given in world coordinates, with its sphere set."""
+        self._static.append((name, mesh, sphere_set, material))
+
+    # -- derived --------------------------------------------------------------
+    def finalize(self, *, fps: float = 24.0, n_frames: int = 97, first_frame: int = 0,
+                 dt: float | str = "auto", target_overlap: float = 0.02,
+                 steps_per_contact: float = mat.STEPS_PER_CONTACT,
+                 up_axis: str = "Z", meters_per_unit: float = 1.0,
+                 where: str = "simulation.dt") -> Model:
+        d = self.diameter
+        groups = self._groups
+        # bodies
+        body_shape, body_group, body_gidx, body_mat, xs, qs, vs, ws = [], [], [], [], [], [], [], []
+        for gi, g in enumerate(groups):
+            n = g["p"].shape[0]
+            shape = self._shapes[g["shape"]]
+            body_shape.append(np.full(n, g["shape"]))
+            body_group.append(np.full(n, gi))
+            body_gidx.append(np.arange(n))
+            body_mat.append(np.full(n, g["material"]))
+            # position places the mesh origin: the centre of mass is at p + R com
+            R = np.stack([quat_to_matrix(q) for q in g["q"]]) if n else np.zeros((0, 3, 3))
+            xs.append(g["p"] + np.einsum("nij,j->ni", R, shape.com))
+            qs.append(g["q"])
+            vs.append(g["v"])
+            ws.append(g["w"])
+        n_dyn = int(sum(len(a) for a in body_shape))
+        cat = lambda parts, shape: np.concatenate(parts) if parts else np.zeros(shape)
+        body_shape = cat(body_shape, (0,)).astype(np.int32)
+        body_group = cat(body_group, (0,)).astype(np.int32)
+        body_gidx = cat(body_gidx, (0,)).astype(np.int32)
+        dyn_mat = cat(body_mat, (0,)).astype(np.int32)
+        x0 = cat(xs, (0, 3))
+        q0 = cat(qs, (0, 4))
+        v0 = cat(vs, (0, 3))
+        w0 = cat(ws, (0, 3))
+
+        mass = np.zeros(n_dyn)
+        inv_inertia = np.zeros((n_dyn, 6))
+        shape_inv = []
+        shape_rot = []
+        for s in self._shapes:
+            ss = s.sphere_set
+            inv = np.linalg.inv(np.asarray(ss.inertia, dtype=np.float64))  # per unit density
+            shape_inv.append(np.array([inv[0, 0], inv[1, 1], inv[2, 2], inv[0, 1], inv[0, 2],
+                                       inv[1, 2]]))
+            # per unit mass: I/m = inertia/volume
+            shape_rot.append(rotational_mass_factor(np.asarray(ss.centers),
+                                                    np.asarray(ss.inertia) / ss.volume))
+        for b in range(n_dyn):
+            s = self._shapes[body_shape[b]]
+            rho = self._materials[dyn_mat[b]].density
+            mass[b] = rho * s.sphere_set.volume
+            inv_inertia[b] = shape_inv[body_shape[b]] / rho
+
+        # static pseudo-bodies
+        static_meshes = []
+        st_x, st_mat = [], []
+        for k, (name, mesh, ss, m) in enumerate(self._static):
+            st_x.append(np.asarray(ss.com, dtype=np.float64))
+            st_mat.append(m)
+            static_meshes.append(StaticMesh(name, _frozen(mesh.vertices), _frozen(mesh.faces,
+                                            np.int32), n_dyn + k))
+        n_static = len(static_meshes)
+        all_x = np.concatenate([x0, np.array(st_x).reshape(-1, 3)])
+        all_q = np.concatenate([q0, np.tile([1.0, 0, 0, 0], (n_static, 1))])
+        all_mass = np.concatenate([mass, np.full(n_static, np.inf)])
+        all_inv_mass = np.concatenate([1.0 / np.where(mass > 0, mass, np.inf), np.zeros(n_static)])
+        all_inv_inertia = np.concatenate([inv_inertia, np.zeros((n_static, 6))])
+        all_mat = np.concatenate([dyn_mat, np.array(st_mat, dtype=np.int32)]).astype(np.int32)
+
+        # spheres, contiguous per body
+        counts = [self._shapes[s].sphere_set.centers.shape[0] for s in body_shape]
+        counts += [ss.centers.shape[0] for (_, _, ss, _) in self._static]
+        start = np.zeros(len(counts) + 1, dtype=np.int32)
+        start[1:] = np.cumsum(counts) if counts else []
+        offsets = [self._shapes[s].sphere_set.centers for s in body_shape]
+        offsets += [ss.centers for (_, _, ss, _) in self._static]
+        sphere_offset = np.concatenate(offsets) if offsets else np.zeros((0, 3))
+        sphere_body = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
+        body_radius = np.array([np.linalg.norm(self._shapes[s].sphere_set.centers, axis=1).max()
+                                + 0.5 * d for s in body_shape]) if n_dyn else np.zeros(0)
+
+        # materials: auto stiffness from impact speed and weight (materials.auto_stiffness)
+        g = float(np.linalg.norm(self.gravity))
+        up = -self.gravity / g if g > 0 else np.array([0.0, 0.0, 1.0])
+        heights = x0 @ up if n_dyn else np.zeros(1)
+        floors = [heights.min() - (body_radius.max() if n_dyn else 0.0)]
+        floors += [float(p @ up) for (p, n) in self._planes if n @ up > 0.5]  # ground-like
+        floors += [float(b.lo @ up) for b in self._boxes]
+        floors += [float((np.asarray(mesh.vertices) @ up).min()) for (_, mesh, _, _) in self._static]
+        floor = min(floors)
+        if n_dyn:
+            fall = np.sqrt(2.0 * g * np.maximum(heights - floor, 0.0))
+            spin = np.linalg.norm(w0, axis=1) * body_radius
+            speed = np.linalg.norm(v0, axis=1) + spin + fall
+            v_imp = float(speed.max())
+        else:
+            v_imp = 0.0
+        # two bodies can meet head on at twice the speed; a floor for scenes at rest
+        v_imp = max(2.0 * v_imp, math.sqrt(2.0 * g * d) if g > 0 else 0.01)
+        stiffness = []
+        auto_notes = []
+        k_auto_all = 0.0
+        for mi, m in enumerate(self._materials):
+            used = dyn_mat == mi
+            if m.stiffness is None and used.any():
+                k = mat.auto_stiffness(float(mass[used].max()), v_imp, g, d, target_overlap)
+                k_auto_all = max(k_auto_all, k)
+                stiffness.append(k)
+                auto_notes.append((m.name, k))
+            else:
+                stiffness.append(m.stiffness)
+        # materials used only by colliders (or unused) take the stiffest auto value
+        fallback = k_auto_all or max([s for s in stiffness if s] or [1e4])
+        stiffness = [s if s is not None else fallback for s in stiffness]
+        table = mat.pair_table(self._materials, stiffness)
+
+        # stiffest mode: ω = √(k / m_eff) over every body, translation and rotation
+        # (effective mass m / (1 + m (r×n)ᵀ I⁻¹ (r×n))), halved for body-body contacts
+        omega_max = 0.0
+        zeta_min = 1.0
+        zeta_max = 0.0
+        wall_mats = {w[5] for w in self._walls} | {s[3] for s in self._static}
+        present = set(np.unique(dyn_mat).tolist()) | wall_mats
+        has_contacts = n_dyn > 1 or bool(self._walls) or bool(self._static)
+        if has_contacts:
+            for gi, gdict in enumerate(groups):
+                if gdict["p"].shape[0] == 0:
+                    continue
+                mi = gdict["material"]
+                m_min = mass[body_group == gi].min()
+                m_eff = m_min / (1.0 + shape_rot[gdict["shape"]])
+                partners = present if n_dyn > 1 else wall_mats
+                dyn_present = set(np.unique(dyn_mat).tolist())
+                for mj in partners:
+                    k = table.k[mi, mj]
+                    half = 0.5 if (n_dyn > 1 and mj in dyn_present) else 1.0
+                    omega_max = max(omega_max, math.sqrt(k / (m_eff * half)))
+                    zeta_min = min(zeta_min, table.zeta[mi, mj])
+                    zeta_max = max(zeta_max, table.zeta[mi, mj])
+        if isinstance(dt, str):
+            if dt != "auto":
+                raise SceneError(f"{where}: expected \"auto\" or seconds, got {dt!r}")
+            dt_v, spf = mat.auto_dt(omega_max, fps, steps_per_contact, zeta_max)
+        else:
+            if not (dt > 0 and math.isfinite(dt)):
+                raise SceneError(f"{where}: dt must be positive seconds, got {dt!r}")
+            mat.check_dt(float(dt), omega_max, zeta_min, where)
+            spf = max(1, round((1.0 / fps) / dt))
+            dt_v = 1.0 / fps / spf
+            if abs(dt_v - dt) > 1e-9 * dt and abs(dt_v - dt) / dt > 0.01:
+                raise StabilityError(
+                    f"{where}: dt = {dt:g} s does not divide a frame (1/{fps:g} s) into whole "
+                    f"steps; use {dt_v:.6g} s ({spf} steps per frame)")
+
+        walls = self._walls
+        wall_arr = lambda i, shape: (np.array([w[i] for w in walls], dtype=np.float64)
+                                     if walls else np.zeros(shape))
+        friction = bool((table.mu > 0).any()) and bool(np.any(
+            [table.mu[a, b] > 0 for a in present for b in present]))
+        multi = any(s.sphere_set.centers.shape[0] > 1 for s in self._shapes)
+        features = Features(
+            friction=friction,
+            rotation=multi or friction or bool(np.any(w0)),
+            walls=bool(walls),
+            static_spheres=n_static > 0,
+            gravity=g > 0,
+        )
+        return Model(
+            diameter=d, n_bodies=n_dyn, n_static=n_static, shapes=tuple(self._shapes),
+            materials=tuple(self._materials), group_names=tuple(g["name"] for g in groups),
+            body_mass=_frozen(all_mass), body_inv_mass=_frozen(all_inv_mass),
+            body_inv_inertia=_frozen(all_inv_inertia), body_material=_frozen(all_mat, np.int32),
+            body_sphere_start=_frozen(start, np.int32), body_shape=_frozen(body_shape, np.int32),
+            body_group=_frozen(body_group, np.int32), body_group_index=_frozen(body_gidx, np.int32),
+            body_radius=_frozen(body_radius),
+            sphere_body=_frozen(sphere_body, np.int32), sphere_offset=_frozen(sphere_offset),
+            wall_normal=_frozen(wall_arr(0, (0, 3)).reshape(-1, 3)),
+            wall_offset=_frozen(wall_arr(1, (0,))),
+            wall_lo=_frozen(wall_arr(2, (0, 3)).reshape(-1, 3)),
+            wall_hi=_frozen(wall_arr(3, (0, 3)).reshape(-1, 3)),
+            wall_depth=_frozen(wall_arr(4, (0,))),
+            wall_material=_frozen(np.array([w[5] for w in walls], dtype=np.int32), np.int32),
+            plane_point=_frozen(np.array([p for p, _ in self._planes]).reshape(-1, 3)),
+            plane_normal=_frozen(np.array([n for _, n in self._planes]).reshape(-1, 3)),
+            boxes=tuple(self._boxes), static_meshes=tuple(static_meshes),
+            pair_k=_frozen(table.k), pair_zeta=_frozen(table.zeta), pair_mu=_frozen(table.mu),
+            kt_ratio=table.kt_ratio, gravity=_frozen(self.gravity), dt=float(dt_v),
+            steps_per_frame=int(spf), fps=float(fps), n_frames=int(n_frames),
+            first_frame=int(first_frame), up_axis=up_axis, meters_per_unit=float(meters_per_unit),
+            omega_max=float(omega_max), features=features,
+            initial_x=_frozen(all_x), initial_q=_frozen(all_q),
+            initial_v=_frozen(np.concatenate([v0, np.zeros((n_static, 3))])),
+            initial_w=_frozen(np.concatenate([w0, np.zeros((n_static, 3))])),
+            stiffness_auto=tuple(auto_notes),
+        )

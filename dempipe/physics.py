@@ -1,0 +1,239 @@
+"""The paper's formulas as plain scalar functions (Harada et al. 2007, eq. 2-21).
+
+Nothing here imports numba. Each function takes and returns Python floats (or
+tuples of them), so tests can call it directly against closed forms, and the
+kernels compile the very same source for each target::
+
+    # kernels/cpu.py                          # kernels/cuda.py
+    numba.njit(inline="always")(f)            numba.cuda.jit(device=True, inline=True)(f)
+
+Conventions: SI units; quaternions (w, x, y, z), body to world; vectors are
+passed as three scalars because that is what both targets compile best.
+"""
+
+from math import cos, sin, sqrt
+
+
+# ---------------------------------------------------------------------------
+# Quaternions and rotation (eq. 7-10, 19)
+# ---------------------------------------------------------------------------
+
+def quat_rotate(qw, qx, qy, qz, vx, vy, vz):
+    """Rotate vector v by the unit quaternion q: q v q* (eq. 19).
+
+    Uses v' = v + 2w (u × v) + 2 u × (u × v) with u = (qx, qy, qz), which needs
+    no 3×3 matrix and is exact for unit q up to rounding.
+    """
+    tx = 2.0 * (qy * vz - qz * vy)
+    ty = 2.0 * (qz * vx - qx * vz)
+    tz = 2.0 * (qx * vy - qy * vx)
+    return (
+        vx + qw * tx + (qy * tz - qz * ty),
+        vy + qw * ty + (qz * tx - qx * tz),
+        vz + qw * tz + (qx * ty - qy * tx),
+    )
+
+
+def quat_rotate_inv(qw, qx, qy, qz, vx, vy, vz):
+    """Rotate v by the conjugate of q (world to body): q* v q."""
+    return quat_rotate(qw, -qx, -qy, -qz, vx, vy, vz)
+
+
+def quat_integrate(qw, qx, qy, qz, wx, wy, wz, dt):
+    """Advance orientation q by angular velocity w over dt (eq. 7-10).
+
+    dq = [cos(θ/2), a sin(θ/2)] with a = w/|w| (eq. 8), θ = |w| dt (eq. 9), and
+    q(t+dt) = dq ⊗ q(t) (eq. 10): the increment is a world-frame rotation, so it
+    multiplies from the left. The result is renormalized so rounding cannot
+    accumulate into a non-unit quaternion.
+    """
+    wn = sqrt(wx * wx + wy * wy + wz * wz)
+    half = 0.5 * wn * dt
+    if wn > 0.0:
+        s = sin(half) / wn
+    else:
+        s = 0.5 * dt  # limit of sin(|w|dt/2)/|w|; the increment is the identity anyway
+    dw = cos(half)
+    dx = wx * s
+    dy = wy * s
+    dz = wz * s
+    # Hamilton product dq ⊗ q
+    nw = dw * qw - dx * qx - dy * qy - dz * qz
+    nx = dw * qx + dx * qw + dy * qz - dz * qy
+    ny = dw * qy - dx * qz + dy * qw + dz * qx
+    nz = dw * qz + dx * qy - dy * qx + dz * qw
+    inv = 1.0 / sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+    return nw * inv, nx * inv, ny * inv, nz * inv
+
+
+def sym_mat_vec(axx, ayy, azz, axy, axz, ayz, vx, vy, vz):
+    """Product of a symmetric 3×3 matrix, given by its six entries, with v."""
+    return (
+        axx * vx + axy * vy + axz * vz,
+        axy * vx + ayy * vy + ayz * vz,
+        axz * vx + ayz * vy + azz * vz,
+    )
+
+
+def angular_velocity(qw, qx, qy, qz, ixx, iyy, izz, ixy, ixz, iyz, lx, ly, lz):
+    """w = I(t)⁻¹ L with I(t)⁻¹ = R I(0)⁻¹ Rᵀ (eq. 5-6).
+
+    ``i..`` are the six entries of the inverse inertia tensor in the body frame
+    [1/(kg m²)]; L is the angular momentum in the world frame [kg m²/s].
+    Evaluated as R (I(0)⁻¹ (Rᵀ L)) so no matrix is formed.
+    """
+    bx, by, bz = quat_rotate_inv(qw, qx, qy, qz, lx, ly, lz)
+    bx, by, bz = sym_mat_vec(ixx, iyy, izz, ixy, ixz, iyz, bx, by, bz)
+    return quat_rotate(qw, qx, qy, qz, bx, by, bz)
+
+
+# ---------------------------------------------------------------------------
+# Stage 1: sphere state from the body (eq. 19-21)
+# ---------------------------------------------------------------------------
+
+def sphere_kinematics(X, Y, Z, qw, qx, qy, qz, VX, VY, VZ, WX, WY, WZ, ox, oy, oz):
+    """Sphere centre, velocity and world-frame offset from its body (eq. 19-21).
+
+    (ox, oy, oz) is the sphere's offset from the centre of mass in the body frame.
+    Returns (x, y, z, vx, vy, vz, rx, ry, rz) with r' = R r (eq. 19),
+    x = X + r' (eq. 20) and v = V + W × r' (eq. 21).
+    """
+    rx, ry, rz = quat_rotate(qw, qx, qy, qz, ox, oy, oz)
+    return (
+        X + rx, Y + ry, Z + rz,
+        VX + (WY * rz - WZ * ry), VY + (WZ * rx - WX * rz), VZ + (WX * ry - WY * rx),
+        rx, ry, rz,
+    )
+
+
+# ---------------------------------------------------------------------------
+# Stage 4: contact force between two spheres, or a sphere and a wall (eq. 11-14)
+# ---------------------------------------------------------------------------
+
+def damping_coefficient(zeta, k, inv_mass_a, inv_mass_b):
+    """Normal dashpot η = 2ζ√(k m_eff), m_eff = 1/(1/m_a + 1/m_b) [N s/m].
+
+    The effective mass is that of the two *bodies* (a static collider has
+    1/m = 0), so a one-sphere body bounces with exactly the restitution the
+    damping ratio ζ was derived from; see docs/physics.md.
+    """
+    return 2.0 * zeta * sqrt(k / (inv_mass_a + inv_mass_b))
+
+
+def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, mu):
+    """Force on sphere i from one contact (eq. 11-14 with a Coulomb cap).
+
+    n : unit normal from i towards the other body.
+    overlap : d - |r_ij| for two spheres, radius - distance for a wall [m], > 0.
+    u : velocity of the other body's contact point relative to i's [m/s].
+    k : normal spring [N/m]; eta : normal dashpot [N s/m];
+    kt : tangential viscous coefficient [N s/m]; mu : Coulomb friction.
+
+    Normal: spring -k δ n (eq. 11) plus a dashpot on the *normal* relative
+    velocity only, η (u·n) n — the paper's eq. 12 damps the full relative
+    velocity, which would also act as friction on frictionless materials.
+    Tangential: kt u_t (eq. 13), capped by Coulomb |f_t| ≤ μ |f_n| where
+    |f_n| is the compressive part of the normal force.
+
+    Antisymmetric in IEEE arithmetic: swapping i and j negates n and u and
+    gives exactly the negated force, so gathered sums conserve momentum.
+    """
+    un = ux * nx + uy * ny + uz * nz
+    fn = -k * overlap + eta * un          # along n; negative pushes i away
+    fx = fn * nx
+    fy = fn * ny
+    fz = fn * nz
+    if mu > 0.0:
+        tx = ux - un * nx
+        ty = uy - un * ny
+        tz = uz - un * nz
+        ftx = kt * tx
+        fty = kt * ty
+        ftz = kt * tz
+        ft2 = ftx * ftx + fty * fty + ftz * ftz
+        cap = -mu * fn if fn < 0.0 else 0.0
+        if ft2 > cap * cap:
+            if ft2 > 0.0:
+                s = cap / sqrt(ft2)
+                ftx *= s
+                fty *= s
+                ftz *= s
+        fx += ftx
+        fy += fty
+        fz += ftz
+    return fx, fy, fz
+
+
+def sphere_pair_force(rx, ry, rz, dist, diameter, dvx, dvy, dvz, wsx, wsy, wsz,
+                      k, eta, kt, mu):
+    """Force on sphere i from sphere j and its torque about i's centre.
+
+    r = x_j - x_i with |r| = dist < diameter; dv = v_j - v_i (centre velocities);
+    ws = W_i + W_j, the sum of the two bodies' angular velocities, which gives the
+    contact-point velocities: the contact point lies a radius from each centre,
+    so u = dv - radius (ws × n).
+    Returns (fx, fy, fz, tx, ty, tz): the torque (radius n) × f is what the
+    force adds about the sphere's own centre (the paper's eq. 16 uses the centre
+    only, which cannot make a single sphere roll; see docs/physics.md).
+    """
+    radius = 0.5 * diameter
+    if dist > 0.0:
+        inv = 1.0 / dist
+        nx = rx * inv
+        ny = ry * inv
+        nz = rz * inv
+    else:  # coincident centres: any direction is as good; pick +z deterministically
+        nx = 0.0
+        ny = 0.0
+        nz = 1.0
+    ux = dvx - radius * (wsy * nz - wsz * ny)
+    uy = dvy - radius * (wsz * nx - wsx * nz)
+    uz = dvz - radius * (wsx * ny - wsy * nx)
+    fx, fy, fz = contact_force(nx, ny, nz, diameter - dist, ux, uy, uz, k, eta, kt, mu)
+    return (fx, fy, fz,
+            radius * (ny * fz - nz * fy), radius * (nz * fx - nx * fz), radius * (nx * fy - ny * fx))
+
+
+def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz, k, eta, kt, mu):
+    """Force on a sphere from a static wall, and its torque about the sphere's centre.
+
+    n : unit normal from the sphere towards the wall (minus the wall's outward normal).
+    v, w : the sphere's centre velocity and its body's angular velocity.
+    The wall does not move, so the relative contact velocity is
+    u = -(v + w × (radius n)).
+    """
+    ux = -(vx + radius * (wy * nz - wz * ny))
+    uy = -(vy + radius * (wz * nx - wx * nz))
+    uz = -(vz + radius * (wx * ny - wy * nx))
+    fx, fy, fz = contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, mu)
+    return (fx, fy, fz,
+            radius * (ny * fz - nz * fy), radius * (nz * fx - nx * fz), radius * (nx * fy - ny * fx))
+
+
+# ---------------------------------------------------------------------------
+# Stages 5-8: body momentum, position, orientation (eq. 2-10, 15-16)
+# ---------------------------------------------------------------------------
+
+def body_step(X, Y, Z, qw, qx, qy, qz, PX, PY, PZ, LX, LY, LZ,
+              FX, FY, FZ, TX, TY, TZ, inv_mass,
+              ixx, iyy, izz, ixy, ixz, iyz, dt):
+    """One explicit step of a rigid body (symplectic Euler).
+
+    P += F dt (eq. 2), L += T dt (eq. 4), V = P/M, X += V dt (eq. 3),
+    W = I(t)⁻¹ L (eq. 5-6), q ← dq(W dt) ⊗ q (eq. 7-10).
+    Momenta first, then positions: the order that keeps the spring-mass
+    system stable below its critical step.
+    Returns the 13 new values (X, q, P, L).
+    """
+    PX += FX * dt
+    PY += FY * dt
+    PZ += FZ * dt
+    LX += TX * dt
+    LY += TY * dt
+    LZ += TZ * dt
+    X += PX * inv_mass * dt
+    Y += PY * inv_mass * dt
+    Z += PZ * inv_mass * dt
+    wx, wy, wz = angular_velocity(qw, qx, qy, qz, ixx, iyy, izz, ixy, ixz, iyz, LX, LY, LZ)
+    qw, qx, qy, qz = quat_integrate(qw, qx, qy, qz, wx, wy, wz, dt)
+    return X, Y, Z, qw, qx, qy, qz, PX, PY, PZ, LX, LY, LZ
