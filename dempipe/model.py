@@ -405,20 +405,24 @@ class ModelBuilder:
         floor = min(floors)
         if n_dyn:
             fall = np.sqrt(2.0 * g * np.maximum(heights - floor, 0.0))
-            spin = np.linalg.norm(w0, axis=1) * body_radius
-            speed = np.linalg.norm(v0, axis=1) + spin + fall
-            v_imp = float(speed.max())
+            launch = np.linalg.norm(v0, axis=1) + np.linalg.norm(w0, axis=1) * body_radius
+            # the fastest body meets a static wall, or a partner launched towards it
+            v_imp = float((fall + launch).max() + launch.max())
         else:
             v_imp = 0.0
-        # two bodies can meet head on at twice the speed; a floor for scenes at rest
-        v_imp = max(2.0 * v_imp, math.sqrt(2.0 * g * d) if g > 0 else 0.01)
+        # scenes at rest still feel their weight settling one sphere deep
+        v_imp = max(v_imp, math.sqrt(2.0 * g * d) if g > 0 else 0.01)
+        # corner-contact effective mass m / (1 + m (r×n)ᵀ I⁻¹ (r×n)): a falling body
+        # first touches with one outer sphere; a flat landing shares the load
+        body_rot = np.array([shape_rot[s] for s in body_shape]) if n_dyn else np.zeros(0)
+        m_corner = mass / (1.0 + body_rot) if n_dyn else mass
         stiffness = []
         auto_notes = []
         k_auto_all = 0.0
         for mi, m in enumerate(self._materials):
             used = dyn_mat == mi
             if m.stiffness is None and used.any():
-                k = mat.auto_stiffness(float(mass[used].max()), v_imp, g, d, target_overlap)
+                k = mat.auto_stiffness(float(m_corner[used].max()), v_imp, g, d, target_overlap)
                 k_auto_all = max(k_auto_all, k)
                 stiffness.append(k)
                 auto_notes.append((m.name, k))

@@ -223,6 +223,11 @@ def body_step(X, Y, Z, qw, qx, qy, qz, PX, PY, PZ, LX, LY, LZ,
     W = I(t)⁻¹ L (eq. 5-6), q ← dq(W dt) ⊗ q (eq. 7-10).
     Momenta first, then positions: the order that keeps the spring-mass
     system stable below its critical step.
+
+    One departure from eq. 7-10: W is evaluated at the orientation half a step
+    ahead (explicit midpoint). With W from the start of the step, a freely
+    tumbling asymmetric body gains a few % of kinetic energy per 10⁴ steps;
+    the midpoint makes the error second order for one more I⁻¹L per body.
     Returns the 13 new values (X, q, P, L).
     """
     PX += FX * dt
@@ -235,5 +240,7 @@ def body_step(X, Y, Z, qw, qx, qy, qz, PX, PY, PZ, LX, LY, LZ,
     Y += PY * inv_mass * dt
     Z += PZ * inv_mass * dt
     wx, wy, wz = angular_velocity(qw, qx, qy, qz, ixx, iyy, izz, ixy, ixz, iyz, LX, LY, LZ)
+    hw, hx, hy, hz = quat_integrate(qw, qx, qy, qz, wx, wy, wz, 0.5 * dt)
+    wx, wy, wz = angular_velocity(hw, hx, hy, hz, ixx, iyy, izz, ixy, ixz, iyz, LX, LY, LZ)
     qw, qx, qy, qz = quat_integrate(qw, qx, qy, qz, wx, wy, wz, dt)
     return X, Y, Z, qw, qx, qy, qz, PX, PY, PZ, LX, LY, LZ

@@ -9,6 +9,9 @@ compiled. The source stays written once, with no decorator.
 
 from __future__ import annotations
 
+import glob
+import hashlib
+import os
 import types
 
 from .. import physics
@@ -40,3 +43,33 @@ def compile_formulas(jit) -> types.SimpleNamespace:
         fn.__doc__ = py.__doc__
         compiled[name] = jit(fn)
     return types.SimpleNamespace(**compiled)
+
+
+def invalidate_stale_cache(module_file: str) -> None:
+    """Drop numba's on-disk cache of ``module_file`` when physics.py changed.
+
+    numba keys a cached function on its own file's timestamp only, but the
+    formulas it inlines live in physics.py: edit a formula and the stale
+    compiled kernel would silently keep running. We stamp the cache folder
+    with a hash of every source that goes into the kernels and clear the
+    module's entries when it differs.
+    """
+    here = os.path.dirname(os.path.abspath(module_file))
+    sources = [physics.__file__, __file__, module_file]
+    digest = hashlib.sha256(b"".join(open(f, "rb").read() for f in sources)).hexdigest()[:16]
+    stem = os.path.splitext(os.path.basename(module_file))[0]
+    folders = [os.path.join(here, "__pycache__")]
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        folders.append(os.environ["NUMBA_CACHE_DIR"])
+    for folder in folders:
+        stamp = os.path.join(folder, f"{stem}.sources-{digest}")
+        if not os.path.isdir(folder) or os.path.exists(stamp):
+            continue
+        try:
+            for f in glob.glob(os.path.join(folder, "**", f"{stem}.*.nb[ic]"), recursive=True):
+                os.remove(f)
+            for f in glob.glob(os.path.join(folder, f"{stem}.sources-*")):
+                os.remove(f)
+            open(stamp, "w").close()
+        except OSError:
+            pass  # a read-only install: its cache was built from its own sources

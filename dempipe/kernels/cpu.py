@@ -15,8 +15,9 @@ import numba
 import numpy as np
 from numba import prange
 
-from .compile import compile_formulas
+from .compile import compile_formulas, invalidate_stale_cache
 
+invalidate_stale_cache(__file__)
 F = compile_formulas(numba.njit(inline="always", cache=False))
 quat_rotate = F.quat_rotate
 angular_velocity = F.angular_velocity
