@@ -50,9 +50,27 @@ def cell_key(cx, cy, cz):
 
 
 @numba.njit(inline="always", cache=True)
-def cell_hash(cx, cy, cz, mask):
-    # Teschner et al. 2003 spatial hash; mask = table size - 1 (a power of two).
-    return ((cx * 73856093) ^ (cy * 19349663) ^ (cz * 83492791)) & mask
+def cell_hash(cx, cy, cz, grid):
+    """Bucket of a cell: its coordinates wrapped into a 2^bx × 2^by × 2^bz table.
+
+    A wrapped grid, not a scrambling hash: cells next to each other in x land in
+    consecutive buckets, so a row of three neighbour cells is one contiguous run
+    of sorted slots and the spheres' sorted order is spatially coherent (cache
+    friendly). Far-apart cells that wrap onto the same bucket are told apart by
+    their keys. grid = (bx, by, mask_x, mask_y, mask_z).
+    """
+    return ((cz & grid[4]) << (grid[0] + grid[1])) | ((cy & grid[3]) << grid[0]) | (cx & grid[2])
+
+
+def grid_table(n_spheres: int) -> np.ndarray:
+    """Table layout for ``n_spheres``: 2^k >= 2 n buckets split over x, y, z bits."""
+    k = 4
+    while (1 << k) < 2 * n_spheres:
+        k += 1
+    bx = (k + 2) // 3
+    by = (k - bx + 1) // 2
+    bz = k - bx - by
+    return np.array([bx, by, (1 << bx) - 1, (1 << by) - 1, (1 << bz) - 1], dtype=np.int64)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -74,7 +92,7 @@ def stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d, mask,
+def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d, grid,
                   sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash):
     """Stage 1 (eq. 19-21) and each sphere's grid cell (stage 2's input)."""
     for i in prange(sphere_body.shape[0]):
@@ -97,7 +115,7 @@ def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, in
         cy = cell_coord(y, inv_d)
         cz = cell_coord(z, inv_d)
         sphere_key[i] = cell_key(cx, cy, cz)
-        sphere_hash[i] = cell_hash(cx, cy, cz, mask)
+        sphere_hash[i] = cell_hash(cx, cy, cz, grid)
 
 
 @numba.njit(cache=True)
@@ -140,7 +158,7 @@ def stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_contacts(diameter, inv_d, mask, bucket_start, sorted_idx, sorted_x, sorted_v,
+def stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
                    sorted_key, sorted_body, body_w, body_inv_mass, body_material,
                    pair_k, pair_zeta, pair_mu, kt_ratio, friction,
                    wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
@@ -180,15 +198,29 @@ def stage_contacts(diameter, inv_d, mask, bucket_start, sorted_idx, sorted_x, so
         cz0 = cell_coord(zi, inv_d)
         for dz in range(-1, 2):
             for dy in range(-1, 2):
-                for dx in range(-1, 2):
-                    cx = cx0 + dx
-                    cy = cy0 + dy
-                    cz = cz0 + dz
-                    key = cell_key(cx, cy, cz)
-                    h = cell_hash(cx, cy, cz, mask)
-                    for t in range(bucket_start[h], bucket_start[h + 1]):
-                        if sorted_key[t] != key:
-                            continue        # another cell sharing the bucket
+                cy = cy0 + dy
+                cz = cz0 + dz
+                # the three cells (cx0-1..cx0+1, cy, cz): keys in [lo, hi]
+                key_lo = cell_key(cx0 - 1, cy, cz)
+                key_hi = cell_key(cx0 + 1, cy, cz)
+                h_lo = cell_hash(cx0 - 1, cy, cz, grid)
+                h_hi = cell_hash(cx0 + 1, cy, cz, grid)
+                if h_hi == h_lo + 2:        # one contiguous run of buckets
+                    n_runs = 1
+                else:                       # the row wraps round the table
+                    n_runs = 3
+                for run in range(n_runs):
+                    if n_runs == 1:
+                        t0 = bucket_start[h_lo]
+                        t1 = bucket_start[h_hi + 1]
+                    else:
+                        h = cell_hash(cx0 - 1 + run, cy, cz, grid)
+                        t0 = bucket_start[h]
+                        t1 = bucket_start[h + 1]
+                    for t in range(t0, t1):
+                        kt = sorted_key[t]
+                        if kt < key_lo or kt > key_hi:
+                            continue        # another cell sharing the buckets
                         bj = sorted_body[t]
                         if bj == bi:
                             continue        # spheres of one body never collide
@@ -297,7 +329,7 @@ def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t
 
 
 @numba.njit(cache=True)
-def run_steps(n_steps, dt, diameter, n_bodies, gravity,
+def run_steps(n_steps, dt, diameter, n_bodies, gravity, grid,
               sphere_body, sphere_offset, body_sphere_start, body_mass, body_inv_mass,
               body_inv_inertia, body_material, pair_k, pair_zeta, pair_mu, kt_ratio, friction,
               wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
@@ -307,19 +339,18 @@ def run_steps(n_steps, dt, diameter, n_bodies, gravity,
               sorted_body, sphere_f, sphere_t, sphere_overlap):
     """Advance ``n_steps`` steps of the eight stages; everything stays in compiled code."""
     inv_d = 1.0 / diameter
-    mask = bucket_start.shape[0] - 2
     gx = gravity[0]
     gy = gravity[1]
     gz = gravity[2]
     for _ in range(n_steps):
         stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
                               body_v, body_w)
-        stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d, mask,
+        stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d, grid,
                       sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash)
         stage_grid_sort(sphere_hash, bucket_start, bucket_fill, sorted_idx)
         stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
                           sorted_x, sorted_v, sorted_key, sorted_body)
-        stage_contacts(diameter, inv_d, mask, bucket_start, sorted_idx, sorted_x, sorted_v,
+        stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
                        sorted_key, sorted_body, body_w, body_inv_mass, body_material,
                        pair_k, pair_zeta, pair_mu, kt_ratio, friction,
                        wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
@@ -337,9 +368,8 @@ class CpuBackend:
         self.model = model
         nb = model.body_mass.shape[0]
         ns = model.n_spheres
-        table = 1
-        while table < max(2 * ns, 16):
-            table *= 2
+        self.grid = grid_table(ns)
+        table = 1 << int(self.grid[0] + self.grid[1] + np.log2(self.grid[4] + 1))
         self.body_v = np.zeros((nb, 3))
         self.body_w = np.zeros((nb, 3))
         self.sphere_x = np.zeros((ns, 3))
@@ -361,7 +391,7 @@ class CpuBackend:
     def step(self, state, n_steps: int) -> None:
         m = self.model
         run_steps(
-            int(n_steps), m.dt, m.diameter, m.n_bodies, m.gravity,
+            int(n_steps), m.dt, m.diameter, m.n_bodies, m.gravity, self.grid,
             m.sphere_body, m.sphere_offset, m.body_sphere_start, m.body_mass, m.body_inv_mass,
             m.body_inv_inertia, m.body_material, m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio,
             m.features.friction,
