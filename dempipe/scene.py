@@ -1,0 +1,999 @@
+"""The scene file: TOML parsed and validated into frozen dataclasses.
+
+:func:`load_scene` reads a file, :func:`parse_scene` a string; both return a
+:class:`Scene` or raise :class:`~dempipe.errors.SceneError` with a one-line
+message ``"<file>: <key.path>: <problem> (<fix or known values>)"``.
+:func:`expand_bodies` turns each body group into per-body initial positions,
+orientations and velocities (seeded, reproducible, independent per group).
+
+The format is documented key by key in ``docs/scene-format.md``. Conventions:
+SI units; positions place the mesh's own origin (not the centre of mass);
+quaternions are (w, x, y, z); the up axis is "Z" (default) or "Y".
+
+This module imports neither numba nor pxr.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Union
+
+import numpy as np
+
+try:  # Python 3.11+
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as tomllib  # type: ignore[no-redef]
+
+from .errors import SceneError
+
+__all__ = [
+    "Scene", "OutputSettings", "SimulationSettings", "SleepSettings", "MaterialSpec",
+    "ShapeSpec", "BodyGroup", "PlaneCollider", "BoxCollider", "MeshCollider", "Collider",
+    "BodyPlacement", "load_scene", "parse_scene", "expand_bodies", "DEFAULT_RESOLUTION",
+]
+
+#: Spheres across the longest extent of the smallest shape when neither
+#: ``sphere_diameter`` nor ``resolution`` is given.
+DEFAULT_RESOLUTION = 12
+
+#: Standard gravity [m/s²].
+STANDARD_GRAVITY = 9.81
+
+Vec3 = tuple[float, float, float]
+Quat = tuple[float, float, float, float]
+
+_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+# --------------------------------------------------------------------------- data
+
+
+@dataclass(frozen=True)
+class OutputSettings:
+    """``[output]``: timing and coordinate conventions of the baked animation."""
+
+    fps: int = 24
+    """Frames per second of the animation [1/s], positive integer."""
+    duration: float = 4.0
+    """Length of the animation [s], > 0."""
+    up_axis: str = "Z"
+    """World up axis, "Z" or "Y"."""
+    meters_per_unit: float = 1.0
+    """USD stage metadata: metres per scene unit [m], > 0. Scene values stay in metres."""
+    start_frame: int = 0
+    """USD time code of frame 0 [frames]."""
+
+    @property
+    def n_frames(self) -> int:
+        """Number of output frames including frame 0: round(duration*fps) + 1."""
+        return int(round(self.duration * self.fps)) + 1
+
+    @property
+    def up_index(self) -> int:
+        """Index of the up axis in (x, y, z): 2 for "Z", 1 for "Y"."""
+        return 2 if self.up_axis == "Z" else 1
+
+
+@dataclass(frozen=True)
+class SleepSettings:
+    """``[simulation.sleep]``: thresholds below which a body is put to sleep.
+
+    ``None`` leaves the choice to the simulator.
+    """
+
+    linear_speed: float | None = None
+    """Speed below which a body may sleep [m/s], > 0."""
+    angular_speed: float | None = None
+    """Angular speed below which a body may sleep [rad/s], > 0."""
+    time: float | None = None
+    """How long a body must stay below both thresholds before it sleeps [s], > 0."""
+
+
+@dataclass(frozen=True)
+class SimulationSettings:
+    """``[simulation]``: sphere size, gravity, time step, device, seed."""
+
+    sphere_diameter: float | None = None
+    """Diameter of every sphere [m]; None when ``resolution`` sets it."""
+    resolution: int | None = DEFAULT_RESOLUTION
+    """Spheres across the longest extent of the smallest shape [count]; None when
+    ``sphere_diameter`` is given."""
+    gravity: Vec3 = (0.0, 0.0, -STANDARD_GRAVITY)
+    """Gravitational acceleration, world frame [m/s²]; default -9.81 along the up axis."""
+    dt: Union[float, str] = "auto"
+    """Time step [s], or "auto" (derived from stiffness and masses)."""
+    device: str = "auto"
+    """Compute device: "cpu", "cuda" or "auto"."""
+    seed: int = 0
+    """Seed of random rotations and placements [integer ≥ 0]."""
+    stiffness_target_overlap: float | None = None
+    """Target overlap of "auto" stiffness as a fraction of the diameter [1], in (0, 0.5];
+    None lets the library decide."""
+    dt_safety: float | None = None
+    """Safety factor on the automatic/critical time step [1], in (0, 1]; None lets the
+    library decide."""
+    sleeping: bool = True
+    """Whether resting bodies are put to sleep."""
+    sleep: SleepSettings = field(default_factory=SleepSettings)
+    """Sleep thresholds."""
+
+
+@dataclass(frozen=True)
+class MaterialSpec:
+    """``[materials.<name>]``: a contact material."""
+
+    name: str
+    """Material name (table key)."""
+    density: float = 1000.0
+    """Density [kg/m³], > 0."""
+    restitution: float = 0.5
+    """Coefficient of restitution [1], in [0, 1]."""
+    friction: float = 0.5
+    """Coulomb friction coefficient μ [1], ≥ 0."""
+    stiffness: Union[float, str] = "auto"
+    """Normal contact stiffness [N/m] > 0, or "auto"."""
+
+    def to_material(self):
+        """The :class:`dempipe.materials.Material` (stiffness None for "auto")."""
+        from .materials import Material
+
+        k = None if self.stiffness == "auto" else float(self.stiffness)
+        return Material(self.name, float(self.density), float(self.restitution),
+                        float(self.friction), k)
+
+
+@dataclass(frozen=True)
+class ShapeSpec:
+    """``[shapes.<name>]``: a built-in shape with parameters, or a mesh file."""
+
+    name: str
+    """Shape name (table key)."""
+    builtin: str | None = None
+    """Built-in shape name (see ``dempipe.shapes.SHAPES``), or None for a mesh file."""
+    params: dict = field(default_factory=dict)
+    """Built-in shape parameters [m for lengths], passed to the builder as keywords."""
+    mesh_path: Path | None = None
+    """Absolute path of the mesh file (resolved relative to the scene file), or None."""
+    scale: float = 1.0
+    """Uniform scale applied to the mesh file's coordinates [1], > 0 (mesh only)."""
+
+
+@dataclass(frozen=True)
+class BodyGroup:
+    """``[[bodies]]``: a group of bodies of one shape and material."""
+
+    name: str
+    """Group name, a USD prim name ([A-Za-z_][A-Za-z0-9_]*), unique."""
+    shape: str
+    """Name of a ``[shapes.*]`` table."""
+    material: str = "default"
+    """Name of a material."""
+    count: int = 1
+    """Number of bodies in the group [count] ≥ 1."""
+    layout: str = "single"
+    """Placement: "single", "grid" or "random"."""
+    position: Vec3 | None = None
+    """single: where the mesh origin goes [m], world frame."""
+    origin: Vec3 | None = None
+    """grid: mesh-origin position of lattice index (0, 0, 0) [m], world frame."""
+    dims: tuple[int, int, int] | None = None
+    """grid: lattice size in lattice order (horizontal 1, horizontal 2, up) [count]."""
+    spacing: Vec3 | None = None
+    """grid: lattice spacing in lattice order (horizontal 1, horizontal 2, up) [m]."""
+    region_min: Vec3 | None = None
+    """random: lower corner of the box of mesh origins [m], world frame."""
+    region_max: Vec3 | None = None
+    """random: upper corner of the box of mesh origins [m], world frame."""
+    rotation: Union[str, Quat] = "identity"
+    """Initial orientation: "identity", "random" (uniform, seeded, per body) or a unit
+    quaternion (w, x, y, z)."""
+    velocity: Vec3 = (0.0, 0.0, 0.0)
+    """Initial linear velocity of every body [m/s], world frame."""
+    angular_velocity: Vec3 = (0.0, 0.0, 0.0)
+    """Initial angular velocity of every body [rad/s], world frame."""
+
+
+@dataclass(frozen=True)
+class PlaneCollider:
+    """``[[colliders]] type = "plane"``: an infinite static half-space boundary."""
+
+    point: Vec3 = (0.0, 0.0, 0.0)
+    """A point on the plane [m], world frame."""
+    normal: Vec3 = (0.0, 0.0, 1.0)
+    """Unit normal pointing into the free side [1], world frame (normalized on load)."""
+    material: str = "default"
+    """Material name."""
+    name: str = "plane"
+    """Collider name (USD prim name)."""
+
+
+@dataclass(frozen=True)
+class BoxCollider:
+    """``[[colliders]] type = "box"``: an axis-aligned container, walls facing inward."""
+
+    min: Vec3
+    """Lower inner corner [m], world frame."""
+    max: Vec3
+    """Upper inner corner [m], world frame."""
+    open_top: bool = True
+    """Whether the wall at the top (along the up axis) is left out."""
+    thickness: float | None = None
+    """Wall thickness [m] > 0; None lets the library decide."""
+    material: str = "default"
+    """Material name."""
+    name: str = "box"
+    """Collider name (USD prim name)."""
+
+
+@dataclass(frozen=True)
+class MeshCollider:
+    """``[[colliders]] type = "mesh"``: a static mesh (a mesh file or a built-in shape)."""
+
+    builtin: str | None = None
+    """Built-in shape name, or None for a mesh file."""
+    params: dict = field(default_factory=dict)
+    """Built-in shape parameters [m for lengths]."""
+    mesh_path: Path | None = None
+    """Absolute path of the mesh file, or None."""
+    scale: float = 1.0
+    """Uniform scale of the mesh [1], > 0."""
+    position: Vec3 = (0.0, 0.0, 0.0)
+    """Where the mesh origin goes [m], world frame."""
+    rotation: Quat = (1.0, 0.0, 0.0, 0.0)
+    """Orientation, unit quaternion (w, x, y, z)."""
+    material: str = "default"
+    """Material name."""
+    name: str = "mesh"
+    """Collider name (USD prim name)."""
+
+
+Collider = Union[PlaneCollider, BoxCollider, MeshCollider]
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated scene file."""
+
+    path: Path | None
+    """Absolute path of the scene file (None for a string without a file)."""
+    output: OutputSettings
+    """``[output]``."""
+    simulation: SimulationSettings
+    """``[simulation]``."""
+    materials: dict[str, MaterialSpec]
+    """All materials by name; always contains "default"."""
+    shapes: dict[str, ShapeSpec]
+    """All shapes by name."""
+    bodies: tuple[BodyGroup, ...]
+    """Body groups in file order."""
+    colliders: tuple[Collider, ...] = ()
+    """Static colliders in file order."""
+
+    @property
+    def base_dir(self) -> Path:
+        """Folder relative paths are resolved against."""
+        return self.path.parent if self.path is not None else Path.cwd()
+
+    @property
+    def n_bodies(self) -> int:
+        """Total number of dynamic bodies."""
+        return sum(g.count for g in self.bodies)
+
+
+@dataclass(frozen=True)
+class BodyPlacement:
+    """Initial state of every body of one group, from :func:`expand_bodies`."""
+
+    name: str
+    """Group name."""
+    shape: str
+    """Shape name."""
+    material: str
+    """Material name."""
+    positions: np.ndarray
+    """(n, 3) float64 mesh-origin positions [m], world frame."""
+    rotations: np.ndarray
+    """(n, 4) float64 unit quaternions (w, x, y, z)."""
+    velocities: np.ndarray
+    """(n, 3) float64 linear velocities [m/s], world frame."""
+    angular_velocities: np.ndarray
+    """(n, 3) float64 angular velocities [rad/s], world frame."""
+
+
+# --------------------------------------------------------------------- validation
+
+
+_MISSING = object()
+
+
+def _describe(v: Any) -> str:
+    if isinstance(v, bool):
+        return f"boolean {str(v).lower()}"
+    if isinstance(v, str):
+        return f"string {v!r}"
+    if isinstance(v, int):
+        return f"integer {v}"
+    if isinstance(v, float):
+        return f"float {v!r}"
+    if isinstance(v, list):
+        return f"array of length {len(v)}"
+    if isinstance(v, dict):
+        return "table"
+    return type(v).__name__
+
+
+def _known(names) -> str:
+    names = list(names)
+    return ", ".join(names) if names else "none defined"
+
+
+def _suggest(word: str, names) -> str:
+    names = list(names)
+    close = difflib.get_close_matches(word, names, n=1, cutoff=0.6)
+    hint = f"did you mean {close[0]!r}? " if close else ""
+    return f"{hint}known: {_known(names)}"
+
+
+class _Ctx:
+    """Error reporting for one scene file."""
+
+    def __init__(self, path: Path | None, name: str):
+        self.path = path
+        self.name = name
+        self.base = path.parent if path is not None else Path.cwd()
+
+    def error(self, key: str, problem: str, fix: str | None = None) -> SceneError:
+        msg = f"{self.name}: {key}: {problem}" if key else f"{self.name}: {problem}"
+        if fix:
+            msg += f" ({fix})"
+        return SceneError(" ".join(msg.split("\n")))
+
+    # -- tables --------------------------------------------------------------
+
+    def table(self, d: Any, key: str) -> dict:
+        if not isinstance(d, dict):
+            raise self.error(key, f"expected a table, got {_describe(d)}",
+                             f"write it as [{key}]" if key else None)
+        return d
+
+    def check_keys(self, d: dict, key: str, allowed, what: str = "key") -> None:
+        allowed = list(allowed)
+        for k in d:
+            if k not in allowed:
+                raise self.error(_join(key, k), f"unknown {what}", _suggest(k, allowed))
+
+    def require(self, d: dict, key: str, k: str, hint: str | None = None):
+        if k not in d:
+            raise self.error(_join(key, k), "missing required key", hint)
+        return d[k]
+
+    # -- scalars -------------------------------------------------------------
+
+    def number(self, v: Any, key: str, *, lo: float | None = None, hi: float | None = None,
+               lo_open: bool = False, hi_open: bool = False, unit: str = "") -> float:
+        rng = _range_text(lo, hi, lo_open, hi_open)
+        expect = f"a number{rng and ' ' + rng}{unit and ' (' + unit + ')'}"
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise self.error(key, f"expected {expect}, got {_describe(v)}",
+                             "write a number without quotes" if isinstance(v, str) else None)
+        v = float(v)
+        if not math.isfinite(v):
+            raise self.error(key, f"expected a finite number, got {v!r}", None)
+        if lo is not None and (v < lo or (lo_open and v == lo)):
+            raise self.error(key, f"{v:g} is out of range", f"expected {expect}")
+        if hi is not None and (v > hi or (hi_open and v == hi)):
+            raise self.error(key, f"{v:g} is out of range", f"expected {expect}")
+        return v
+
+    def integer(self, v: Any, key: str, *, lo: int | None = None, what: str = "an integer") -> int:
+        if isinstance(v, bool) or not isinstance(v, int):
+            fix = None
+            if isinstance(v, float) and math.isfinite(v) and v == int(v):
+                fix = f"write {int(v)} without a decimal point"
+            elif isinstance(v, str):
+                fix = "write an integer without quotes"
+            raise self.error(key, f"expected {what}, got {_describe(v)}", fix)
+        if lo is not None and v < lo:
+            raise self.error(key, f"{v} is out of range", f"expected {what} >= {lo}")
+        return int(v)
+
+    def boolean(self, v: Any, key: str) -> bool:
+        if not isinstance(v, bool):
+            raise self.error(key, f"expected a boolean, got {_describe(v)}",
+                             "write true or false without quotes")
+        return v
+
+    def string(self, v: Any, key: str, choices=None) -> str:
+        if not isinstance(v, str):
+            known = f"one of: {_known(choices)}" if choices else None
+            raise self.error(key, f"expected a string, got {_describe(v)}", known)
+        if choices is not None and v not in choices:
+            raise self.error(key, f"unknown value {v!r}", _suggest(v, choices))
+        return v
+
+    def vector(self, v: Any, key: str, n: int = 3, *, what: str = "number") -> tuple[float, ...]:
+        if not isinstance(v, list) or len(v) != n:
+            raise self.error(key, f"expected an array of {n} numbers, got {_describe(v)}",
+                             f"e.g. {key.rsplit('.', 1)[-1]} = [{', '.join(['0.0'] * n)}]")
+        return tuple(self.number(x, f"{key}[{i}]") for i, x in enumerate(v))
+
+    def quaternion(self, v: Any, key: str) -> Quat:
+        q = self.vector(v, key, 4)
+        norm = math.sqrt(sum(c * c for c in q))
+        if norm < 1e-12:
+            raise self.error(key, "zero quaternion",
+                             "give [w, x, y, z] with a non-zero length, e.g. [1, 0, 0, 0]")
+        return tuple(c / norm for c in q)  # type: ignore[return-value]
+
+    def usd_name(self, v: Any, key: str) -> str:
+        v = self.string(v, key)
+        if not _NAME_RE.match(v):
+            fixed = re.sub(r"[^A-Za-z0-9_]", "_", v)
+            if not fixed or fixed[0].isdigit():
+                fixed = "_" + fixed
+            raise self.error(key, f"{v!r} is not a valid USD prim name",
+                             f"use letters, digits and _, not starting with a digit, e.g. {fixed!r}")
+        return v
+
+    def mesh_file(self, v: Any, key: str) -> Path:
+        v = self.string(v, key)
+        p = Path(v).expanduser()
+        if not p.is_absolute():
+            p = self.base / p
+        p = p.resolve()
+        if not p.is_file():
+            raise self.error(key, f"mesh file not found: {p}",
+                             "paths are relative to the scene file's folder")
+        return p
+
+
+def _join(key: str, k: str) -> str:
+    return f"{key}.{k}" if key else k
+
+
+def _range_text(lo, hi, lo_open, hi_open) -> str:
+    if lo is not None and hi is not None:
+        return f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    if lo is not None:
+        return f"{'>' if lo_open else '>='} {lo:g}"
+    if hi is not None:
+        return f"{'<' if hi_open else '<='} {hi:g}"
+    return ""
+
+
+_TOP_KEYS = ("output", "simulation", "materials", "shapes", "bodies", "colliders")
+_OUTPUT_KEYS = ("fps", "duration", "up_axis", "meters_per_unit", "start_frame")
+_SIM_KEYS = ("sphere_diameter", "resolution", "gravity", "dt", "device", "seed",
+             "stiffness_target_overlap", "dt_safety", "sleeping", "sleep")
+_SLEEP_KEYS = ("linear_speed", "angular_speed", "time")
+_MATERIAL_KEYS = ("density", "restitution", "friction", "stiffness")
+_BODY_COMMON = ("name", "shape", "material", "count", "layout", "rotation", "velocity",
+                "angular_velocity")
+_LAYOUT_KEYS = {
+    "single": ("position",),
+    "grid": ("origin", "dims", "spacing"),
+    "random": ("region_min", "region_max"),
+}
+_COLLIDER_KEYS = {
+    "plane": ("type", "name", "material", "point", "normal"),
+    "box": ("type", "name", "material", "min", "max", "open_top", "thickness"),
+    "mesh": ("type", "name", "material", "mesh", "builtin", "scale", "position", "rotation"),
+}
+
+
+def _load_shape_registry():
+    """``dempipe.shapes.SHAPES``, or None while that module does not exist."""
+    try:
+        from . import shapes as _shapes
+    except ModuleNotFoundError as exc:
+        if exc.name in ("dempipe.shapes", f"{__package__}.shapes"):
+            return None
+        raise
+    return getattr(_shapes, "SHAPES", None)
+
+
+def _parse_output(ctx: _Ctx, d: Any) -> OutputSettings:
+    d = ctx.table(d, "output")
+    ctx.check_keys(d, "output", _OUTPUT_KEYS)
+    kw: dict[str, Any] = {}
+    if "fps" in d:
+        kw["fps"] = ctx.integer(d["fps"], "output.fps", lo=1, what="a positive integer")
+    if "duration" in d:
+        kw["duration"] = ctx.number(d["duration"], "output.duration", lo=0.0, lo_open=True,
+                                    unit="seconds")
+    if "up_axis" in d:
+        up = ctx.string(d["up_axis"], "output.up_axis", ("Z", "Y", "z", "y"))
+        kw["up_axis"] = up.upper()
+    if "meters_per_unit" in d:
+        kw["meters_per_unit"] = ctx.number(d["meters_per_unit"], "output.meters_per_unit",
+                                           lo=0.0, lo_open=True)
+    if "start_frame" in d:
+        kw["start_frame"] = ctx.integer(d["start_frame"], "output.start_frame")
+    return OutputSettings(**kw)
+
+
+def _parse_simulation(ctx: _Ctx, d: Any, up_axis: str) -> SimulationSettings:
+    d = ctx.table(d, "simulation")
+    ctx.check_keys(d, "simulation", _SIM_KEYS)
+    kw: dict[str, Any] = {}
+    if "sphere_diameter" in d and "resolution" in d:
+        raise ctx.error("simulation.resolution", "both sphere_diameter and resolution are given",
+                        "give only one of them")
+    if "sphere_diameter" in d:
+        kw["sphere_diameter"] = ctx.number(d["sphere_diameter"], "simulation.sphere_diameter",
+                                           lo=0.0, lo_open=True, unit="metres")
+        kw["resolution"] = None
+    elif "resolution" in d:
+        kw["resolution"] = ctx.integer(d["resolution"], "simulation.resolution", lo=1,
+                                       what="a positive integer")
+    if "gravity" in d:
+        kw["gravity"] = ctx.vector(d["gravity"], "simulation.gravity")
+    else:
+        g = [0.0, 0.0, 0.0]
+        g[2 if up_axis == "Z" else 1] = -STANDARD_GRAVITY
+        kw["gravity"] = tuple(g)
+    if "dt" in d:
+        v = d["dt"]
+        if isinstance(v, str):
+            kw["dt"] = ctx.string(v, "simulation.dt", ("auto",))
+        else:
+            kw["dt"] = ctx.number(v, "simulation.dt", lo=0.0, lo_open=True,
+                                  unit='seconds, or "auto"')
+    if "device" in d:
+        kw["device"] = ctx.string(d["device"], "simulation.device", ("auto", "cpu", "cuda"))
+    if "seed" in d:
+        kw["seed"] = ctx.integer(d["seed"], "simulation.seed", lo=0,
+                                 what="a non-negative integer")
+    if "stiffness_target_overlap" in d:
+        kw["stiffness_target_overlap"] = ctx.number(
+            d["stiffness_target_overlap"], "simulation.stiffness_target_overlap",
+            lo=0.0, hi=0.5, lo_open=True)
+    if "dt_safety" in d:
+        kw["dt_safety"] = ctx.number(d["dt_safety"], "simulation.dt_safety", lo=0.0, hi=1.0,
+                                     lo_open=True)
+    if "sleeping" in d:
+        kw["sleeping"] = ctx.boolean(d["sleeping"], "simulation.sleeping")
+    if "sleep" in d:
+        s = ctx.table(d["sleep"], "simulation.sleep")
+        ctx.check_keys(s, "simulation.sleep", _SLEEP_KEYS)
+        units = {"linear_speed": "m/s", "angular_speed": "rad/s", "time": "seconds"}
+        kw["sleep"] = SleepSettings(**{
+            k: ctx.number(s[k], f"simulation.sleep.{k}", lo=0.0, lo_open=True, unit=units[k])
+            for k in _SLEEP_KEYS if k in s})
+    return SimulationSettings(**kw)
+
+
+def _parse_materials(ctx: _Ctx, d: Any) -> dict[str, MaterialSpec]:
+    d = ctx.table(d, "materials")
+    out = {"default": MaterialSpec("default")}
+    for name, m in d.items():
+        key = f"materials.{name}"
+        ctx.usd_name(name, key)
+        m = ctx.table(m, key)
+        ctx.check_keys(m, key, _MATERIAL_KEYS)
+        kw: dict[str, Any] = {}
+        if "density" in m:
+            kw["density"] = ctx.number(m["density"], f"{key}.density", lo=0.0, lo_open=True,
+                                       unit="kg/m^3")
+        if "restitution" in m:
+            kw["restitution"] = ctx.number(m["restitution"], f"{key}.restitution",
+                                           lo=0.0, hi=1.0)
+        if "friction" in m:
+            kw["friction"] = ctx.number(m["friction"], f"{key}.friction", lo=0.0)
+        if "stiffness" in m:
+            v = m["stiffness"]
+            if isinstance(v, str):
+                kw["stiffness"] = ctx.string(v, f"{key}.stiffness", ("auto",))
+            else:
+                kw["stiffness"] = ctx.number(v, f"{key}.stiffness", lo=0.0, lo_open=True,
+                                             unit='N/m, or "auto"')
+        out[name] = MaterialSpec(name, **kw)
+    return out
+
+
+def _check_builtin(ctx: _Ctx, key: str, builtin: str, params: dict, registry) -> dict:
+    """Check a built-in shape's name, parameter names and values against ``SHAPES``.
+
+    Returns the parameters with values normalized by kind (float lengths, tuples of
+    three floats, ints) where the registry says the kind.
+    """
+    for k, v in params.items():
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ctx.error(f"{key}.{k}", f"expected a finite number, got {v!r}")
+        if isinstance(v, dict):
+            raise ctx.error(f"{key}.{k}", f"expected a parameter value, got {_describe(v)}")
+    if registry is None:
+        return dict(params)
+    if builtin not in registry:
+        raise ctx.error(f"{key}.builtin", f"unknown built-in shape {builtin!r}",
+                        _suggest(builtin, sorted(registry)))
+    known = getattr(registry[builtin], "params", None)
+    if known is None:
+        return dict(params)
+    out = {}
+    for k, v in params.items():
+        if k not in known:
+            close = difflib.get_close_matches(k, list(known), n=1, cutoff=0.6)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise ctx.error(f"{key}.{k}", f"unknown parameter for {builtin!r}",
+                            f"{hint}known: {_known(known)}")
+        kind = getattr(known[k], "kind", None)
+        if kind == "length":
+            v = ctx.number(v, f"{key}.{k}", lo=0.0, lo_open=True, unit="metres")
+        elif kind == "vector3":
+            v = ctx.vector(v, f"{key}.{k}")
+            for j, x in enumerate(v):
+                if x <= 0:
+                    raise ctx.error(f"{key}.{k}[{j}]", f"{x:g} is out of range",
+                                    "expected a number > 0 (metres)")
+        elif kind == "int":
+            lo, hi = getattr(known[k], "low", None), getattr(known[k], "high", None)
+            v = ctx.integer(v, f"{key}.{k}", lo=lo, what="an integer")
+            if hi is not None and v > hi:
+                raise ctx.error(f"{key}.{k}", f"{v} is out of range",
+                                f"expected an integer in {lo} .. {hi}")
+        out[k] = v
+    return out
+
+
+def _parse_shapes(ctx: _Ctx, d: Any, registry) -> dict[str, ShapeSpec]:
+    d = ctx.table(d, "shapes")
+    out = {}
+    for name, s in d.items():
+        key = f"shapes.{name}"
+        ctx.usd_name(name, key)
+        s = ctx.table(s, key)
+        has_b, has_m = "builtin" in s, "mesh" in s
+        if has_b and has_m:
+            raise ctx.error(key, "both builtin and mesh are given", "give only one of them")
+        if not (has_b or has_m):
+            hint = "add builtin = \"<shape>\" or mesh = \"<file>\""
+            if registry is not None:
+                hint += f"; built-in shapes: {_known(sorted(registry))}"
+            raise ctx.error(key, "needs builtin or mesh", hint)
+        if has_m:
+            ctx.check_keys(s, key, ("mesh", "scale"))
+            scale = 1.0
+            if "scale" in s:
+                scale = ctx.number(s["scale"], f"{key}.scale", lo=0.0, lo_open=True)
+            path = ctx.mesh_file(s["mesh"], f"{key}.mesh")
+            out[name] = ShapeSpec(name=name, builtin=None, params={}, mesh_path=path, scale=scale)
+        else:
+            builtin = ctx.string(s["builtin"], f"{key}.builtin")
+            params = {k: v for k, v in s.items() if k != "builtin"}
+            if "scale" in params and (registry is None or builtin not in registry
+                                      or "scale" not in getattr(registry[builtin], "params", {})):
+                raise ctx.error(f"{key}.scale", "scale applies to mesh files only",
+                                "set the built-in shape's size parameters instead")
+            params = _check_builtin(ctx, key, builtin, params, registry)
+            out[name] = ShapeSpec(name=name, builtin=builtin, params=params, mesh_path=None,
+                                  scale=1.0)
+    return out
+
+
+def _material_ref(ctx: _Ctx, v: Any, key: str, materials) -> str:
+    v = ctx.string(v, key)
+    if v not in materials:
+        raise ctx.error(key, f"unknown material {v!r}", _suggest(v, list(materials)))
+    return v
+
+
+def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
+    key = f"bodies[{i}]"
+    b = ctx.table(b, key)
+    layout = "single"
+    if "layout" in b:
+        layout = ctx.string(b["layout"], f"{key}.layout", tuple(_LAYOUT_KEYS))
+    allowed = _BODY_COMMON + _LAYOUT_KEYS[layout]
+    for k in b:
+        if k not in allowed:
+            other = [lay for lay, ks in _LAYOUT_KEYS.items() if k in ks]
+            if other:
+                raise ctx.error(f"{key}.{k}", f"only used with layout = {other[0]!r}",
+                                f"this group has layout = {layout!r}")
+            raise ctx.error(f"{key}.{k}", "unknown key", _suggest(k, allowed))
+    name = ctx.usd_name(ctx.require(b, key, "name", 'e.g. name = "pawns"'), f"{key}.name")
+    shape = ctx.string(ctx.require(b, key, "shape", f"known: {_known(shapes)}"), f"{key}.shape")
+    if shape not in shapes:
+        raise ctx.error(f"{key}.shape", f"unknown shape {shape!r}", _suggest(shape, list(shapes)))
+    kw: dict[str, Any] = {"name": name, "shape": shape, "layout": layout}
+    if "material" in b:
+        kw["material"] = _material_ref(ctx, b["material"], f"{key}.material", materials)
+    count = None
+    if "count" in b:
+        count = ctx.integer(b["count"], f"{key}.count", lo=1, what="a positive integer")
+
+    if layout == "single":
+        if count is not None and count != 1:
+            raise ctx.error(f"{key}.count", f"layout 'single' places one body, got count = {count}",
+                            'remove count, or use layout = "grid" or "random"')
+        count = 1
+        kw["position"] = (ctx.vector(b["position"], f"{key}.position") if "position" in b
+                          else (0.0, 0.0, 0.0))
+    elif layout == "grid":
+        kw["origin"] = (ctx.vector(b["origin"], f"{key}.origin") if "origin" in b
+                        else (0.0, 0.0, 0.0))
+        dims_v = ctx.require(b, key, "dims", "e.g. dims = [4, 4, 2]")
+        if not isinstance(dims_v, list) or len(dims_v) != 3:
+            raise ctx.error(f"{key}.dims", f"expected an array of 3 integers, got {_describe(dims_v)}",
+                            "e.g. dims = [4, 4, 2]")
+        dims = tuple(ctx.integer(x, f"{key}.dims[{j}]", lo=1, what="a positive integer")
+                     for j, x in enumerate(dims_v))
+        kw["dims"] = dims
+        sp = ctx.require(b, key, "spacing", "e.g. spacing = 0.06 (metres)")
+        if isinstance(sp, list):
+            spacing = ctx.vector(sp, f"{key}.spacing")
+            for j, s in enumerate(spacing):
+                if s <= 0:
+                    raise ctx.error(f"{key}.spacing[{j}]", f"{s:g} is out of range",
+                                    "expected a number > 0 (metres)")
+        else:
+            s = ctx.number(sp, f"{key}.spacing", lo=0.0, lo_open=True, unit="metres")
+            spacing = (s, s, s)
+        kw["spacing"] = spacing
+        cap = dims[0] * dims[1] * dims[2]
+        if count is None:
+            count = cap
+        elif count > cap:
+            raise ctx.error(f"{key}.count",
+                            f"count = {count} is larger than dims = {list(dims)} holds ({cap})",
+                            "enlarge dims or lower count")
+    else:  # random
+        lo = ctx.vector(ctx.require(b, key, "region_min", "e.g. region_min = [-1, -1, 0]"),
+                        f"{key}.region_min")
+        hi = ctx.vector(ctx.require(b, key, "region_max", "e.g. region_max = [1, 1, 2]"),
+                        f"{key}.region_max")
+        for j in range(3):
+            if lo[j] > hi[j]:
+                raise ctx.error(f"{key}.region_max[{j}]",
+                                f"{hi[j]:g} is below region_min[{j}] = {lo[j]:g}",
+                                "region_max must be >= region_min on every axis")
+        kw["region_min"], kw["region_max"] = lo, hi
+        if count is None:
+            raise ctx.error(f"{key}.count", "missing required key",
+                            'layout = "random" needs count, e.g. count = 100')
+    kw["count"] = count
+
+    if "rotation" in b:
+        r = b["rotation"]
+        if isinstance(r, str):
+            kw["rotation"] = ctx.string(r, f"{key}.rotation", ("identity", "random"))
+        elif isinstance(r, list):
+            kw["rotation"] = ctx.quaternion(r, f"{key}.rotation")
+        else:
+            raise ctx.error(f"{key}.rotation", f"expected \"identity\", \"random\" or [w, x, y, z], "
+                            f"got {_describe(r)}", "e.g. rotation = [1.0, 0.0, 0.0, 0.0]")
+    if "velocity" in b:
+        kw["velocity"] = ctx.vector(b["velocity"], f"{key}.velocity")
+    if "angular_velocity" in b:
+        kw["angular_velocity"] = ctx.vector(b["angular_velocity"], f"{key}.angular_velocity")
+    return BodyGroup(**kw)
+
+
+def _parse_collider(ctx: _Ctx, i: int, c: Any, materials, registry, up_axis: str) -> Collider:
+    key = f"colliders[{i}]"
+    c = ctx.table(c, key)
+    ctype = ctx.string(ctx.require(c, key, "type", 'one of: "plane", "box", "mesh"'),
+                       f"{key}.type", tuple(_COLLIDER_KEYS))
+    kw: dict[str, Any] = {}
+    if "material" in c:
+        kw["material"] = _material_ref(ctx, c["material"], f"{key}.material", materials)
+    kw["name"] = ctx.usd_name(c["name"], f"{key}.name") if "name" in c else f"{ctype}{i}"
+    if ctype == "plane":
+        ctx.check_keys(c, key, _COLLIDER_KEYS["plane"])
+        if "point" in c:
+            kw["point"] = ctx.vector(c["point"], f"{key}.point")
+        if "normal" in c:
+            n = ctx.vector(c["normal"], f"{key}.normal")
+        else:
+            n = (0.0, 0.0, 1.0) if up_axis == "Z" else (0.0, 1.0, 0.0)
+        norm = math.sqrt(sum(x * x for x in n))
+        if norm < 1e-12:
+            raise ctx.error(f"{key}.normal", "zero normal",
+                            "give a non-zero direction pointing into the free side, "
+                            "e.g. normal = [0, 0, 1]")
+        kw["normal"] = tuple(x / norm for x in n)
+        return PlaneCollider(**kw)
+    if ctype == "box":
+        ctx.check_keys(c, key, _COLLIDER_KEYS["box"])
+        lo = ctx.vector(ctx.require(c, key, "min", "e.g. min = [-1, -1, 0]"), f"{key}.min")
+        hi = ctx.vector(ctx.require(c, key, "max", "e.g. max = [1, 1, 1]"), f"{key}.max")
+        for j in range(3):
+            if not lo[j] < hi[j]:
+                raise ctx.error(f"{key}.max[{j}]", f"{hi[j]:g} is not above min[{j}] = {lo[j]:g}",
+                                "max must be > min on every axis")
+        kw["min"], kw["max"] = lo, hi
+        if "open_top" in c:
+            kw["open_top"] = ctx.boolean(c["open_top"], f"{key}.open_top")
+        if "thickness" in c:
+            kw["thickness"] = ctx.number(c["thickness"], f"{key}.thickness", lo=0.0,
+                                         lo_open=True, unit="metres")
+        return BoxCollider(**kw)
+    # mesh
+    has_b, has_m = "builtin" in c, "mesh" in c
+    if has_b and has_m:
+        raise ctx.error(key, "both builtin and mesh are given", "give only one of them")
+    if not (has_b or has_m):
+        raise ctx.error(key, "a mesh collider needs builtin or mesh",
+                        'add mesh = "<file>" or builtin = "<shape>"')
+    if has_m:
+        ctx.check_keys(c, key, _COLLIDER_KEYS["mesh"])
+        kw["mesh_path"] = ctx.mesh_file(c["mesh"], f"{key}.mesh")
+    else:
+        builtin = ctx.string(c["builtin"], f"{key}.builtin")
+        params = {k: v for k, v in c.items() if k not in _COLLIDER_KEYS["mesh"]}
+        params = _check_builtin(ctx, key, builtin, params, registry)
+        kw["builtin"], kw["params"] = builtin, params
+    if "scale" in c:
+        kw["scale"] = ctx.number(c["scale"], f"{key}.scale", lo=0.0, lo_open=True)
+    if "position" in c:
+        kw["position"] = ctx.vector(c["position"], f"{key}.position")
+    if "rotation" in c:
+        r = c["rotation"]
+        if r == "identity":
+            kw["rotation"] = (1.0, 0.0, 0.0, 0.0)
+        else:
+            kw["rotation"] = ctx.quaternion(r, f"{key}.rotation")
+    return MeshCollider(**kw)
+
+
+def _array_of_tables(ctx: _Ctx, v: Any, key: str) -> list:
+    if isinstance(v, dict):
+        raise ctx.error(key, "expected an array of tables, got a single table",
+                        f"write each entry as [[{key}]]")
+    if not isinstance(v, list):
+        raise ctx.error(key, f"expected an array of tables, got {_describe(v)}",
+                        f"write each entry as [[{key}]]")
+    return v
+
+
+def _validate(ctx: _Ctx, data: dict) -> Scene:
+    ctx.check_keys(data, "", _TOP_KEYS, what="section")
+    output = _parse_output(ctx, data.get("output", {}))
+    simulation = _parse_simulation(ctx, data.get("simulation", {}), output.up_axis)
+    materials = _parse_materials(ctx, data.get("materials", {}))
+    registry = _load_shape_registry()
+    shapes = _parse_shapes(ctx, data.get("shapes", {}), registry)
+    if "bodies" not in data:
+        raise ctx.error("bodies", "no body groups", "add at least one [[bodies]] table")
+    bodies_raw = _array_of_tables(ctx, data["bodies"], "bodies")
+    if not bodies_raw:
+        raise ctx.error("bodies", "no body groups", "add at least one [[bodies]] table")
+    bodies = []
+    seen: dict[str, int] = {}
+    for i, b in enumerate(bodies_raw):
+        g = _parse_body(ctx, i, b, shapes, materials)
+        if g.name in seen:
+            raise ctx.error(f"bodies[{i}].name", f"duplicate group name {g.name!r}",
+                            f"already used by bodies[{seen[g.name]}]; names must be unique")
+        seen[g.name] = i
+        bodies.append(g)
+    colliders = []
+    if "colliders" in data:
+        seen_c: dict[str, int] = {}
+        for i, c in enumerate(_array_of_tables(ctx, data["colliders"], "colliders")):
+            col = _parse_collider(ctx, i, c, materials, registry, output.up_axis)
+            if col.name in seen_c:
+                raise ctx.error(f"colliders[{i}].name", f"duplicate collider name {col.name!r}",
+                                f"already used by colliders[{seen_c[col.name]}]")
+            seen_c[col.name] = i
+            colliders.append(col)
+    return Scene(path=ctx.path, output=output, simulation=simulation, materials=materials,
+                 shapes=shapes, bodies=tuple(bodies), colliders=tuple(colliders))
+
+
+_TOML_POS = re.compile(r"\s*\(at line (\d+), column (\d+)\)\s*$")
+_TOML_EOF = re.compile(r"\s*\(at end of document\)\s*$")
+
+
+def parse_scene(text: str, path: str | Path | None = None) -> Scene:
+    """Parse and validate scene TOML ``text``.
+
+    ``path`` names the file in error messages and is the base of relative mesh
+    paths (the current directory when None). Raises SceneError on any problem.
+    """
+    p = Path(path).expanduser().resolve() if path is not None else None
+    ctx = _Ctx(p, p.name if p is not None else "<scene>")
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        msg = str(exc)
+        lineno = getattr(exc, "lineno", None)
+        colno = getattr(exc, "colno", None)
+        m = _TOML_POS.search(msg)
+        if m:
+            lineno, colno = int(m.group(1)), int(m.group(2))
+            msg = msg[: m.start()]
+        elif _TOML_EOF.search(msg):
+            lineno = max(1, len(text.splitlines()))
+            msg = _TOML_EOF.sub("", msg) + " at end of document"
+        where = f"line {lineno}" if lineno else "TOML syntax"
+        raise ctx.error(where, msg.strip(),
+                        f"column {colno}" if colno else "fix the TOML syntax") from None
+    return _validate(ctx, data)
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read, parse and validate the scene file at ``path``."""
+    p = Path(path).expanduser()
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SceneError(f"{p.name}: file not found") from None
+    except IsADirectoryError:
+        raise SceneError(f"{p.name}: is a folder, not a scene file") from None
+    except UnicodeDecodeError as exc:
+        raise SceneError(f"{p.name}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except OSError as exc:
+        raise SceneError(f"{p.name}: cannot read ({exc.strerror})") from None
+    return parse_scene(text, p)
+
+
+# ---------------------------------------------------------------------- expansion
+
+
+def random_quaternions(rng: np.random.Generator, n: int) -> np.ndarray:
+    """``n`` uniformly distributed unit quaternions (w, x, y, z), Shoemake's method."""
+    u1, u2, u3 = rng.random((3, n))
+    a, b = np.sqrt(1.0 - u1), np.sqrt(u1)
+    t2, t3 = 2.0 * np.pi * u2, 2.0 * np.pi * u3
+    q = np.stack([b * np.cos(t3), a * np.sin(t2), a * np.cos(t2), b * np.sin(t3)], axis=1)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def grid_offsets(dims, spacing, count: int, up_axis: str = "Z") -> np.ndarray:
+    """(count, 3) world offsets of the first ``count`` lattice points.
+
+    Fill order: first horizontal axis fastest, then the second, then up. With
+    up_axis "Z" the lattice axes are (x, y, z); with "Y" they are (x, z, y).
+    ``dims`` and ``spacing`` are in lattice order.
+    """
+    nx, ny, _ = (int(v) for v in dims)
+    i = np.arange(count)
+    lattice = np.stack([i % nx, (i // nx) % ny, i // (nx * ny)], axis=1).astype(np.float64)
+    lattice *= np.asarray(spacing, dtype=np.float64)
+    if up_axis == "Y":
+        return lattice[:, [0, 2, 1]]
+    return lattice
+
+
+def expand_bodies(scene: Scene) -> list[BodyPlacement]:
+    """Per-body initial state of every group, in group order.
+
+    Random placements and rotations of group i come from generators seeded with
+    ``(seed, i, 0)`` and ``(seed, i, 1)``, so a group's bodies do not change when
+    other groups, or its own rotation setting, change.
+    """
+    seed = scene.simulation.seed
+    up = scene.output.up_axis
+    out = []
+    for gi, g in enumerate(scene.bodies):
+        n = g.count
+        if g.layout == "grid":
+            pos = np.asarray(g.origin, np.float64) + grid_offsets(g.dims, g.spacing, n, up)
+        elif g.layout == "random":
+            rng = np.random.default_rng([seed, gi, 0])
+            lo = np.asarray(g.region_min, np.float64)
+            hi = np.asarray(g.region_max, np.float64)
+            pos = lo + rng.random((n, 3)) * (hi - lo)
+        else:
+            pos = np.tile(np.asarray(g.position, np.float64), (n, 1))
+        if g.rotation == "random":
+            rot = random_quaternions(np.random.default_rng([seed, gi, 1]), n)
+        elif g.rotation == "identity":
+            rot = np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (n, 1))
+        else:
+            rot = np.tile(np.asarray(g.rotation, np.float64), (n, 1))
+        out.append(BodyPlacement(
+            name=g.name, shape=g.shape, material=g.material,
+            positions=np.ascontiguousarray(pos, dtype=np.float64),
+            rotations=np.ascontiguousarray(rot, dtype=np.float64),
+            velocities=np.tile(np.asarray(g.velocity, np.float64), (n, 1)),
+            angular_velocities=np.tile(np.asarray(g.angular_velocity, np.float64), (n, 1)),
+        ))
+    return out
