@@ -1,0 +1,131 @@
+"""`dempipe spheres`: build (and cache) sphere sets of meshes or built-in shapes."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import click
+
+from dempipe.errors import ShapeError
+
+
+def _resolve_input(arg: str, scale: float):
+    """(name, mesh) of a mesh file path or a built-in shape name."""
+    from dempipe import shapes
+
+    path = Path(arg)
+    if path.is_file():
+        return path.stem, shapes.load_mesh(path, scale=scale)
+    if arg in shapes.SHAPES:
+        mesh = shapes.build_shape(arg)
+        if scale != 1.0:
+            mesh.apply_scale(scale)
+        return arg, mesh
+    known = ", ".join(sorted(shapes.SHAPES))
+    if path.exists():
+        raise ShapeError(f"{arg}: not a mesh file (it is a folder or special file)")
+    raise ShapeError(f"{arg}: no such mesh file and no built-in shape of that name "
+                     f"(shapes: {known})")
+
+
+def _output_path(out: str, name: str) -> str:
+    return out.replace("{name}", name)
+
+
+def _list_shapes() -> None:
+    from dempipe import shapes
+
+    for spec in shapes.list_shapes():
+        params = ", ".join(f"{k}={p.default}" for k, p in spec.params.items())
+        click.echo(f"{spec.name:10s} {spec.doc}" + (f"  [{params}]" if params else ""))
+
+
+@click.command("spheres")
+@click.argument("inputs", metavar="MESH_OR_SHAPE...", nargs=-1)
+@click.option("--diameter", "-d", type=float, default=None,
+              help="Sphere diameter in metres (after --scale).")
+@click.option("--resolution", "-r", type=float, default=None,
+              help="Spheres across the longest bounding-box extent (sets the diameter per input).")
+@click.option("--scale", type=float, default=1.0, show_default=True,
+              help="Scale applied to the mesh (e.g. 0.01 for a mesh in centimetres).")
+@click.option("-o", "--output", "output", type=str, default=None,
+              help="Write the sphere set: .npz (arrays) or .usda/.usdc/.usd (mesh and spheres). "
+                   "With several inputs the path must contain {name}.")
+@click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
+@click.option("--cache-dir", type=click.Path(file_okay=False), default=None,
+              help="Cache folder (default: $DEMPIPE_CACHE_DIR or the user cache folder).")
+@click.option("--no-cache", is_flag=True, help="Neither read nor write the cache.")
+@click.option("--list-shapes", is_flag=True, help="List the built-in shapes and exit.")
+def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_cache, list_shapes):
+    """Approximate meshes or built-in shapes by spheres of one diameter.
+
+    MESH_OR_SHAPE is a mesh file (OBJ, STL, PLY, OFF, GLB/GLTF) or the name of a
+    built-in shape (see --list-shapes; an existing file of that name wins), with
+    its default parameters. Prints per input the sphere count, the volume
+    error (N d^3 against the mesh volume), the inertia error (relative Frobenius),
+    the build time and whether the cache had it.
+    """
+    if list_shapes:
+        _list_shapes()
+        return
+    if not inputs:
+        raise click.UsageError("give at least one mesh file or shape name (or --list-shapes)")
+    if (diameter is None) == (resolution is None):
+        raise click.UsageError("give exactly one of --diameter and --resolution")
+    if no_cache and cache_dir is not None:
+        raise click.UsageError("--cache-dir and --no-cache exclude each other")
+    if not (math.isfinite(scale) and scale > 0):
+        raise click.BadParameter(f"must be a positive number, got {scale}", param_hint="--scale")
+    if output is not None:
+        suffix = Path(output).suffix.lower()
+        if suffix not in (".npz", ".usda", ".usdc", ".usd"):
+            raise click.BadParameter(f"{output}: use a .npz, .usda, .usdc or .usd file",
+                                     param_hint="-o")
+        if len(inputs) > 1 and "{name}" not in output:
+            raise click.UsageError("with several inputs, -o must contain {name} "
+                                   "(e.g. -o spheres_{name}.npz)")
+
+    from dempipe.cache import SphereCache
+    from dempipe.spheres import build_sphere_set_with_info, diameter_for_resolution, save_sphere_set
+
+    cache = None
+    if not no_cache:
+        # A folder the user named must work (CacheError); the default one may be
+        # unwritable, in which case the cache warns once and is skipped.
+        cache = SphereCache(cache_dir, strict=cache_dir is not None)
+
+    results = []
+    for arg in inputs:
+        name, mesh = _resolve_input(arg, scale)
+        d = diameter if diameter is not None else diameter_for_resolution(mesh, resolution)
+        sphere_set, info = build_sphere_set_with_info(mesh, d, name=name, cache=cache)
+        row = {
+            "name": name,
+            "input": arg,
+            "count": sphere_set.count,
+            "diameter": sphere_set.diameter,
+            "volume": sphere_set.volume,
+            "volume_error_percent": 100.0 * sphere_set.sphere_volume_error,
+            "inertia_error_percent": 100.0 * sphere_set.inertia_error,
+            "build_seconds": info.seconds,
+            "cache": info.cache,
+            "mesh_sha256": sphere_set.mesh_sha256,
+            "output": None,
+        }
+        if output is not None:
+            out = _output_path(output, name)
+            save_sphere_set(out, sphere_set, mesh=mesh, name=name)
+            row["output"] = out
+        results.append(row)
+        if not as_json:
+            line = (f"{name}: {row['count']} spheres of d={row['diameter']:.6g} m, "
+                    f"volume error {row['volume_error_percent']:+.2f}%, "
+                    f"inertia error {row['inertia_error_percent']:.2f}%, "
+                    f"{row['build_seconds']:.2f} s, cache {row['cache']}")
+            if row["output"]:
+                line += f" -> {row['output']}"
+            click.echo(line)
+    if as_json:
+        click.echo(json.dumps(results, indent=2))
