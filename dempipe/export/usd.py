@@ -1,0 +1,540 @@
+"""Frames → USD: a baked rigid-body animation that DCC tools open as is.
+
+Two layouts (see ``docs/usd-output.md``):
+
+``"instancer"`` (default)
+    One ``UsdGeom.PointInstancer`` at ``/World/Bodies`` whose prototypes are the
+    shapes' meshes; per frame ``positions``, ``orientations``, ``velocities``,
+    ``angularVelocities`` and ``extent``. Compact and fast; Houdini, usdview,
+    Omniverse and Blender (4.x) read it.
+``"xforms"``
+    One instanceable ``Xform`` per body at ``/World/Bodies/<group>/<group>_<i>``
+    referencing a class prototype ``/World/Prototypes/<shape>``, with time-sampled
+    ``xformOp:translate`` and ``xformOp:orient``. Every body is a selectable
+    prim (what Maya and Blender users expect).
+
+Everything is authored with the Sdf API on an anonymous layer (no stage change
+processing per edit), then exported to a temporary file next to the target and
+moved over it with :func:`os.replace`, so a failed export never leaves a
+half-written file behind.
+
+Conventions: dempipe quaternions are (w, x, y, z); GfQuat memory layout is
+(x, y, z, w), and the conversion happens here only. USD angular velocities are
+in degrees per second. Lengths are divided by ``model.meters_per_unit``.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from pxr import Gf, Sdf, Tf, Vt
+
+from .. import __version__
+from ..errors import ExportError
+
+__all__ = ["ExportInfo", "write_usd", "LAYOUTS", "EXTENSIONS"]
+
+LAYOUTS = ("instancer", "xforms")
+EXTENSIONS = (".usd", ".usdc", ".usda")
+
+_T = Sdf.ValueTypeNames
+_DEF = Sdf.SpecifierDef
+_CLASS = Sdf.SpecifierClass
+_UNIFORM = Sdf.VariabilityUniform
+
+# Display colours: bodies cycle through a palette by shape, colliders are grey.
+_PALETTE = np.array(
+    [
+        [0.85, 0.33, 0.10], [0.00, 0.45, 0.74], [0.47, 0.67, 0.19],
+        [0.93, 0.69, 0.13], [0.49, 0.18, 0.56], [0.30, 0.75, 0.93],
+        [0.64, 0.08, 0.18], [0.90, 0.90, 0.85],
+    ],
+    dtype=np.float32,
+)
+_COLLIDER_COLOR = (0.55, 0.55, 0.55)
+
+
+@dataclass(frozen=True)
+class ExportInfo:
+    """What :func:`write_usd` wrote.
+
+    Attributes
+    ----------
+    path : Path
+        The file written.
+    seconds : float
+        Wall time of the export (authoring + writing + rename) [s].
+    n_time_samples : int
+        Time samples written, summed over all attributes.
+    bytes : int
+        Size of the written file.
+    """
+
+    path: Path
+    seconds: float
+    n_time_samples: int
+    bytes: int
+
+
+# --------------------------------------------------------------------------- entry
+
+
+def write_usd(path, frames, model, *, layout: str = "instancer", overwrite: bool = True,
+              sparse: bool = True) -> ExportInfo:
+    """Bake ``frames`` of ``model`` to the USD file ``path`` (.usd, .usdc or .usda).
+
+    Parameters
+    ----------
+    path : str or Path
+        Target file. Its extension picks the format (``.usd`` is binary crate).
+        Missing parent folders are created.
+    frames : Frames
+        ``frame_numbers`` (used as USD time codes), ``x``, ``q`` (w, x, y, z),
+        ``v``, ``w`` of the model's dynamic bodies.
+    model : Model
+        Reads ``shapes``, ``n_bodies``, ``body_shape``, ``body_group``,
+        ``group_names``, ``body_group_index``, ``plane_point``, ``plane_normal``,
+        ``boxes``, ``static_meshes``, ``fps``, ``up_axis``, ``meters_per_unit``.
+    layout : {"instancer", "xforms"}
+        One PointInstancer, or one instanceable Xform per body.
+    overwrite : bool
+        If False and ``path`` exists, raise :class:`ExportError`.
+    sparse : bool
+        Leave out redundant samples: an attribute constant over all frames gets
+        a default value only; inside a run of identical samples only the first
+        and last are kept (linear interpolation between equal values is exact).
+        Per body in the xforms layout, per whole array in the instancer layout.
+
+    Returns
+    -------
+    ExportInfo
+
+    Raises
+    ------
+    ExportError
+        Bad extension or layout, inconsistent inputs, existing target with
+        ``overwrite=False``, or any failure while writing (the target is then
+        left as it was and no temporary file remains).
+    """
+    t0 = time.perf_counter()
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext not in EXTENSIONS:
+        raise ExportError(
+            f"{path}: unsupported extension {path.suffix!r} (use one of {', '.join(EXTENSIONS)})"
+        )
+    if layout not in LAYOUTS:
+        raise ExportError(f"unknown USD layout {layout!r} (known: {', '.join(LAYOUTS)})")
+    if path.exists() and not overwrite:
+        raise ExportError(f"{path}: file exists (pass overwrite=True or choose another path)")
+    _check_inputs(frames, model)
+
+    layer = Sdf.Layer.CreateAnonymous("dempipe" + ext)
+    with Sdf.ChangeBlock():
+        _author_metadata(layer, frames, model, layout)
+        world = Sdf.PrimSpec(layer.pseudoRoot, "World", _DEF, "Xform")
+        if layout == "instancer":
+            n_samples = _author_instancer(layer, world, frames, model, sparse)
+        else:
+            n_samples = _author_xforms(layer, world, frames, model, sparse)
+        _author_colliders(layer, world, frames, model)
+
+    _save_atomically(layer, path)
+    return ExportInfo(
+        path=path,
+        seconds=time.perf_counter() - t0,
+        n_time_samples=n_samples,
+        bytes=path.stat().st_size,
+    )
+
+
+# ----------------------------------------------------------------------- checks
+
+
+def _check_inputs(frames, model) -> None:
+    n_bodies = int(model.n_bodies)
+    x = np.asarray(frames.x)
+    n_frames = x.shape[0] if x.ndim == 3 else -1
+    expect = {"x": 3, "q": 4, "v": 3, "w": 3}
+    for name, k in expect.items():
+        a = np.asarray(getattr(frames, name))
+        if a.shape != (n_frames, n_bodies, k):
+            raise ExportError(
+                f"frames.{name} has shape {a.shape}, expected ({n_frames}, {n_bodies}, {k}) "
+                f"(the model has {n_bodies} dynamic bodies)"
+            )
+    if n_frames < 1:
+        raise ExportError("no frames to export (bake at least one frame)")
+    fn = np.asarray(frames.frame_numbers)
+    if fn.shape != (n_frames,):
+        raise ExportError(f"frames.frame_numbers has shape {fn.shape}, expected ({n_frames},)")
+    if n_frames > 1 and not np.all(np.diff(fn) > 0):
+        raise ExportError("frames.frame_numbers must be strictly increasing")
+    if not (float(model.meters_per_unit) > 0):
+        raise ExportError(f"meters_per_unit must be > 0 (got {model.meters_per_unit})")
+    if str(model.up_axis).upper() not in ("Y", "Z"):
+        raise ExportError(f"up_axis must be 'Y' or 'Z' (got {model.up_axis!r})")
+    if not (float(model.fps) > 0):
+        raise ExportError(f"fps must be > 0 (got {model.fps})")
+    if n_bodies:
+        bs = np.asarray(model.body_shape)
+        if bs.min() < 0 or bs.max() >= len(model.shapes):
+            raise ExportError("model.body_shape refers to a shape that does not exist")
+
+
+# --------------------------------------------------------------------- metadata
+
+
+def _author_metadata(layer, frames, model, layout) -> None:
+    root = layer.pseudoRoot
+    root.SetInfo("upAxis", str(model.up_axis).upper())
+    root.SetInfo("metersPerUnit", float(model.meters_per_unit))
+    root.SetInfo("kilogramsPerUnit", 1.0)
+    fps = float(model.fps)
+    layer.timeCodesPerSecond = fps
+    layer.framesPerSecond = fps
+    fn = np.asarray(frames.frame_numbers)
+    layer.startTimeCode = float(fn[0])
+    layer.endTimeCode = float(fn[-1])
+    layer.defaultPrim = "World"
+    layer.documentation = (
+        f"Rigid-body animation baked by dempipe {__version__} ({layout} layout)"
+    )
+    layer.customLayerData = {"dempipe": {"version": __version__, "layout": layout}}
+
+
+# ---------------------------------------------------------------------- helpers
+
+
+def _unique_names(names) -> list[str]:
+    """Valid, unique prim names, in order (``Tf.MakeValidIdentifier`` + suffixes)."""
+    out, seen = [], set()
+    for name in names:
+        base = Tf.MakeValidIdentifier(str(name)) or "_"
+        cand, k = base, 1
+        while cand in seen:
+            cand = f"{base}_{k}"
+            k += 1
+        seen.add(cand)
+        out.append(cand)
+    return out
+
+
+def _attr(prim, name, type_name, default=None, *, uniform=False):
+    spec = Sdf.AttributeSpec(prim, name, type_name, _UNIFORM if uniform else Sdf.VariabilityVarying)
+    if default is not None:
+        spec.default = default
+    return spec
+
+
+def _kept_samples(values: np.ndarray) -> np.ndarray:
+    """(F, K...) samples -> (F, K) bool: which to write so that linear
+    interpolation reproduces every sample. Inside a run of equal consecutive
+    samples only the first and the last are kept. Comparison is exact."""
+    n = values.shape[0]
+    keep = np.ones(values.shape[:2], dtype=bool)
+    if n > 2:
+        same = np.all(values[1:] == values[:-1], axis=tuple(range(2, values.ndim)))
+        keep[1:-1] = ~(same[:-1] & same[1:])
+    return keep
+
+
+def _constant(values: np.ndarray) -> np.ndarray:
+    """(F, K...) -> (K,) bool: True where all samples equal the first."""
+    return np.all(values == values[:1], axis=(0,) + tuple(range(2, values.ndim)))
+
+
+def _quat_xyzw(q_wxyz: np.ndarray, dtype) -> np.ndarray:
+    """dempipe (w, x, y, z) -> GfQuat memory layout (x, y, z, w), unit length."""
+    q = np.asarray(q_wxyz, dtype=np.float64)
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    q = q / np.where(norm > 0, norm, 1.0)
+    return np.ascontiguousarray(q[..., [1, 2, 3, 0]], dtype=dtype)
+
+
+def _author_mesh(prim, vertices, faces, color) -> None:
+    """Points, topology, extent, displayColor of a polygon mesh prim."""
+    pts = np.ascontiguousarray(vertices, dtype=np.float32)
+    faces = np.asarray(faces, dtype=np.int32)
+    _attr(prim, "points", _T.Point3fArray, Vt.Vec3fArray.FromNumpy(pts))
+    _attr(prim, "faceVertexCounts", _T.IntArray,
+          Vt.IntArray.FromNumpy(np.full(len(faces), faces.shape[1] if faces.ndim == 2 else 3,
+                                        dtype=np.int32)))
+    _attr(prim, "faceVertexIndices", _T.IntArray,
+          Vt.IntArray.FromNumpy(np.ascontiguousarray(faces.reshape(-1))))
+    if len(pts):
+        ext = np.stack([pts.min(axis=0), pts.max(axis=0)])
+    else:
+        ext = np.zeros((2, 3), np.float32)
+    _attr(prim, "extent", _T.Float3Array, Vt.Vec3fArray.FromNumpy(ext))
+    _attr(prim, "subdivisionScheme", _T.Token, "none", uniform=True)
+    col = _attr(prim, "primvars:displayColor", _T.Color3fArray,
+                Vt.Vec3fArray([Gf.Vec3f(*map(float, color))]))
+    col.SetInfo("interpolation", "constant")
+
+
+def _shape_points(model, mpu):
+    """Body-frame prototype points in stage units, one array per shape."""
+    return [np.asarray(s.vertices, dtype=np.float64) / mpu for s in model.shapes]
+
+
+# -------------------------------------------------------------------- instancer
+
+
+def _author_instancer(layer, world, frames, model, sparse) -> int:
+    mpu = float(model.meters_per_unit)
+    bodies = Sdf.PrimSpec(world, "Bodies", _DEF, "PointInstancer")
+    protos = Sdf.PrimSpec(bodies, "Prototypes", _DEF, "Scope")
+    shape_names = _unique_names(s.name for s in model.shapes)
+    points = _shape_points(model, mpu)
+    proto_paths = []
+    for i, (shape, name, pts) in enumerate(zip(model.shapes, shape_names, points)):
+        mesh = Sdf.PrimSpec(protos, name, _DEF, "Mesh")
+        _author_mesh(mesh, pts, shape.faces, _PALETTE[i % len(_PALETTE)])
+        proto_paths.append(mesh.path)
+    rel = Sdf.RelationshipSpec(bodies, "prototypes", custom=False)
+    rel.targetPathList.explicitItems = proto_paths
+
+    n_bodies = int(model.n_bodies)
+    _attr(bodies, "protoIndices", _T.IntArray,
+          Vt.IntArray.FromNumpy(np.asarray(model.body_shape, dtype=np.int32).reshape(-1)))
+    _attr(bodies, "ids", _T.Int64Array,
+          Vt.Int64Array.FromNumpy(np.arange(n_bodies, dtype=np.int64)))
+
+    times = [float(t) for t in np.asarray(frames.frame_numbers)]
+    pos = np.ascontiguousarray(np.asarray(frames.x) / mpu, dtype=np.float32)
+    ori = _quat_xyzw(frames.q, np.float16)
+    vel = np.ascontiguousarray(np.asarray(frames.v) / mpu, dtype=np.float32)
+    ang = np.ascontiguousarray(np.degrees(np.asarray(frames.w)), dtype=np.float32)
+
+    # Conservative per-frame bound: instance centres ± the largest prototype radius.
+    radius = max((float(np.linalg.norm(p, axis=1).max()) for p in points if len(p)), default=0.0)
+    if n_bodies:
+        ext = np.stack([pos.min(axis=1) - radius, pos.max(axis=1) + radius], axis=1)
+    else:
+        ext = np.zeros((len(times), 2, 3))
+    ext = np.ascontiguousarray(ext, dtype=np.float32)
+
+    n = 0
+    for name, type_name, values, to_vt in (
+        ("positions", _T.Point3fArray, pos, Vt.Vec3fArray.FromNumpy),
+        ("orientations", _T.QuathArray, ori, Vt.QuathArray.FromNumpy),
+        ("velocities", _T.Vector3fArray, vel, Vt.Vec3fArray.FromNumpy),
+        ("angularVelocities", _T.Vector3fArray, ang, Vt.Vec3fArray.FromNumpy),
+        ("extent", _T.Float3Array, ext, Vt.Vec3fArray.FromNumpy),
+    ):
+        spec = _attr(bodies, name, type_name)
+        n += _write_array_samples(layer, spec.path, times, values, to_vt, sparse)
+    return n
+
+
+def _write_array_samples(layer, attr_path, times, values, to_vt, sparse) -> int:
+    """One whole array per kept frame; a constant attribute gets a default only."""
+    flat = values.reshape(values.shape[0], 1, -1)
+    if sparse and bool(_constant(flat)[0]):
+        layer.GetAttributeAtPath(attr_path).default = to_vt(values[0])
+        return 0
+    kept = np.flatnonzero(_kept_samples(flat)[:, 0]) if sparse else range(len(times))
+    for i in kept:
+        layer.SetTimeSample(attr_path, times[i], to_vt(values[i]))
+    return len(kept)
+
+
+# ----------------------------------------------------------------------- xforms
+
+
+def _author_xforms(layer, world, frames, model, sparse) -> int:
+    mpu = float(model.meters_per_unit)
+    # Prototypes: one class Xform per shape holding a Mesh child. Classes are
+    # abstract (not drawn, not imported as objects); each body references its
+    # shape's class and is instanceable, so the mesh is stored and drawn once.
+    protos = Sdf.PrimSpec(world, "Prototypes", _DEF, "Scope")
+    shape_names = _unique_names(s.name for s in model.shapes)
+    points = _shape_points(model, mpu)
+    proto_paths = []
+    for i, (shape, name, pts) in enumerate(zip(model.shapes, shape_names, points)):
+        cls = Sdf.PrimSpec(protos, name, _CLASS, "Xform")
+        mesh = Sdf.PrimSpec(cls, "mesh", _DEF, "Mesh")
+        _author_mesh(mesh, pts, shape.faces, _PALETTE[i % len(_PALETTE)])
+        proto_paths.append(cls.path)
+
+    bodies = Sdf.PrimSpec(world, "Bodies", _DEF, "Xform")
+    group_names = _unique_names(model.group_names)
+    groups = [Sdf.PrimSpec(bodies, g, _DEF, "Xform") for g in group_names]
+
+    times = [float(t) for t in np.asarray(frames.frame_numbers)]
+    trans = np.ascontiguousarray(np.asarray(frames.x, dtype=np.float64) / mpu)
+    orient = _quat_xyzw(frames.q, np.float32)
+    n_frames, n_bodies = trans.shape[:2]
+    if sparse:
+        keep_t, keep_o = _kept_samples(trans), _kept_samples(orient)
+        const_t, const_o = _constant(trans), _constant(orient)
+    else:
+        keep_t = keep_o = np.ones((n_frames, n_bodies), dtype=bool)
+        const_t = const_o = np.zeros(n_bodies, dtype=bool)
+
+    body_shape = np.asarray(model.body_shape)
+    body_group = np.asarray(model.body_group)
+    body_group_index = np.asarray(model.body_group_index)
+    op_order = Vt.TokenArray(["xformOp:translate", "xformOp:orient"])
+    n = 0
+    for b in range(n_bodies):
+        g = int(body_group[b])
+        prim = Sdf.PrimSpec(groups[g], f"{group_names[g]}_{int(body_group_index[b])}", _DEF, "Xform")
+        prim.referenceList.prependedItems.append(Sdf.Reference(primPath=proto_paths[int(body_shape[b])]))
+        prim.instanceable = True
+        t_attr = _attr(prim, "xformOp:translate", _T.Double3)
+        o_attr = _attr(prim, "xformOp:orient", _T.Quatf)
+        _attr(prim, "xformOpOrder", _T.TokenArray, op_order, uniform=True)
+
+        n += _write_body_samples(layer, t_attr, times, Vt.Vec3dArray.FromNumpy(trans[:, b]),
+                                 const_t[b], keep_t[:, b])
+        n += _write_body_samples(layer, o_attr, times, Vt.QuatfArray.FromNumpy(orient[:, b]),
+                                 const_o[b], keep_o[:, b])
+    return n
+
+
+def _write_body_samples(layer, spec, times, values, constant, keep) -> int:
+    """Samples of one body's attribute: a default only if constant, else the kept frames."""
+    if constant:
+        spec.default = values[0]
+        return 0
+    values = list(values)
+    path = spec.path
+    set_sample = layer.SetTimeSample
+    if keep.all():
+        for t, value in zip(times, values):
+            set_sample(path, t, value)
+        return len(values)
+    idx = np.flatnonzero(keep).tolist()
+    for i in idx:
+        set_sample(path, times[i], values[i])
+    return len(idx)
+
+
+# -------------------------------------------------------------------- colliders
+
+
+def _tangent_basis(n: np.ndarray):
+    """Orthonormal u, v with u × v = n."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(n, a)
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    return u, v
+
+
+def _plane_quad(point, normal, positions):
+    """Quad vertices (4, 3) [m] of a finite stand-in for an infinite plane:
+    centred at the projection of the bodies' frame-0 centroid onto the plane,
+    half size max(1 m, 2 × the largest in-plane distance of any position from
+    that centre)."""
+    n = np.asarray(normal, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    p = np.asarray(point, dtype=np.float64)
+    u, v = _tangent_basis(n)
+    if positions.shape[1]:
+        c0 = positions[0].mean(axis=0)
+        centre = c0 - np.dot(c0 - p, n) * n
+        d = positions.reshape(-1, 3) - centre
+        spread = float(np.sqrt(np.max((d @ u) ** 2 + (d @ v) ** 2)))
+    else:
+        centre, spread = p, 0.0
+    h = max(1.0, 2.0 * spread)
+    return np.array([centre - h * u - h * v, centre + h * u - h * v,
+                     centre + h * u + h * v, centre - h * u + h * v])
+
+
+_CUBE_FACES = np.array(  # outward quads of the cuboid with corners indexed by bits (x, y, z)
+    [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]],
+    dtype=np.int32,
+)
+
+
+def _cuboid(lo, hi):
+    bits = np.array([[(k >> 0) & 1, (k >> 1) & 1, (k >> 2) & 1] for k in range(8)])
+    return np.where(bits == 1, hi, lo).astype(np.float64)
+
+
+def _box_walls(box, up: int):
+    """Vertices (8S, 3) and quad faces (6S, 4) of the slabs around a box collider:
+    the walls and floor outside [lo, hi] with the box's thickness, and a lid
+    unless the box is open at the top."""
+    lo = np.asarray(box.lo, dtype=np.float64)
+    hi = np.asarray(box.hi, dtype=np.float64)
+    t = getattr(box, "thickness", None)
+    t = float(t) if t is not None and float(t) > 0 else max(0.01, 0.02 * float(np.min(hi - lo)))
+    open_top = bool(getattr(box, "open_top", False))
+    outer_lo, outer_hi = lo - t, hi + t
+    if open_top:
+        outer_hi[up] = hi[up]
+    verts, faces = [], []
+    for axis in range(3):
+        for side in (0, 1):
+            if open_top and axis == up and side == 1:
+                continue
+            s_lo, s_hi = outer_lo.copy(), outer_hi.copy()
+            if side == 0:
+                s_hi[axis] = lo[axis]
+            else:
+                s_lo[axis] = hi[axis]
+            faces.append(_CUBE_FACES + 8 * len(verts))
+            verts.append(_cuboid(s_lo, s_hi))
+    return np.concatenate(verts), np.concatenate(faces)
+
+
+def _author_colliders(layer, world, frames, model) -> None:
+    mpu = float(model.meters_per_unit)
+    up = {"Y": 1, "Z": 2}[str(model.up_axis).upper()]
+    plane_point = np.asarray(getattr(model, "plane_point", np.zeros((0, 3)))).reshape(-1, 3)
+    plane_normal = np.asarray(getattr(model, "plane_normal", np.zeros((0, 3)))).reshape(-1, 3)
+    boxes = tuple(getattr(model, "boxes", ()) or ())
+    statics = tuple(getattr(model, "static_meshes", ()) or ())
+    if not (len(plane_point) or boxes or statics):
+        return
+    col = Sdf.PrimSpec(world, "Colliders", _DEF, "Xform")
+    positions = np.asarray(frames.x, dtype=np.float64)
+    quad = np.array([[0, 1, 2, 3]], dtype=np.int32)
+    for i, (p, nrm) in enumerate(zip(plane_point, plane_normal)):
+        prim = Sdf.PrimSpec(col, f"plane_{i}", _DEF, "Mesh")
+        _author_mesh(prim, _plane_quad(p, nrm, positions) / mpu, quad, _COLLIDER_COLOR)
+    for i, box in enumerate(boxes):
+        prim = Sdf.PrimSpec(col, f"box_{i}", _DEF, "Mesh")
+        verts, faces = _box_walls(box, up)
+        _author_mesh(prim, verts / mpu, faces, _COLLIDER_COLOR)
+    reserved = {f"plane_{i}" for i in range(len(plane_point))} | {f"box_{i}" for i in range(len(boxes))}
+    names = _unique_names(list(reserved) + [m.name for m in statics])[len(reserved):]
+    for name, mesh in zip(names, statics):
+        prim = Sdf.PrimSpec(col, name, _DEF, "Mesh")
+        _author_mesh(prim, np.asarray(mesh.vertices, dtype=np.float64) / mpu, mesh.faces,
+                     _COLLIDER_COLOR)
+
+
+# ------------------------------------------------------------------ atomic save
+
+
+def _save_atomically(layer, path: Path) -> None:
+    """Export ``layer`` to a temp file beside ``path`` (same extension, so the
+    same file format), fsync it, then rename it over ``path``."""
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if not layer.Export(str(tmp)):
+            raise OSError("USD could not write the layer")
+        with open(tmp, "rb") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException as exc:  # Tf.ErrorException, OSError, KeyboardInterrupt, ...
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        if not isinstance(exc, Exception):
+            raise
+        text = str(exc).strip()
+        cause = text.splitlines()[-1] if text else type(exc).__name__
+        raise ExportError(f"{path}: cannot write USD file ({cause})") from exc
