@@ -31,7 +31,7 @@ _LAZY = {
     "load_scene": "scene",
     "Material": "materials",
     "Model": "model",
-    "build_model": "model",
+    "build_model": "build",
     "State": "state",
     "Simulator": "simulator",
     "Frames": "frames",

@@ -153,7 +153,7 @@ class Model:
     initial_v: np.ndarray
     initial_w: np.ndarray
     stiffness_auto: tuple = ()
-    notes: tuple = field(default=())
+    build_info: dict = field(default_factory=dict)
 
     @property
     def n_spheres(self) -> int:
@@ -167,6 +167,12 @@ class Model:
     def contact_time(self) -> float:
         """Duration of the stiffest contact [s] (inf when nothing can touch)."""
         return math.pi / self.omega_max if self.omega_max > 0 else math.inf
+
+    def body_name(self, b: int) -> str:
+        """'group[index]' of a dynamic body, or the static mesh collider's name."""
+        if b >= self.n_bodies:
+            return self.static_meshes[b - self.n_bodies].name
+        return f"{self.group_names[self.body_group[b]]}[{self.body_group_index[b]}]"
 
     def initial_state(self) -> State:
         """State at frame 0: positions, orientations, momenta from the initial velocities."""

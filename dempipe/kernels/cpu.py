@@ -402,6 +402,26 @@ class CpuBackend:
             self.sorted_idx, self.sorted_x, self.sorted_v, self.sorted_key, self.sorted_body,
             self.sphere_f, self.sphere_t, self.sphere_overlap)
 
+    def probe(self, state) -> None:
+        """Stages 1-4 without moving anything: fills sphere_f, sphere_overlap."""
+        m = self.model
+        stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
+                              m.body_inv_mass, m.body_inv_inertia, self.body_v, self.body_w)
+        stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q, self.body_v,
+                      self.body_w, 1.0 / m.diameter, self.grid, self.sphere_x, self.sphere_v,
+                      self.sphere_r, self.sphere_key, self.sphere_hash)
+        stage_grid_sort(self.sphere_hash, self.bucket_start, self.bucket_fill, self.sorted_idx)
+        stage_grid_gather(self.sorted_idx, self.sphere_x, self.sphere_v, self.sphere_key,
+                          m.sphere_body, self.sorted_x, self.sorted_v, self.sorted_key,
+                          self.sorted_body)
+        self.sphere_overlap[:] = 0.0
+        stage_contacts(m.diameter, 1.0 / m.diameter, self.grid, self.bucket_start,
+                       self.sorted_idx, self.sorted_x, self.sorted_v, self.sorted_key,
+                       self.sorted_body, self.body_w, m.body_inv_mass, m.body_material,
+                       m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio, m.features.friction,
+                       m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth,
+                       m.wall_material, self.sphere_f, self.sphere_t, self.sphere_overlap)
+
     def velocities(self, state):
         """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""
         m = self.model

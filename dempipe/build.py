@@ -1,0 +1,155 @@
+"""build_model(scene): a scene file's description turned into a Model.
+
+This is the one place that joins the scene file (scene.py), the shapes
+(shapes.py), the sphere sets and their cache (spheres.py, cache.py) and the
+model builder (model.py). ``overrides`` let `dempipe report` vary resolution,
+stiffness and dt without editing the scene.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from . import materials as mat
+from .errors import SceneError
+from .model import Model, ModelBuilder, quat_to_matrix
+
+
+@dataclass(frozen=True)
+class Overrides:
+    """Settings that replace the scene file's (None: keep the scene's).
+
+    diameter [m] or resolution (spheres across the smallest shape's longest extent);
+    stiffness_factor multiplies every material's stiffness (auto included);
+    dt [s] or dt_factor (times the auto step); duration [s].
+    """
+
+    diameter: float | None = None
+    resolution: int | None = None
+    stiffness_factor: float = 1.0
+    dt: float | str | None = None
+    dt_factor: float = 1.0
+    duration: float | None = None
+
+
+def _shape_mesh(spec, where: str):
+    from .shapes import build_shape, load_mesh
+
+    if spec.builtin is not None:
+        return build_shape(spec.builtin, **dict(spec.params))
+    return load_mesh(spec.mesh_path, scale=spec.scale)
+
+
+def _collider_mesh(c, where: str):
+    """A mesh collider's mesh moved into the world: scale, rotate, translate."""
+    from .shapes import build_shape, load_mesh
+
+    if c.builtin is not None:
+        mesh = build_shape(c.builtin, **dict(c.params))
+        if c.scale != 1.0:
+            mesh.apply_scale(c.scale)
+    else:
+        mesh = load_mesh(c.mesh_path, scale=c.scale)
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(np.asarray(c.rotation, dtype=np.float64))
+    T[:3, 3] = c.position
+    mesh.apply_transform(T)
+    return mesh
+
+
+def build_model(scene, *, cache=None, overrides: Overrides | None = None) -> Model:
+    """The Model of a loaded Scene (see scene.load_scene).
+
+    cache : a SphereCache, or None for no caching.
+    The returned Model's ``build_info`` holds sphere-set build time and cache hits.
+    """
+    from .scene import expand_bodies
+    from .spheres import build_sphere_set_with_info, diameter_for_resolution
+
+    o = overrides or Overrides()
+    src = scene.path.name if scene.path else "<scene>"
+    sim = scene.simulation
+    out = scene.output
+    used = [g.shape for g in scene.bodies]
+    names = list(dict.fromkeys(used))
+    meshes = {n: _shape_mesh(scene.shapes[n], f"{src}: shapes.{n}") for n in names}
+
+    if o.diameter is not None:
+        d = float(o.diameter)
+    elif o.resolution is None and sim.sphere_diameter is not None:
+        d = float(sim.sphere_diameter)
+    else:
+        res = o.resolution or sim.resolution
+        # "spheres across the longest extent of the smallest shape"
+        d = min(diameter_for_resolution(meshes[n], res) for n in names)
+
+    t0 = time.perf_counter()
+    hits = []
+    b = ModelBuilder(d, gravity=sim.gravity)
+    material_index = {}
+    for name, spec in scene.materials.items():
+        m = spec.to_material()
+        if o.stiffness_factor != 1.0 and m.stiffness is not None:
+            m = replace(m, stiffness=m.stiffness * o.stiffness_factor)
+        material_index[name] = b.add_material(m)
+    shape_index = {}
+    for n in names:
+        ss, info = build_sphere_set_with_info(meshes[n], d, name=n, cache=cache)
+        hits.append((n, info.cache, info.seconds, ss.count))
+        shape_index[n] = b.add_shape(n, meshes[n], ss)
+    for placement in expand_bodies(scene):
+        b.add_bodies(placement.name, shape_index[placement.shape],
+                     material_index[placement.material], placement.positions,
+                     placement.rotations, placement.velocities, placement.angular_velocities)
+    up = out.up_index
+    for c in scene.colliders:
+        kind = type(c).__name__
+        mi = material_index[c.material]
+        if kind == "PlaneCollider":
+            b.add_plane(c.point, c.normal, mi)
+        elif kind == "BoxCollider":
+            b.add_box(c.min, c.max, c.open_top, mi, c.thickness, up=up)
+        else:
+            mesh = _collider_mesh(c, f"{src}: colliders.{c.name}")
+            ss, info = build_sphere_set_with_info(mesh, d, name=c.name, cache=cache)
+            hits.append((c.name, info.cache, info.seconds, ss.count))
+            b.add_static_mesh(c.name, mesh, ss, mi)
+    build_seconds = time.perf_counter() - t0
+
+    fps = out.fps
+    duration = out.duration if o.duration is None else o.duration
+    n_frames = int(round(duration * fps)) + 1
+    dt = o.dt if o.dt is not None else sim.dt
+    target = sim.stiffness_target_overlap or 0.02
+    steps_per_contact = mat.STEPS_PER_CONTACT / o.dt_factor   # dt_factor 0.5: twice the steps
+    if o.stiffness_factor != 1.0:
+        # auto stiffness scales through the target overlap: k ∝ 1/δ² for impacts
+        target = target / o.stiffness_factor ** 0.5
+    model = b.finalize(fps=fps, n_frames=n_frames, first_frame=out.start_frame, dt=dt,
+                       target_overlap=target, steps_per_contact=steps_per_contact,
+                       up_axis=out.up_axis, meters_per_unit=out.meters_per_unit,
+                       where=f"{src}: simulation.dt")
+    return replace(model, build_info=dict(sphere_build_seconds=build_seconds, shapes=hits,
+                                          source=str(scene.path) if scene.path else None))
+
+
+def initial_overlap(model: Model, state=None):
+    """Largest overlap at the start, as (fraction of the diameter, body index or -1).
+
+    Runs stages 1-4 once on the CPU (no step is taken), so it sees sphere-sphere
+    and sphere-wall overlaps exactly as the first step will.
+    """
+    from .kernels.cpu import CpuBackend
+
+    if model.n_spheres == 0:
+        return 0.0, -1
+    st = state or model.initial_state()
+    be = CpuBackend(model)
+    be.probe(st)
+    ov = be.sphere_overlap
+    i = int(np.argmax(ov))
+    body = int(model.sphere_body[i]) if ov[i] > 0 else -1
+    return float(ov[i] / model.diameter), body
