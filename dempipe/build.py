@@ -73,7 +73,9 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None) -> Mod
     src = scene.path.name if scene.path else "<scene>"
     sim = scene.simulation
     out = scene.output
-    used = [g.shape for g in scene.bodies]
+    used = []
+    for g in scene.bodies:
+        used += [g.shape] if isinstance(g.shape, str) else list(g.shape)
     names = list(dict.fromkeys(used))
     meshes = {n: _shape_mesh(scene.shapes[n], f"{src}: shapes.{n}") for n in names}
 
@@ -101,7 +103,7 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None) -> Mod
         hits.append((n, info.cache, info.seconds, ss.count))
         shape_index[n] = b.add_shape(n, meshes[n], ss)
     for placement in expand_bodies(scene):
-        b.add_bodies(placement.name, shape_index[placement.shape],
+        b.add_bodies(placement.name, [shape_index[n] for n in placement.body_shapes()],
                      material_index[placement.material], placement.positions,
                      placement.rotations, placement.velocities, placement.angular_velocities)
     up = out.up_index

@@ -264,10 +264,11 @@ class ModelBuilder:
                                           _frozen(com), sphere_set))
         return len(self._shapes) - 1
 
-    def add_bodies(self, group: str, shape: int, material: int, positions, rotations=None,
+    def add_bodies(self, group: str, shape, material: int, positions, rotations=None,
                    velocities=None, angular_velocities=None) -> None:
-        """Add a group of bodies of one shape.
+        """Add a group of bodies.
 
+        shape : a shape index for all, or one per body (a mixed group)
         positions : (n, 3) where each body's *mesh origin* goes [m] (as a DCC places it)
         rotations : (n, 4) unit quaternions (w, x, y, z); identity if None
         velocities, angular_velocities : (n, 3) [m/s], [rad/s], world frame
@@ -281,7 +282,8 @@ class ModelBuilder:
             np.asarray(velocities, dtype=np.float64), (n, 3))
         w = np.zeros((n, 3)) if angular_velocities is None else np.broadcast_to(
             np.asarray(angular_velocities, dtype=np.float64), (n, 3))
-        self._groups.append(dict(name=group, shape=shape, material=material, p=p, q=q,
+        shapes = np.broadcast_to(np.asarray(shape, dtype=np.int64), (n,)).copy()
+        self._groups.append(dict(name=group, shapes=shapes, material=material, p=p, q=q,
                                  v=np.array(v), w=np.array(w)))
 
     def add_plane(self, point, normal, material: int = 0) -> None:
@@ -332,14 +334,14 @@ class ModelBuilder:
         body_shape, body_group, body_gidx, body_mat, xs, qs, vs, ws = [], [], [], [], [], [], [], []
         for gi, g in enumerate(groups):
             n = g["p"].shape[0]
-            shape = self._shapes[g["shape"]]
-            body_shape.append(np.full(n, g["shape"]))
+            com = np.array([self._shapes[s].com for s in g["shapes"]]).reshape(n, 3)
+            body_shape.append(g["shapes"])
             body_group.append(np.full(n, gi))
             body_gidx.append(np.arange(n))
             body_mat.append(np.full(n, g["material"]))
             # position places the mesh origin: the centre of mass is at p + R com
             R = np.stack([quat_to_matrix(q) for q in g["q"]]) if n else np.zeros((0, 3, 3))
-            xs.append(g["p"] + np.einsum("nij,j->ni", R, shape.com))
+            xs.append(g["p"] + np.einsum("nij,nj->ni", R, com))
             qs.append(g["q"])
             vs.append(g["v"])
             ws.append(g["w"])
@@ -452,8 +454,8 @@ class ModelBuilder:
                 if gdict["p"].shape[0] == 0:
                     continue
                 mi = gdict["material"]
-                m_min = mass[body_group == gi].min()
-                m_eff = m_min / (1.0 + shape_rot[gdict["shape"]])
+                in_group = body_group == gi
+                m_eff = float((mass[in_group] / (1.0 + body_rot[in_group])).min())
                 partners = present if n_dyn > 1 else wall_mats
                 dyn_present = set(np.unique(dyn_mat).tolist())
                 for mj in partners:

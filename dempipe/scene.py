@@ -169,8 +169,8 @@ class BodyGroup:
 
     name: str
     """Group name, a USD prim name ([A-Za-z_][A-Za-z0-9_]*), unique."""
-    shape: str
-    """Name of a ``[shapes.*]`` table."""
+    shape: Union[str, tuple]
+    """Name of a ``[shapes.*]`` table, or a tuple of names: body i takes shape[i % n]."""
     material: str = "default"
     """Name of a material."""
     count: int = 1
@@ -291,12 +291,17 @@ class BodyPlacement:
 
     name: str
     """Group name."""
-    shape: str
-    """Shape name."""
+    shape: Union[str, tuple]
+    """Shape name, or a tuple of names cycled over the group's bodies."""
     material: str
     """Material name."""
     positions: np.ndarray
     """(n, 3) float64 mesh-origin positions [m], world frame."""
+
+    def body_shapes(self) -> list:
+        """Shape name of each body of the group."""
+        names = (self.shape,) if isinstance(self.shape, str) else self.shape
+        return [names[i % len(names)] for i in range(len(self.positions))]
     rotations: np.ndarray
     """(n, 4) float64 unit quaternions (w, x, y, z)."""
     velocities: np.ndarray
@@ -698,9 +703,22 @@ def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
                                 f"this group has layout = {layout!r}")
             raise ctx.error(f"{key}.{k}", "unknown key", _suggest(k, allowed))
     name = ctx.usd_name(ctx.require(b, key, "name", 'e.g. name = "pawns"'), f"{key}.name")
-    shape = ctx.string(ctx.require(b, key, "shape", f"known: {_known(shapes)}"), f"{key}.shape")
-    if shape not in shapes:
-        raise ctx.error(f"{key}.shape", f"unknown shape {shape!r}", _suggest(shape, list(shapes)))
+    raw = ctx.require(b, key, "shape", f"known: {_known(shapes)}")
+    if isinstance(raw, list):
+        # a mixed group: body i takes shape[i % len(shape)] (a chess set in one group)
+        if not raw:
+            raise ctx.error(f"{key}.shape", "empty list of shapes", f"known: {_known(shapes)}")
+        names = [ctx.string(x, f"{key}.shape[{j}]") for j, x in enumerate(raw)]
+        for j, n in enumerate(names):
+            if n not in shapes:
+                raise ctx.error(f"{key}.shape[{j}]", f"unknown shape {n!r}",
+                                _suggest(n, list(shapes)))
+        shape = names[0] if len(names) == 1 else tuple(names)
+    else:
+        shape = ctx.string(raw, f"{key}.shape")
+        if shape not in shapes:
+            raise ctx.error(f"{key}.shape", f"unknown shape {shape!r}",
+                            _suggest(shape, list(shapes)))
     kw: dict[str, Any] = {"name": name, "shape": shape, "layout": layout}
     if "material" in b:
         kw["material"] = _material_ref(ctx, b["material"], f"{key}.material", materials)
