@@ -62,15 +62,34 @@ def cell_hash(cx, cy, cz, grid):
     return ((cz & grid[4]) << (grid[0] + grid[1])) | ((cy & grid[3]) << grid[0]) | (cx & grid[2])
 
 
-def grid_table(n_spheres: int) -> np.ndarray:
-    """Table layout for ``n_spheres``: 2^k >= 2 n buckets split over x, y, z bits."""
+#: Most buckets per sphere the grid may use: 8 × 8 bytes = 64 bytes per sphere.
+BUCKETS_PER_SPHERE = 8
+
+
+def grid_table(n_spheres: int, extent_cells=None) -> np.ndarray:
+    """Table layout (bx, by, mask_x, mask_y, mask_z, n_buckets) for the grid.
+
+    The budget is 2^k >= BUCKETS_PER_SPHERE × spheres buckets, so memory follows
+    the spheres whatever the scene's size. Within it, each axis gets the bits
+    that cover the occupied extent (``extent_cells``, cells per axis): a compact
+    pile then gets a dense grid and no two occupied cells share a bucket. When the
+    extent needs more bits than the budget, the widest axes give bits up and far
+    cells alias (still correct, only slower).
+    """
     k = 4
-    while (1 << k) < 2 * n_spheres:
+    while (1 << k) < BUCKETS_PER_SPHERE * max(n_spheres, 1):
         k += 1
-    bx = (k + 2) // 3
-    by = (k - bx + 1) // 2
-    bz = k - bx - by
-    return np.array([bx, by, (1 << bx) - 1, (1 << by) - 1, (1 << bz) - 1], dtype=np.int64)
+    if extent_cells is None:
+        bx = (k + 2) // 3
+        by = (k - bx + 1) // 2
+        bits = [bx, by, k - bx - by]
+    else:
+        bits = [max(1, int(np.ceil(np.log2(max(e, 1.0) + 3.0)))) for e in extent_cells]
+        while sum(bits) > k:
+            bits[int(np.argmax(bits))] -= 1
+    bx, by, bz = bits
+    return np.array([bx, by, (1 << bx) - 1, (1 << by) - 1, (1 << bz) - 1, 1 << (bx + by + bz)],
+                    dtype=np.int64)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -119,14 +138,14 @@ def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, in
 
 
 @numba.njit(cache=True)
-def stage_grid_sort(sphere_hash, bucket_start, bucket_fill, sorted_idx):
+def stage_grid_sort(sphere_hash, grid, bucket_start, bucket_fill, sorted_idx):
     """Stage 2: counting sort of the spheres by hash bucket (serial, stable).
 
     bucket_start[h]:bucket_start[h+1] are the slots of bucket h; within a bucket
     the spheres stay in index order, which keeps everything downstream
-    independent of the thread count.
+    independent of the thread count. Only the first grid[5] buckets are in use.
     """
-    nb = bucket_start.shape[0] - 1
+    nb = grid[5]
     for h in range(nb + 1):
         bucket_start[h] = 0
     for i in range(sphere_hash.shape[0]):
@@ -347,7 +366,7 @@ def run_steps(n_steps, dt, diameter, n_bodies, gravity, grid,
                               body_v, body_w)
         stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d, grid,
                       sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash)
-        stage_grid_sort(sphere_hash, bucket_start, bucket_fill, sorted_idx)
+        stage_grid_sort(sphere_hash, grid, bucket_start, bucket_fill, sorted_idx)
         stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
                           sorted_x, sorted_v, sorted_key, sorted_body)
         stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
@@ -369,7 +388,7 @@ class CpuBackend:
         nb = model.body_mass.shape[0]
         ns = model.n_spheres
         self.grid = grid_table(ns)
-        table = 1 << int(self.grid[0] + self.grid[1] + np.log2(self.grid[4] + 1))
+        table = int(grid_table(ns)[5])           # the budget: the most a grid may use
         self.body_v = np.zeros((nb, 3))
         self.body_w = np.zeros((nb, 3))
         self.sphere_x = np.zeros((ns, 3))
@@ -387,9 +406,39 @@ class CpuBackend:
         self.sphere_f = np.zeros((ns, 3))
         self.sphere_t = np.zeros((ns, 3))
         self.sphere_overlap = np.zeros(ns)
+        if model.n_static:
+            first = model.body_sphere_start[model.n_bodies]
+            pts = model.sphere_offset[first:] + model.initial_x[model.sphere_body[first:]]
+            self.static_lo = pts.min(axis=0) - model.diameter
+            self.static_hi = pts.max(axis=0) + model.diameter
+
+    def fit_grid(self, state) -> None:
+        """Fit the grid's bits to where the bodies are now (once per call of step).
+
+        The extent is the bodies' bounding box grown by their radii and by how far
+        the fastest could move in ``margin`` seconds; bodies that leave it still
+        collide correctly, only through aliased buckets.
+        """
+        m = self.model
+        nb = m.body_mass.shape[0]
+        if nb == 0:
+            return
+        x = state.body_x
+        r = np.concatenate([m.body_radius, np.zeros(nb - m.n_bodies)]) if m.n_static else \
+            m.body_radius
+        if m.n_static:   # static meshes: their spheres' own extent
+            lo_s = self.static_lo
+            hi_s = self.static_hi
+        lo = (x[: m.n_bodies] - r[: m.n_bodies, None]).min(axis=0) if m.n_bodies else None
+        hi = (x[: m.n_bodies] + r[: m.n_bodies, None]).max(axis=0) if m.n_bodies else None
+        if m.n_static:
+            lo = lo_s if lo is None else np.minimum(lo, lo_s)
+            hi = hi_s if hi is None else np.maximum(hi, hi_s)
+        self.grid = grid_table(m.n_spheres, (hi - lo) / m.diameter + 2.0)
 
     def step(self, state, n_steps: int) -> None:
         m = self.model
+        self.fit_grid(state)
         run_steps(
             int(n_steps), m.dt, m.diameter, m.n_bodies, m.gravity, self.grid,
             m.sphere_body, m.sphere_offset, m.body_sphere_start, m.body_mass, m.body_inv_mass,
@@ -405,12 +454,14 @@ class CpuBackend:
     def probe(self, state) -> None:
         """Stages 1-4 without moving anything: fills sphere_f, sphere_overlap."""
         m = self.model
+        self.fit_grid(state)
         stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
                               m.body_inv_mass, m.body_inv_inertia, self.body_v, self.body_w)
         stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q, self.body_v,
                       self.body_w, 1.0 / m.diameter, self.grid, self.sphere_x, self.sphere_v,
                       self.sphere_r, self.sphere_key, self.sphere_hash)
-        stage_grid_sort(self.sphere_hash, self.bucket_start, self.bucket_fill, self.sorted_idx)
+        stage_grid_sort(self.sphere_hash, self.grid, self.bucket_start, self.bucket_fill,
+                        self.sorted_idx)
         stage_grid_gather(self.sorted_idx, self.sphere_x, self.sphere_v, self.sphere_key,
                           m.sphere_body, self.sorted_x, self.sorted_v, self.sorted_key,
                           self.sorted_body)
