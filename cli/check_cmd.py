@@ -1,0 +1,35 @@
+"""`dempipe check SCENE`: predict stability problems of a scene without simulating.
+
+Prints dempipe.stability's report (text, or ``--json``) on stdout. Exit 0 when the
+scene is safe to bake, 1 when bake would refuse it or the bake would fail (an
+error finding); scene and mesh errors are one line and exit 2 (cli/main.py).
+Imports neither pxr nor numba.cuda; numba itself only to voxelize a shape that
+is not in the sphere-set cache yet.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+
+@click.command("check")
+@click.argument("scene", type=click.Path(dir_okay=False))
+@click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+@click.option("--cache-dir", type=click.Path(file_okay=False), default=None,
+              help="Sphere-set cache folder (default: $DEMPIPE_CACHE_DIR or the user cache).")
+def check(scene, as_json, cache_dir):
+    """Check SCENE (a .toml scene file): time step against the critical step, speeds
+    against the sphere size, frame-0 overlaps, mass ratios, tiny shapes."""
+    from dempipe.cache import SphereCache
+    from dempipe.stability import analyze_scene
+
+    cache = SphereCache(cache_dir) if cache_dir else None
+    report = analyze_scene(scene, cache=cache)
+    if as_json:
+        click.echo(report.to_json(indent=2))
+    else:
+        click.echo(report.format())
+    if not report.ok:
+        sys.exit(1)

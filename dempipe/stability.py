@@ -1,0 +1,612 @@
+"""Stability check: predict, without simulating, whether a scene will bake well.
+
+    report = analyze(model)                  # a Model from ModelBuilder or build_model
+    report = analyze_scene("scene.toml")     # load + build (sphere sets cached) + analyze
+    print(report.format()); report.ok        # False when `dempipe bake` would refuse
+
+The report restates the figures ``ModelBuilder.finalize`` derived (stiffness,
+damping, time step) per material pair, with the contact time and the critical
+step of each pair for its translational effective mass (m against a wall, m/2
+between bodies) and its rotational one (m / (1 + m (r×n)ᵀ I⁻¹ (r×n)), the
+corner contact of model.rotational_mass_factor), and checks what the time step
+alone cannot guarantee: how far the fastest body moves per step, frame-0
+overlaps, mass ratios and bodies too small for their spheres. docs/stability.md
+explains every limit and fix.
+
+This module imports neither numba nor pxr: the frame-0 overlap is recomputed
+here in NumPy with the contact stage's exact rules (it agrees with
+:func:`dempipe.build.initial_overlap`, which compiles the CPU kernels). Only
+``analyze_scene`` on a sphere-set cache miss imports numba, to voxelize.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from . import materials as mat
+from .errors import StabilityError
+from .model import Model, quat_to_matrix, rotational_mass_factor
+
+#: Frame-0 overlap limits as fractions of the diameter; the same as bake.py's
+#: (bake refuses above REFUSE_OVERLAP unless --force, warns above WARN_OVERLAP).
+REFUSE_OVERLAP = 0.5
+WARN_OVERLAP = 0.05
+#: Distance the fastest closing pair travels in one step, as a fraction of the
+#: diameter: above TUNNEL_WARN contacts start a visible fraction of a diameter
+#: deep; above TUNNEL_ERROR a sphere can skip past another's centre in one step.
+TUNNEL_WARN = 0.10
+TUNNEL_ERROR = 0.50
+#: Largest / smallest dynamic body mass beyond which heavy-on-light stacks sink.
+MASS_RATIO_WARN = 100.0
+#: A shape with fewer spheres than this, or a longest extent below
+#: SMALL_EXTENT diameters, collides like a ball.
+SMALL_SPHERES = 8
+SMALL_EXTENT = 2.0
+
+ERROR = "error"
+WARNING = "warning"
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One problem: ``level`` 'error' (bake refuses or the result is garbage) or
+    'warning'; ``code`` a stable identifier; ``message`` what and why; ``fix`` what
+    to change in the scene."""
+
+    level: str
+    code: str
+    message: str
+    fix: str = ""
+
+
+@dataclass(frozen=True)
+class PairStability:
+    """Contact constants of one material pair as finalize() resolved them.
+
+    kind : 'body-body' or 'body-wall' (planes, boxes and static mesh colliders)
+    k [N/m], zeta [-], restitution [-] (from zeta), friction [-];
+    mass_translational [kg]: lightest body mass, halved for body-body contacts;
+    mass_rotational [kg]: lightest corner-contact mass m/(1 + factor), halved likewise;
+    contact_time_* [s] = π/ωd; critical_dt_* [s] = 2(√(1+ζ²) - ζ)/ω0 (symplectic Euler);
+    dt_ratio: the model's dt over the smaller (rotational) critical step.
+    """
+
+    materials: tuple
+    kind: str
+    k: float
+    zeta: float
+    restitution: float
+    friction: float
+    mass_translational: float
+    mass_rotational: float
+    contact_time_translational: float
+    contact_time_rotational: float
+    critical_dt_translational: float
+    critical_dt_rotational: float
+    dt_ratio: float
+
+
+@dataclass
+class StabilityReport:
+    """What :func:`analyze` found. ``ok`` is False when bake would refuse (an error)."""
+
+    scene: str | None
+    bodies: int
+    static_bodies: int
+    spheres: int
+    static_spheres: int
+    diameter: float
+    memory: dict
+    pairs: list
+    dt: float
+    dt_setting: str
+    steps_per_frame: int | None
+    fps: float
+    omega_max: float
+    zeta_min: float
+    critical_dt: float
+    dt_ratio: float
+    stiffness_auto: dict
+    max_speed: float
+    closing_speed: float
+    impact_speed: float
+    step_travel: float
+    overlap: float
+    overlap_body: str | None
+    shapes: list
+    findings: list = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not any(f.level == ERROR for f in self.findings)
+
+    @property
+    def errors(self) -> list:
+        return [f for f in self.findings if f.level == ERROR]
+
+    @property
+    def warnings(self) -> list:
+        return [f for f in self.findings if f.level == WARNING]
+
+    def to_dict(self) -> dict:
+        """Plain JSON-ready dict (infinities and NaN become None)."""
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d["pairs"] = [asdict(p) for p in self.pairs]
+        d["findings"] = [asdict(f) for f in self.findings]
+        d["ok"] = self.ok
+        return _json_ready(d)
+
+    def to_json(self, **kw) -> str:
+        return json.dumps(self.to_dict(), **kw)
+
+    def format(self) -> str:
+        """Human-readable text, as `dempipe check` prints it."""
+        name = Path(self.scene).name if self.scene else "model"
+        n_err, n_warn = len(self.errors), len(self.warnings)
+        verdict = ("OK: safe to bake" if self.ok else "NOT SAFE: bake would refuse or fail")
+        tail = f" ({n_err} error{'s' * (n_err != 1)}, {n_warn} warning{'s' * (n_warn != 1)})"
+        lines = [f"{name}: {verdict}{tail}"]
+        mem = self.memory
+        lines.append(
+            f"  bodies       {self.bodies:,} dynamic ({self.spheres - self.static_spheres:,} "
+            f"spheres), {self.static_bodies} static mesh colliders ({self.static_spheres:,} "
+            f"spheres); diameter {self.diameter * 1e3:.3g} mm")
+        lines.append(
+            f"  memory       ≈ {_mib(mem['total'])} (model {_mib(mem['model'])}, CPU scratch "
+            f"{_mib(mem['cpu_scratch'])}, state {_mib(mem['state'])}, frames "
+            f"{_mib(mem['frames'])})")
+        spf = f"{self.steps_per_frame:,} steps per frame" if self.steps_per_frame else \
+            "refused"
+        lines.append(
+            f"  time step    dt = {self.dt:.3g} s ({self.dt_setting}), {spf} at "
+            f"{self.fps:g} fps; critical step {_s(self.critical_dt)}, dt / critical = "
+            f"{_ratio(self.dt_ratio)}")
+        if self.stiffness_auto:
+            ks = ", ".join(f"{n} {k:.3g} N/m" for n, k in self.stiffness_auto.items())
+            lines.append(f"  auto k       {ks}")
+        lines.append(
+            f"  speed        fastest body {self.max_speed:.3g} m/s, closing {self.closing_speed:.3g} "
+            f"m/s: {self.step_travel:.2%} of a diameter per step (auto stiffness assumed an "
+            f"impact at {self.impact_speed:.3g} m/s)")
+        where = f" ({self.overlap_body})" if self.overlap_body else ""
+        lines.append(f"  frame 0      largest overlap {self.overlap:.1%} of a diameter{where}")
+        if self.pairs:
+            lines.append("  contacts     pair               k [N/m]    ζ     e    tc [s]     "
+                         "critical dt [s] transl. / rot.   dt/crit")
+            for p in self.pairs:
+                pair = " / ".join(p.materials) + ("" if p.kind == "body-body" else " (wall)")
+                lines.append(
+                    f"               {pair:<18} {p.k:<10.3g} {p.zeta:<5.3f} {p.restitution:<4.2f} "
+                    f"{p.contact_time_rotational:<10.3g} {p.critical_dt_translational:<9.3g} / "
+                    f"{p.critical_dt_rotational:<18.3g} {_ratio(p.dt_ratio)}")
+        else:
+            lines.append("  contacts     none possible (one body, no colliders)")
+        for f in self.findings:
+            lines.append(f"{f.level}: {f.message}")
+            if f.fix:
+                lines.append(f"  fix: {f.fix}")
+        return "\n".join(lines)
+
+
+def _mib(n: int) -> str:
+    return f"{n / 2**20:.1f} MiB" if n >= 2**20 else f"{n / 1024:.1f} KiB"
+
+
+def _s(x: float) -> str:
+    return f"{x:.3g} s" if math.isfinite(x) else "none (no contact possible)"
+
+
+def _ratio(x: float) -> str:
+    return f"{x:.3g}" if math.isfinite(x) else "-"
+
+
+def _json_ready(x):
+    if isinstance(x, dict):
+        return {str(k): _json_ready(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_ready(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        x = float(x)
+        return x if math.isfinite(x) else None
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    return x
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def shape_rotational_factors(model: Model) -> np.ndarray:
+    """Per shape, model.rotational_mass_factor of its sphere set (as finalize computes)."""
+    out = []
+    for s in model.shapes:
+        ss = s.sphere_set
+        out.append(rotational_mass_factor(np.asarray(ss.centers),
+                                          np.asarray(ss.inertia) / ss.volume))
+    return np.array(out, dtype=np.float64)
+
+
+#: kernels.cpu.BUCKETS_PER_SPHERE, restated so that `check` need not import numba
+#: (tests/test_stability.py compares the estimate with a real CpuBackend).
+BUCKETS_PER_SPHERE = 8
+
+
+def grid_buckets(n_spheres: int) -> int:
+    """Bucket budget of the CPU backend's grid (kernels.cpu.grid_table): 2^k ≥ 8 n, k ≥ 4."""
+    k = 4
+    while (1 << k) < BUCKETS_PER_SPHERE * max(n_spheres, 1):
+        k += 1
+    return 1 << k
+
+
+def memory_estimate(model: Model) -> dict:
+    """Bytes of the Model's arrays, the CPU backend's scratch, one State and the Frames.
+
+    Computed from sizes (nothing is allocated); the scratch mirrors
+    ``CpuBackend.__init__`` in kernels/cpu.py.
+    """
+    seen = set()
+    model_bytes = 0
+
+    def add(a):
+        nonlocal model_bytes
+        if isinstance(a, np.ndarray) and id(a) not in seen:
+            seen.add(id(a))
+            model_bytes += a.nbytes
+
+    for f in fields(model):
+        add(getattr(model, f.name))
+    for s in model.shapes:
+        for a in (s.vertices, s.faces, s.com, s.sphere_set.centers):
+            add(np.asarray(a))
+    for m in model.static_meshes:
+        add(m.vertices)
+        add(m.faces)
+    for b in model.boxes:
+        add(b.lo)
+        add(b.hi)
+    nb = int(model.body_mass.shape[0])
+    ns = model.n_spheres
+    table = grid_buckets(ns)
+    f8, i8, i4 = 8, 8, 4
+    scratch = (6 * i8                                  # grid
+               + 2 * nb * 3 * f8                       # body_v, body_w
+               + 3 * ns * 3 * f8                       # sphere_x, sphere_v, sphere_r
+               + 2 * ns * i8                           # sphere_key, sphere_hash
+               + (table + 1) * i8 + table * i8         # bucket_start, bucket_fill
+               + ns * i4                               # sorted_idx
+               + 2 * ns * 3 * f8                       # sorted_x, sorted_v
+               + ns * i8 + ns * i4                     # sorted_key, sorted_body
+               + 2 * ns * 3 * f8                       # sphere_f, sphere_t
+               + ns * f8                               # sphere_overlap
+               + (2 * 3 * f8 if model.n_static else 0))  # static_lo, static_hi
+    state = nb * (3 + 4 + 3 + 3) * f8
+    frames = model.n_frames * (i8 + f8 + model.n_bodies * (3 + 4 + 3 + 3) * f8)
+    return dict(model=int(model_bytes), cpu_scratch=int(scratch), state=int(state),
+                frames=int(frames), total=int(model_bytes + scratch + state + frames))
+
+
+def expected_speeds(model: Model) -> tuple[float, float, float]:
+    """(fastest body, fastest closing pair, finalize's impact speed) [m/s].
+
+    Replicates ModelBuilder.finalize: each body falls freely from its height to the
+    lowest floor (the lowest body's bottom, ground-like planes, box floors, static
+    meshes) on top of its launch speed |v| + |w| r. The impact speed of auto
+    stiffness adds the fastest launch of a partner and is at least √(2 g d).
+    The closing speed is the fastest body against a wall, or against the fastest
+    launched partner when there are two or more bodies.
+    """
+    n = model.n_bodies
+    d = model.diameter
+    g = float(np.linalg.norm(model.gravity))
+    if n == 0:
+        return 0.0, 0.0, (math.sqrt(2.0 * g * d) if g > 0 else 0.01)
+    up = -np.asarray(model.gravity) / g if g > 0 else np.array([0.0, 0.0, 1.0])
+    x0 = np.asarray(model.initial_x[:n])
+    v0 = np.asarray(model.initial_v[:n])
+    w0 = np.asarray(model.initial_w[:n])
+    radius = np.asarray(model.body_radius)
+    heights = x0 @ up
+    floors = [heights.min() - radius.max()]
+    floors += [float(p @ up) for p, nrm in zip(model.plane_point, model.plane_normal)
+               if nrm @ up > 0.5]
+    floors += [float(b.lo @ up) for b in model.boxes]
+    floors += [float((np.asarray(m.vertices) @ up).min()) for m in model.static_meshes]
+    floor = min(floors)
+    fall = np.sqrt(2.0 * g * np.maximum(heights - floor, 0.0))
+    launch = np.linalg.norm(v0, axis=1) + np.linalg.norm(w0, axis=1) * radius
+    fastest = float((fall + launch).max())
+    impact = fastest + float(launch.max())
+    closing = impact if n > 1 else fastest
+    impact = max(impact, math.sqrt(2.0 * g * d) if g > 0 else 0.01)
+    return fastest, closing, impact
+
+
+def pair_stability(model: Model, factors: np.ndarray | None = None,
+                   dt: float | None = None) -> tuple[list, float, float]:
+    """Per material pair figures, and (ω_max, ζ_min) exactly as finalize derives them."""
+    factors = shape_rotational_factors(model) if factors is None else factors
+    dt = model.dt if dt is None else dt
+    n = model.n_bodies
+    mass = np.asarray(model.body_mass[:n])
+    rot = factors[np.asarray(model.body_shape)] if n else np.zeros(0)
+    dyn_mat = np.asarray(model.body_material[:n])
+    wall_mats = set(np.asarray(model.wall_material).tolist()) | set(
+        np.asarray(model.body_material[n:]).tolist())
+    dyn_present = sorted(set(dyn_mat.tolist()))
+    has_contacts = n > 1 or model.n_walls > 0 or model.n_static > 0
+    names = [m.name for m in model.materials]
+    pairs = {}
+    if has_contacts:
+        for mi in dyn_present:
+            sel = dyn_mat == mi
+            m_tr = float(mass[sel].min())
+            m_rot = float((mass[sel] / (1.0 + rot[sel])).min())
+            partners = [("body-body", mj) for mj in dyn_present] if n > 1 else []
+            partners += [("body-wall", mj) for mj in sorted(wall_mats)]
+            for kind, mj in partners:
+                half = 0.5 if kind == "body-body" else 1.0
+                key = (kind,) + ((min(mi, mj), max(mi, mj)) if kind == "body-body" else (mi, mj))
+                prev = pairs.get(key)
+                mt, mr = m_tr * half, m_rot * half
+                if prev is not None:
+                    mt, mr = min(mt, prev[0]), min(mr, prev[1])
+                pairs[key] = (mt, mr)
+    out = []
+    omega_max, zeta_min = 0.0, 1.0
+    for (kind, a, b), (mt, mr) in sorted(pairs.items(), key=lambda kv: (kv[0][1], kv[0][2],
+                                                                      kv[0][0])):
+        k = float(model.pair_k[a, b])
+        z = float(model.pair_zeta[a, b])
+        omega_max = max(omega_max, math.sqrt(k / mr))
+        zeta_min = min(zeta_min, z)
+        crit_r = mat.critical_dt(k, mr, z)
+        out.append(PairStability(
+            materials=(names[a], names[b]), kind=kind, k=k, zeta=z,
+            restitution=mat.restitution_from_damping(z), friction=float(model.pair_mu[a, b]),
+            mass_translational=mt, mass_rotational=mr,
+            contact_time_translational=mat.contact_time(k, mt, z),
+            contact_time_rotational=mat.contact_time(k, mr, z),
+            critical_dt_translational=mat.critical_dt(k, mt, z),
+            critical_dt_rotational=crit_r, dt_ratio=dt / crit_r))
+    return out, omega_max, zeta_min
+
+
+def critical_step(omega_max: float, zeta_min: float) -> float:
+    """The step materials.check_dt refuses at: 2(√(1+ζ_min²) - ζ_min)/ω_max [s]."""
+    if omega_max <= 0.0:
+        return math.inf
+    return 2.0 * (math.sqrt(1.0 + zeta_min**2) - zeta_min) / omega_max
+
+
+def sphere_positions(model: Model, state=None) -> np.ndarray:
+    """World positions of every sphere (dynamic and static) [m]."""
+    x = model.initial_x if state is None else state.body_x
+    q = model.initial_q if state is None else state.body_q
+    R = np.stack([quat_to_matrix(qq) for qq in q]) if len(q) else np.zeros((0, 3, 3))
+    b = np.asarray(model.sphere_body)
+    return np.asarray(x)[b] + np.einsum("sij,sj->si", R[b], np.asarray(model.sphere_offset))
+
+
+def sphere_overlaps(model: Model, state=None) -> np.ndarray:
+    """Largest overlap of each sphere at ``state`` (default frame 0) [m].
+
+    The contact stage's rules in NumPy: spheres of different bodies closer than a
+    diameter (two static spheres never touch); a dynamic sphere within a radius of a
+    wall's surface and at most wall_depth behind it, inside the wall's box.
+    """
+    ns = model.n_spheres
+    d = model.diameter
+    ov = np.zeros(ns)
+    if ns == 0:
+        return ov
+    X = sphere_positions(model, state)
+    body = np.asarray(model.sphere_body)
+    dynamic = np.asarray(model.body_inv_mass)[body] > 0.0
+    cell = np.floor(X / d).astype(np.int64)
+    cell -= cell.min(axis=0)
+    span = cell.max(axis=0) + 3                      # room for the -1..+1 neighbours
+    cell += 1
+
+    def key(c):
+        return (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
+
+    k = key(cell)
+    order = np.argsort(k, kind="stable")
+    ks = k[order]
+    d2 = d * d
+    for off in np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij")
+                        ).reshape(3, -1).T:
+        kn = key(cell + off)
+        lo = np.searchsorted(ks, kn, "left")
+        hi = np.searchsorted(ks, kn, "right")
+        cnt = hi - lo
+        total = int(cnt.sum())
+        if total == 0:
+            continue
+        i = np.repeat(np.arange(ns), cnt)
+        first = np.repeat(lo - np.concatenate([[0], np.cumsum(cnt)[:-1]]), cnt)
+        j = order[first + np.arange(total)]
+        keep = body[i] != body[j]
+        keep &= dynamic[i] | dynamic[j]
+        i, j = i[keep], j[keep]
+        r = X[j] - X[i]
+        dist2 = np.einsum("ij,ij->i", r, r)
+        close = dist2 < d2
+        np.maximum.at(ov, i[close], d - np.sqrt(dist2[close]))
+    radius = 0.5 * d
+    for w in range(model.n_walls):
+        nrm = model.wall_normal[w]
+        dist = X @ nrm - model.wall_offset[w]
+        inside = ((X >= model.wall_lo[w]) & (X <= model.wall_hi[w])).all(axis=1)
+        hit = dynamic & inside & (dist < radius) & (dist > -model.wall_depth[w])
+        np.maximum.at(ov, np.flatnonzero(hit), radius - dist[hit])
+    return ov
+
+
+def frame0_overlap(model: Model, state=None) -> tuple[float, int]:
+    """Largest overlap at frame 0 as (fraction of the diameter, body index or -1);
+    the NumPy twin of build.initial_overlap (no kernel compiled)."""
+    if model.n_spheres == 0:
+        return 0.0, -1
+    ov = sphere_overlaps(model, state)
+    i = int(np.argmax(ov))
+    return float(ov[i] / model.diameter), (int(model.sphere_body[i]) if ov[i] > 0 else -1)
+
+
+# --------------------------------------------------------------------------- analysis
+
+
+def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | None = None,
+            refused: str | None = None, scene: str | None = None) -> StabilityReport:
+    """Check ``model`` for everything that makes a bake unstable or refused.
+
+    dt : evaluate this step instead of model.dt (a user dt that finalize refused;
+         ``refused`` then holds finalize's message)
+    dt_setting : what the scene asked for ("auto" or seconds), for the report
+    """
+    d = model.diameter
+    n = model.n_bodies
+    factors = shape_rotational_factors(model)
+    step = float(model.dt if dt is None else dt)
+    pairs, omega_max, zeta_min = pair_stability(model, factors, step)
+    crit = critical_step(omega_max, zeta_min)
+    ratio = step / crit if math.isfinite(crit) else 0.0
+    fastest, closing, impact = expected_speeds(model)
+    travel = closing * step / d
+    overlap, ob = frame0_overlap(model)
+    if dt_setting is None:
+        setting = "given" if dt is not None else "model"
+    else:
+        setting = dt_setting if isinstance(dt_setting, str) else f"{float(dt_setting):g} s asked"
+    src = Path(scene).name if scene else "model"
+    findings: list[Finding] = []
+
+    # 1. the critical step (finalize refuses a user dt at or above it)
+    if refused is not None:
+        if step >= crit:
+            findings.append(Finding(
+                ERROR, "dt-above-critical",
+                f"{src}: simulation.dt = {step:.3g} s is {ratio:.3g}× the critical step "
+                f"{crit:.3g} s of the stiffest contact (ω = {omega_max:.4g} rad/s); "
+                f"bake refuses it",
+                f"use dt = \"auto\" ({model.dt:.3g} s here, {model.steps_per_frame} steps per "
+                f"frame), a dt below {crit / 2:.3g} s, or softer materials"))
+        else:
+            findings.append(Finding(ERROR, "dt-refused", refused,
+                                    f"use dt = \"auto\" ({model.dt:.3g} s here)"))
+    elif step >= crit:
+        findings.append(Finding(
+            ERROR, "dt-above-critical",
+            f"{src}: dt = {step:.3g} s is {ratio:.3g}× the critical step {crit:.3g} s of the "
+            f"stiffest contact; the integration diverges",
+            "use dt = \"auto\", a smaller dt, or softer materials"))
+
+    # 2. tunnelling: distance per step against the diameter
+    if travel > TUNNEL_WARN:
+        level = ERROR if travel > TUNNEL_ERROR else WARNING
+        limit = TUNNEL_WARN * d / closing
+        user_k = [m.name for m in model.materials if m.stiffness is not None]
+        why = (f"the user stiffness of {', '.join(user_k)} makes the automatic step long"
+               if setting == "auto" and user_k else "the step is long for these speeds")
+        findings.append(Finding(
+            level, "tunnelling",
+            f"{src}: the fastest closing pair ({closing:.3g} m/s) moves {travel:.0%} of a "
+            f"sphere diameter per step (dt = {step:.3g} s): {why}; contacts "
+            + ("can be skipped entirely (bodies pass through each other or through walls)"
+               if level == ERROR else "start deep and bounce wrongly"),
+            (f"set stiffness = \"auto\" (or a higher stiffness) for {', '.join(user_k)}, so that "
+             f"dt = \"auto\" follows the speeds" if setting == "auto" and user_k else
+             f"use dt = \"auto\" or a dt below {limit:.3g} s (≤ {TUNNEL_WARN:.0%} of a diameter "
+             f"per step)")))
+
+    # 3. frame-0 overlap (bake.py refuses above 50% without --force)
+    name = model.body_name(ob) if ob >= 0 else None
+    if overlap > REFUSE_OVERLAP:
+        findings.append(Finding(
+            ERROR, "frame0-overlap",
+            f"{src}: body {name} overlaps another body or a collider by {overlap:.0%} of the "
+            f"sphere diameter at frame 0; the first step would fling it away (bake refuses "
+            f"without --force)",
+            "space the bodies further apart (a randomly turned body swings about its mesh "
+            "origin) or move it clear of the colliders"))
+    elif overlap > WARN_OVERLAP:
+        findings.append(Finding(
+            WARNING, "frame0-overlap",
+            f"{src}: body {name} starts {overlap:.0%} of a diameter deep in contact; it will "
+            f"be pushed out in the first steps",
+            "space the bodies a little further apart or lift them off the colliders"))
+
+    # 4. mass ratio
+    if n > 1:
+        mass = np.asarray(model.body_mass[:n])
+        heavy, light = int(np.argmax(mass)), int(np.argmin(mass))
+        mr = float(mass[heavy] / mass[light])
+        if mr > MASS_RATIO_WARN:
+            findings.append(Finding(
+                WARNING, "mass-ratio",
+                f"{src}: body masses span {mr:.3g}× (heaviest {model.body_name(heavy)} "
+                f"{mass[heavy]:.3g} kg, lightest {model.body_name(light)} {mass[light]:.3g} kg): "
+                f"a heavy body stacked on light ones sinks into them and stacks jitter",
+                f"keep densities and sizes within {MASS_RATIO_WARN:g}× of each other, or give "
+                f"the light bodies' material an explicit, higher stiffness"))
+
+    # 5. shapes too small for their spheres
+    shapes = []
+    for si, s in enumerate(model.shapes):
+        c = np.asarray(s.sphere_set.centers)
+        extent = float((c.max(axis=0) - c.min(axis=0)).max() + d) / d
+        count = int(c.shape[0])
+        small = count < SMALL_SPHERES or extent < SMALL_EXTENT
+        shapes.append(dict(name=s.name, spheres=count, extent_diameters=extent,
+                           rotational_mass_factor=float(factors[si]), small=small))
+        if small:
+            findings.append(Finding(
+                WARNING, "small-body",
+                f"{src}: shape {s.name!r} is {count} sphere{'s' * (count != 1)}, "
+                f"{extent:.3g} diameter{'s' * (extent != 1)} across: it will collide and roll like a ball",
+                "raise simulation.resolution or lower simulation.sphere_diameter (the "
+                "smallest shape sets the diameter)"))
+
+    nb_all = int(model.body_mass.shape[0])
+    static_spheres = int(model.n_spheres - model.body_sphere_start[n]) if nb_all else 0
+    return StabilityReport(
+        scene=scene, bodies=n, static_bodies=model.n_static, spheres=model.n_spheres,
+        static_spheres=static_spheres, diameter=d, memory=memory_estimate(model), pairs=pairs,
+        dt=step, dt_setting=setting,
+        steps_per_frame=None if refused is not None else int(model.steps_per_frame),
+        fps=model.fps, omega_max=omega_max, zeta_min=zeta_min, critical_dt=crit,
+        dt_ratio=ratio, stiffness_auto={k: float(v) for k, v in model.stiffness_auto},
+        max_speed=fastest, closing_speed=closing, impact_speed=impact, step_travel=travel,
+        overlap=overlap, overlap_body=name, shapes=shapes, findings=findings)
+
+
+def analyze_scene(path, cache=None) -> StabilityReport:
+    """Load ``path``, build its Model (sphere sets through ``cache``; None: the default
+    SphereCache, as bake uses) and analyze it.
+
+    A user dt that finalize refuses does not stop the check: the model is rebuilt
+    with dt = "auto" (the sphere sets come from the cache) and the refusal becomes
+    an error finding. Scene and mesh errors propagate (DempipeError).
+    """
+    from .build import Overrides, build_model
+    from .cache import SphereCache
+    from .scene import load_scene
+
+    scene = load_scene(path)
+    cache = cache if cache is not None else SphereCache()
+    user_dt = scene.simulation.dt
+    try:
+        model = build_model(scene, cache=cache)
+    except StabilityError as exc:
+        if isinstance(user_dt, str):
+            raise
+        model = build_model(scene, cache=cache, overrides=Overrides(dt="auto"))
+        return analyze(model, dt=float(user_dt), dt_setting=user_dt, refused=str(exc),
+                       scene=str(path))
+    return analyze(model, dt_setting=user_dt, scene=str(path))
