@@ -1,0 +1,787 @@
+"""CUDA target: the paper's eight stages as numba.cuda kernels.
+
+Imported only when the CUDA device is used (``simulator.make_backend``); it
+imports nothing from ``kernels/cpu.py`` (that would compile the CPU kernels).
+The formulas come from physics.py, compiled as device functions; every kernel
+mirrors its CPU stage line for line, with the loop header ``cuda.grid(1)``
+instead of ``prange``. See docs/cuda.md.
+
+Determinism: the only atomics are integer adds (bucket counts and slot
+claims: order-independent) and a float max (exact, commutative). The slots a
+bucket's spheres land in depend on thread timing, so each bucket is then
+sorted by sphere index: the sorted order is exactly the CPU's stable counting
+sort. Contacts gather, bodies sum their spheres in index order. Results are
+bit-identical run to run on one GPU.
+
+Everything of a Model and of the State being stepped lives on the device; the
+host State is updated once per ``step`` call (once per output frame).
+"""
+
+from __future__ import annotations
+
+import inspect
+import math
+
+import numpy as np
+from numba import cuda, int64
+from numba.core import config
+
+from ..errors import DeviceError
+from .compile import compile_formulas
+
+
+def _device_jit():
+    """Device-function decorator that inlines: numba-cuda's ``forceinline``
+    (NVVM ``alwaysinline``), or the built-in target's ``inline``."""
+    try:
+        params = inspect.signature(cuda.jit).parameters
+    except (TypeError, ValueError):
+        params = {}
+    if "forceinline" in params:
+        return cuda.jit(device=True, forceinline=True)
+    return cuda.jit(device=True, inline=True)
+
+
+F = compile_formulas(_device_jit())
+angular_velocity = F.angular_velocity
+sphere_kinematics = F.sphere_kinematics
+sphere_pair_force = F.sphere_pair_force
+sphere_wall_force = F.sphere_wall_force
+body_step = F.body_step
+
+SIMULATOR = bool(config.ENABLE_CUDASIM)
+#: Threads per block. The simulator runs each CUDA thread as a Python thread,
+#: so it gets small blocks; the algorithm does not depend on the block size.
+THREADS = 32 if SIMULATOR else 256
+CONTACT_THREADS = 32 if SIMULATOR else 128      # register-heavy: smaller blocks
+SCAN_B = 8 if SIMULATOR else 256                # threads per block of the prefix sum
+SCAN_ITEMS = 32 if SIMULATOR else 8            # elements per thread of the prefix sum
+SCAN_CHUNK = SCAN_B * SCAN_ITEMS                # elements per block of the prefix sum
+#: Kernels over the bucket table loop with a grid stride over at most this many blocks.
+TABLE_BLOCKS = 1 if SIMULATOR else 4096
+
+# Same packing as kernels/cpu.py: 21 bits per axis.
+_CELL_BITS = 21
+_CELL_OFF = 1 << (_CELL_BITS - 1)
+_CELL_MAX = (1 << _CELL_BITS) - 1
+_INT64_LIMIT = 9.2e18
+
+
+#: Most buckets per sphere the grid may use (as kernels/cpu.py).
+BUCKETS_PER_SPHERE = 8
+
+
+def grid_table(n_spheres: int, extent_cells=None) -> np.ndarray:
+    """Table layout (bx, by, mask_x, mask_y, mask_z, n_buckets) for the grid.
+
+    The same function as ``kernels.cpu.grid_table`` (repeated so that this
+    module does not import the CPU kernels; tests/test_cuda.py checks the two
+    agree). The budget is 2^k >= BUCKETS_PER_SPHERE × spheres buckets; within
+    it each axis gets the bits that cover the occupied extent (cells per axis).
+    """
+    k = 4
+    while (1 << k) < BUCKETS_PER_SPHERE * max(n_spheres, 1):
+        k += 1
+    if extent_cells is None:
+        bx = (k + 2) // 3
+        by = (k - bx + 1) // 2
+        bits = [bx, by, k - bx - by]
+    else:
+        bits = [max(1, int(np.ceil(np.log2(max(e, 1.0) + 3.0)))) for e in extent_cells]
+        while sum(bits) > k:
+            bits[int(np.argmax(bits))] -= 1
+    bx, by, bz = bits
+    return np.array([bx, by, (1 << bx) - 1, (1 << by) - 1, (1 << bz) - 1, 1 << (bx + by + bz)],
+                    dtype=np.int64)
+
+
+def static_extent(model):
+    """(lo, hi) of the static pseudo-bodies' spheres grown by a diameter, or None."""
+    if not model.n_static:
+        return None
+    first = model.body_sphere_start[model.n_bodies]
+    pts = model.sphere_offset[first:] + model.initial_x[model.sphere_body[first:]]
+    return pts.min(axis=0) - model.diameter, pts.max(axis=0) + model.diameter
+
+
+def fit_grid(model, body_x, static_box) -> np.ndarray:
+    """The grid fitted to where the bodies are (``CpuBackend.fit_grid``, same arithmetic)."""
+    m = model
+    nb = m.body_mass.shape[0]
+    if nb == 0:
+        return grid_table(m.n_spheres)
+    r = m.body_radius
+    lo = (body_x[: m.n_bodies] - r[: m.n_bodies, None]).min(axis=0) if m.n_bodies else None
+    hi = (body_x[: m.n_bodies] + r[: m.n_bodies, None]).max(axis=0) if m.n_bodies else None
+    if static_box is not None:
+        lo = static_box[0] if lo is None else np.minimum(lo, static_box[0])
+        hi = static_box[1] if hi is None else np.maximum(hi, static_box[1])
+    return grid_table(m.n_spheres, (hi - lo) / m.diameter + 2.0)
+
+
+@cuda.jit(device=True)
+def cell_coord(x, inv_d):
+    # int64(floor(v)) + offset, clamped, as on the CPU. NaN and |v| >= 2^63 give
+    # cell 0 there (x86 float->int conversion yields INT64_MIN); do the same
+    # without ever converting them (the simulator's math.floor(nan) raises).
+    v = x * inv_d
+    if v >= -_CELL_OFF and v < _CELL_OFF:
+        return int64(math.floor(v)) + _CELL_OFF
+    if v >= _CELL_OFF and v < _INT64_LIMIT:
+        return int64(_CELL_MAX)
+    return int64(0)
+
+
+@cuda.jit(device=True)
+def cell_key(cx, cy, cz):
+    return (cx << 42) | (cy << 21) | cz
+
+
+@cuda.jit(device=True)
+def cell_hash(cx, cy, cz, grid):
+    """Bucket of a cell in the wrapped 2^bx × 2^by × 2^bz table (see kernels/cpu.py)."""
+    return ((cz & grid[4]) << (grid[0] + grid[1])) | ((cy & grid[3]) << grid[0]) | (cx & grid[2])
+
+
+# ---------------------------------------------------------------------------
+# Stage kernels (mirrors of kernels/cpu.py)
+# ---------------------------------------------------------------------------
+
+@cuda.jit
+def k_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
+                      body_v, body_w):
+    """V = P/M and W = I(t)⁻¹ L (eq. 5-6) for each dynamic body."""
+    b = cuda.grid(1)
+    if b >= n_bodies:
+        return
+    im = body_inv_mass[b]
+    body_v[b, 0] = body_P[b, 0] * im
+    body_v[b, 1] = body_P[b, 1] * im
+    body_v[b, 2] = body_P[b, 2] * im
+    wx, wy, wz = angular_velocity(
+        body_q[b, 0], body_q[b, 1], body_q[b, 2], body_q[b, 3],
+        body_inv_inertia[b, 0], body_inv_inertia[b, 1], body_inv_inertia[b, 2],
+        body_inv_inertia[b, 3], body_inv_inertia[b, 4], body_inv_inertia[b, 5],
+        body_L[b, 0], body_L[b, 1], body_L[b, 2])
+    body_w[b, 0] = wx
+    body_w[b, 1] = wy
+    body_w[b, 2] = wz
+
+
+@cuda.jit
+def k_zero_buckets(bucket_start, bucket_fill):
+    start = cuda.grid(1)
+    stride = cuda.gridsize(1)
+    for h in range(start, bucket_start.shape[0], stride):
+        bucket_start[h] = 0
+    for h in range(start, bucket_fill.shape[0], stride):
+        bucket_fill[h] = 0
+
+
+@cuda.jit
+def k_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d, grid,
+              sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash, bucket_start):
+    """Stage 1 (eq. 19-21), each sphere's grid cell, and the bucket counts."""
+    i = cuda.grid(1)
+    if i >= sphere_body.shape[0]:
+        return
+    b = sphere_body[i]
+    x, y, z, vx, vy, vz, rx, ry, rz = sphere_kinematics(
+        body_x[b, 0], body_x[b, 1], body_x[b, 2],
+        body_q[b, 0], body_q[b, 1], body_q[b, 2], body_q[b, 3],
+        body_v[b, 0], body_v[b, 1], body_v[b, 2], body_w[b, 0], body_w[b, 1], body_w[b, 2],
+        sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2])
+    sphere_x[i, 0] = x
+    sphere_x[i, 1] = y
+    sphere_x[i, 2] = z
+    sphere_v[i, 0] = vx
+    sphere_v[i, 1] = vy
+    sphere_v[i, 2] = vz
+    sphere_r[i, 0] = rx
+    sphere_r[i, 1] = ry
+    sphere_r[i, 2] = rz
+    cx = cell_coord(x, inv_d)
+    cy = cell_coord(y, inv_d)
+    cz = cell_coord(z, inv_d)
+    sphere_key[i] = cell_key(cx, cy, cz)
+    h = cell_hash(cx, cy, cz, grid)
+    sphere_hash[i] = h
+    cuda.atomic.add(bucket_start, h + 1, 1)      # integer: order-independent
+
+
+@cuda.jit
+def k_scan_blocks(data, block_sums):
+    """Inclusive prefix sum of each SCAN_CHUNK-element chunk of ``data`` in place;
+    each chunk's total goes to block_sums. Each thread scans SCAN_ITEMS
+    consecutive elements serially, the block scans the threads' totals
+    (Hillis-Steele in shared memory), then each thread adds its offset."""
+    tmp = cuda.shared.array(SCAN_B, int64)
+    tid = cuda.threadIdx.x
+    n = data.shape[0]
+    first = cuda.blockIdx.x * SCAN_CHUNK + tid * SCAN_ITEMS
+    total = int64(0)
+    for j in range(first, min(first + SCAN_ITEMS, n)):
+        total += data[j]
+        data[j] = total
+    tmp[tid] = total
+    cuda.syncthreads()
+    off = 1
+    while off < SCAN_B:
+        add = int64(0)
+        if tid >= off:
+            add = tmp[tid - off]
+        cuda.syncthreads()
+        tmp[tid] += add
+        cuda.syncthreads()
+        off *= 2
+    before = tmp[tid] - total
+    for j in range(first, min(first + SCAN_ITEMS, n)):
+        data[j] += before
+    if tid == SCAN_B - 1:
+        block_sums[cuda.blockIdx.x] = tmp[tid]
+
+
+@cuda.jit
+def k_scan_add(data, block_sums):
+    """Second pass of the multi-level scan: add the scanned totals of the chunks before."""
+    start = cuda.grid(1)
+    stride = cuda.gridsize(1)
+    for i in range(start + SCAN_CHUNK, data.shape[0], stride):
+        data[i] += block_sums[i // SCAN_CHUNK - 1]
+
+
+@cuda.jit
+def k_scatter(sphere_hash, bucket_start, bucket_fill, sorted_idx):
+    """Stage 2: each sphere claims a slot of its bucket (integer atomic add)."""
+    i = cuda.grid(1)
+    if i >= sphere_hash.shape[0]:
+        return
+    h = sphere_hash[i]
+    slot = bucket_start[h] + cuda.atomic.add(bucket_fill, h, 1)
+    sorted_idx[slot] = i
+
+
+@cuda.jit
+def k_bucket_sort(bucket_start, sorted_idx):
+    """Sort each bucket's slots by sphere index (insertion sort: buckets hold 1-few
+    spheres), making the order that of the CPU's stable counting sort."""
+    start = cuda.grid(1)
+    stride = cuda.gridsize(1)
+    for h in range(start, bucket_start.shape[0] - 1, stride):
+        t0 = bucket_start[h]
+        t1 = bucket_start[h + 1]
+        for a in range(t0 + 1, t1):
+            v = sorted_idx[a]
+            c = a - 1
+            while c >= t0 and sorted_idx[c] > v:
+                sorted_idx[c + 1] = sorted_idx[c]
+                c -= 1
+            sorted_idx[c + 1] = v
+
+
+@cuda.jit
+def k_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
+             sorted_x, sorted_v, sorted_key, sorted_body):
+    """Copy sphere data into sorted order, so neighbours are read from contiguous memory."""
+    s = cuda.grid(1)
+    if s >= sorted_idx.shape[0]:
+        return
+    i = sorted_idx[s]
+    sorted_x[s, 0] = sphere_x[i, 0]
+    sorted_x[s, 1] = sphere_x[i, 1]
+    sorted_x[s, 2] = sphere_x[i, 2]
+    sorted_v[s, 0] = sphere_v[i, 0]
+    sorted_v[s, 1] = sphere_v[i, 1]
+    sorted_v[s, 2] = sphere_v[i, 2]
+    sorted_key[s] = sphere_key[i]
+    sorted_body[s] = sphere_body[i]
+
+
+@cuda.jit
+def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
+               sorted_key, sorted_body, body_w, body_inv_mass, body_material,
+               pair_k, pair_zeta, pair_mu, kt_ratio, friction,
+               wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
+               sphere_f, sphere_t, sphere_overlap):
+    """Stages 3-4: neighbour search over the 27 cells and contact forces (eq. 11-14).
+
+    One thread per sorted slot; same visiting order and sums as the CPU stage.
+    """
+    s = cuda.grid(1)
+    if s >= sorted_idx.shape[0]:
+        return
+    d2 = diameter * diameter
+    radius = 0.5 * diameter
+    n_walls = wall_normal.shape[0]
+    i = sorted_idx[s]
+    bi = sorted_body[s]
+    xi = sorted_x[s, 0]
+    yi = sorted_x[s, 1]
+    zi = sorted_x[s, 2]
+    vxi = sorted_v[s, 0]
+    vyi = sorted_v[s, 1]
+    vzi = sorted_v[s, 2]
+    imi = body_inv_mass[bi]
+    mi = body_material[bi]
+    wxi = body_w[bi, 0]
+    wyi = body_w[bi, 1]
+    wzi = body_w[bi, 2]
+    fx = 0.0
+    fy = 0.0
+    fz = 0.0
+    tx = 0.0
+    ty = 0.0
+    tz = 0.0
+    max_ov = 0.0
+    cx0 = cell_coord(xi, inv_d)
+    cy0 = cell_coord(yi, inv_d)
+    cz0 = cell_coord(zi, inv_d)
+    for dz in range(-1, 2):
+        for dy in range(-1, 2):
+            cy = cy0 + dy
+            cz = cz0 + dz
+            key_lo = cell_key(cx0 - 1, cy, cz)
+            key_hi = cell_key(cx0 + 1, cy, cz)
+            h_lo = cell_hash(cx0 - 1, cy, cz, grid)
+            h_hi = cell_hash(cx0 + 1, cy, cz, grid)
+            if h_hi == h_lo + 2:        # one contiguous run of buckets
+                n_runs = 1
+            else:                       # the row wraps round the table
+                n_runs = 3
+            for run in range(n_runs):
+                if n_runs == 1:
+                    t0 = bucket_start[h_lo]
+                    t1 = bucket_start[h_hi + 1]
+                else:
+                    h = cell_hash(cx0 - 1 + run, cy, cz, grid)
+                    t0 = bucket_start[h]
+                    t1 = bucket_start[h + 1]
+                for t in range(t0, t1):
+                    ktt = sorted_key[t]
+                    if ktt < key_lo or ktt > key_hi:
+                        continue
+                    bj = sorted_body[t]
+                    if bj == bi:
+                        continue
+                    rx = sorted_x[t, 0] - xi
+                    ry = sorted_x[t, 1] - yi
+                    rz = sorted_x[t, 2] - zi
+                    dist2 = rx * rx + ry * ry + rz * rz
+                    if dist2 >= d2:
+                        continue
+                    imj = body_inv_mass[bj]
+                    im_sum = imi + imj
+                    if im_sum == 0.0:
+                        continue
+                    mj = body_material[bj]
+                    k = pair_k[mi, mj]
+                    root = math.sqrt(k / im_sum)
+                    eta = 2.0 * pair_zeta[mi, mj] * root
+                    mu = pair_mu[mi, mj] if friction else 0.0
+                    dist = math.sqrt(dist2)
+                    pfx, pfy, pfz, ptx, pty, ptz = sphere_pair_force(
+                        rx, ry, rz, dist, diameter,
+                        sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
+                        wxi + body_w[bj, 0], wyi + body_w[bj, 1], wzi + body_w[bj, 2],
+                        k, eta, kt_ratio * root, mu)
+                    fx += pfx
+                    fy += pfy
+                    fz += pfz
+                    tx += ptx
+                    ty += pty
+                    tz += ptz
+                    ov = diameter - dist
+                    if ov > max_ov:
+                        max_ov = ov
+    if imi > 0.0:
+        for w in range(n_walls):
+            nx = wall_normal[w, 0]
+            ny = wall_normal[w, 1]
+            nz = wall_normal[w, 2]
+            dist = nx * xi + ny * yi + nz * zi - wall_offset[w]
+            if dist >= radius or dist <= -wall_depth[w]:
+                continue
+            if (xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
+                    or yi > wall_hi[w, 1] or zi < wall_lo[w, 2] or zi > wall_hi[w, 2]):
+                continue
+            mj = wall_material[w]
+            k = pair_k[mi, mj]
+            root = math.sqrt(k / imi)
+            eta = 2.0 * pair_zeta[mi, mj] * root
+            mu = pair_mu[mi, mj] if friction else 0.0
+            pfx, pfy, pfz, ptx, pty, ptz = sphere_wall_force(
+                -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
+                k, eta, kt_ratio * root, mu)
+            fx += pfx
+            fy += pfy
+            fz += pfz
+            tx += ptx
+            ty += pty
+            tz += ptz
+            ov = radius - dist
+            if ov > max_ov:
+                max_ov = ov
+    sphere_f[i, 0] = fx
+    sphere_f[i, 1] = fy
+    sphere_f[i, 2] = fz
+    sphere_t[i, 0] = tx
+    sphere_t[i, 1] = ty
+    sphere_t[i, 2] = tz
+    if max_ov > sphere_overlap[i]:
+        sphere_overlap[i] = max_ov
+
+
+@cuda.jit
+def k_bodies(n_bodies, dt, gravity, body_sphere_start, sphere_f, sphere_t, sphere_r,
+             body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L):
+    """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10)."""
+    b = cuda.grid(1)
+    if b >= n_bodies:
+        return
+    m = body_mass[b]
+    FX = m * gravity[0]
+    FY = m * gravity[1]
+    FZ = m * gravity[2]
+    TX = 0.0
+    TY = 0.0
+    TZ = 0.0
+    for i in range(body_sphere_start[b], body_sphere_start[b + 1]):
+        fx = sphere_f[i, 0]
+        fy = sphere_f[i, 1]
+        fz = sphere_f[i, 2]
+        rx = sphere_r[i, 0]
+        ry = sphere_r[i, 1]
+        rz = sphere_r[i, 2]
+        FX += fx
+        FY += fy
+        FZ += fz
+        TX += (ry * fz - rz * fy) + sphere_t[i, 0]
+        TY += (rz * fx - rx * fz) + sphere_t[i, 1]
+        TZ += (rx * fy - ry * fx) + sphere_t[i, 2]
+    (X, Y, Z, qw, qx, qy, qz, PX, PY, PZ, LX, LY, LZ) = body_step(
+        body_x[b, 0], body_x[b, 1], body_x[b, 2],
+        body_q[b, 0], body_q[b, 1], body_q[b, 2], body_q[b, 3],
+        body_P[b, 0], body_P[b, 1], body_P[b, 2], body_L[b, 0], body_L[b, 1], body_L[b, 2],
+        FX, FY, FZ, TX, TY, TZ, body_inv_mass[b],
+        body_inv_inertia[b, 0], body_inv_inertia[b, 1], body_inv_inertia[b, 2],
+        body_inv_inertia[b, 3], body_inv_inertia[b, 4], body_inv_inertia[b, 5], dt)
+    body_x[b, 0] = X
+    body_x[b, 1] = Y
+    body_x[b, 2] = Z
+    body_q[b, 0] = qw
+    body_q[b, 1] = qx
+    body_q[b, 2] = qy
+    body_q[b, 3] = qz
+    body_P[b, 0] = PX
+    body_P[b, 1] = PY
+    body_P[b, 2] = PZ
+    body_L[b, 0] = LX
+    body_L[b, 1] = LY
+    body_L[b, 2] = LZ
+
+
+@cuda.jit
+def k_take_max(values, out):
+    """out[0] = max(out[0], values[...]) and values[...] = 0 (float max: exact, commutative)."""
+    start = cuda.grid(1)
+    stride = cuda.gridsize(1)
+    m = 0.0
+    for i in range(start, values.shape[0], stride):
+        v = values[i]
+        if v > m:
+            m = v
+        values[i] = 0.0
+    if m > 0.0:
+        cuda.atomic.max(out, 0, m)
+
+
+@cuda.jit
+def k_fill(values, v):
+    i = cuda.grid(1)
+    if i < values.shape[0]:
+        values[i] = v
+
+
+# ---------------------------------------------------------------------------
+# Host side
+# ---------------------------------------------------------------------------
+
+def _blocks(n: int, threads: int) -> int:
+    return max(1, (int(n) + threads - 1) // threads)
+
+
+def _table_blocks(n: int) -> int:
+    return min(_blocks(n, THREADS), TABLE_BLOCKS)
+
+
+def _scan_levels(n: int) -> list[int]:
+    """Lengths of the arrays of a multi-level scan of ``n`` elements."""
+    sizes = [int(n)]
+    while sizes[-1] > SCAN_CHUNK:
+        sizes.append(_blocks(sizes[-1], SCAN_CHUNK))
+    sizes.append(1)              # the last level's single block total (unused)
+    return sizes
+
+
+def scan_buffers(n: int):
+    """(sizes, sums): level sizes and the device arrays of block totals for ``device_scan``."""
+    sizes = _scan_levels(n)
+    return sizes, [cuda.to_device(np.zeros(m, dtype=np.int64)) for m in sizes[1:]]
+
+
+def device_scan(data, sizes, sums, level: int = 0) -> None:
+    """Inclusive prefix sum of the int64 device array ``data`` in place: each
+    chunk is scanned, the chunks' totals are scanned (recursively), then added
+    back. A fixed sequence of launches for a given size."""
+    n = sizes[level]
+    k_scan_blocks[_blocks(n, SCAN_CHUNK), SCAN_B](data, sums[level])
+    if n > SCAN_CHUNK:
+        device_scan(sums[level], sizes, sums, level + 1)
+        k_scan_add[_table_blocks(n), THREADS](data, sums[level])
+
+
+def scratch_layout(model) -> dict:
+    """name -> (shape, dtype) of every device array a CudaBackend allocates."""
+    nb = int(model.body_mass.shape[0])
+    ns = model.n_spheres
+    nw = model.n_walls
+    nm = int(model.pair_k.shape[0])
+    table = int(grid_table(ns)[5])       # the budget: the most a fitted grid may use
+    f8, i8, i4 = np.float64, np.int64, np.int32
+    lay = {
+        # Model
+        "sphere_body": ((ns,), i4), "sphere_offset": ((ns, 3), f8),
+        "body_sphere_start": ((nb + 1,), i4), "body_mass": ((nb,), f8),
+        "body_inv_mass": ((nb,), f8), "body_inv_inertia": ((nb, 6), f8),
+        "body_material": ((nb,), i4), "pair_k": ((nm, nm), f8), "pair_zeta": ((nm, nm), f8),
+        "pair_mu": ((nm, nm), f8), "wall_normal": ((nw, 3), f8), "wall_offset": ((nw,), f8),
+        "wall_lo": ((nw, 3), f8), "wall_hi": ((nw, 3), f8), "wall_depth": ((nw,), f8),
+        "wall_material": ((nw,), i4), "gravity": ((3,), f8), "grid": ((6,), i8),
+        # State
+        "body_x": ((nb, 3), f8), "body_q": ((nb, 4), f8), "body_P": ((nb, 3), f8),
+        "body_L": ((nb, 3), f8),
+        # scratch
+        "body_v": ((nb, 3), f8), "body_w": ((nb, 3), f8),
+        "sphere_x": ((ns, 3), f8), "sphere_v": ((ns, 3), f8), "sphere_r": ((ns, 3), f8),
+        "sphere_key": ((ns,), i8), "sphere_hash": ((ns,), i8),
+        "bucket_start": ((table + 1,), i8), "bucket_fill": ((table,), i8),
+        "sorted_idx": ((ns,), i4), "sorted_x": ((ns, 3), f8), "sorted_v": ((ns, 3), f8),
+        "sorted_key": ((ns,), i8), "sorted_body": ((ns,), i4),
+        "sphere_f": ((ns, 3), f8), "sphere_t": ((ns, 3), f8), "sphere_overlap": ((ns,), f8),
+        "max_out": ((1,), f8),
+    }
+    for lvl, n in enumerate(_scan_levels(table + 1)[1:]):
+        lay[f"scan_{lvl + 1}"] = ((n,), i8)
+    return lay
+
+
+def memory_needed(model) -> int:
+    """Bytes of device memory a CudaBackend for ``model`` allocates (all its arrays)."""
+    return int(sum(int(np.prod(shape)) * np.dtype(dt).itemsize
+                   for shape, dt in scratch_layout(model).values()))
+
+
+#: Left free for the CUDA context, kernels' code and local memory.
+MEMORY_MARGIN = 256 * 2**20
+
+
+def check_memory(needed: int, free: float, total: float | None = None) -> None:
+    """Raise DeviceError when ``needed`` bytes do not fit into ``free`` (less a margin)."""
+    if needed + MEMORY_MARGIN > free:
+        of = f" of {total / 2**30:.1f} GiB" if total and math.isfinite(total) else ""
+        raise DeviceError(
+            f"scene needs {needed / 2**30:.2f} GiB of GPU memory (+{MEMORY_MARGIN / 2**20:.0f} "
+            f"MiB working margin) but only {free / 2**30:.2f} GiB{of} is free: use fewer "
+            f"bodies or larger spheres (lower simulation.resolution), or --device cpu")
+
+
+class CudaBackend:
+    """Owns the device arrays of one Model and advances States on the GPU.
+
+    The interface of ``kernels.cpu.CpuBackend``. The State being stepped is
+    resident on the device; it is uploaded when ``step``/``velocities``/``probe``
+    see a State (or state arrays) other than the resident one, and its
+    body_x, body_q, body_P, body_L are copied back into the host arrays at the
+    end of every ``step`` call. Changing the host arrays in place between calls
+    is not seen: call ``upload(state)`` after doing that.
+    """
+
+    name = "cuda"
+
+    def __init__(self, model):
+        self.model = model
+        layout = scratch_layout(model)
+        ctx = cuda.current_context()
+        free, total = ctx.get_memory_info()
+        check_memory(memory_needed(model), free, total)
+        self.grid = grid_table(model.n_spheres)
+        self.static_box = static_extent(model)
+        self.table = layout["bucket_fill"][0][0]
+        self.scan_sizes = _scan_levels(self.table + 1)
+        d = {}
+        model_fields = ("sphere_body", "sphere_offset", "body_sphere_start", "body_mass",
+                        "body_inv_mass", "body_inv_inertia", "body_material", "pair_k",
+                        "pair_zeta", "pair_mu", "wall_normal", "wall_offset", "wall_lo",
+                        "wall_hi", "wall_depth", "wall_material", "gravity")
+        for name in model_fields:
+            shape, dt = layout[name]
+            a = np.ascontiguousarray(getattr(model, name), dtype=dt).reshape(shape)
+            d[name] = cuda.to_device(a)
+        d["grid"] = cuda.to_device(self.grid)
+        for name, (shape, dt) in layout.items():
+            if name not in d:
+                d[name] = cuda.to_device(np.zeros(shape, dtype=dt))
+        self.d = d
+        self.scan_sums = [d[f"scan_{lvl + 1}"] for lvl in range(len(self.scan_sizes) - 1)]
+        self._resident = None            # (state, body_x, body_q, body_P, body_L) on device
+
+    # -- state residency -------------------------------------------------------
+    def upload(self, state) -> None:
+        """Copy ``state``'s body arrays to the device and make it the resident State."""
+        for name in ("body_x", "body_q", "body_P", "body_L"):
+            self.d[name].copy_to_device(np.ascontiguousarray(getattr(state, name),
+                                                             dtype=np.float64))
+        self._resident = (state, state.body_x, state.body_q, state.body_P, state.body_L)
+
+    def _ensure_resident(self, state) -> None:
+        r = self._resident
+        if (r is None or r[0] is not state or r[1] is not state.body_x
+                or r[2] is not state.body_q or r[3] is not state.body_P
+                or r[4] is not state.body_L):
+            self.upload(state)
+
+    def download(self, state) -> None:
+        """Copy the device body arrays into ``state``'s host arrays."""
+        for name in ("body_x", "body_q", "body_P", "body_L"):
+            host = getattr(state, name)
+            if host.flags.c_contiguous and host.dtype == np.float64:
+                self.d[name].copy_to_host(host)
+            else:
+                host[...] = self.d[name].copy_to_host()
+
+    def fit(self, state) -> None:
+        """Fit the grid to where the bodies are (once per ``step`` call, as on the CPU):
+        host arithmetic on the host State, then a 48-byte upload."""
+        self.grid = fit_grid(self.model, state.body_x, self.static_box)
+        self.d["grid"].copy_to_device(self.grid)
+
+    # -- launches ----------------------------------------------------------------
+    def _velocities(self):
+        m, d = self.model, self.d
+        k_body_velocities[_blocks(m.n_bodies, THREADS), THREADS](
+            m.n_bodies, d["body_P"], d["body_L"], d["body_q"], d["body_inv_mass"],
+            d["body_inv_inertia"], d["body_v"], d["body_w"])
+
+    def _spheres(self):
+        """Stage 1 and each sphere's cell; also counts the spheres per bucket."""
+        m, d = self.model, self.d
+        k_zero_buckets[_table_blocks(self.table + 1), THREADS](d["bucket_start"],
+                                                              d["bucket_fill"])
+        k_spheres[_blocks(m.n_spheres, THREADS), THREADS](
+            d["sphere_body"], d["sphere_offset"], d["body_x"], d["body_q"], d["body_v"],
+            d["body_w"], 1.0 / m.diameter, d["grid"], d["sphere_x"], d["sphere_v"],
+            d["sphere_r"], d["sphere_key"], d["sphere_hash"], d["bucket_start"])
+
+    def _grid_sort(self):
+        """Stage 2: scan of the counts, scatter, sort of each bucket by sphere index."""
+        d = self.d
+        ns = self.model.n_spheres
+        self._scan(d["bucket_start"], 0)
+        k_scatter[_blocks(ns, THREADS), THREADS](d["sphere_hash"], d["bucket_start"],
+                                                 d["bucket_fill"], d["sorted_idx"])
+        k_bucket_sort[_table_blocks(self.table), THREADS](d["bucket_start"], d["sorted_idx"])
+
+    def _gather(self):
+        d = self.d
+        k_gather[_blocks(self.model.n_spheres, THREADS), THREADS](
+            d["sorted_idx"], d["sphere_x"], d["sphere_v"], d["sphere_key"], d["sphere_body"],
+            d["sorted_x"], d["sorted_v"], d["sorted_key"], d["sorted_body"])
+
+    def _spheres_and_grid(self):
+        self._spheres()
+        self._grid_sort()
+        self._gather()
+
+    def _scan(self, data, level):
+        device_scan(data, self.scan_sizes, self.scan_sums, level)
+
+    def _contacts(self):
+        m, d = self.model, self.d
+        k_contacts[_blocks(m.n_spheres, CONTACT_THREADS), CONTACT_THREADS](
+            m.diameter, 1.0 / m.diameter, d["grid"], d["bucket_start"], d["sorted_idx"],
+            d["sorted_x"], d["sorted_v"], d["sorted_key"], d["sorted_body"], d["body_w"],
+            d["body_inv_mass"], d["body_material"], d["pair_k"], d["pair_zeta"], d["pair_mu"],
+            m.kt_ratio, bool(m.features.friction), d["wall_normal"], d["wall_offset"],
+            d["wall_lo"], d["wall_hi"], d["wall_depth"], d["wall_material"],
+            d["sphere_f"], d["sphere_t"], d["sphere_overlap"])
+
+    def _bodies(self):
+        m, d = self.model, self.d
+        k_bodies[_blocks(m.n_bodies, THREADS), THREADS](
+            m.n_bodies, m.dt, d["gravity"], d["body_sphere_start"], d["sphere_f"], d["sphere_t"],
+            d["sphere_r"], d["body_mass"], d["body_inv_mass"], d["body_inv_inertia"],
+            d["body_x"], d["body_q"], d["body_P"], d["body_L"])
+
+    #: The launch groups of one step, in order (benchmarks time each).
+    STAGES = ("_velocities", "_spheres", "_grid_sort", "_gather", "_contacts", "_bodies")
+
+    def step_once(self) -> None:
+        """One step of the eight stages on the resident State: a fixed sequence of
+        launches with fixed sizes and arguments, no host synchronisation (so the
+        sequence can be captured once into a CUDA graph and replayed)."""
+        self._velocities()
+        self._spheres()
+        self._grid_sort()
+        self._gather()
+        self._contacts()
+        self._bodies()
+
+    # -- CpuBackend interface ----------------------------------------------------
+    def step(self, state, n_steps: int) -> None:
+        """Advance ``state`` by ``n_steps`` steps; its host arrays are updated at the end."""
+        self._ensure_resident(state)
+        self.fit(state)
+        for _ in range(int(n_steps)):
+            self.step_once()
+        self.download(state)
+
+    def probe(self, state) -> None:
+        """Stages 1-4 without moving anything: fills sphere_f, sphere_overlap."""
+        self._ensure_resident(state)
+        self.fit(state)
+        self._velocities()
+        self._spheres_and_grid()
+        d = self.d
+        k_fill[_blocks(self.model.n_spheres, THREADS), THREADS](d["sphere_overlap"], 0.0)
+        self._contacts()
+
+    def velocities(self, state):
+        """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""
+        self._ensure_resident(state)
+        self._velocities()
+        nb = self.model.n_bodies
+        return (self.d["body_v"].copy_to_host()[:nb].copy(),
+                self.d["body_w"].copy_to_host()[:nb].copy())
+
+    def take_max_overlap(self) -> float:
+        """Largest overlap since the last call [m], then reset."""
+        if self.model.n_spheres == 0:
+            return 0.0
+        d = self.d
+        k_fill[1, 1](d["max_out"], 0.0)
+        blocks = min(_blocks(self.model.n_spheres, THREADS), 1024)
+        k_take_max[blocks, THREADS](d["sphere_overlap"], d["max_out"])
+        return float(d["max_out"].copy_to_host()[0])
+
+    # -- host copies of scratch (tests, diagnostics) -----------------------------
+    def host(self, name: str) -> np.ndarray:
+        """A host copy of the device array ``name`` (see ``scratch_layout``)."""
+        return self.d[name].copy_to_host()
+
+    sphere_x = property(lambda self: self.host("sphere_x"))
+    sphere_f = property(lambda self: self.host("sphere_f"))
+    sphere_t = property(lambda self: self.host("sphere_t"))
+    sphere_r = property(lambda self: self.host("sphere_r"))
+    sphere_overlap = property(lambda self: self.host("sphere_overlap"))
+    sorted_idx = property(lambda self: self.host("sorted_idx"))
+    bucket_start = property(lambda self: self.host("bucket_start"))
