@@ -103,7 +103,7 @@ class Model:
       surface; wall_lo, wall_hi (W, 3) box the sphere centre must be in [m];
       wall_depth (W,) [m] how far behind the surface a sphere still touches it;
       wall_material (W,).
-    Materials: pair_k, pair_zeta, pair_mu (M, M); kt_ratio.
+    Materials: pair_k, pair_zeta, pair_mu (M, M); kt_ratio; ks_ratio.
     Time: dt [s], steps_per_frame, fps, n_frames, first_frame.
     """
 
@@ -138,6 +138,7 @@ class Model:
     pair_zeta: np.ndarray
     pair_mu: np.ndarray
     kt_ratio: float
+    ks_ratio: float
     gravity: np.ndarray
     dt: float
     steps_per_frame: int
@@ -184,7 +185,10 @@ class Model:
         L = np.zeros((nb, 3))
         for b in range(self.n_bodies):
             L[b] = _world_inertia(q[b], self.body_inv_inertia[b]) @ self.initial_w[b]
-        return State(body_x=x, body_q=q, body_P=P, body_L=L)
+        state = State(body_x=x, body_q=q, body_P=P, body_L=L)
+        if self.features.friction:
+            state.ensure_contacts(self.n_spheres)
+        return state
 
 
 def _sym6_to_mat(s):
@@ -511,7 +515,7 @@ class ModelBuilder:
             plane_normal=_frozen(np.array([n for _, n in self._planes]).reshape(-1, 3)),
             boxes=tuple(self._boxes), static_meshes=tuple(static_meshes),
             pair_k=_frozen(table.k), pair_zeta=_frozen(table.zeta), pair_mu=_frozen(table.mu),
-            kt_ratio=table.kt_ratio, gravity=_frozen(self.gravity), dt=float(dt_v),
+            kt_ratio=table.kt_ratio, ks_ratio=table.ks_ratio, gravity=_frozen(self.gravity), dt=float(dt_v),
             steps_per_frame=int(spf), fps=float(fps), n_frames=int(n_frames),
             first_frame=int(first_frame), up_axis=up_axis, meters_per_unit=float(meters_per_unit),
             omega_max=float(omega_max), features=features,

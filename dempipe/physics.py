@@ -120,23 +120,35 @@ def damping_coefficient(zeta, k, inv_mass_a, inv_mass_b):
     return 2.0 * zeta * sqrt(k / (inv_mass_a + inv_mass_b))
 
 
-def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, mu):
-    """Force on sphere i from one contact (eq. 11-14 with a Coulomb cap).
+def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, sz, dt):
+    """Force on sphere i from one contact (eq. 11-14), with a Coulomb cap and a
+    tangential spring for static friction (Cundall and Strack 1979).
 
     n : unit normal from i towards the other body.
     overlap : d - |r_ij| for two spheres, radius - distance for a wall [m], > 0.
     u : velocity of the other body's contact point relative to i's [m/s].
     k : normal spring [N/m]; eta : normal dashpot [N s/m];
-    kt : tangential viscous coefficient [N s/m]; mu : Coulomb friction.
+    kt : tangential dashpot [N s/m]; ks : tangential spring [N/m] (0: none);
+    mu : Coulomb friction; s : the contact's tangential spring stretch [m] from
+    the last step (0 for a new contact); dt : the step [s].
+    Returns (fx, fy, fz, sx, sy, sz): the force [N] and the new stretch.
 
     Normal: spring -k δ n (eq. 11) plus a dashpot on the *normal* relative
     velocity only, η (u·n) n — the paper's eq. 12 damps the full relative
     velocity, which would also act as friction on frictionless materials.
-    Tangential: kt u_t (eq. 13), capped by Coulomb |f_t| ≤ μ |f_n| where
-    |f_n| is the compressive part of the normal force.
+    Tangential: the paper's viscous kt u_t (eq. 13) plus a spring ks s, where
+    s integrates the tangential slip u_t dt while the contact lasts. The spring
+    is what holds a box on a slope: a viscous force vanishes with the speed,
+    so it can only slow a creep, never stop it. Each step s is first turned
+    into the current tangent plane (projected, length kept), then grown by
+    u_t dt. The sum is capped by Coulomb |f_t| ≤ μ |f_n| with |f_n| the
+    compressive part of the normal force; when the cap binds the contact
+    slides, and s is reset to what the capped force needs, so the spring
+    never stores more than μ |f_n| / ks.
 
-    Antisymmetric in IEEE arithmetic: swapping i and j negates n and u and
-    gives exactly the negated force, so gathered sums conserve momentum.
+    Antisymmetric in IEEE arithmetic: swapping i and j negates n, u and s and
+    gives exactly the negated force and stretch, so gathered sums conserve
+    momentum and both sides' histories stay exact opposites.
     """
     un = ux * nx + uy * ny + uz * nz
     fn = -k * overlap + eta * un          # along n; negative pushes i away
@@ -147,34 +159,66 @@ def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, mu):
         tx = ux - un * nx
         ty = uy - un * ny
         tz = uz - un * nz
-        ftx = kt * tx
-        fty = kt * ty
-        ftz = kt * tz
-        ft2 = ftx * ftx + fty * fty + ftz * ftz
         cap = -mu * fn if fn < 0.0 else 0.0
+        if ks > 0.0 and cap > 0.0:
+            # turn the stretch into the tangent plane, keeping its length
+            s2 = sx * sx + sy * sy + sz * sz
+            sn = sx * nx + sy * ny + sz * nz
+            sx -= sn * nx
+            sy -= sn * ny
+            sz -= sn * nz
+            p2 = sx * sx + sy * sy + sz * sz
+            if p2 > 0.0:
+                keep = sqrt(s2 / p2)
+                sx *= keep
+                sy *= keep
+                sz *= keep
+            sx += tx * dt
+            sy += ty * dt
+            sz += tz * dt
+            ftx = ks * sx + kt * tx
+            fty = ks * sy + kt * ty
+            ftz = ks * sz + kt * tz
+        else:
+            sx = 0.0
+            sy = 0.0
+            sz = 0.0
+            ftx = kt * tx
+            fty = kt * ty
+            ftz = kt * tz
+        ft2 = ftx * ftx + fty * fty + ftz * ftz
         if ft2 > cap * cap:
             if ft2 > 0.0:
-                s = cap / sqrt(ft2)
-                ftx *= s
-                fty *= s
-                ftz *= s
+                c = cap / sqrt(ft2)
+                ftx *= c
+                fty *= c
+                ftz *= c
+            if ks > 0.0 and cap > 0.0:   # sliding: the stretch the capped force needs
+                sx = (ftx - kt * tx) / ks
+                sy = (fty - kt * ty) / ks
+                sz = (ftz - kt * tz) / ks
         fx += ftx
         fy += fty
         fz += ftz
-    return fx, fy, fz
+    else:
+        sx = 0.0
+        sy = 0.0
+        sz = 0.0
+    return fx, fy, fz, sx, sy, sz
 
 
 def sphere_pair_force(rx, ry, rz, dist, diameter, dvx, dvy, dvz, wsx, wsy, wsz,
-                      k, eta, kt, mu):
-    """Force on sphere i from sphere j and its torque about i's centre.
+                      k, eta, kt, ks, mu, sx, sy, sz, dt):
+    """Force on sphere i from sphere j, its torque about i's centre, and the new
+    tangential stretch of the contact.
 
     r = x_j - x_i with |r| = dist < diameter; dv = v_j - v_i (centre velocities);
     ws = W_i + W_j, the sum of the two bodies' angular velocities, which gives the
     contact-point velocities: the contact point lies a radius from each centre,
-    so u = dv - radius (ws × n).
-    Returns (fx, fy, fz, tx, ty, tz): the torque (radius n) × f is what the
-    force adds about the sphere's own centre (the paper's eq. 16 uses the centre
-    only, which cannot make a single sphere roll; see docs/physics.md).
+    so u = dv - radius (ws × n). s : the stretch from the last step [m].
+    Returns (fx, fy, fz, tx, ty, tz, sx, sy, sz): the torque (radius n) × f is
+    what the force adds about the sphere's own centre (the paper's eq. 16 uses
+    the centre only, which cannot make a single sphere roll; see docs/physics.md).
     """
     radius = 0.5 * diameter
     if dist > 0.0:
@@ -189,13 +233,17 @@ def sphere_pair_force(rx, ry, rz, dist, diameter, dvx, dvy, dvz, wsx, wsy, wsz,
     ux = dvx - radius * (wsy * nz - wsz * ny)
     uy = dvy - radius * (wsz * nx - wsx * nz)
     uz = dvz - radius * (wsx * ny - wsy * nx)
-    fx, fy, fz = contact_force(nx, ny, nz, diameter - dist, ux, uy, uz, k, eta, kt, mu)
+    fx, fy, fz, sx, sy, sz = contact_force(nx, ny, nz, diameter - dist, ux, uy, uz,
+                                           k, eta, kt, ks, mu, sx, sy, sz, dt)
     return (fx, fy, fz,
-            radius * (ny * fz - nz * fy), radius * (nz * fx - nx * fz), radius * (nx * fy - ny * fx))
+            radius * (ny * fz - nz * fy), radius * (nz * fx - nx * fz), radius * (nx * fy - ny * fx),
+            sx, sy, sz)
 
 
-def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz, k, eta, kt, mu):
-    """Force on a sphere from a static wall, and its torque about the sphere's centre.
+def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz,
+                      k, eta, kt, ks, mu, sx, sy, sz, dt):
+    """Force on a sphere from a static wall, its torque about the sphere's centre,
+    and the new tangential stretch (as sphere_pair_force).
 
     n : unit normal from the sphere towards the wall (minus the wall's outward normal).
     v, w : the sphere's centre velocity and its body's angular velocity.
@@ -205,9 +253,45 @@ def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz, k, et
     ux = -(vx + radius * (wy * nz - wz * ny))
     uy = -(vy + radius * (wz * nx - wx * nz))
     uz = -(vz + radius * (wx * ny - wy * nx))
-    fx, fy, fz = contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, mu)
+    fx, fy, fz, sx, sy, sz = contact_force(nx, ny, nz, overlap, ux, uy, uz,
+                                           k, eta, kt, ks, mu, sx, sy, sz, dt)
     return (fx, fy, fz,
-            radius * (ny * fz - nz * fy), radius * (nz * fx - nx * fz), radius * (nx * fy - ny * fx))
+            radius * (ny * fz - nz * fy), radius * (nz * fx - nx * fz), radius * (nx * fy - ny * fx),
+            sx, sy, sz)
+
+
+# ---------------------------------------------------------------------------
+# Contact history (static friction): each sphere remembers its own contacts
+# ---------------------------------------------------------------------------
+
+def history_find(contact_partner, i, code):
+    """Slot of sphere i's remembered contact with partner ``code`` (-1: none).
+
+    contact_partner[i, h] holds 2 code + parity (see State), 0 when empty.
+    """
+    for h in range(contact_partner.shape[1]):
+        if (contact_partner[i, h] >> 1) == code:
+            return h
+    return -1
+
+
+def history_store(contact_partner, contact_spring, i, slot, code, parity, sx, sy, sz):
+    """Remember contact ``code`` of sphere i with stretch s, touched at ``parity``.
+
+    A new contact (slot < 0) takes the first empty slot; with none free it is
+    not remembered, and its friction is only the viscous part this step.
+    """
+    if slot < 0:
+        for h in range(contact_partner.shape[1]):
+            if contact_partner[i, h] == 0:
+                slot = h
+                break
+        if slot < 0:
+            return
+    contact_partner[i, slot] = (code << 1) | parity
+    contact_spring[i, slot, 0] = sx
+    contact_spring[i, slot, 1] = sy
+    contact_spring[i, slot, 2] = sz
 
 
 # ---------------------------------------------------------------------------

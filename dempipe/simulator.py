@@ -134,8 +134,6 @@ class Simulator:
             except KeyboardInterrupt as exc:
                 exc.frames = frames.head(k)
                 raise
-            state.step += m.steps_per_frame
-            state.time = state.step * m.dt
             self.stats.steps += m.steps_per_frame
             self.stats.wall_seconds = time.perf_counter() - t0
             overlap = self.backend.take_max_overlap()

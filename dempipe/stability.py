@@ -30,6 +30,7 @@ import numpy as np
 
 from . import materials as mat
 from .errors import StabilityError
+from .state import CONTACT_SLOTS
 from .model import Model, quat_to_matrix, rotational_mass_factor
 
 #: Frame-0 overlap limits as fractions of the diameter; the same as bake.py's
@@ -284,8 +285,11 @@ def memory_estimate(model: Model) -> dict:
                + ns * i8 + ns * i4                     # sorted_key, sorted_body
                + 2 * ns * 3 * f8                       # sphere_f, sphere_t
                + ns * f8                               # sphere_overlap
-               + (2 * 3 * f8 if model.n_static else 0))  # static_lo, static_hi
+               + (2 * 3 * f8 if model.n_static else 0)  # static_lo, static_hi
+               + i4 + 3 * f8)                          # the frictionless dummy history
     state = nb * (3 + 4 + 3 + 3) * f8
+    if model.features.friction:   # contact histories (static friction), see State
+        state += ns * CONTACT_SLOTS * (i4 + 3 * f8)
     frames = model.n_frames * (i8 + f8 + model.n_bodies * (3 + 4 + 3 + 3) * f8)
     return dict(model=int(model_bytes), cpu_scratch=int(scratch), state=int(state),
                 frames=int(frames), total=int(model_bytes + scratch + state + frames))

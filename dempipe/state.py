@@ -6,6 +6,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: Contacts each sphere remembers for static friction (its tangential springs).
+#: Equal spheres on lattices touch at most ~6 spheres of other bodies plus 3
+#: walls in a corner; a contact beyond the slots gets no spring (only the
+#: viscous part of friction) until a slot frees up.
+CONTACT_SLOTS = 12
+
 
 @dataclass
 class State:
@@ -17,6 +23,12 @@ class State:
     body_L : (B, 3) float64, angular momentum about the centre of mass, world frame [kg m²/s]
     time : simulated time [s]
     step : steps taken since frame 0
+    contact_partner : (S, CONTACT_SLOTS) int32, per sphere the contacts it
+        remembers: 2 (p + 1) + (step parity when last touched), p the other
+        sphere's index or n_spheres + wall index; 0 is an empty slot
+    contact_spring : (S, CONTACT_SLOTS, 3) float64, tangential spring stretch of
+        each remembered contact, world frame [m] (Cundall-Strack history)
+    Both are None until a backend that needs them (friction) allocates them.
     """
 
     body_x: np.ndarray
@@ -25,7 +37,17 @@ class State:
     body_L: np.ndarray
     time: float = 0.0
     step: int = 0
+    contact_partner: np.ndarray | None = None
+    contact_spring: np.ndarray | None = None
 
     def copy(self) -> "State":
         return State(self.body_x.copy(), self.body_q.copy(), self.body_P.copy(),
-                     self.body_L.copy(), self.time, self.step)
+                     self.body_L.copy(), self.time, self.step,
+                     None if self.contact_partner is None else self.contact_partner.copy(),
+                     None if self.contact_spring is None else self.contact_spring.copy())
+
+    def ensure_contacts(self, n_spheres: int) -> None:
+        """Allocate empty contact histories (every contact starts unstretched)."""
+        if self.contact_partner is None or self.contact_partner.shape[0] != n_spheres:
+            self.contact_partner = np.zeros((n_spheres, CONTACT_SLOTS), dtype=np.int32)
+            self.contact_spring = np.zeros((n_spheres, CONTACT_SLOTS, 3))

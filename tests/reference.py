@@ -26,9 +26,16 @@ def reference_step(model, state):
                                         *model.sphere_offset[i])
         x[i], v[i], r[i] = out[0:3], out[3:6], out[6:9]
     d = model.diameter
+    # remembered tangential springs: (sphere, partner code) -> stretch; codes as in State
+    spring = {}
+    if model.features.friction and st.contact_partner is not None:
+        for i, h in zip(*np.nonzero(st.contact_partner)):
+            spring[(int(i), int(st.contact_partner[i, h]) >> 1)] = st.contact_spring[i, h]
     f = np.zeros((S, 3)); t = np.zeros((S, 3))
     for i in range(S):
         bi = model.sphere_body[i]
+        if model.body_inv_mass[bi] == 0.0:
+            continue                       # static spheres feel no force
         for j in range(S):
             bj = model.sphere_body[j]
             if bi == bj:
@@ -44,9 +51,11 @@ def reference_step(model, state):
             k = model.pair_k[mi, mj]
             root = np.sqrt(k / im)
             mu = model.pair_mu[mi, mj] if model.features.friction else 0.0
+            s0 = spring.get((i, j + 1), np.zeros(3))
             out = physics.sphere_pair_force(*rij, dist, d, *(v[j] - v[i]), *(W[bi] + W[bj]), k,
                                             2 * model.pair_zeta[mi, mj] * root,
-                                            model.kt_ratio * root, mu)
+                                            model.kt_ratio * root, model.ks_ratio * k, mu,
+                                            *s0, model.dt)
             f[i] += out[0:3]; t[i] += out[3:6]
         if model.body_inv_mass[bi] > 0:
             for w in range(model.n_walls):
@@ -60,9 +69,11 @@ def reference_step(model, state):
                 k = model.pair_k[mi, mj]
                 root = np.sqrt(k / model.body_inv_mass[bi])
                 mu = model.pair_mu[mi, mj] if model.features.friction else 0.0
+                s0 = spring.get((i, S + w + 1), np.zeros(3))
                 out = physics.sphere_wall_force(*(-n), d / 2 - dist, d / 2, *v[i], *W[bi], k,
                                                 2 * model.pair_zeta[mi, mj] * root,
-                                                model.kt_ratio * root, mu)
+                                                model.kt_ratio * root, model.ks_ratio * k, mu,
+                                                *s0, model.dt)
                 f[i] += out[0:3]; t[i] += out[3:6]
     for b in range(model.n_bodies):
         sl = slice(model.body_sphere_start[b], model.body_sphere_start[b + 1])

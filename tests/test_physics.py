@@ -53,23 +53,55 @@ def test_pair_force_is_exactly_antisymmetric():
         r = rng.normal(size=3) * 0.003
         dist = float(np.sqrt(r @ r))
         dv = rng.normal(size=3); ws = rng.normal(size=3) * 10
-        a = physics.sphere_pair_force(*r, dist, 0.01, *dv, *ws, 1e4, 3.0, 2.0, 0.5)
-        b = physics.sphere_pair_force(*(-r), dist, 0.01, *(-dv), *ws, 1e4, 3.0, 2.0, 0.5)
+        s = rng.normal(size=3) * 1e-4
+        a = physics.sphere_pair_force(*r, dist, 0.01, *dv, *ws, 1e4, 3.0, 2.0, 2e3, 0.5,
+                                      *s, 1e-5)
+        b = physics.sphere_pair_force(*(-r), dist, 0.01, *(-dv), *ws, 1e4, 3.0, 2.0, 2e3, 0.5,
+                                      *(-s), 1e-5)
         assert a[:3] == tuple(-x for x in b[:3])
-        assert a[3:] == b[3:]   # equal torques about each centre: the force acts at the contact
+        assert a[3:6] == b[3:6]  # equal torques about each centre: the force acts at the contact
+        assert a[6:] == tuple(-x for x in b[6:])  # the two histories stay exact opposites
 
 
 def test_spring_and_coulomb_cap():
     # pure overlap, no motion: f = -k δ n (eq. 11)
-    f = physics.contact_force(1.0, 0.0, 0.0, 1e-4, 0, 0, 0, 1e4, 5.0, 3.0, 0.5)
-    assert f == pytest.approx((-1.0, 0.0, 0.0))
+    f = physics.contact_force(1.0, 0.0, 0.0, 1e-4, 0, 0, 0, 1e4, 5.0, 3.0, 0.0, 0.5, 0, 0, 0, 1e-5)
+    assert f[:3] == pytest.approx((-1.0, 0.0, 0.0))
     # fast sliding: tangential force is capped at μ |f_n|
-    f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 5.0, 0.0, 0.0, 1e4, 0.0, 100.0, 0.3)
+    f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 5.0, 0.0, 0.0, 1e4, 0.0, 100.0, 0.0, 0.3,
+                              0, 0, 0, 1e-5)
     assert f[2] == pytest.approx(-1.0)
     assert f[0] == pytest.approx(0.3)        # along the partner's relative motion
     # slow sliding: viscous kt v_t (eq. 13) below the cap
-    f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 1e-3, 0.0, 0.0, 1e4, 0.0, 100.0, 0.3)
+    f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 1e-3, 0.0, 0.0, 1e4, 0.0, 100.0, 0.0, 0.3,
+                              0, 0, 0, 1e-5)
     assert f[0] == pytest.approx(0.1)
+
+
+def test_tangential_spring_holds_and_slides():
+    k, ks, kt, mu, dt = 1e4, 2e3, 10.0, 0.5, 1e-4
+    # at rest with a stretch below the cap: the spring alone pulls back, the
+    # stretch is kept (static friction: no velocity needed)
+    f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 0, 0, 0, k, 0.0, kt, ks, mu,
+                              1e-4, 0.0, 0.0, dt)
+    assert f[0] == pytest.approx(ks * 1e-4) and f[3] == pytest.approx(1e-4)
+    # slip grows the stretch by u_t dt
+    f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 1e-3, 0, 0, k, 0.0, kt, ks, mu,
+                              0.0, 0.0, 0.0, dt)
+    assert f[3] == pytest.approx(1e-3 * dt)
+    # a stretch with a normal part is turned into the tangent plane, length kept
+    f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 0, 0, 0, k, 0.0, kt, ks, mu,
+                              3e-5, 0.0, 4e-5, dt)
+    assert f[3:] == pytest.approx((5e-5, 0.0, 0.0))
+    # beyond the cap it slides: |f_t| = μ|f_n| and the stretch is what that force needs
+    f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 0, 0, 0, k, 0.0, kt, ks, mu,
+                              1e-2, 0.0, 0.0, dt)
+    assert f[0] == pytest.approx(mu * k * 1e-4)
+    assert f[3] == pytest.approx(mu * k * 1e-4 / ks)
+    # no normal load: no friction and no stored stretch
+    f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 0, 0, 1.0, k, 1e3, kt, ks, mu,
+                              1e-4, 0.0, 0.0, dt)
+    assert f[0] == 0.0 and f[3:] == (0.0, 0.0, 0.0)
 
 
 @pytest.mark.parametrize("e", [0.05, 0.2, 0.5, 0.9, 0.99])

@@ -107,8 +107,8 @@ def test_memory_estimate_matches_cpu_backend():
     real = sum(a.nbytes for a in vars(be).values() if isinstance(a, np.ndarray))
     assert mem["cpu_scratch"] == real
     state = model.initial_state()
-    assert mem["state"] == sum(getattr(state, k).nbytes for k in ("body_x", "body_q", "body_P",
-                                                                  "body_L"))
+    assert mem["state"] == sum(getattr(state, k).nbytes for k in (
+        "body_x", "body_q", "body_P", "body_L", "contact_partner", "contact_spring"))
     assert mem["total"] == sum(v for k, v in mem.items() if k != "total")
 
 

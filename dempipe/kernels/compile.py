@@ -29,6 +29,8 @@ FORMULAS = (
     "sphere_pair_force",
     "sphere_wall_force",
     "body_step",
+    "history_find",
+    "history_store",
 )
 
 

@@ -25,6 +25,8 @@ sphere_kinematics = F.sphere_kinematics
 sphere_pair_force = F.sphere_pair_force
 sphere_wall_force = F.sphere_wall_force
 body_step = F.body_step
+history_find = F.history_find
+history_store = F.history_store
 
 # Cell coordinates are packed into one int64 key, 21 bits per axis, so the world
 # spans ±2^20 cells per axis (±10 km at 1 cm spheres). Beyond that a sphere is
@@ -176,10 +178,190 @@ def stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
         sorted_body[s] = sphere_body[i]
 
 
+@numba.njit(cache=True)
+def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
+                   sorted_key, sorted_body, body_w, body_inv_mass, body_material,
+                   pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
+                   contact_partner, contact_spring,
+                   wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
+                   sphere_f, sphere_t, sphere_overlap):
+    """Stages 3-4 for the sphere in sorted slot s (the body of stage_contacts' loop;
+    a function of its own so numba's parfor pass sees a plain call)."""
+    d2 = diameter * diameter
+    radius = 0.5 * diameter
+    n_walls = wall_normal.shape[0]
+    n_spheres = sorted_idx.shape[0]
+    i = sorted_idx[s]
+    bi = sorted_body[s]
+    imi = body_inv_mass[bi]
+    fx = 0.0
+    fy = 0.0
+    fz = 0.0
+    tx = 0.0
+    ty = 0.0
+    tz = 0.0
+    max_ov = 0.0
+    if imi == 0.0:
+        sphere_f[i, 0] = 0.0
+        sphere_f[i, 1] = 0.0
+        sphere_f[i, 2] = 0.0
+        sphere_t[i, 0] = 0.0
+        sphere_t[i, 1] = 0.0
+        sphere_t[i, 2] = 0.0
+        return
+    xi = sorted_x[s, 0]
+    yi = sorted_x[s, 1]
+    zi = sorted_x[s, 2]
+    vxi = sorted_v[s, 0]
+    vyi = sorted_v[s, 1]
+    vzi = sorted_v[s, 2]
+    mi = body_material[bi]
+    wxi = body_w[bi, 0]
+    wyi = body_w[bi, 1]
+    wzi = body_w[bi, 2]
+    cx0 = cell_coord(xi, inv_d)
+    cy0 = cell_coord(yi, inv_d)
+    cz0 = cell_coord(zi, inv_d)
+    for dz in range(-1, 2):
+        for dy in range(-1, 2):
+            cy = cy0 + dy
+            cz = cz0 + dz
+            # the three cells (cx0-1..cx0+1, cy, cz): keys in [lo, hi]
+            key_lo = cell_key(cx0 - 1, cy, cz)
+            key_hi = cell_key(cx0 + 1, cy, cz)
+            h_lo = cell_hash(cx0 - 1, cy, cz, grid)
+            h_hi = cell_hash(cx0 + 1, cy, cz, grid)
+            if h_hi == h_lo + 2:        # one contiguous run of buckets
+                n_runs = 1
+            else:                       # the row wraps round the table
+                n_runs = 3
+            for run in range(n_runs):
+                if n_runs == 1:
+                    t0 = bucket_start[h_lo]
+                    t1 = bucket_start[h_hi + 1]
+                else:
+                    h = cell_hash(cx0 - 1 + run, cy, cz, grid)
+                    t0 = bucket_start[h]
+                    t1 = bucket_start[h + 1]
+                for t in range(t0, t1):
+                    kt = sorted_key[t]
+                    if kt < key_lo or kt > key_hi:
+                        continue        # another cell sharing the buckets
+                    bj = sorted_body[t]
+                    if bj == bi:
+                        continue        # spheres of one body never collide
+                    rx = sorted_x[t, 0] - xi
+                    ry = sorted_x[t, 1] - yi
+                    rz = sorted_x[t, 2] - zi
+                    dist2 = rx * rx + ry * ry + rz * rz
+                    if dist2 >= d2:
+                        continue
+                    imj = body_inv_mass[bj]
+                    mj = body_material[bj]
+                    k = pair_k[mi, mj]
+                    root = np.sqrt(k / (imi + imj))
+                    eta = 2.0 * pair_zeta[mi, mj] * root
+                    dist = np.sqrt(dist2)
+                    if friction:
+                        mu = pair_mu[mi, mj]
+                        code = sorted_idx[t] + 1
+                        slot = history_find(contact_partner, i, code)
+                        if slot >= 0:
+                            sx = contact_spring[i, slot, 0]
+                            sy = contact_spring[i, slot, 1]
+                            sz = contact_spring[i, slot, 2]
+                        else:
+                            sx = 0.0
+                            sy = 0.0
+                            sz = 0.0
+                    else:
+                        mu = 0.0
+                        sx = 0.0
+                        sy = 0.0
+                        sz = 0.0
+                    (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_pair_force(
+                        rx, ry, rz, dist, diameter,
+                        sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
+                        wxi + body_w[bj, 0], wyi + body_w[bj, 1], wzi + body_w[bj, 2],
+                        k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
+                    if friction:
+                        history_store(contact_partner, contact_spring, i, slot, code,
+                                      parity, sx, sy, sz)
+                    fx += pfx
+                    fy += pfy
+                    fz += pfz
+                    tx += ptx
+                    ty += pty
+                    tz += ptz
+                    ov = diameter - dist
+                    if ov > max_ov:
+                        max_ov = ov
+    for w in range(n_walls):
+        nx = wall_normal[w, 0]
+        ny = wall_normal[w, 1]
+        nz = wall_normal[w, 2]
+        dist = nx * xi + ny * yi + nz * zi - wall_offset[w]
+        if dist >= radius or dist <= -wall_depth[w]:
+            continue
+        if (xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
+                or yi > wall_hi[w, 1] or zi < wall_lo[w, 2] or zi > wall_hi[w, 2]):
+            continue
+        mj = wall_material[w]
+        k = pair_k[mi, mj]
+        root = np.sqrt(k / imi)
+        eta = 2.0 * pair_zeta[mi, mj] * root
+        if friction:
+            mu = pair_mu[mi, mj]
+            code = n_spheres + w + 1
+            slot = history_find(contact_partner, i, code)
+            if slot >= 0:
+                sx = contact_spring[i, slot, 0]
+                sy = contact_spring[i, slot, 1]
+                sz = contact_spring[i, slot, 2]
+            else:
+                sx = 0.0
+                sy = 0.0
+                sz = 0.0
+        else:
+            mu = 0.0
+            sx = 0.0
+            sy = 0.0
+            sz = 0.0
+        (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(
+            -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
+            k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
+        if friction:
+            history_store(contact_partner, contact_spring, i, slot, code, parity,
+                          sx, sy, sz)
+        fx += pfx
+        fy += pfy
+        fz += pfz
+        tx += ptx
+        ty += pty
+        tz += ptz
+        ov = radius - dist
+        if ov > max_ov:
+            max_ov = ov
+    if friction:   # forget the contacts that ended (not touched at this parity)
+        for h in range(contact_partner.shape[1]):
+            c = contact_partner[i, h]
+            if c != 0 and (c & 1) != parity:
+                contact_partner[i, h] = 0
+    sphere_f[i, 0] = fx
+    sphere_f[i, 1] = fy
+    sphere_f[i, 2] = fz
+    sphere_t[i, 0] = tx
+    sphere_t[i, 1] = ty
+    sphere_t[i, 2] = tz
+    if max_ov > sphere_overlap[i]:
+        sphere_overlap[i] = max_ov
+
+
 @numba.njit(parallel=True, cache=True)
 def stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
                    sorted_key, sorted_body, body_w, body_inv_mass, body_material,
-                   pair_k, pair_zeta, pair_mu, kt_ratio, friction,
+                   pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
+                   contact_partner, contact_spring,
                    wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                    sphere_f, sphere_t, sphere_overlap):
     """Stages 3-4: neighbour search over the 27 cells and contact forces (eq. 11-14).
@@ -187,128 +369,19 @@ def stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, so
     Each sphere gathers the forces on itself from every touching sphere of
     another body and from the walls; writes sphere_f, sphere_t (torque about the
     sphere's centre) and sphere_overlap (largest overlap this step, [m]).
+    With friction, each sphere also carries its contacts' tangential springs
+    (contact_partner, contact_spring; see State): a contact found again keeps
+    its stretch, a new one starts at zero, and one not touched this step
+    (``parity``) is forgotten. Only sphere i's own rows are written: gather.
+    Static spheres (1/m = 0) feel no force and are skipped.
     """
-    d2 = diameter * diameter
-    radius = 0.5 * diameter
-    n_walls = wall_normal.shape[0]
     for s in prange(sorted_idx.shape[0]):
-        i = sorted_idx[s]
-        bi = sorted_body[s]
-        xi = sorted_x[s, 0]
-        yi = sorted_x[s, 1]
-        zi = sorted_x[s, 2]
-        vxi = sorted_v[s, 0]
-        vyi = sorted_v[s, 1]
-        vzi = sorted_v[s, 2]
-        imi = body_inv_mass[bi]
-        mi = body_material[bi]
-        wxi = body_w[bi, 0]
-        wyi = body_w[bi, 1]
-        wzi = body_w[bi, 2]
-        fx = 0.0
-        fy = 0.0
-        fz = 0.0
-        tx = 0.0
-        ty = 0.0
-        tz = 0.0
-        max_ov = 0.0
-        cx0 = cell_coord(xi, inv_d)
-        cy0 = cell_coord(yi, inv_d)
-        cz0 = cell_coord(zi, inv_d)
-        for dz in range(-1, 2):
-            for dy in range(-1, 2):
-                cy = cy0 + dy
-                cz = cz0 + dz
-                # the three cells (cx0-1..cx0+1, cy, cz): keys in [lo, hi]
-                key_lo = cell_key(cx0 - 1, cy, cz)
-                key_hi = cell_key(cx0 + 1, cy, cz)
-                h_lo = cell_hash(cx0 - 1, cy, cz, grid)
-                h_hi = cell_hash(cx0 + 1, cy, cz, grid)
-                if h_hi == h_lo + 2:        # one contiguous run of buckets
-                    n_runs = 1
-                else:                       # the row wraps round the table
-                    n_runs = 3
-                for run in range(n_runs):
-                    if n_runs == 1:
-                        t0 = bucket_start[h_lo]
-                        t1 = bucket_start[h_hi + 1]
-                    else:
-                        h = cell_hash(cx0 - 1 + run, cy, cz, grid)
-                        t0 = bucket_start[h]
-                        t1 = bucket_start[h + 1]
-                    for t in range(t0, t1):
-                        kt = sorted_key[t]
-                        if kt < key_lo or kt > key_hi:
-                            continue        # another cell sharing the buckets
-                        bj = sorted_body[t]
-                        if bj == bi:
-                            continue        # spheres of one body never collide
-                        rx = sorted_x[t, 0] - xi
-                        ry = sorted_x[t, 1] - yi
-                        rz = sorted_x[t, 2] - zi
-                        dist2 = rx * rx + ry * ry + rz * rz
-                        if dist2 >= d2:
-                            continue
-                        imj = body_inv_mass[bj]
-                        im_sum = imi + imj
-                        if im_sum == 0.0:
-                            continue        # two static colliders
-                        mj = body_material[bj]
-                        k = pair_k[mi, mj]
-                        root = np.sqrt(k / im_sum)
-                        eta = 2.0 * pair_zeta[mi, mj] * root
-                        mu = pair_mu[mi, mj] if friction else 0.0
-                        dist = np.sqrt(dist2)
-                        pfx, pfy, pfz, ptx, pty, ptz = sphere_pair_force(
-                            rx, ry, rz, dist, diameter,
-                            sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
-                            wxi + body_w[bj, 0], wyi + body_w[bj, 1], wzi + body_w[bj, 2],
-                            k, eta, kt_ratio * root, mu)
-                        fx += pfx
-                        fy += pfy
-                        fz += pfz
-                        tx += ptx
-                        ty += pty
-                        tz += ptz
-                        ov = diameter - dist
-                        if ov > max_ov:
-                            max_ov = ov
-        if imi > 0.0:
-            for w in range(n_walls):
-                nx = wall_normal[w, 0]
-                ny = wall_normal[w, 1]
-                nz = wall_normal[w, 2]
-                dist = nx * xi + ny * yi + nz * zi - wall_offset[w]
-                if dist >= radius or dist <= -wall_depth[w]:
-                    continue
-                if (xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
-                        or yi > wall_hi[w, 1] or zi < wall_lo[w, 2] or zi > wall_hi[w, 2]):
-                    continue
-                mj = wall_material[w]
-                k = pair_k[mi, mj]
-                root = np.sqrt(k / imi)
-                eta = 2.0 * pair_zeta[mi, mj] * root
-                mu = pair_mu[mi, mj] if friction else 0.0
-                pfx, pfy, pfz, ptx, pty, ptz = sphere_wall_force(
-                    -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
-                    k, eta, kt_ratio * root, mu)
-                fx += pfx
-                fy += pfy
-                fz += pfz
-                tx += ptx
-                ty += pty
-                tz += ptz
-                ov = radius - dist
-                if ov > max_ov:
-                    max_ov = ov
-        sphere_f[i, 0] = fx
-        sphere_f[i, 1] = fy
-        sphere_f[i, 2] = fz
-        sphere_t[i, 0] = tx
-        sphere_t[i, 1] = ty
-        sphere_t[i, 2] = tz
-        if max_ov > sphere_overlap[i]:
-            sphere_overlap[i] = max_ov
+        sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
+                        sorted_key, sorted_body, body_w, body_inv_mass, body_material,
+                        pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
+                        contact_partner, contact_spring,
+                        wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
+                        sphere_f, sphere_t, sphere_overlap)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -348,9 +421,10 @@ def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t
 
 
 @numba.njit(cache=True)
-def run_steps(n_steps, dt, diameter, n_bodies, gravity, grid,
+def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
               sphere_body, sphere_offset, body_sphere_start, body_mass, body_inv_mass,
-              body_inv_inertia, body_material, pair_k, pair_zeta, pair_mu, kt_ratio, friction,
+              body_inv_inertia, body_material, pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio,
+              friction, contact_partner, contact_spring,
               wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
               body_x, body_q, body_P, body_L,
               body_v, body_w, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash,
@@ -361,7 +435,7 @@ def run_steps(n_steps, dt, diameter, n_bodies, gravity, grid,
     gx = gravity[0]
     gy = gravity[1]
     gz = gravity[2]
-    for _ in range(n_steps):
+    for step in range(first_step, first_step + n_steps):
         stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
                               body_v, body_w)
         stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d, grid,
@@ -371,7 +445,8 @@ def run_steps(n_steps, dt, diameter, n_bodies, gravity, grid,
                           sorted_x, sorted_v, sorted_key, sorted_body)
         stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
                        sorted_key, sorted_body, body_w, body_inv_mass, body_material,
-                       pair_k, pair_zeta, pair_mu, kt_ratio, friction,
+                       pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, step & 1,
+                       contact_partner, contact_spring,
                        wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                        sphere_f, sphere_t, sphere_overlap)
         stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
@@ -406,6 +481,8 @@ class CpuBackend:
         self.sphere_f = np.zeros((ns, 3))
         self.sphere_t = np.zeros((ns, 3))
         self.sphere_overlap = np.zeros(ns)
+        self._no_partner = np.zeros((1, 1), dtype=np.int32)
+        self._no_spring = np.zeros((1, 1, 3))
         if model.n_static:
             first = model.body_sphere_start[model.n_bodies]
             pts = model.sphere_offset[first:] + model.initial_x[model.sphere_body[first:]]
@@ -437,22 +514,36 @@ class CpuBackend:
         self.grid = grid_table(m.n_spheres, (hi - lo) / m.diameter + 2.0)
 
     def step(self, state, n_steps: int) -> None:
+        """Advance ``state`` in place by ``n_steps`` steps (and its step count and time)."""
         m = self.model
         self.fit_grid(state)
+        partner, spring = self.contacts(state)
         run_steps(
-            int(n_steps), m.dt, m.diameter, m.n_bodies, m.gravity, self.grid,
+            int(n_steps), int(state.step), m.dt, m.diameter, m.n_bodies, m.gravity, self.grid,
             m.sphere_body, m.sphere_offset, m.body_sphere_start, m.body_mass, m.body_inv_mass,
             m.body_inv_inertia, m.body_material, m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio,
-            m.features.friction,
+            m.ks_ratio, m.features.friction, partner, spring,
             m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth, m.wall_material,
             state.body_x, state.body_q, state.body_P, state.body_L,
             self.body_v, self.body_w, self.sphere_x, self.sphere_v, self.sphere_r,
             self.sphere_key, self.sphere_hash, self.bucket_start, self.bucket_fill,
             self.sorted_idx, self.sorted_x, self.sorted_v, self.sorted_key, self.sorted_body,
             self.sphere_f, self.sphere_t, self.sphere_overlap)
+        state.step += int(n_steps)
+        state.time = state.step * m.dt
+
+    def contacts(self, state):
+        """The State's contact histories, allocated on first use when friction is on
+        (a 1-slot dummy otherwise: frictionless kernels never touch them)."""
+        if not self.model.features.friction:
+            return self._no_partner, self._no_spring
+        state.ensure_contacts(self.model.n_spheres)
+        return state.contact_partner, state.contact_spring
 
     def probe(self, state) -> None:
-        """Stages 1-4 without moving anything: fills sphere_f, sphere_overlap."""
+        """Stages 1-4 without moving anything: fills sphere_f, sphere_overlap.
+
+        Reads the contact histories but does not change the State's."""
         m = self.model
         self.fit_grid(state)
         stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
@@ -466,10 +557,12 @@ class CpuBackend:
                           m.sphere_body, self.sorted_x, self.sorted_v, self.sorted_key,
                           self.sorted_body)
         self.sphere_overlap[:] = 0.0
+        partner, spring = self.contacts(state)
         stage_contacts(m.diameter, 1.0 / m.diameter, self.grid, self.bucket_start,
                        self.sorted_idx, self.sorted_x, self.sorted_v, self.sorted_key,
                        self.sorted_body, self.body_w, m.body_inv_mass, m.body_material,
-                       m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio, m.features.friction,
+                       m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio, m.ks_ratio,
+                       m.features.friction, m.dt, state.step & 1, partner.copy(), spring.copy(),
                        m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth,
                        m.wall_material, self.sphere_f, self.sphere_t, self.sphere_overlap)
 

@@ -27,6 +27,7 @@ from numba import cuda, int64
 from numba.core import config
 
 from ..errors import DeviceError
+from ..state import CONTACT_SLOTS
 from .compile import compile_formulas
 
 
@@ -48,6 +49,8 @@ sphere_kinematics = F.sphere_kinematics
 sphere_pair_force = F.sphere_pair_force
 sphere_wall_force = F.sphere_wall_force
 body_step = F.body_step
+history_find = F.history_find
+history_store = F.history_store
 
 SIMULATOR = bool(config.ENABLE_CUDASIM)
 #: Threads per block. The simulator runs each CUDA thread as a Python thread,
@@ -300,28 +303,40 @@ def k_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
 @cuda.jit
 def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
                sorted_key, sorted_body, body_w, body_inv_mass, body_material,
-               pair_k, pair_zeta, pair_mu, kt_ratio, friction,
+               pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
+               contact_partner, contact_spring,
                wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                sphere_f, sphere_t, sphere_overlap):
-    """Stages 3-4: neighbour search over the 27 cells and contact forces (eq. 11-14).
+    """Stages 3-4: neighbour search over the 27 cells and contact forces (eq. 11-14),
+    with the contact histories of static friction (see kernels.cpu.stage_contacts).
 
-    One thread per sorted slot; same visiting order and sums as the CPU stage.
+    One thread per sorted slot; same visiting order and sums as the CPU stage;
+    a thread writes only its own sphere's rows.
     """
     s = cuda.grid(1)
-    if s >= sorted_idx.shape[0]:
+    n_spheres = sorted_idx.shape[0]
+    if s >= n_spheres:
         return
     d2 = diameter * diameter
     radius = 0.5 * diameter
     n_walls = wall_normal.shape[0]
     i = sorted_idx[s]
     bi = sorted_body[s]
+    imi = body_inv_mass[bi]
+    if imi == 0.0:
+        sphere_f[i, 0] = 0.0
+        sphere_f[i, 1] = 0.0
+        sphere_f[i, 2] = 0.0
+        sphere_t[i, 0] = 0.0
+        sphere_t[i, 1] = 0.0
+        sphere_t[i, 2] = 0.0
+        return
     xi = sorted_x[s, 0]
     yi = sorted_x[s, 1]
     zi = sorted_x[s, 2]
     vxi = sorted_v[s, 0]
     vyi = sorted_v[s, 1]
     vzi = sorted_v[s, 2]
-    imi = body_inv_mass[bi]
     mi = body_material[bi]
     wxi = body_w[bi, 0]
     wyi = body_w[bi, 1]
@@ -370,20 +385,32 @@ def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted
                     if dist2 >= d2:
                         continue
                     imj = body_inv_mass[bj]
-                    im_sum = imi + imj
-                    if im_sum == 0.0:
-                        continue
                     mj = body_material[bj]
                     k = pair_k[mi, mj]
-                    root = math.sqrt(k / im_sum)
+                    root = math.sqrt(k / (imi + imj))
                     eta = 2.0 * pair_zeta[mi, mj] * root
-                    mu = pair_mu[mi, mj] if friction else 0.0
                     dist = math.sqrt(dist2)
-                    pfx, pfy, pfz, ptx, pty, ptz = sphere_pair_force(
+                    code = sorted_idx[t] + 1
+                    slot = -1
+                    sx = 0.0
+                    sy = 0.0
+                    sz = 0.0
+                    mu = 0.0
+                    if friction:
+                        mu = pair_mu[mi, mj]
+                        slot = history_find(contact_partner, i, code)
+                        if slot >= 0:
+                            sx = contact_spring[i, slot, 0]
+                            sy = contact_spring[i, slot, 1]
+                            sz = contact_spring[i, slot, 2]
+                    (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_pair_force(
                         rx, ry, rz, dist, diameter,
                         sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
                         wxi + body_w[bj, 0], wyi + body_w[bj, 1], wzi + body_w[bj, 2],
-                        k, eta, kt_ratio * root, mu)
+                        k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
+                    if friction:
+                        history_store(contact_partner, contact_spring, i, slot, code, parity,
+                                      sx, sy, sz)
                     fx += pfx
                     fy += pfy
                     fz += pfz
@@ -393,34 +420,52 @@ def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted
                     ov = diameter - dist
                     if ov > max_ov:
                         max_ov = ov
-    if imi > 0.0:
-        for w in range(n_walls):
-            nx = wall_normal[w, 0]
-            ny = wall_normal[w, 1]
-            nz = wall_normal[w, 2]
-            dist = nx * xi + ny * yi + nz * zi - wall_offset[w]
-            if dist >= radius or dist <= -wall_depth[w]:
-                continue
-            if (xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
-                    or yi > wall_hi[w, 1] or zi < wall_lo[w, 2] or zi > wall_hi[w, 2]):
-                continue
-            mj = wall_material[w]
-            k = pair_k[mi, mj]
-            root = math.sqrt(k / imi)
-            eta = 2.0 * pair_zeta[mi, mj] * root
-            mu = pair_mu[mi, mj] if friction else 0.0
-            pfx, pfy, pfz, ptx, pty, ptz = sphere_wall_force(
-                -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
-                k, eta, kt_ratio * root, mu)
-            fx += pfx
-            fy += pfy
-            fz += pfz
-            tx += ptx
-            ty += pty
-            tz += ptz
-            ov = radius - dist
-            if ov > max_ov:
-                max_ov = ov
+    for w in range(n_walls):
+        nx = wall_normal[w, 0]
+        ny = wall_normal[w, 1]
+        nz = wall_normal[w, 2]
+        dist = nx * xi + ny * yi + nz * zi - wall_offset[w]
+        if dist >= radius or dist <= -wall_depth[w]:
+            continue
+        if (xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
+                or yi > wall_hi[w, 1] or zi < wall_lo[w, 2] or zi > wall_hi[w, 2]):
+            continue
+        mj = wall_material[w]
+        k = pair_k[mi, mj]
+        root = math.sqrt(k / imi)
+        eta = 2.0 * pair_zeta[mi, mj] * root
+        code = n_spheres + w + 1
+        slot = -1
+        sx = 0.0
+        sy = 0.0
+        sz = 0.0
+        mu = 0.0
+        if friction:
+            mu = pair_mu[mi, mj]
+            slot = history_find(contact_partner, i, code)
+            if slot >= 0:
+                sx = contact_spring[i, slot, 0]
+                sy = contact_spring[i, slot, 1]
+                sz = contact_spring[i, slot, 2]
+        (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(
+            -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
+            k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
+        if friction:
+            history_store(contact_partner, contact_spring, i, slot, code, parity, sx, sy, sz)
+        fx += pfx
+        fy += pfy
+        fz += pfz
+        tx += ptx
+        ty += pty
+        tz += ptz
+        ov = radius - dist
+        if ov > max_ov:
+            max_ov = ov
+    if friction:   # forget the contacts that ended (not touched at this parity)
+        for h in range(contact_partner.shape[1]):
+            c = contact_partner[i, h]
+            if c != 0 and (c & 1) != parity:
+                contact_partner[i, h] = 0
     sphere_f[i, 0] = fx
     sphere_f[i, 1] = fy
     sphere_f[i, 2] = fz
@@ -570,6 +615,11 @@ def scratch_layout(model) -> dict:
         "sphere_f": ((ns, 3), f8), "sphere_t": ((ns, 3), f8), "sphere_overlap": ((ns,), f8),
         "max_out": ((1,), f8),
     }
+    # contact histories (static friction) live only on the device, and only with friction
+    slots = CONTACT_SLOTS if model.features.friction else 1
+    nh = ns if model.features.friction else 1
+    lay["contact_partner"] = ((nh, slots), i4)
+    lay["contact_spring"] = ((nh, slots, 3), f8)
     for lvl, n in enumerate(_scan_levels(table + 1)[1:]):
         lay[f"scan_{lvl + 1}"] = ((n,), i8)
     return lay
@@ -641,6 +691,10 @@ class CudaBackend:
         for name in ("body_x", "body_q", "body_P", "body_L"):
             self.d[name].copy_to_device(np.ascontiguousarray(getattr(state, name),
                                                              dtype=np.float64))
+        if self.model.features.friction:
+            state.ensure_contacts(self.model.n_spheres)
+            self.d["contact_partner"].copy_to_device(state.contact_partner)
+            self.d["contact_spring"].copy_to_device(state.contact_spring)
         self._resident = (state, state.body_x, state.body_q, state.body_P, state.body_L)
 
     def _ensure_resident(self, state) -> None:
@@ -650,11 +704,18 @@ class CudaBackend:
                 or r[4] is not state.body_L):
             self.upload(state)
 
-    def download(self, state) -> None:
-        """Copy the device body arrays into ``state``'s host arrays."""
-        for name in ("body_x", "body_q", "body_P", "body_L"):
+    def download(self, state, contacts: bool = False) -> None:
+        """Copy the device body arrays into ``state``'s host arrays.
+
+        The contact histories (S x 12 slots, the largest arrays) stay on the
+        device between calls; ``contacts=True`` copies them back too, for a
+        checkpoint or a comparison."""
+        names = ["body_x", "body_q", "body_P", "body_L"]
+        if contacts and self.model.features.friction:
+            names += ["contact_partner", "contact_spring"]
+        for name in names:
             host = getattr(state, name)
-            if host.flags.c_contiguous and host.dtype == np.float64:
+            if host.flags.c_contiguous and host.dtype == self.d[name].dtype:
                 self.d[name].copy_to_host(host)
             else:
                 host[...] = self.d[name].copy_to_host()
@@ -705,13 +766,16 @@ class CudaBackend:
     def _scan(self, data, level):
         device_scan(data, self.scan_sizes, self.scan_sums, level)
 
-    def _contacts(self):
+    def _contacts(self, parity: int, partner=None, spring=None):
         m, d = self.model, self.d
         k_contacts[_blocks(m.n_spheres, CONTACT_THREADS), CONTACT_THREADS](
             m.diameter, 1.0 / m.diameter, d["grid"], d["bucket_start"], d["sorted_idx"],
             d["sorted_x"], d["sorted_v"], d["sorted_key"], d["sorted_body"], d["body_w"],
             d["body_inv_mass"], d["body_material"], d["pair_k"], d["pair_zeta"], d["pair_mu"],
-            m.kt_ratio, bool(m.features.friction), d["wall_normal"], d["wall_offset"],
+            m.kt_ratio, m.ks_ratio, bool(m.features.friction), m.dt, parity,
+            d["contact_partner"] if partner is None else partner,
+            d["contact_spring"] if spring is None else spring,
+            d["wall_normal"], d["wall_offset"],
             d["wall_lo"], d["wall_hi"], d["wall_depth"], d["wall_material"],
             d["sphere_f"], d["sphere_t"], d["sphere_overlap"])
 
@@ -725,15 +789,17 @@ class CudaBackend:
     #: The launch groups of one step, in order (benchmarks time each).
     STAGES = ("_velocities", "_spheres", "_grid_sort", "_gather", "_contacts", "_bodies")
 
-    def step_once(self) -> None:
+    def step_once(self, parity: int = 0) -> None:
         """One step of the eight stages on the resident State: a fixed sequence of
         launches with fixed sizes and arguments, no host synchronisation (so the
-        sequence can be captured once into a CUDA graph and replayed)."""
+        sequences of an even and an odd step can be captured once into a CUDA
+        graph and replayed). ``parity``: the step number's lowest bit, which the
+        contact histories use to tell contacts that ended."""
         self._velocities()
         self._spheres()
         self._grid_sort()
         self._gather()
-        self._contacts()
+        self._contacts(parity)
         self._bodies()
 
     # -- CpuBackend interface ----------------------------------------------------
@@ -741,9 +807,11 @@ class CudaBackend:
         """Advance ``state`` by ``n_steps`` steps; its host arrays are updated at the end."""
         self._ensure_resident(state)
         self.fit(state)
-        for _ in range(int(n_steps)):
-            self.step_once()
+        for step in range(state.step, state.step + int(n_steps)):
+            self.step_once(step & 1)
         self.download(state)
+        state.step += int(n_steps)
+        state.time = state.step * self.model.dt
 
     def probe(self, state) -> None:
         """Stages 1-4 without moving anything: fills sphere_f, sphere_overlap."""
@@ -753,7 +821,10 @@ class CudaBackend:
         self._spheres_and_grid()
         d = self.d
         k_fill[_blocks(self.model.n_spheres, THREADS), THREADS](d["sphere_overlap"], 0.0)
-        self._contacts()
+        # on copies: a probe reads the contact histories but must not advance them
+        partner = cuda.to_device(d["contact_partner"].copy_to_host())
+        spring = cuda.to_device(d["contact_spring"].copy_to_host())
+        self._contacts(state.step & 1, partner, spring)
 
     def velocities(self, state):
         """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""
