@@ -52,7 +52,9 @@ class Progress:
               help="Write bake figures (time, steps, overlap, ...) as JSON.")
 @click.option("--cache-dir", type=click.Path(file_okay=False), default=None,
               help="Sphere-set cache folder (default: $DEMPIPE_CACHE_DIR or the user cache).")
-@click.option("--force", is_flag=True, help="Bake even a scene that starts deeply overlapped.")
+@click.option("--force", is_flag=True,
+              help="Bake even a scene that `dempipe check` refuses: deep frame-0 overlaps, "
+                   "a dt above the critical step, tunnelling speeds.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
 def bake(scene, output, device, layout, frames, threads, report_path, cache_dir, force, quiet,

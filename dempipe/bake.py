@@ -83,11 +83,21 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
     dev = resolve_device(device_asked)
     if device_asked == "auto" and dev == "cpu":
         warn("no usable CUDA GPU: baking on the CPU")
-    model = build_model(scene, cache=cache if cache is not None else SphereCache())
+    model = build_model(scene, cache=cache if cache is not None else SphereCache(),
+                        force=force)
     start, end = parse_frame_range(frames, model.n_frames, model.first_frame)
 
-    overlap, body = initial_overlap(model)
     src = Path(scene_path).name
+    from .stability import ERROR, expected_speeds, tunnelling
+
+    risk = tunnelling(model, model.dt, expected_speeds(model)[1],
+                      "auto" if isinstance(scene.simulation.dt, str) else "given", src)
+    if risk is not None and risk.level == ERROR and not force:
+        raise StabilityError(f"{risk.message}. Fix: {risk.fix} (or bake with --force)")
+    if risk is not None:
+        warn(risk.message)
+
+    overlap, body = initial_overlap(model)
     if overlap > REFUSE_OVERLAP and not force:
         raise StabilityError(
             f"{src}: body {model.body_name(body)} overlaps another body or a collider by "

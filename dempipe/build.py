@@ -60,10 +60,12 @@ def _collider_mesh(c, where: str):
     return mesh
 
 
-def build_model(scene, *, cache=None, overrides: Overrides | None = None) -> Model:
+def build_model(scene, *, cache=None, overrides: Overrides | None = None,
+                force: bool = False) -> Model:
     """The Model of a loaded Scene (see scene.load_scene).
 
     cache : a SphereCache, or None for no caching.
+    force : accept a user dt above the critical step (see ModelBuilder.finalize).
     The returned Model's ``build_info`` holds sphere-set build time and cache hits.
     """
     from .scene import expand_bodies
@@ -133,7 +135,7 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None) -> Mod
     model = b.finalize(fps=fps, n_frames=n_frames, first_frame=out.start_frame, dt=dt,
                        target_overlap=target, steps_per_contact=steps_per_contact,
                        up_axis=out.up_axis, meters_per_unit=out.meters_per_unit,
-                       where=f"{src}: simulation.dt")
+                       where=f"{src}: simulation.dt", force=force)
     return replace(model, build_info=dict(sphere_build_seconds=build_seconds, shapes=hits,
                                           source=str(scene.path) if scene.path else None))
 

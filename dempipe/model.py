@@ -331,7 +331,12 @@ class ModelBuilder:
                  dt: float | str = "auto", target_overlap: float = 0.02,
                  steps_per_contact: float = mat.STEPS_PER_CONTACT,
                  up_axis: str = "Z", meters_per_unit: float = 1.0,
-                 where: str = "simulation.dt") -> Model:
+                 where: str = "simulation.dt", force: bool = False) -> Model:
+        """Derive contact constants, dt and features; freeze everything into a Model.
+
+        A user dt at or above the critical step of the stiffest contact raises
+        StabilityError, unless ``force`` (the bake's --force: the user takes the risk).
+        """
         d = self.diameter
         groups = self._groups
         # bodies
@@ -475,7 +480,8 @@ class ModelBuilder:
         else:
             if not (dt > 0 and math.isfinite(dt)):
                 raise SceneError(f"{where}: dt must be positive seconds, got {dt!r}")
-            mat.check_dt(float(dt), omega_max, zeta_min, where)
+            if not force:
+                mat.check_dt(float(dt), omega_max, zeta_min, where)
             spf = max(1, round((1.0 / fps) / dt))
             dt_v = 1.0 / fps / spf
             if abs(dt_v - dt) > 1e-9 * dt and abs(dt_v - dt) / dt > 0.01:

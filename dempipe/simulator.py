@@ -27,6 +27,18 @@ from .frames import Frames
 #: failed (bodies are passing through each other): stop rather than bake garbage.
 MAX_OVERLAP_FRACTION = 0.5
 
+#: Kinetic plus potential energy may exceed its frame-0 value (plus the elastic
+#: energy of frame-0 overlaps) by at most this fraction of the scene's energy
+#: scale: its kinetic energy plus what every body would release falling to the
+#: lowest body's bottom, plus one diameter of fall. Damped contacts only lose
+#: energy; the explicit integrator's gain stays far below 1% at dt auto
+#: (tests/test_stability.py); a growth of 10% is a blow-up in the making.
+MAX_ENERGY_GAIN = 0.10
+
+#: A body whose fastest point moves more than this fraction of a diameter per
+#: step can skip a contact entirely (stability.TUNNEL_ERROR, the check's limit).
+MAX_STEP_TRAVEL = 0.5
+
 
 class BakeFailure(StabilityError):
     """A guard stopped the bake. ``frames`` holds every frame recorded before it."""
@@ -102,16 +114,47 @@ class Simulator:
         self.backend = make_backend(model, self.device)
         self.stats = RunStats()
 
-    def record(self, frames: Frames, k: int, state, frame_number: int) -> None:
+    def record(self, frames: Frames, k: int, state, frame_number: int, vw=None) -> None:
         m = self.model
         nb = m.n_bodies
-        v, w = self.backend.velocities(state)
+        v, w = vw if vw is not None else self.backend.velocities(state)
         frames.frame_numbers[k] = frame_number
         frames.times[k] = state.time
         frames.x[k] = state.body_x[:nb]
         frames.q[k] = state.body_q[:nb]
         frames.v[k] = v
         frames.w[k] = w
+
+    def energy(self, state, v, w) -> float:
+        """Kinetic (½ P·V + ½ L·W) plus gravitational potential energy [J] of the
+        dynamic bodies; springs' elastic energy is not included."""
+        m = self.model
+        nb = m.n_bodies
+        kin = 0.5 * (float(np.einsum("bi,bi->", state.body_P[:nb], v))
+                     + float(np.einsum("bi,bi->", state.body_L[:nb], w)))
+        return kin - float(m.body_mass[:nb] @ (state.body_x[:nb] @ m.gravity))
+
+    def _energy_budget(self, state, v, w) -> tuple[float, float]:
+        """(E0, allowed gain) for the energy guard, see MAX_ENERGY_GAIN."""
+        m = self.model
+        nb = m.n_bodies
+        e0 = self.energy(state, v, w)
+        g = float(np.linalg.norm(m.gravity))
+        if nb == 0:
+            return e0, math.inf
+        up = -np.asarray(m.gravity) / g if g > 0 else np.zeros(3)
+        h = state.body_x[:nb] @ up
+        low = float(h.min() - m.body_radius.max())
+        mass = m.body_mass[:nb]
+        kin0 = e0 + float(mass @ (state.body_x[:nb] @ m.gravity))
+        scale = kin0 + g * float(mass @ (h - low + m.diameter))
+        # elastic energy of frame-0 overlaps: at most ½ k δ² per overlapping sphere
+        elastic = 0.0
+        if m.n_spheres:
+            self.backend.probe(state)
+            ov = np.asarray(self.backend.sphere_overlap)
+            elastic = 0.5 * float(np.max(m.pair_k)) * float(ov @ ov)
+        return e0, MAX_ENERGY_GAIN * scale + elastic + 1e-300
 
     def advance(self, state, n_frames: int | None = None, progress=None) -> Frames:
         """Record frame 0 (``state`` as given), then step to each further frame.
@@ -124,7 +167,9 @@ class Simulator:
         n_frames = m.n_frames if n_frames is None else int(n_frames)
         frames = Frames.empty(n_frames, m.n_bodies)
         first = m.first_frame + round(state.time * m.fps)
-        self.record(frames, 0, state, first)
+        vw = self.backend.velocities(state)
+        self.record(frames, 0, state, first, vw)
+        self._e0, self._gain = self._energy_budget(state, *vw)
         if progress:
             progress(0, n_frames, self.stats)
         t0 = time.perf_counter()
@@ -139,32 +184,55 @@ class Simulator:
             overlap = self.backend.take_max_overlap()
             self.stats.frame_overlap.append(overlap)
             self.stats.max_overlap = max(self.stats.max_overlap, overlap)
-            problem = self._check(state, overlap, k)
+            vw = self.backend.velocities(state)
+            problem = self._check(state, overlap, k, *vw)
             if problem:
                 raise BakeFailure(problem, frames.head(k))
-            self.record(frames, k, state, first + k)
+            self.record(frames, k, state, first + k, vw)
             if progress:
                 progress(k, n_frames, self.stats)
         return frames
 
-    def _check(self, state, overlap: float, k: int) -> str | None:
-        """Guards: non-finite state, overlap beyond half a diameter."""
+    def _check(self, state, overlap: float, k: int, v=None, w=None) -> str | None:
+        """Guards: non-finite state, overlap beyond half a diameter, energy growing
+        without a source, a body fast enough to skip contacts."""
         m = self.model
         nb = m.n_bodies
         x = state.body_x[:nb]
         finite = np.isfinite(x).all(axis=1) & np.isfinite(state.body_q[:nb]).all(axis=1)
         t = state.time
+        where = f"bake stopped at frame {k} (t = {t:.4g} s, step {state.step})"
         if not finite.all():
             b = int(np.flatnonzero(~finite)[0])
-            return (f"bake stopped at frame {k} (t = {t:.4g} s, step {state.step}): body {b} "
-                    f"({self._body_name(b)}) has a non-finite position; the step dt = {m.dt:.3g} s "
-                    f"is likely too large for the stiffness (use dt = \"auto\" or softer materials)")
+            return (f"{where}: body {b} ({self._body_name(b)}) has a non-finite position; the "
+                    f"step dt = {m.dt:.3g} s is likely too large for the stiffness (use "
+                    f"dt = \"auto\" or softer materials)")
         if overlap > MAX_OVERLAP_FRACTION * m.diameter:
-            return (f"bake stopped at frame {k} (t = {t:.4g} s, step {state.step}): spheres overlap "
-                    f"by {overlap / m.diameter:.0%} of the diameter (limit "
-                    f"{MAX_OVERLAP_FRACTION:.0%}); contacts are too soft for the impact speeds, "
-                    f"or dt too large: raise the stiffness, lower stiffness_target_overlap, or "
-                    f"use dt = \"auto\"")
+            return (f"{where}: spheres overlap by {overlap / m.diameter:.0%} of the diameter "
+                    f"(limit {MAX_OVERLAP_FRACTION:.0%}); contacts are too soft for the impact "
+                    f"speeds, or dt too large: raise the stiffness, lower "
+                    f"stiffness_target_overlap, or use dt = \"auto\"")
+        if v is None or nb == 0:
+            return None
+        e = self.energy(state, v, w)
+        if e - self._e0 > self._gain:
+            kin = 0.5 * (np.einsum("bi,bi->b", state.body_P[:nb], v)
+                         + np.einsum("bi,bi->b", state.body_L[:nb], w))
+            b = int(np.argmax(kin))
+            return (f"{where}: kinetic plus potential energy grew by {e - self._e0:.3g} J, more "
+                    f"than the {MAX_ENERGY_GAIN:.0%} of the scene's energy allowed, with no "
+                    f"source; body {self._body_name(b)} is the fastest. The explicit "
+                    f"integration is unstable: dt = {m.dt:.3g} s is too long for the contact "
+                    f"stiffness (use dt = \"auto\", a smaller dt, or softer materials)")
+        speed = np.linalg.norm(v, axis=1) + np.linalg.norm(w, axis=1) * m.body_radius[:nb]
+        b = int(np.argmax(speed))
+        travel = float(speed[b]) * m.dt / m.diameter
+        if travel > MAX_STEP_TRAVEL:
+            return (f"{where}: body {self._body_name(b)} moves at {speed[b]:.3g} m/s, "
+                    f"{travel:.0%} of a sphere diameter per step (limit "
+                    f"{MAX_STEP_TRAVEL:.0%}): it can pass through walls and bodies. The scene "
+                    f"reaches speeds dt was not chosen for (a launch or fall faster than "
+                    f"`dempipe check` predicts): use a smaller dt or a higher stiffness")
         return None
 
     def _body_name(self, b: int) -> str:

@@ -466,6 +466,34 @@ def frame0_overlap(model: Model, state=None) -> tuple[float, int]:
 # --------------------------------------------------------------------------- analysis
 
 
+def tunnelling(model: Model, step: float, closing: float, setting: str,
+               src: str) -> Finding | None:
+    """The tunnelling finding (or None): the fastest closing pair's travel per step.
+
+    Beyond TUNNEL_ERROR of a diameter per step contacts can be skipped entirely
+    (bake refuses without --force); beyond TUNNEL_WARN they start deep.
+    """
+    d = model.diameter
+    travel = closing * step / d
+    if travel <= TUNNEL_WARN:
+        return None
+    level = ERROR if travel > TUNNEL_ERROR else WARNING
+    limit = TUNNEL_WARN * d / closing
+    user_k = [m.name for m in model.materials if m.stiffness is not None]
+    why = (f"the user stiffness of {', '.join(user_k)} makes the automatic step long"
+           if setting == "auto" and user_k else "the step is long for these speeds")
+    return Finding(
+        level, "tunnelling",
+        f"{src}: the fastest closing pair ({closing:.3g} m/s) moves {travel:.0%} of a "
+        f"sphere diameter per step (dt = {step:.3g} s): {why}; contacts "
+        + ("can be skipped entirely (bodies pass through each other or through walls)"
+           if level == ERROR else "start deep and bounce wrongly"),
+        (f"set stiffness = \"auto\" (or a higher stiffness) for {', '.join(user_k)}, so that "
+         f"dt = \"auto\" follows the speeds" if setting == "auto" and user_k else
+         f"use dt = \"auto\" or a dt below {limit:.3g} s (≤ {TUNNEL_WARN:.0%} of a diameter "
+         f"per step)"))
+
+
 def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | None = None,
             refused: str | None = None, scene: str | None = None) -> StabilityReport:
     """Check ``model`` for everything that makes a bake unstable or refused.
@@ -512,22 +540,9 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
             "use dt = \"auto\", a smaller dt, or softer materials"))
 
     # 2. tunnelling: distance per step against the diameter
-    if travel > TUNNEL_WARN:
-        level = ERROR if travel > TUNNEL_ERROR else WARNING
-        limit = TUNNEL_WARN * d / closing
-        user_k = [m.name for m in model.materials if m.stiffness is not None]
-        why = (f"the user stiffness of {', '.join(user_k)} makes the automatic step long"
-               if setting == "auto" and user_k else "the step is long for these speeds")
-        findings.append(Finding(
-            level, "tunnelling",
-            f"{src}: the fastest closing pair ({closing:.3g} m/s) moves {travel:.0%} of a "
-            f"sphere diameter per step (dt = {step:.3g} s): {why}; contacts "
-            + ("can be skipped entirely (bodies pass through each other or through walls)"
-               if level == ERROR else "start deep and bounce wrongly"),
-            (f"set stiffness = \"auto\" (or a higher stiffness) for {', '.join(user_k)}, so that "
-             f"dt = \"auto\" follows the speeds" if setting == "auto" and user_k else
-             f"use dt = \"auto\" or a dt below {limit:.3g} s (≤ {TUNNEL_WARN:.0%} of a diameter "
-             f"per step)")))
+    found = tunnelling(model, step, closing, setting, src)
+    if found is not None:
+        findings.append(found)
 
     # 3. frame-0 overlap (bake.py refuses above 50% without --force)
     name = model.body_name(ob) if ob >= 0 else None

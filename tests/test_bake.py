@@ -227,8 +227,8 @@ def test_failed_bake_keeps_its_frames(tmp_path, monkeypatch):
     import dempipe.simulator as simulator
     original = simulator.Simulator._check
 
-    def trip(self, state, overlap, k):
-        return "synthetic failure" if k == 4 else original(self, state, overlap, k)
+    def trip(self, state, overlap, k, *vw):
+        return "synthetic failure" if k == 4 else original(self, state, overlap, k, *vw)
 
     monkeypatch.setattr(simulator.Simulator, "_check", trip)
     scene = tmp_path / "s.toml"
