@@ -88,14 +88,16 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
     start, end = parse_frame_range(frames, model.n_frames, model.first_frame)
 
     src = Path(scene_path).name
-    from .stability import ERROR, expected_speeds, tunnelling
+    from .stability import ERROR, expected_speeds, soft_contact, tunnelling
 
-    risk = tunnelling(model, model.dt, expected_speeds(model)[1],
-                      "auto" if isinstance(scene.simulation.dt, str) else "given", src)
-    if risk is not None and risk.level == ERROR and not force:
-        raise StabilityError(f"{risk.message}. Fix: {risk.fix} (or bake with --force)")
-    if risk is not None:
-        warn(risk.message)
+    closing = expected_speeds(model)[1]
+    for risk in (tunnelling(model, model.dt, closing,
+                            "auto" if isinstance(scene.simulation.dt, str) else "given", src),
+                 soft_contact(model, closing, src)):
+        if risk is not None and risk.level == ERROR and not force:
+            raise StabilityError(f"{risk.message}. Fix: {risk.fix} (or bake with --force)")
+        if risk is not None:
+            warn(risk.message)
 
     overlap, body = initial_overlap(model)
     if overlap > REFUSE_OVERLAP and not force:

@@ -24,7 +24,7 @@ class Overrides:
 
     diameter [m] or resolution (spheres across the smallest shape's longest extent);
     stiffness_factor multiplies every material's stiffness (auto included);
-    dt [s] or dt_factor (times the auto step); duration [s].
+    dt [s] or dt_factor (times the auto step); duration [s]; sleeping on/off.
     """
 
     diameter: float | None = None
@@ -33,6 +33,7 @@ class Overrides:
     dt: float | str | None = None
     dt_factor: float = 1.0
     duration: float | None = None
+    sleeping: bool | None = None
 
 
 def _shape_mesh(spec, where: str):
@@ -135,7 +136,10 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
     model = b.finalize(fps=fps, n_frames=n_frames, first_frame=out.start_frame, dt=dt,
                        target_overlap=target, steps_per_contact=steps_per_contact,
                        up_axis=out.up_axis, meters_per_unit=out.meters_per_unit,
-                       where=f"{src}: simulation.dt", force=force)
+                       where=f"{src}: simulation.dt", force=force,
+                       sleep=((sim.sleep.linear_speed, sim.sleep.angular_speed, sim.sleep.time)
+                              if (o.sleeping if o.sleeping is not None else sim.sleeping)
+                              else None))
     return replace(model, build_info=dict(sphere_build_seconds=build_seconds, shapes=hits,
                                           source=str(scene.path) if scene.path else None))
 

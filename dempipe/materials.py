@@ -166,12 +166,49 @@ def pair_table(materials: list[Material], stiffness: list[float]) -> PairTable:
     return PairTable(k, zeta, mu)
 
 
+#: Largest rotation per step dt "auto" allows a free spin [rad]: the midpoint
+#: orientation update keeps a spinning needle's energy within 1e-3 at 0.04.
+MAX_SPIN_STEP = 0.04
+
+#: dt "auto" moves no point of a body launched at the scene's initial speeds
+#: further than this fraction of a diameter per step: half the bake's travel
+#: guard (simulator.MAX_STEP_TRAVEL), so a spinning needle's tip stays resolved.
+AUTO_TRAVEL = 0.25
+
+#: dt "auto" stays below this fraction of the critical step of a flat landing
+#: (see flat_face_critical_step).
+FLAT_FACE_SAFETY = 0.5
+
+
+def damped_critical_step(omega: float, zeta: float) -> float:
+    """Largest stable step of symplectic Euler on a damped oscillator [s]:
+    ω dt < 2(√(1+ζ²) − ζ), which shrinks like 1/(ζ ω) when ζ is large."""
+    return 2.0 * (math.sqrt(1.0 + zeta * zeta) - zeta) / omega
+
+
+def flat_face_critical_step(n: int, k: float, m: float, zeta: float) -> float:
+    """Critical step of a body of mass m landing flat on n spheres at once [s].
+
+    Each contact's dashpot is η = 2ζ√(k m) (the body's mass, see docs/physics.md),
+    so n contacts in parallel are one oscillator of stiffness n k and damping
+    n η: ω_n = √n ω, ζ_n = √n ζ. A wide flat face (a tile: n = 64) makes ζ_n
+    large and its critical step far shorter than a corner contact's.
+    """
+    return damped_critical_step(math.sqrt(n * k / m), math.sqrt(n) * zeta)
+
+
 def auto_dt(omega_max: float, fps: float, steps_per_contact: float = STEPS_PER_CONTACT,
-            zeta_max: float = 0.0) -> tuple[float, int]:
+            zeta_max: float = 0.0, dt_max: float = math.inf) -> tuple[float, int]:
     """dt from the stiffest mode, rounded down so each frame is whole steps.
 
     omega_max : the largest contact frequency √(k/m_eff) of the scene [rad/s]
                 (translational and rotational effective masses included).
+    zeta_max : the largest damping ratio; the contact lasts π/(ω√(1−ζ²)), but
+               for ζ → 1 (e → 0) that grows without bound while the dynamics
+               do not slow down, so √(1−ζ²) is taken no smaller than 1/√2 (at
+               1/2, e = 0 rebounded at 0.143 of its impact speed, above the exact
+               e^-2 = 0.135; at 1/√2, 0.100: tests/test_extremes.py).
+    dt_max : a further bound [s] (flat faces, free spin), see ModelBuilder.finalize.
     Returns (dt, steps_per_frame).
     """
     if not (omega_max > 0.0 and math.isfinite(omega_max)):
@@ -179,8 +216,9 @@ def auto_dt(omega_max: float, fps: float, steps_per_contact: float = STEPS_PER_C
         # resolves free flight and tumbling well.
         dt_target = 1.0 / 240.0
     else:
-        tc = math.pi / (omega_max * math.sqrt(max(1.0 - zeta_max**2, 1e-6)))
+        tc = math.pi / (omega_max * math.sqrt(max(1.0 - zeta_max**2, 0.5)))
         dt_target = tc / steps_per_contact
+    dt_target = min(dt_target, dt_max)
     frame = 1.0 / fps
     steps = max(1, math.ceil(frame / dt_target - 1e-9))
     return frame / steps, steps

@@ -12,7 +12,7 @@ spheres sit in the grid like any other but are never integrated.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import replace, dataclass, field
 
 import numpy as np
 
@@ -83,6 +83,7 @@ class Features:
     walls: bool
     static_spheres: bool
     gravity: bool
+    sleeping: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,6 +106,8 @@ class Model:
       wall_material (W,).
     Materials: pair_k, pair_zeta, pair_mu (M, M); kt_ratio; ks_ratio.
     Time: dt [s], steps_per_frame, fps, n_frames, first_frame.
+    Sleeping: a body slower than sleep_linear [m/s] and sleep_angular [rad/s] for
+      sleep_steps steps in a row sleeps (0: sleeping off); see kernels.cpu.stage_bodies.
     """
 
     diameter: float
@@ -155,6 +158,9 @@ class Model:
     initial_w: np.ndarray
     stiffness_auto: tuple = ()
     build_info: dict = field(default_factory=dict)
+    sleep_steps: int = 0
+    sleep_linear: float = 0.0
+    sleep_angular: float = 0.0
 
     @property
     def n_spheres(self) -> int:
@@ -186,9 +192,42 @@ class Model:
         for b in range(self.n_bodies):
             L[b] = _world_inertia(q[b], self.body_inv_inertia[b]) @ self.initial_w[b]
         state = State(body_x=x, body_q=q, body_P=P, body_L=L)
+        state.ensure_rest(nb)
         if self.features.friction:
             state.ensure_contacts(self.n_spheres)
         return state
+
+
+#: Defaults of sleeping: a body sleeps after SLEEP_TIME seconds slower than
+#: SLEEP_SPEED_FACTOR √(g d) (about 1.6 cm/s at d = 1 cm: a hundredth of the
+#: speed of a fall from one diameter is well below anything a viewer sees at
+#: 24 fps) and spinning slower than that speed over the body's median radius.
+SLEEP_SPEED_FACTOR = 0.05
+SLEEP_TIME = 0.5
+
+
+def sleep_defaults(diameter, g, body_radius, linear=None, angular=None, time=None):
+    """(linear [m/s], angular [rad/s], time [s]) thresholds of sleeping, with the
+    defaults above for the ones given as None."""
+    if linear is None:
+        linear = SLEEP_SPEED_FACTOR * math.sqrt(max(g, 1.0) * diameter)
+    if angular is None:
+        r = float(np.median(body_radius)) if len(body_radius) else diameter
+        angular = linear / max(r, 0.5 * diameter)
+    return float(linear), float(angular), float(SLEEP_TIME if time is None else time)
+
+
+def flat_face_spheres(centers: np.ndarray, diameter: float) -> int:
+    """Most spheres of a sphere set lying in one outer lattice plane: how many
+    touch at once when the body lands flat on that face."""
+    if centers.shape[0] == 0:
+        return 0
+    best = 1
+    for a in range(3):
+        c = centers[:, a]
+        for edge in (c.min(), c.max()):
+            best = max(best, int(np.count_nonzero(np.abs(c - edge) < 0.25 * diameter)))
+    return best
 
 
 def _sym6_to_mat(s):
@@ -331,11 +370,14 @@ class ModelBuilder:
                  dt: float | str = "auto", target_overlap: float = 0.02,
                  steps_per_contact: float = mat.STEPS_PER_CONTACT,
                  up_axis: str = "Z", meters_per_unit: float = 1.0,
-                 where: str = "simulation.dt", force: bool = False) -> Model:
+                 where: str = "simulation.dt", force: bool = False,
+                 sleep: tuple | None = None) -> Model:
         """Derive contact constants, dt and features; freeze everything into a Model.
 
         A user dt at or above the critical step of the stiffest contact raises
         StabilityError, unless ``force`` (the bake's --force: the user takes the risk).
+        sleep : None (off) or (linear [m/s] | None, angular [rad/s] | None,
+                time [s] | None); None entries take the defaults of ``sleep_defaults``.
         """
         d = self.diameter
         groups = self._groups
@@ -473,10 +515,32 @@ class ModelBuilder:
                     omega_max = max(omega_max, math.sqrt(k / (m_eff * half)))
                     zeta_min = min(zeta_min, table.zeta[mi, mj])
                     zeta_max = max(zeta_max, table.zeta[mi, mj])
+        # flat landings (n spheres of a face at once) and free spin bound dt further
+        dt_max = math.inf
+        if has_contacts:
+            faces = [flat_face_spheres(np.asarray(sh.sphere_set.centers), d)
+                     for sh in self._shapes]
+            dyn_present = set(np.unique(dyn_mat).tolist())
+            for gi, gdict in enumerate(groups):
+                if gdict["p"].shape[0] == 0:
+                    continue
+                mi = gdict["material"]
+                n_face = max(faces[sj] for sj in np.unique(gdict["shapes"]))
+                m_flat = float(mass[body_group == gi].min())
+                for mj in (present if n_dyn > 1 else wall_mats):
+                    half = 0.5 if (n_dyn > 1 and mj in dyn_present) else 1.0
+                    dt_max = min(dt_max, mat.FLAT_FACE_SAFETY * mat.flat_face_critical_step(
+                        n_face, table.k[mi, mj], m_flat * half, table.zeta[mi, mj]))
+        if n_dyn and np.any(w0):
+            dt_max = min(dt_max, mat.MAX_SPIN_STEP / float(np.linalg.norm(w0, axis=1).max()))
+        if n_dyn and float(launch.max()) > 0.0:
+            # a launched or spinning body's fastest point (|v| + |w| r) crosses at most
+            # AUTO_TRAVEL of a diameter per step, in free flight too (the travel guard)
+            dt_max = min(dt_max, mat.AUTO_TRAVEL * d / float(launch.max()))
         if isinstance(dt, str):
             if dt != "auto":
                 raise SceneError(f"{where}: expected \"auto\" or seconds, got {dt!r}")
-            dt_v, spf = mat.auto_dt(omega_max, fps, steps_per_contact, zeta_max)
+            dt_v, spf = mat.auto_dt(omega_max, fps, steps_per_contact, zeta_max, dt_max)
         else:
             if not (dt > 0 and math.isfinite(dt)):
                 raise SceneError(f"{where}: dt must be positive seconds, got {dt!r}")
@@ -502,8 +566,15 @@ class ModelBuilder:
             static_spheres=n_static > 0,
             gravity=g > 0,
         )
+        sleep_steps, sleep_lin, sleep_ang = 0, 0.0, 0.0
+        if sleep is not None and n_dyn > 0:
+            sleep_lin, sleep_ang, sleep_time = sleep_defaults(
+                d, g, body_radius, *sleep)
+            sleep_steps = max(1, math.ceil(sleep_time / float(dt_v) - 1e-9))
+        features = replace(features, sleeping=sleep_steps > 0)
         return Model(
-            diameter=d, n_bodies=n_dyn, n_static=n_static, shapes=tuple(self._shapes),
+            diameter=d, sleep_steps=int(sleep_steps), sleep_linear=float(sleep_lin),
+            sleep_angular=float(sleep_ang), n_bodies=n_dyn, n_static=n_static, shapes=tuple(self._shapes),
             materials=tuple(self._materials), group_names=tuple(g["name"] for g in groups),
             body_mass=_frozen(all_mass), body_inv_mass=_frozen(all_inv_mass),
             body_inv_inertia=_frozen(all_inv_inertia), body_material=_frozen(all_mat, np.int32),

@@ -295,6 +295,19 @@ def history_store(contact_partner, contact_spring, i, slot, code, parity, sx, sy
 
 
 # ---------------------------------------------------------------------------
+# Sleeping: bodies at rest leave the integration until something moving touches them
+# ---------------------------------------------------------------------------
+
+def rest_steps(rest, vx, vy, vz, wx, wy, wz, v_sleep, w_sleep):
+    """Steps a body has been at rest, after this step: one more when its speed
+    |V| < v_sleep [m/s] and spin |W| < w_sleep [rad/s], else 0."""
+    if (vx * vx + vy * vy + vz * vz < v_sleep * v_sleep
+            and wx * wx + wy * wy + wz * wz < w_sleep * w_sleep):
+        return rest + 1
+    return 0
+
+
+# ---------------------------------------------------------------------------
 # Stages 5-8: body momentum, position, orientation (eq. 2-10, 15-16)
 # ---------------------------------------------------------------------------
 

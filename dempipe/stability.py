@@ -42,8 +42,16 @@ WARN_OVERLAP = 0.05
 #: deep; above TUNNEL_ERROR a sphere can skip past another's centre in one step.
 TUNNEL_WARN = 0.10
 TUNNEL_ERROR = 0.50
+#: Expected deepest overlap (fraction of a diameter) of the fastest impact: above
+#: OVERLAP_WARN contacts look soft, above OVERLAP_ERROR the bake's overlap guard
+#: (simulator.MAX_OVERLAP_FRACTION) would stop it.
+OVERLAP_WARN = 0.10
+OVERLAP_ERROR = 0.50
 #: Largest / smallest dynamic body mass beyond which heavy-on-light stacks sink.
 MASS_RATIO_WARN = 100.0
+#: Bodies farther than this many diameters from the origin get a warning
+#: (half the grid keys' range of 2^20 cells per axis).
+FAR_CELLS = 2.0 ** 19
 #: A shape with fewer spheres than this, or a longest extent below
 #: SMALL_EXTENT diameters, collides like a ball.
 SMALL_SPHERES = 8
@@ -238,8 +246,8 @@ BUCKETS_PER_SPHERE = 8
 
 
 def grid_buckets(n_spheres: int) -> int:
-    """Bucket budget of the CPU backend's grid (kernels.cpu.grid_table): 2^k ≥ 8 n, k ≥ 4."""
-    k = 4
+    """Bucket budget of the CPU backend's grid (kernels.cpu.grid_table): 2^k ≥ 8 n, k ≥ 6."""
+    k = 6
     while (1 << k) < BUCKETS_PER_SPHERE * max(n_spheres, 1):
         k += 1
     return 1 << k
@@ -286,8 +294,9 @@ def memory_estimate(model: Model) -> dict:
                + 2 * ns * 3 * f8                       # sphere_f, sphere_t
                + ns * f8                               # sphere_overlap
                + (2 * 3 * f8 if model.n_static else 0)  # static_lo, static_hi
-               + i4 + 3 * f8)                          # the frictionless dummy history
-    state = nb * (3 + 4 + 3 + 3) * f8
+               + i4 + 3 * f8                           # the frictionless dummy history
+               + nb * i4)                              # body_wake (sleeping)
+    state = nb * (3 + 4 + 3 + 3) * f8 + nb * i4        # x, q, P, L; body_rest
     if model.features.friction:   # contact histories (static friction), see State
         state += ns * CONTACT_SLOTS * (i4 + 3 * f8)
     frames = model.n_frames * (i8 + f8 + model.n_bodies * (3 + 4 + 3 + 3) * f8)
@@ -494,6 +503,53 @@ def tunnelling(model: Model, step: float, closing: float, setting: str,
          f"per step)"))
 
 
+def soft_contact(model: Model, closing: float, src: str) -> Finding | None:
+    """The soft-contact finding (or None): the deepest overlap the fastest closing
+    pair can reach, δ = v √(m / k) (an undamped spring stopping the heaviest body of
+    a material at v), against the bake's overlap guard (simulator.MAX_OVERLAP_FRACTION).
+
+    dt "auto" follows the speeds, but no step saves a spring too soft to stop them:
+    beyond OVERLAP_ERROR of a diameter bodies sink through each other or the walls.
+    """
+    n = model.n_bodies
+    if n == 0 or closing <= 0.0:
+        return None
+    d = model.diameter
+    mass = np.asarray(model.body_mass[:n])
+    dyn_mat = np.asarray(model.body_material[:n])
+    partners = set(np.asarray(model.wall_material).tolist()) | set(
+        np.asarray(model.body_material[n:]).tolist())
+    if n > 1:
+        partners |= set(dyn_mat.tolist())
+    worst, pair = 0.0, None
+    for mi in sorted(set(dyn_mat.tolist())):
+        m_heavy = float(mass[dyn_mat == mi].max())
+        for mj in sorted(partners):
+            k = float(model.pair_k[mi, mj])
+            depth = closing * math.sqrt(m_heavy / k) / d if k > 0 else math.inf
+            if depth > worst:
+                worst, pair = depth, (mi, mj)
+    if pair is None or worst <= OVERLAP_WARN:
+        return None
+    names = [m.name for m in model.materials]
+    user_k = sorted({names[i] for i in pair if model.materials[i].stiffness is not None})
+    # An error only where a user stiffness sets the spring: auto stiffness is chosen
+    # for each material's corner-contact mass (materials.auto_stiffness), and this
+    # one-spring, whole-mass estimate overstates what a heavy body meets on a light
+    # material's auto spring (several contacts share it; the mass-ratio finding
+    # covers that case).
+    level = ERROR if worst > OVERLAP_ERROR and user_k else WARNING
+    return Finding(
+        level, "soft-contact",
+        f"{src}: a contact of {names[pair[0]]} on {names[pair[1]]} "
+        f"(k = {float(model.pair_k[pair]):.3g} N/m) closing at {closing:.3g} m/s sinks "
+        f"{worst:.0%} of a sphere diameter deep"
+        + (": bodies pass through each other or the walls" if level == ERROR else ""),
+        (f"set stiffness = \"auto\" (or a higher stiffness) for {', '.join(user_k)}"
+         if user_k else "raise the materials' stiffness, or lower the drop heights and "
+         "speeds"))
+
+
 def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | None = None,
             refused: str | None = None, scene: str | None = None) -> StabilityReport:
     """Check ``model`` for everything that makes a bake unstable or refused.
@@ -541,6 +597,9 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
 
     # 2. tunnelling: distance per step against the diameter
     found = tunnelling(model, step, closing, setting, src)
+    if found is not None:
+        findings.append(found)
+    found = soft_contact(model, closing, src)
     if found is not None:
         findings.append(found)
 
@@ -591,6 +650,19 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
                 f"{extent:.3g} diameter{'s' * (extent != 1)} across: it will collide and roll like a ball",
                 "raise simulation.resolution or lower simulation.sphere_diameter (the "
                 "smallest shape sets the diameter)"))
+
+    # 6. far from the origin: grid keys hold ±2^20 cells per axis (kernels/cpu.py);
+    # beyond half of that the bake still collides correctly but slowly
+    if n:
+        far = float(np.abs(np.asarray(model.initial_x[:n])).max()) / d
+        if far > FAR_CELLS:
+            findings.append(Finding(
+                WARNING, "far-from-origin",
+                f"{src}: bodies start {far * d:.4g} m from the origin, {far:.3g} sphere "
+                f"diameters; beyond {2 ** 20:.3g} diameters the grid clamps them into its "
+                f"outermost cells (correct, but every sphere there is a neighbour of every "
+                f"other: slow)",
+                "recentre the scene near the origin (move the bodies and colliders together)"))
 
     nb_all = int(model.body_mass.shape[0])
     static_spheres = int(model.n_spheres - model.body_sphere_start[n]) if nb_all else 0

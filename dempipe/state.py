@@ -29,6 +29,8 @@ class State:
     contact_spring : (S, CONTACT_SLOTS, 3) float64, tangential spring stretch of
         each remembered contact, world frame [m] (Cundall-Strack history)
     Both are None until a backend that needs them (friction) allocates them.
+    body_rest : (B,) int32, steps each body has been at rest (sleeping); a body is
+        asleep when it reaches Model.sleep_steps. None until a backend allocates it.
     """
 
     body_x: np.ndarray
@@ -39,12 +41,25 @@ class State:
     step: int = 0
     contact_partner: np.ndarray | None = None
     contact_spring: np.ndarray | None = None
+    body_rest: np.ndarray | None = None
 
     def copy(self) -> "State":
         return State(self.body_x.copy(), self.body_q.copy(), self.body_P.copy(),
                      self.body_L.copy(), self.time, self.step,
                      None if self.contact_partner is None else self.contact_partner.copy(),
-                     None if self.contact_spring is None else self.contact_spring.copy())
+                     None if self.contact_spring is None else self.contact_spring.copy(),
+                     None if self.body_rest is None else self.body_rest.copy())
+
+    def ensure_rest(self, n_bodies: int) -> None:
+        """Allocate rest counts (every body awake, not yet at rest)."""
+        if self.body_rest is None or self.body_rest.shape[0] != n_bodies:
+            self.body_rest = np.zeros(n_bodies, dtype=np.int32)
+
+    def asleep(self, sleep_steps: int) -> np.ndarray:
+        """(B,) bool, which bodies sleep now."""
+        if self.body_rest is None or sleep_steps <= 0:
+            return np.zeros(self.body_x.shape[0], dtype=bool)
+        return self.body_rest >= sleep_steps
 
     def ensure_contacts(self, n_spheres: int) -> None:
         """Allocate empty contact histories (every contact starts unstretched)."""

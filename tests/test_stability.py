@@ -108,7 +108,8 @@ def test_memory_estimate_matches_cpu_backend():
     assert mem["cpu_scratch"] == real
     state = model.initial_state()
     assert mem["state"] == sum(getattr(state, k).nbytes for k in (
-        "body_x", "body_q", "body_P", "body_L", "contact_partner", "contact_spring"))
+        "body_x", "body_q", "body_P", "body_L", "body_rest", "contact_partner",
+        "contact_spring"))
     assert mem["total"] == sum(v for k, v in mem.items() if k != "total")
 
 
@@ -427,18 +428,25 @@ def test_analyze_flags_tunnelling_with_a_long_user_dt():
     assert r.step_travel == pytest.approx((20 + math.sqrt(2 * G * 0.02)) * 5e-4 / D, rel=1e-9)
     assert f and f[0].level == "error" and not r.ok
     assert "dt below" in f[0].fix and "dt = \"auto\"" in f[0].fix
-    # 3 m/s: 15% of a diameter, a warning only
-    b = ball_on_plane(k=100.0, z=0.02, v=(0, 0, -3.0))
+    # 3 m/s: 15% of a diameter, a warning only (k = 2,000 N/m: stiff enough that the
+    # ball sinks only ~0.2 d, a soft-contact warning, and soft enough for dt = 0.5 ms)
+    b = ball_on_plane(k=2000.0, z=0.02, v=(0, 0, -3.0))
     r = st.analyze(b.finalize(fps=100, n_frames=2, dt=5e-4))
     assert [f.level for f in r.findings if f.code == "tunnelling"] == ["warning"] and r.ok
-    # dt auto does not save a user stiffness that is too soft for 20 m/s: 94% of a
-    # diameter per step is an error, and the bake does fail (the overlap guard trips)
+    # dt auto follows the launch speed (a quarter diameter per step, materials.AUTO_TRAVEL)
+    # but cannot save a user stiffness too soft for 20 m/s: the spring lets the ball
+    # sink v √(m/k) = 4.5 diameters deep. The check calls that an error, and the bake
+    # does fail (the overlap guard trips)
     from dempipe.simulator import BakeFailure
 
     model = ball_on_plane(k=100.0, z=0.02, v=(0, 0, -20.0)).finalize(fps=100, n_frames=3)
+    assert 20.0 * model.dt / D <= 0.25 + 1e-12
     r = st.analyze(model, dt_setting="auto")
-    f = [f for f in r.findings if f.code == "tunnelling"][0]
-    assert f.level == "error" and "stiffness of m" in f.message and "stiffness" in f.fix
+    f = [f for f in r.findings if f.code == "soft-contact"][0]
+    closing = 20 + math.sqrt(2 * G * 0.02)
+    depth = closing * math.sqrt(model.body_mass[0] / 100.0) / D
+    assert depth > 4 and f"{depth:.0%}" in f.message
+    assert f.level == "error" and not r.ok and "stiffness" in f.fix
     with pytest.raises(BakeFailure):
         Simulator(model).advance(model.initial_state())
 

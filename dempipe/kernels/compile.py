@@ -31,6 +31,7 @@ FORMULAS = (
     "body_step",
     "history_find",
     "history_store",
+    "rest_steps",
 )
 
 

@@ -27,10 +27,12 @@ sphere_wall_force = F.sphere_wall_force
 body_step = F.body_step
 history_find = F.history_find
 history_store = F.history_store
+rest_steps = F.rest_steps
 
 # Cell coordinates are packed into one int64 key, 21 bits per axis, so the world
-# spans ±2^20 cells per axis (±10 km at 1 cm spheres). Beyond that a sphere is
-# clamped into the outermost cell: still correct (distances are exact), only slow.
+# spans ±2^20 cells per axis (±10 km at 1 cm spheres, ±1 km at 1 mm). Beyond that
+# a sphere is clamped into the outermost cell but one: still correct (distances
+# are exact), only slow; `dempipe check` warns (stability.py, "far-from-origin").
 _CELL_BITS = 21
 _CELL_OFF = 1 << (_CELL_BITS - 1)
 _CELL_MAX = (1 << _CELL_BITS) - 1
@@ -38,11 +40,15 @@ _CELL_MAX = (1 << _CELL_BITS) - 1
 
 @numba.njit(inline="always", cache=True)
 def cell_coord(x, inv_d):
+    # Clamped one cell inside the key range, so that a row's neighbours c ± 1
+    # are still valid keys: a sphere beyond ±2^20 cells lands in the outermost
+    # cell with everything else out there, found by the neighbour search (slow
+    # but correct), not lost through a key overflowing into the next axis.
     c = np.int64(np.floor(x * inv_d)) + _CELL_OFF
-    if c < 0:
-        c = 0
-    elif c > _CELL_MAX:
-        c = _CELL_MAX
+    if c < 1:
+        c = 1
+    elif c > _CELL_MAX - 1:
+        c = _CELL_MAX - 1
     return c
 
 
@@ -78,7 +84,9 @@ def grid_table(n_spheres: int, extent_cells=None) -> np.ndarray:
     extent needs more bits than the budget, the widest axes give bits up and far
     cells alias (still correct, only slower).
     """
-    k = 4
+    # At least 2 bits (4 buckets) per axis: with 1, a row's cells cx-1 and cx+1
+    # share a bucket and its spheres would be visited twice (contact counted twice).
+    k = 6
     while (1 << k) < BUCKETS_PER_SPHERE * max(n_spheres, 1):
         k += 1
     if extent_cells is None:
@@ -86,9 +94,10 @@ def grid_table(n_spheres: int, extent_cells=None) -> np.ndarray:
         by = (k - bx + 1) // 2
         bits = [bx, by, k - bx - by]
     else:
-        bits = [max(1, int(np.ceil(np.log2(max(e, 1.0) + 3.0)))) for e in extent_cells]
+        bits = [max(2, int(np.ceil(np.log2(max(e, 1.0) + 3.0)))) for e in extent_cells]
         while sum(bits) > k:
-            bits[int(np.argmax(bits))] -= 1
+            i = int(np.argmax(bits))
+            bits[i] -= 1
     bx, by, bz = bits
     return np.array([bx, by, (1 << bx) - 1, (1 << by) - 1, (1 << bz) - 1, 1 << (bx + by + bz)],
                     dtype=np.int64)
@@ -182,7 +191,7 @@ def stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
 def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
                    sorted_key, sorted_body, body_w, body_inv_mass, body_material,
                    pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
-                   contact_partner, contact_spring,
+                   contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
                    wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                    sphere_f, sphere_t, sphere_overlap):
     """Stages 3-4 for the sphere in sorted slot s (the body of stage_contacts' loop;
@@ -201,7 +210,8 @@ def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x
     ty = 0.0
     tz = 0.0
     max_ov = 0.0
-    if imi == 0.0:
+    if imi == 0.0 or (sleep_steps > 0 and body_rest[bi] >= sleep_steps):
+        # static, or asleep: feels nothing (but is found by its moving neighbours)
         sphere_f[i, 0] = 0.0
         sphere_f[i, 1] = 0.0
         sphere_f[i, 2] = 0.0
@@ -256,6 +266,10 @@ def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x
                     dist2 = rx * rx + ry * ry + rz * rz
                     if dist2 >= d2:
                         continue
+                    if sleep_steps > 0 and body_rest[bj] >= sleep_steps \
+                            and body_rest[bi] == 0:
+                        body_wake[bj] = 1   # a moving body touches a sleeper (the same
+                                            # value from any thread: deterministic)
                     imj = body_inv_mass[bj]
                     mj = body_material[bj]
                     k = pair_k[mi, mj]
@@ -361,7 +375,7 @@ def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x
 def stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
                    sorted_key, sorted_body, body_w, body_inv_mass, body_material,
                    pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
-                   contact_partner, contact_spring,
+                   contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
                    wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                    sphere_f, sphere_t, sphere_overlap):
     """Stages 3-4: neighbour search over the 27 cells and contact forces (eq. 11-14).
@@ -373,51 +387,89 @@ def stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, so
     (contact_partner, contact_spring; see State): a contact found again keeps
     its stretch, a new one starts at zero, and one not touched this step
     (``parity``) is forgotten. Only sphere i's own rows are written: gather.
-    Static spheres (1/m = 0) feel no force and are skipped.
+    Static spheres (1/m = 0) and sleeping ones feel no force and are skipped;
+    a sphere of a moving body (rest count 0) that touches a sleeping body flags
+    it to wake (body_wake).
     """
     for s in prange(sorted_idx.shape[0]):
         sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
                         sorted_key, sorted_body, body_w, body_inv_mass, body_material,
                         pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
-                        contact_partner, contact_spring,
+                        contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
                         wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                         sphere_f, sphere_t, sphere_overlap)
 
 
+@numba.njit(cache=True)
+def body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
+                body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
+                sleep_steps, v_sleep, w_sleep, body_rest, body_wake):
+    """Stages 5-8 for body b (the body of stage_bodies' loop), with sleeping."""
+    if sleep_steps > 0 and body_rest[b] >= sleep_steps:
+        if body_wake[b] != 0:      # touched by a moving body: integrates from next step
+            body_rest[b] = 1
+            body_wake[b] = 0
+        return
+    m = body_mass[b]
+    FX = m * gx
+    FY = m * gy
+    FZ = m * gz
+    TX = 0.0
+    TY = 0.0
+    TZ = 0.0
+    for i in range(body_sphere_start[b], body_sphere_start[b + 1]):
+        fx = sphere_f[i, 0]
+        fy = sphere_f[i, 1]
+        fz = sphere_f[i, 2]
+        rx = sphere_r[i, 0]
+        ry = sphere_r[i, 1]
+        rz = sphere_r[i, 2]
+        FX += fx
+        FY += fy
+        FZ += fz
+        TX += (ry * fz - rz * fy) + sphere_t[i, 0]
+        TY += (rz * fx - rx * fz) + sphere_t[i, 1]
+        TZ += (rx * fy - ry * fx) + sphere_t[i, 2]
+    ii = body_inv_inertia[b]
+    x = body_x[b]
+    q = body_q[b]
+    P = body_P[b]
+    L = body_L[b]
+    (x[0], x[1], x[2], q[0], q[1], q[2], q[3], P[0], P[1], P[2], L[0], L[1], L[2]) = body_step(
+        x[0], x[1], x[2], q[0], q[1], q[2], q[3], P[0], P[1], P[2], L[0], L[1], L[2],
+        FX, FY, FZ, TX, TY, TZ, body_inv_mass[b],
+        ii[0], ii[1], ii[2], ii[3], ii[4], ii[5], dt)
+    if sleep_steps > 0:
+        im = body_inv_mass[b]
+        wx, wy, wz = angular_velocity(q[0], q[1], q[2], q[3], ii[0], ii[1], ii[2], ii[3],
+                                      ii[4], ii[5], L[0], L[1], L[2])
+        r = rest_steps(body_rest[b], P[0] * im, P[1] * im, P[2] * im, wx, wy, wz,
+                       v_sleep, w_sleep)
+        if r >= sleep_steps:       # falls asleep: at rest exactly
+            P[0] = 0.0
+            P[1] = 0.0
+            P[2] = 0.0
+            L[0] = 0.0
+            L[1] = 0.0
+            L[2] = 0.0
+        body_rest[b] = r
+        body_wake[b] = 0
+
+
 @numba.njit(parallel=True, cache=True)
 def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
-                 body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L):
-    """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10)."""
+                 body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
+                 sleep_steps, v_sleep, w_sleep, body_rest, body_wake):
+    """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10).
+
+    With sleeping (sleep_steps > 0): a body slower than (v_sleep, w_sleep) for
+    sleep_steps steps in a row falls asleep (P = L = 0, no integration) until a
+    moving body touches it (body_wake, set by the contact stage).
+    """
     for b in prange(n_bodies):
-        m = body_mass[b]
-        FX = m * gx
-        FY = m * gy
-        FZ = m * gz
-        TX = 0.0
-        TY = 0.0
-        TZ = 0.0
-        for i in range(body_sphere_start[b], body_sphere_start[b + 1]):
-            fx = sphere_f[i, 0]
-            fy = sphere_f[i, 1]
-            fz = sphere_f[i, 2]
-            rx = sphere_r[i, 0]
-            ry = sphere_r[i, 1]
-            rz = sphere_r[i, 2]
-            FX += fx
-            FY += fy
-            FZ += fz
-            TX += (ry * fz - rz * fy) + sphere_t[i, 0]
-            TY += (rz * fx - rx * fz) + sphere_t[i, 1]
-            TZ += (rx * fy - ry * fx) + sphere_t[i, 2]
-        ii = body_inv_inertia[b]
-        x = body_x[b]
-        q = body_q[b]
-        P = body_P[b]
-        L = body_L[b]
-        (x[0], x[1], x[2], q[0], q[1], q[2], q[3], P[0], P[1], P[2], L[0], L[1], L[2]) = body_step(
-            x[0], x[1], x[2], q[0], q[1], q[2], q[3], P[0], P[1], P[2], L[0], L[1], L[2],
-            FX, FY, FZ, TX, TY, TZ, body_inv_mass[b],
-            ii[0], ii[1], ii[2], ii[3], ii[4], ii[5], dt)
+        body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
+                    body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
+                    sleep_steps, v_sleep, w_sleep, body_rest, body_wake)
 
 
 @numba.njit(cache=True)
@@ -425,6 +477,7 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
               sphere_body, sphere_offset, body_sphere_start, body_mass, body_inv_mass,
               body_inv_inertia, body_material, pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio,
               friction, contact_partner, contact_spring,
+              sleep_steps, v_sleep, w_sleep, body_rest, body_wake,
               wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
               body_x, body_q, body_P, body_L,
               body_v, body_w, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash,
@@ -446,11 +499,12 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
         stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
                        sorted_key, sorted_body, body_w, body_inv_mass, body_material,
                        pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, step & 1,
-                       contact_partner, contact_spring,
+                       contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
                        wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                        sphere_f, sphere_t, sphere_overlap)
         stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
-                     body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L)
+                     body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
+                     sleep_steps, v_sleep, w_sleep, body_rest, body_wake)
 
 
 class CpuBackend:
@@ -481,6 +535,7 @@ class CpuBackend:
         self.sphere_f = np.zeros((ns, 3))
         self.sphere_t = np.zeros((ns, 3))
         self.sphere_overlap = np.zeros(ns)
+        self.body_wake = np.zeros(nb, dtype=np.int32)
         self._no_partner = np.zeros((1, 1), dtype=np.int32)
         self._no_spring = np.zeros((1, 1, 3))
         if model.n_static:
@@ -523,6 +578,7 @@ class CpuBackend:
             m.sphere_body, m.sphere_offset, m.body_sphere_start, m.body_mass, m.body_inv_mass,
             m.body_inv_inertia, m.body_material, m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio,
             m.ks_ratio, m.features.friction, partner, spring,
+            m.sleep_steps, m.sleep_linear, m.sleep_angular, self.rest(state), self.body_wake,
             m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth, m.wall_material,
             state.body_x, state.body_q, state.body_P, state.body_L,
             self.body_v, self.body_w, self.sphere_x, self.sphere_v, self.sphere_r,
@@ -531,6 +587,11 @@ class CpuBackend:
             self.sphere_f, self.sphere_t, self.sphere_overlap)
         state.step += int(n_steps)
         state.time = state.step * m.dt
+
+    def rest(self, state):
+        """The State's rest counts (sleeping), allocated on first use."""
+        state.ensure_rest(self.model.body_mass.shape[0])
+        return state.body_rest
 
     def contacts(self, state):
         """The State's contact histories, allocated on first use when friction is on
@@ -563,6 +624,7 @@ class CpuBackend:
                        self.sorted_body, self.body_w, m.body_inv_mass, m.body_material,
                        m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio, m.ks_ratio,
                        m.features.friction, m.dt, state.step & 1, partner.copy(), spring.copy(),
+                       m.sleep_steps, self.rest(state), self.body_wake.copy(),
                        m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth,
                        m.wall_material, self.sphere_f, self.sphere_t, self.sphere_overlap)
 

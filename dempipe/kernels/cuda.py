@@ -51,6 +51,7 @@ sphere_wall_force = F.sphere_wall_force
 body_step = F.body_step
 history_find = F.history_find
 history_store = F.history_store
+rest_steps = F.rest_steps
 
 SIMULATOR = bool(config.ENABLE_CUDASIM)
 #: Threads per block. The simulator runs each CUDA thread as a Python thread,
@@ -82,7 +83,9 @@ def grid_table(n_spheres: int, extent_cells=None) -> np.ndarray:
     agree). The budget is 2^k >= BUCKETS_PER_SPHERE × spheres buckets; within
     it each axis gets the bits that cover the occupied extent (cells per axis).
     """
-    k = 4
+    # At least 2 bits (4 buckets) per axis: with 1, a row's cells cx-1 and cx+1
+    # share a bucket and its spheres would be visited twice (contact counted twice).
+    k = 6
     while (1 << k) < BUCKETS_PER_SPHERE * max(n_spheres, 1):
         k += 1
     if extent_cells is None:
@@ -90,9 +93,10 @@ def grid_table(n_spheres: int, extent_cells=None) -> np.ndarray:
         by = (k - bx + 1) // 2
         bits = [bx, by, k - bx - by]
     else:
-        bits = [max(1, int(np.ceil(np.log2(max(e, 1.0) + 3.0)))) for e in extent_cells]
+        bits = [max(2, int(np.ceil(np.log2(max(e, 1.0) + 3.0)))) for e in extent_cells]
         while sum(bits) > k:
-            bits[int(np.argmax(bits))] -= 1
+            i = int(np.argmax(bits))
+            bits[i] -= 1
     bx, by, bz = bits
     return np.array([bx, by, (1 << bx) - 1, (1 << by) - 1, (1 << bz) - 1, 1 << (bx + by + bz)],
                     dtype=np.int64)
@@ -125,14 +129,20 @@ def fit_grid(model, body_x, static_box) -> np.ndarray:
 @cuda.jit(device=True)
 def cell_coord(x, inv_d):
     # int64(floor(v)) + offset, clamped, as on the CPU. NaN and |v| >= 2^63 give
-    # cell 0 there (x86 float->int conversion yields INT64_MIN); do the same
+    # cell 1 there (x86 float->int conversion yields INT64_MIN); do the same
     # without ever converting them (the simulator's math.floor(nan) raises).
+    # Clamped to [1, _CELL_MAX - 1] as on the CPU (see kernels/cpu.py).
     v = x * inv_d
     if v >= -_CELL_OFF and v < _CELL_OFF:
-        return int64(math.floor(v)) + _CELL_OFF
+        c = int64(math.floor(v)) + _CELL_OFF
+        if c < 1:
+            return int64(1)
+        if c > _CELL_MAX - 1:
+            return int64(_CELL_MAX - 1)
+        return c
     if v >= _CELL_OFF and v < _INT64_LIMIT:
-        return int64(_CELL_MAX)
-    return int64(0)
+        return int64(_CELL_MAX - 1)
+    return int64(1)
 
 
 @cuda.jit(device=True)
@@ -304,7 +314,7 @@ def k_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
 def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
                sorted_key, sorted_body, body_w, body_inv_mass, body_material,
                pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
-               contact_partner, contact_spring,
+               contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
                wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                sphere_f, sphere_t, sphere_overlap):
     """Stages 3-4: neighbour search over the 27 cells and contact forces (eq. 11-14),
@@ -323,7 +333,7 @@ def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted
     i = sorted_idx[s]
     bi = sorted_body[s]
     imi = body_inv_mass[bi]
-    if imi == 0.0:
+    if imi == 0.0 or (sleep_steps > 0 and body_rest[bi] >= sleep_steps):
         sphere_f[i, 0] = 0.0
         sphere_f[i, 1] = 0.0
         sphere_f[i, 2] = 0.0
@@ -384,6 +394,9 @@ def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted
                     dist2 = rx * rx + ry * ry + rz * rz
                     if dist2 >= d2:
                         continue
+                    if sleep_steps > 0 and body_rest[bj] >= sleep_steps \
+                            and body_rest[bi] == 0:
+                        body_wake[bj] = 1   # same value from any thread: deterministic
                     imj = body_inv_mass[bj]
                     mj = body_material[bj]
                     k = pair_k[mi, mj]
@@ -478,10 +491,17 @@ def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted
 
 @cuda.jit
 def k_bodies(n_bodies, dt, gravity, body_sphere_start, sphere_f, sphere_t, sphere_r,
-             body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L):
-    """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10)."""
+             body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
+             sleep_steps, v_sleep, w_sleep, body_rest, body_wake):
+    """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10);
+    sleeping as kernels.cpu.body_update."""
     b = cuda.grid(1)
     if b >= n_bodies:
+        return
+    if sleep_steps > 0 and body_rest[b] >= sleep_steps:
+        if body_wake[b] != 0:
+            body_rest[b] = 1
+            body_wake[b] = 0
         return
     m = body_mass[b]
     FX = m * gravity[0]
@@ -523,6 +543,22 @@ def k_bodies(n_bodies, dt, gravity, body_sphere_start, sphere_f, sphere_t, spher
     body_L[b, 0] = LX
     body_L[b, 1] = LY
     body_L[b, 2] = LZ
+    if sleep_steps > 0:
+        im = body_inv_mass[b]
+        wx, wy, wz = angular_velocity(qw, qx, qy, qz, body_inv_inertia[b, 0],
+                                      body_inv_inertia[b, 1], body_inv_inertia[b, 2],
+                                      body_inv_inertia[b, 3], body_inv_inertia[b, 4],
+                                      body_inv_inertia[b, 5], LX, LY, LZ)
+        r = rest_steps(body_rest[b], PX * im, PY * im, PZ * im, wx, wy, wz, v_sleep, w_sleep)
+        if r >= sleep_steps:
+            body_P[b, 0] = 0.0
+            body_P[b, 1] = 0.0
+            body_P[b, 2] = 0.0
+            body_L[b, 0] = 0.0
+            body_L[b, 1] = 0.0
+            body_L[b, 2] = 0.0
+        body_rest[b] = r
+        body_wake[b] = 0
 
 
 @cuda.jit
@@ -620,6 +656,8 @@ def scratch_layout(model) -> dict:
     nh = ns if model.features.friction else 1
     lay["contact_partner"] = ((nh, slots), i4)
     lay["contact_spring"] = ((nh, slots, 3), f8)
+    lay["body_rest"] = ((nb,), i4)
+    lay["body_wake"] = ((nb,), i4)
     for lvl, n in enumerate(_scan_levels(table + 1)[1:]):
         lay[f"scan_{lvl + 1}"] = ((n,), i8)
     return lay
@@ -695,6 +733,9 @@ class CudaBackend:
             state.ensure_contacts(self.model.n_spheres)
             self.d["contact_partner"].copy_to_device(state.contact_partner)
             self.d["contact_spring"].copy_to_device(state.contact_spring)
+        state.ensure_rest(int(self.model.body_mass.shape[0]))
+        self.d["body_rest"].copy_to_device(state.body_rest)
+        self.d["body_wake"].copy_to_device(np.zeros_like(state.body_rest))
         self._resident = (state, state.body_x, state.body_q, state.body_P, state.body_L)
 
     def _ensure_resident(self, state) -> None:
@@ -710,7 +751,7 @@ class CudaBackend:
         The contact histories (S x 12 slots, the largest arrays) stay on the
         device between calls; ``contacts=True`` copies them back too, for a
         checkpoint or a comparison."""
-        names = ["body_x", "body_q", "body_P", "body_L"]
+        names = ["body_x", "body_q", "body_P", "body_L", "body_rest"]
         if contacts and self.model.features.friction:
             names += ["contact_partner", "contact_spring"]
         for name in names:
@@ -766,7 +807,7 @@ class CudaBackend:
     def _scan(self, data, level):
         device_scan(data, self.scan_sizes, self.scan_sums, level)
 
-    def _contacts(self, parity: int, partner=None, spring=None):
+    def _contacts(self, parity: int, partner=None, spring=None, wake=None):
         m, d = self.model, self.d
         k_contacts[_blocks(m.n_spheres, CONTACT_THREADS), CONTACT_THREADS](
             m.diameter, 1.0 / m.diameter, d["grid"], d["bucket_start"], d["sorted_idx"],
@@ -775,6 +816,7 @@ class CudaBackend:
             m.kt_ratio, m.ks_ratio, bool(m.features.friction), m.dt, parity,
             d["contact_partner"] if partner is None else partner,
             d["contact_spring"] if spring is None else spring,
+            m.sleep_steps, d["body_rest"], d["body_wake"] if wake is None else wake,
             d["wall_normal"], d["wall_offset"],
             d["wall_lo"], d["wall_hi"], d["wall_depth"], d["wall_material"],
             d["sphere_f"], d["sphere_t"], d["sphere_overlap"])
@@ -784,7 +826,8 @@ class CudaBackend:
         k_bodies[_blocks(m.n_bodies, THREADS), THREADS](
             m.n_bodies, m.dt, d["gravity"], d["body_sphere_start"], d["sphere_f"], d["sphere_t"],
             d["sphere_r"], d["body_mass"], d["body_inv_mass"], d["body_inv_inertia"],
-            d["body_x"], d["body_q"], d["body_P"], d["body_L"])
+            d["body_x"], d["body_q"], d["body_P"], d["body_L"],
+            m.sleep_steps, m.sleep_linear, m.sleep_angular, d["body_rest"], d["body_wake"])
 
     #: The launch groups of one step, in order (benchmarks time each).
     STAGES = ("_velocities", "_spheres", "_grid_sort", "_gather", "_contacts", "_bodies")
@@ -824,7 +867,8 @@ class CudaBackend:
         # on copies: a probe reads the contact histories but must not advance them
         partner = cuda.to_device(d["contact_partner"].copy_to_host())
         spring = cuda.to_device(d["contact_spring"].copy_to_host())
-        self._contacts(state.step & 1, partner, spring)
+        wake = cuda.to_device(d["body_wake"].copy_to_host())
+        self._contacts(state.step & 1, partner, spring, wake)
 
     def velocities(self, state):
         """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""
