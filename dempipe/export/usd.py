@@ -248,11 +248,34 @@ def _constant(values: np.ndarray) -> np.ndarray:
     return np.all(values == values[:1], axis=(0,) + tuple(range(2, values.ndim)))
 
 
+#: float32's resolution, 2^-24. Written as 0: a component of a position or a
+#: quaternion below this fraction of the vector's largest component (_flush_tiny),
+#: a velocity that moves a body by less than this fraction of the scene's largest
+#: coordinate in one frame, an angular velocity that turns it by less than this
+#: many radians in one frame. What is left out is float noise of bodies at rest.
+_TINY = 2.0**-24
+
+
+def _flush_tiny(a: np.ndarray) -> np.ndarray:
+    """(..., K) float64 -> the same with every component below ``_TINY`` times its
+    vector's largest component set to 0 (in place).
+
+    A body at rest still carries float noise around zero: a quaternion component
+    of 1e-18 on a box lying flat, a coordinate of 1e-22 m on a body placed on an
+    axis. Written as is, that noise makes every sample differ from the previous
+    one and sparse output keeps them all. Each vector changes by less than
+    float32's rounding of its largest component.
+    """
+    big = np.abs(a).max(axis=-1, keepdims=True)
+    a[np.abs(a) < _TINY * big] = 0.0
+    return a
+
+
 def _quat_xyzw(q_wxyz: np.ndarray, dtype) -> np.ndarray:
     """dempipe (w, x, y, z) -> GfQuat memory layout (x, y, z, w), unit length."""
     q = np.asarray(q_wxyz, dtype=np.float64)
     norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    q = q / np.where(norm > 0, norm, 1.0)
+    q = _flush_tiny(q / np.where(norm > 0, norm, 1.0))
     return np.ascontiguousarray(q[..., [1, 2, 3, 0]], dtype=dtype)
 
 
@@ -306,10 +329,18 @@ def _author_instancer(layer, world, frames, model, sparse) -> int:
           Vt.Int64Array.FromNumpy(np.arange(n_bodies, dtype=np.int64)))
 
     times = [float(t) for t in np.asarray(frames.frame_numbers)]
-    pos = np.ascontiguousarray(np.asarray(frames.x) / mpu, dtype=np.float32)
+    x = _flush_tiny(np.asarray(frames.x, dtype=np.float64) / mpu)
+    pos = np.ascontiguousarray(x, dtype=np.float32)
     ori = _quat_xyzw(frames.q, np.float16)
-    vel = np.ascontiguousarray(np.asarray(frames.v) / mpu, dtype=np.float32)
-    ang = np.ascontiguousarray(np.degrees(np.asarray(frames.w)), dtype=np.float32)
+    # A rate that turns or moves a body by less than float32's resolution of the
+    # scene's coordinates in one frame is float noise of a body at rest: write 0.
+    fps = float(model.fps)
+    v = np.array(frames.v, dtype=np.float64) / mpu
+    v[np.linalg.norm(v, axis=-1) < _TINY * fps * float(np.abs(x).max(initial=0.0))] = 0.0
+    w = np.array(frames.w, dtype=np.float64)
+    w[np.linalg.norm(w, axis=-1) < _TINY * fps] = 0.0
+    vel = np.ascontiguousarray(v, dtype=np.float32)
+    ang = np.ascontiguousarray(np.degrees(w), dtype=np.float32)
 
     # Conservative per-frame bound: instance centres ± the largest prototype radius.
     radius = max((float(np.linalg.norm(p, axis=1).max()) for p in points if len(p)), default=0.0)
@@ -319,26 +350,49 @@ def _author_instancer(layer, world, frames, model, sparse) -> int:
         ext = np.zeros((len(times), 2, 3))
     ext = np.ascontiguousarray(ext, dtype=np.float32)
 
+    specs = {name: _attr(bodies, name, type_name).path for name, type_name in (
+        ("positions", _T.Point3fArray), ("orientations", _T.QuathArray),
+        ("velocities", _T.Vector3fArray), ("angularVelocities", _T.Vector3fArray),
+        ("extent", _T.Float3Array))}
+    keep = {name: _array_keep(values, sparse) for name, values in (
+        ("positions", pos), ("orientations", ori), ("velocities", vel),
+        ("angularVelocities", ang), ("extent", ext))}
+    # USD moves instances by their (angular) velocities only where those are sampled
+    # at the same times as the positions (orientations); elsewhere it ignores them
+    # and warns. So while positions are sampled, velocities get the same times.
+    for moving, rate in (("positions", "velocities"), ("orientations", "angularVelocities")):
+        if keep[moving] is not None:
+            keep[moving] = keep[rate] = (keep[moving] if keep[rate] is None
+                                         else keep[moving] | keep[rate])
     n = 0
-    for name, type_name, values, to_vt in (
-        ("positions", _T.Point3fArray, pos, Vt.Vec3fArray.FromNumpy),
-        ("orientations", _T.QuathArray, ori, Vt.QuathArray.FromNumpy),
-        ("velocities", _T.Vector3fArray, vel, Vt.Vec3fArray.FromNumpy),
-        ("angularVelocities", _T.Vector3fArray, ang, Vt.Vec3fArray.FromNumpy),
-        ("extent", _T.Float3Array, ext, Vt.Vec3fArray.FromNumpy),
+    for name, values, to_vt in (
+        ("positions", pos, Vt.Vec3fArray.FromNumpy),
+        ("orientations", ori, Vt.QuathArray.FromNumpy),
+        ("velocities", vel, Vt.Vec3fArray.FromNumpy),
+        ("angularVelocities", ang, Vt.Vec3fArray.FromNumpy),
+        ("extent", ext, Vt.Vec3fArray.FromNumpy),
     ):
-        spec = _attr(bodies, name, type_name)
-        n += _write_array_samples(layer, spec.path, times, values, to_vt, sparse)
+        n += _write_array_samples(layer, specs[name], times, values, to_vt, keep[name])
     return n
 
 
-def _write_array_samples(layer, attr_path, times, values, to_vt, sparse) -> int:
-    """One whole array per kept frame; a constant attribute gets a default only."""
+def _array_keep(values, sparse):
+    """Frames to write for a whole-array attribute: None when it gets a default
+    only (sparse and constant), else an (F,) bool mask."""
     flat = values.reshape(values.shape[0], 1, -1)
-    if sparse and bool(_constant(flat)[0]):
+    if not sparse:
+        return np.ones(values.shape[0], dtype=bool)
+    if bool(_constant(flat)[0]):
+        return None
+    return _kept_samples(flat)[:, 0]
+
+
+def _write_array_samples(layer, attr_path, times, values, to_vt, keep) -> int:
+    """One whole array per kept frame (``keep``), or a default only (``keep`` None)."""
+    if keep is None:
         layer.GetAttributeAtPath(attr_path).default = to_vt(values[0])
         return 0
-    kept = np.flatnonzero(_kept_samples(flat)[:, 0]) if sparse else range(len(times))
+    kept = np.flatnonzero(keep)
     for i in kept:
         layer.SetTimeSample(attr_path, times[i], to_vt(values[i]))
     return len(kept)
@@ -367,7 +421,7 @@ def _author_xforms(layer, world, frames, model, sparse) -> int:
     groups = [Sdf.PrimSpec(bodies, g, _DEF, "Xform") for g in group_names]
 
     times = [float(t) for t in np.asarray(frames.frame_numbers)]
-    trans = np.ascontiguousarray(np.asarray(frames.x, dtype=np.float64) / mpu)
+    trans = np.ascontiguousarray(_flush_tiny(np.asarray(frames.x, dtype=np.float64) / mpu))
     orient = _quat_xyzw(frames.q, np.float32)
     n_frames, n_bodies = trans.shape[:2]
     if sparse:

@@ -1,0 +1,73 @@
+"""`dempipe report SCENE -o DIR`: error against run time over a sweep of settings.
+
+Parses the sweep, calls dempipe.report.run_report, prints a line per run. The
+sweep lists are checked by the library (one-line errors, cli/main.py).
+"""
+
+from __future__ import annotations
+
+import click
+
+
+@click.command("report")
+@click.argument("scene", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(file_okay=False),
+              help="Folder for report.md, report.csv and the PNG plots (created).")
+@click.option("--resolutions", default=None, metavar="LIST",
+              help="Spheres across the smallest shape, e.g. 4,6,8 [default: the scene's "
+                   "resolution times 2/3, 5/6 and 1].")
+@click.option("--dt-factors", default="1,0.5", show_default=True, metavar="LIST",
+              help="Multiples of the scene's time step (auto: of its step per contact).")
+@click.option("--stiffness-factors", default="0.3,1", show_default=True, metavar="LIST",
+              help="Multiples of every material's contact stiffness.")
+@click.option("--duration", type=float, default=None, metavar="S",
+              help="Simulated seconds per run [default: the scene's, at most 0.5].")
+@click.option("--horizon", type=float, default=None, metavar="S",
+              help="When the per-body motion error is taken [default: 0.1 s after the "
+                   "reference's median first contact].")
+@click.option("--tolerance", type=float, default=0.02, show_default=True,
+              help="Largest error (in body sizes) a recommended setting may have.")
+@click.option("--bodies", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Bake only the first N bodies of the scene (a quick look at a big one).")
+@click.option("--device", type=click.Choice(["cpu", "cuda", "auto"]), default=None,
+              help="Compute device (default: the scene's simulation.device).")
+@click.option("--threads", type=click.IntRange(min=1), default=None,
+              help="CPU threads (default: all cores).")
+@click.option("--cache-dir", type=click.Path(file_okay=False), default=None,
+              help="Sphere-set cache folder (default: $DEMPIPE_CACHE_DIR or the user cache).")
+@click.option("--no-plots", is_flag=True, help="Skip the PNG plots (no matplotlib needed).")
+@click.option("--quiet", "-q", is_flag=True, help="No line per run.")
+@click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
+def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, horizon,
+           tolerance, bodies, device, threads, cache_dir, no_plots, quiet, debug):
+    """Bake SCENE at every combination of resolution, dt and stiffness factors; write
+    the error of each run against its run time to OUTPUT (report.md, report.csv, PNGs).
+
+    Errors: geometry (sphere sets against meshes), motion (against the finest run),
+    physics (closed-form bounce, rolling, spin against dt). See docs/accuracy.md.
+    """
+    from dempipe.cache import SphereCache
+    from dempipe.report import ReportError, Sweep, parse_values, run_report
+
+    if duration is not None and not duration > 0:
+        raise ReportError(f"--duration: {duration:g} must be greater than 0")
+    if not tolerance > 0:
+        raise ReportError(f"--tolerance: {tolerance:g} must be greater than 0")
+    sweep = Sweep(
+        resolutions=parse_values(resolutions, "--resolutions", int) if resolutions else None,
+        dt_factors=parse_values(dt_factors, "--dt-factors"),
+        stiffness_factors=parse_values(stiffness_factors, "--stiffness-factors"),
+        duration=duration, horizon=horizon, tolerance=tolerance, bodies=bodies, device=device,
+        threads=threads, plots=not no_plots)
+    cache = SphereCache(cache_dir, strict=True) if cache_dir else None
+    say = (lambda line: None) if quiet else (lambda line: click.echo(line, err=True))
+    result = run_report(scene, output, sweep, cache=cache, progress=say)
+    rec = result.recommended
+    click.echo(f"wrote {', '.join(str(p) for p in result.files)} ({len(result.runs)} runs, "
+               f"{result.wall_s:.0f} s)")
+    if rec is not None:
+        click.echo(f"recommended: {rec.label} (error {rec.error:.3g}, {rec.wall_s:.1f} s; "
+                   f"reference {result.reference.wall_s:.1f} s)")
+    else:
+        click.echo(f"no run but the reference ({result.reference.label}) is within the "
+                   f"tolerance {tolerance:g}")
