@@ -505,8 +505,9 @@ def tunnelling(model: Model, step: float, closing: float, setting: str,
 
 def soft_contact(model: Model, closing: float, src: str) -> Finding | None:
     """The soft-contact finding (or None): the deepest overlap the fastest closing
-    pair can reach, δ = v √(m / k) (an undamped spring stopping the heaviest body of
-    a material at v), against the bake's overlap guard (simulator.MAX_OVERLAP_FRACTION).
+    pair can reach, δ = v √(m_c / k) (an undamped spring stopping, at v, the heaviest
+    corner-contact mass m_c = m / (1 + f) of a material: what auto stiffness is chosen
+    for), against the bake's overlap guard (simulator.MAX_OVERLAP_FRACTION).
 
     dt "auto" follows the speeds, but no step saves a spring too soft to stop them:
     beyond OVERLAP_ERROR of a diameter bodies sink through each other or the walls.
@@ -515,7 +516,9 @@ def soft_contact(model: Model, closing: float, src: str) -> Finding | None:
     if n == 0 or closing <= 0.0:
         return None
     d = model.diameter
-    mass = np.asarray(model.body_mass[:n])
+    # the corner-contact effective mass m / (1 + f), as auto stiffness assumes
+    factors = shape_rotational_factors(model)
+    mass = np.asarray(model.body_mass[:n]) / (1.0 + factors[np.asarray(model.body_shape)])
     dyn_mat = np.asarray(model.body_material[:n])
     partners = set(np.asarray(model.wall_material).tolist()) | set(
         np.asarray(model.body_material[n:]).tolist())
@@ -533,11 +536,9 @@ def soft_contact(model: Model, closing: float, src: str) -> Finding | None:
         return None
     names = [m.name for m in model.materials]
     user_k = sorted({names[i] for i in pair if model.materials[i].stiffness is not None})
-    # An error only where a user stiffness sets the spring: auto stiffness is chosen
-    # for each material's corner-contact mass (materials.auto_stiffness), and this
-    # one-spring, whole-mass estimate overstates what a heavy body meets on a light
-    # material's auto spring (several contacts share it; the mass-ratio finding
-    # covers that case).
+    # An error only where a user stiffness sets the spring: this one-spring estimate
+    # overstates what a heavy body meets on a light material's auto spring (several
+    # contacts share it; the mass-ratio finding covers that case).
     level = ERROR if worst > OVERLAP_ERROR and user_k else WARNING
     return Finding(
         level, "soft-contact",
