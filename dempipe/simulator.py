@@ -89,29 +89,36 @@ def resolve_device(device: str) -> str:
     raise DeviceError(f"unknown device {device!r} (known: auto, cpu, cuda)")
 
 
-def make_backend(model, device: str = "cpu"):
+def make_backend(model, device: str = "cpu", features=None, specialize: bool = True):
+    """The backend of ``device``; ``features`` and ``specialize`` as in CpuBackend."""
     if device == "cpu":
         from .kernels.cpu import CpuBackend
 
-        return CpuBackend(model)
+        return CpuBackend(model, features=features, specialize=specialize)
     if device == "cuda":
         from .kernels.cuda import CudaBackend
 
-        return CudaBackend(model)
+        return CudaBackend(model, features=features, specialize=specialize)
     raise DeviceError(f"unknown device {device!r} (known: cpu, cuda)")
 
 
 class Simulator:
-    """Advances a State of ``model`` on a device ('cpu' or 'cuda'; 'auto' resolves)."""
+    """Advances a State of ``model`` on a device ('cpu' or 'cuda'; 'auto' resolves).
 
-    def __init__(self, model, device: str = "cpu", threads: int | None = None):
+    The kernels are compiled for the features the scene uses (Model.features);
+    ``features`` runs it as if it used more, ``specialize=False`` through the
+    general kernel (both for tests and benchmarks: the frames are the same).
+    """
+
+    def __init__(self, model, device: str = "cpu", threads: int | None = None,
+                 features=None, specialize: bool = True):
         self.model = model
         self.device = resolve_device(device)
         if threads:
             import numba
 
             numba.set_num_threads(int(threads))
-        self.backend = make_backend(model, self.device)
+        self.backend = make_backend(model, self.device, features, specialize)
         self.stats = RunStats()
 
     def record(self, frames: Frames, k: int, state, frame_number: int, vw=None) -> None:

@@ -48,6 +48,37 @@ def compile_formulas(jit) -> types.SimpleNamespace:
     return types.SimpleNamespace(**compiled)
 
 
+def specialize(functions, jits: dict, constants: dict, tag: str) -> types.SimpleNamespace:
+    """Compile one variant of the plain functions ``functions`` (callees first).
+
+    Each function is re-created with globals in which ``constants`` (e.g.
+    ``FRICTION = False``) and the variant's own compiled callees replace the
+    module's, and jitted with ``jits[name]``. numba freezes global values at
+    compile time, so ``if FRICTION:`` is a constant branch and LLVM drops the
+    dead side: the variant contains no code for a feature it was built without.
+
+    Why globals, not a closure or literal arguments: numba's disk cache keys a
+    function on its file, ``__qualname__`` and line, then on the signature (and
+    the values in a closure, pickled; a closure over other dispatchers pickles
+    differently in every process and would never hit). Globals are not part of
+    the key, so each variant gets its own ``__qualname__`` (``run_steps__F1R0S0W1``)
+    and hence its own cache file. ``numba.literally`` would make one function
+    dispatch on Literal[bool] types, but leaves branch pruning to each callee's
+    typing and multiplies signatures in one index instead.
+    """
+    first = next(iter(functions))
+    glb = dict(first.__globals__)
+    glb.update(constants)
+    out: dict[str, object] = {}
+    for py in functions:
+        fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__, py.__closure__)
+        fn.__qualname__ = f"{py.__qualname__}__{tag}"
+        fn.__doc__ = py.__doc__
+        fn.__module__ = py.__module__
+        out[py.__name__] = glb[py.__name__] = jits[py.__name__](fn)
+    return types.SimpleNamespace(**out)
+
+
 def invalidate_stale_cache(module_file: str) -> None:
     """Drop numba's on-disk cache of ``module_file`` when physics.py changed.
 

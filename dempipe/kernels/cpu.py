@@ -11,11 +11,13 @@ its spheres in index order. The output is bit-identical for any thread count.
 
 from __future__ import annotations
 
+import types
+
 import numba
 import numpy as np
 from numba import prange
 
-from .compile import compile_formulas, invalidate_stale_cache
+from .compile import compile_formulas, invalidate_stale_cache, specialize
 
 invalidate_stale_cache(__file__)
 F = compile_formulas(numba.njit(inline="always", cache=False))
@@ -70,6 +72,35 @@ def cell_hash(cx, cy, cz, grid):
     return ((cz & grid[4]) << (grid[0] + grid[1])) | ((cy & grid[3]) << grid[0]) | (cx & grid[2])
 
 
+# ---------------------------------------------------------------------------
+# Specialization. The stage drivers below are plain functions reading the flags
+# FRICTION, ROTATION, SLEEPING, WALLS as globals; ``kernels(flags)`` compiles
+# one variant per flag set (compile.specialize), each with its own numba disk
+# cache file. The values here (all on) are the general kernel's. Features off
+# are compiled out; features on still check their runtime data (``friction``,
+# ``sleep_steps`` > 0, per-pair mu, the wall count), so the general kernel on
+# a scene that does not use a feature gives the specialized kernel's frames bit
+# for bit (tests/test_specialize.py).
+#
+# TORQUE_NOTE: a contact without friction pushes along the line of centres and
+# has no torque about the sphere's centre; physics.sphere_pair_force's
+# radius (n × f) rounds to ±1 ulp instead of 0 for a third of the contacts, which
+# would spin a one-sphere ball. The kernels add a contact's own torque only
+# when its mu > 0, so a frictionless ball keeps L = 0 exactly whichever variant
+# runs it, and the variants without friction never read or write sphere_t.
+# ---------------------------------------------------------------------------
+
+#: Feature flags the stage drivers are compiled for, in ``kernels()``'s order.
+FLAGS = ("friction", "rotation", "sleeping", "walls")
+FRICTION = True
+ROTATION = True
+SLEEPING = True
+WALLS = True
+
+#: The general kernel: every feature compiled in.
+GENERAL = (True, True, True, True)
+
+
 #: Most buckets per sphere the grid may use: 8 × 8 bytes = 64 bytes per sphere.
 BUCKETS_PER_SPHERE = 8
 
@@ -103,15 +134,19 @@ def grid_table(n_spheres: int, extent_cells=None) -> np.ndarray:
                     dtype=np.int64)
 
 
-@numba.njit(parallel=True, cache=True)
 def stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
                           body_v, body_w):
-    """V = P/M and W = I(t)⁻¹ L (eq. 5-6) for each dynamic body."""
+    """V = P/M and W = I(t)⁻¹ L (eq. 5-6) for each dynamic body (W = 0 without ROTATION)."""
     for b in prange(n_bodies):
         im = body_inv_mass[b]
         body_v[b, 0] = body_P[b, 0] * im
         body_v[b, 1] = body_P[b, 1] * im
         body_v[b, 2] = body_P[b, 2] * im
+        if not ROTATION:
+            body_w[b, 0] = 0.0
+            body_w[b, 1] = 0.0
+            body_w[b, 2] = 0.0
+            continue
         ii = body_inv_inertia[b]
         q = body_q[b]
         wx, wy, wz = angular_velocity(q[0], q[1], q[2], q[3], ii[0], ii[1], ii[2], ii[3],
@@ -121,17 +156,27 @@ def stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_
         body_w[b, 2] = wz
 
 
-@numba.njit(parallel=True, cache=True)
 def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d, grid,
                   sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash):
     """Stage 1 (eq. 19-21) and each sphere's grid cell (stage 2's input)."""
     for i in prange(sphere_body.shape[0]):
         b = sphere_body[i]
         q = body_q[b]
-        x, y, z, vx, vy, vz, rx, ry, rz = sphere_kinematics(
-            body_x[b, 0], body_x[b, 1], body_x[b, 2], q[0], q[1], q[2], q[3],
-            body_v[b, 0], body_v[b, 1], body_v[b, 2], body_w[b, 0], body_w[b, 1], body_w[b, 2],
-            sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2])
+        if ROTATION:
+            x, y, z, vx, vy, vz, rx, ry, rz = sphere_kinematics(
+                body_x[b, 0], body_x[b, 1], body_x[b, 2], q[0], q[1], q[2], q[3],
+                body_v[b, 0], body_v[b, 1], body_v[b, 2],
+                body_w[b, 0], body_w[b, 1], body_w[b, 2],
+                sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2])
+        else:   # W = 0: sphere_kinematics with the W × r' term dropped
+            rx, ry, rz = quat_rotate(q[0], q[1], q[2], q[3], sphere_offset[i, 0],
+                                     sphere_offset[i, 1], sphere_offset[i, 2])
+            x = body_x[b, 0] + rx
+            y = body_x[b, 1] + ry
+            z = body_x[b, 2] + rz
+            vx = body_v[b, 0]
+            vy = body_v[b, 1]
+            vz = body_v[b, 2]
         sphere_x[i, 0] = x
         sphere_x[i, 1] = y
         sphere_x[i, 2] = z
@@ -187,7 +232,6 @@ def stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
         sorted_body[s] = sphere_body[i]
 
 
-@numba.njit(cache=True)
 def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
                    sorted_key, sorted_body, body_w, body_inv_mass, body_material,
                    pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
@@ -210,7 +254,7 @@ def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x
     ty = 0.0
     tz = 0.0
     max_ov = 0.0
-    if imi == 0.0 or (sleep_steps > 0 and body_rest[bi] >= sleep_steps):
+    if imi == 0.0 or (SLEEPING and sleep_steps > 0 and body_rest[bi] >= sleep_steps):
         # static, or asleep: feels nothing (but is found by its moving neighbours)
         sphere_f[i, 0] = 0.0
         sphere_f[i, 1] = 0.0
@@ -226,9 +270,13 @@ def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x
     vyi = sorted_v[s, 1]
     vzi = sorted_v[s, 2]
     mi = body_material[bi]
-    wxi = body_w[bi, 0]
-    wyi = body_w[bi, 1]
-    wzi = body_w[bi, 2]
+    wxi = 0.0
+    wyi = 0.0
+    wzi = 0.0
+    if ROTATION:
+        wxi = body_w[bi, 0]
+        wyi = body_w[bi, 1]
+        wzi = body_w[bi, 2]
     cx0 = cell_coord(xi, inv_d)
     cy0 = cell_coord(yi, inv_d)
     cz0 = cell_coord(zi, inv_d)
@@ -266,7 +314,7 @@ def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x
                     dist2 = rx * rx + ry * ry + rz * rz
                     if dist2 >= d2:
                         continue
-                    if sleep_steps > 0 and body_rest[bj] >= sleep_steps \
+                    if SLEEPING and sleep_steps > 0 and body_rest[bj] >= sleep_steps \
                             and body_rest[bi] == 0:
                         body_wake[bj] = 1   # a moving body touches a sleeper (the same
                                             # value from any thread: deterministic)
@@ -276,7 +324,7 @@ def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x
                     root = np.sqrt(k / (imi + imj))
                     eta = 2.0 * pair_zeta[mi, mj] * root
                     dist = np.sqrt(dist2)
-                    if friction:
+                    if FRICTION and friction:
                         mu = pair_mu[mi, mj]
                         code = sorted_idx[t] + 1
                         slot = history_find(contact_partner, i, code)
@@ -293,24 +341,32 @@ def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x
                         sx = 0.0
                         sy = 0.0
                         sz = 0.0
+                    wsx = wxi
+                    wsy = wyi
+                    wsz = wzi
+                    if ROTATION:
+                        wsx += body_w[bj, 0]
+                        wsy += body_w[bj, 1]
+                        wsz += body_w[bj, 2]
                     (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_pair_force(
                         rx, ry, rz, dist, diameter,
                         sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
-                        wxi + body_w[bj, 0], wyi + body_w[bj, 1], wzi + body_w[bj, 2],
+                        wsx, wsy, wsz,
                         k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
-                    if friction:
+                    if FRICTION and friction:
                         history_store(contact_partner, contact_spring, i, slot, code,
                                       parity, sx, sy, sz)
                     fx += pfx
                     fy += pfy
                     fz += pfz
-                    tx += ptx
-                    ty += pty
-                    tz += ptz
+                    if ROTATION and FRICTION and mu > 0.0:   # see TORQUE_NOTE
+                        tx += ptx
+                        ty += pty
+                        tz += ptz
                     ov = diameter - dist
                     if ov > max_ov:
                         max_ov = ov
-    for w in range(n_walls):
+    for w in range(n_walls if WALLS else 0):
         nx = wall_normal[w, 0]
         ny = wall_normal[w, 1]
         nz = wall_normal[w, 2]
@@ -324,7 +380,7 @@ def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x
         k = pair_k[mi, mj]
         root = np.sqrt(k / imi)
         eta = 2.0 * pair_zeta[mi, mj] * root
-        if friction:
+        if FRICTION and friction:
             mu = pair_mu[mi, mj]
             code = n_spheres + w + 1
             slot = history_find(contact_partner, i, code)
@@ -344,19 +400,20 @@ def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x
         (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(
             -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
             k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
-        if friction:
+        if FRICTION and friction:
             history_store(contact_partner, contact_spring, i, slot, code, parity,
                           sx, sy, sz)
         fx += pfx
         fy += pfy
         fz += pfz
-        tx += ptx
-        ty += pty
-        tz += ptz
+        if ROTATION and FRICTION and mu > 0.0:
+            tx += ptx
+            ty += pty
+            tz += ptz
         ov = radius - dist
         if ov > max_ov:
             max_ov = ov
-    if friction:   # forget the contacts that ended (not touched at this parity)
+    if FRICTION and friction:   # forget the contacts that ended (not touched at this parity)
         for h in range(contact_partner.shape[1]):
             c = contact_partner[i, h]
             if c != 0 and (c & 1) != parity:
@@ -364,14 +421,14 @@ def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x
     sphere_f[i, 0] = fx
     sphere_f[i, 1] = fy
     sphere_f[i, 2] = fz
-    sphere_t[i, 0] = tx
-    sphere_t[i, 1] = ty
-    sphere_t[i, 2] = tz
+    if ROTATION and FRICTION:
+        sphere_t[i, 0] = tx
+        sphere_t[i, 1] = ty
+        sphere_t[i, 2] = tz
     if max_ov > sphere_overlap[i]:
         sphere_overlap[i] = max_ov
 
 
-@numba.njit(parallel=True, cache=True)
 def stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
                    sorted_key, sorted_body, body_w, body_inv_mass, body_material,
                    pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
@@ -400,12 +457,11 @@ def stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, so
                         sphere_f, sphere_t, sphere_overlap)
 
 
-@numba.njit(cache=True)
 def body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
                 body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
                 sleep_steps, v_sleep, w_sleep, body_rest, body_wake):
     """Stages 5-8 for body b (the body of stage_bodies' loop), with sleeping."""
-    if sleep_steps > 0 and body_rest[b] >= sleep_steps:
+    if SLEEPING and sleep_steps > 0 and body_rest[b] >= sleep_steps:
         if body_wake[b] != 0:      # touched by a moving body: integrates from next step
             body_rest[b] = 1
             body_wake[b] = 0
@@ -421,28 +477,46 @@ def body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere
         fx = sphere_f[i, 0]
         fy = sphere_f[i, 1]
         fz = sphere_f[i, 2]
-        rx = sphere_r[i, 0]
-        ry = sphere_r[i, 1]
-        rz = sphere_r[i, 2]
         FX += fx
         FY += fy
         FZ += fz
-        TX += (ry * fz - rz * fy) + sphere_t[i, 0]
-        TY += (rz * fx - rx * fz) + sphere_t[i, 1]
-        TZ += (rx * fy - ry * fx) + sphere_t[i, 2]
+        if ROTATION:
+            rx = sphere_r[i, 0]
+            ry = sphere_r[i, 1]
+            rz = sphere_r[i, 2]
+            if FRICTION:           # torques about the spheres' centres (TORQUE_NOTE)
+                TX += (ry * fz - rz * fy) + sphere_t[i, 0]
+                TY += (rz * fx - rx * fz) + sphere_t[i, 1]
+                TZ += (rx * fy - ry * fx) + sphere_t[i, 2]
+            else:
+                TX += ry * fz - rz * fy
+                TY += rz * fx - rx * fz
+                TZ += rx * fy - ry * fx
     ii = body_inv_inertia[b]
     x = body_x[b]
     q = body_q[b]
     P = body_P[b]
     L = body_L[b]
-    (x[0], x[1], x[2], q[0], q[1], q[2], q[3], P[0], P[1], P[2], L[0], L[1], L[2]) = body_step(
-        x[0], x[1], x[2], q[0], q[1], q[2], q[3], P[0], P[1], P[2], L[0], L[1], L[2],
-        FX, FY, FZ, TX, TY, TZ, body_inv_mass[b],
-        ii[0], ii[1], ii[2], ii[3], ii[4], ii[5], dt)
-    if sleep_steps > 0:
-        im = body_inv_mass[b]
-        wx, wy, wz = angular_velocity(q[0], q[1], q[2], q[3], ii[0], ii[1], ii[2], ii[3],
-                                      ii[4], ii[5], L[0], L[1], L[2])
+    im = body_inv_mass[b]
+    if ROTATION:
+        (x[0], x[1], x[2], q[0], q[1], q[2], q[3], P[0], P[1], P[2], L[0], L[1], L[2]) = \
+            body_step(x[0], x[1], x[2], q[0], q[1], q[2], q[3], P[0], P[1], P[2],
+                      L[0], L[1], L[2], FX, FY, FZ, TX, TY, TZ, im,
+                      ii[0], ii[1], ii[2], ii[3], ii[4], ii[5], dt)
+    else:   # body_step's translation, in its arithmetic order; L = 0 and q stay put
+        P[0] += FX * dt
+        P[1] += FY * dt
+        P[2] += FZ * dt
+        x[0] += P[0] * im * dt
+        x[1] += P[1] * im * dt
+        x[2] += P[2] * im * dt
+    if SLEEPING and sleep_steps > 0:
+        wx = 0.0
+        wy = 0.0
+        wz = 0.0
+        if ROTATION:
+            wx, wy, wz = angular_velocity(q[0], q[1], q[2], q[3], ii[0], ii[1], ii[2], ii[3],
+                                          ii[4], ii[5], L[0], L[1], L[2])
         r = rest_steps(body_rest[b], P[0] * im, P[1] * im, P[2] * im, wx, wy, wz,
                        v_sleep, w_sleep)
         if r >= sleep_steps:       # falls asleep: at rest exactly
@@ -456,7 +530,6 @@ def body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere
         body_wake[b] = 0
 
 
-@numba.njit(parallel=True, cache=True)
 def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
                  body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
                  sleep_steps, v_sleep, w_sleep, body_rest, body_wake):
@@ -472,7 +545,6 @@ def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t
                     sleep_steps, v_sleep, w_sleep, body_rest, body_wake)
 
 
-@numba.njit(cache=True)
 def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
               sphere_body, sphere_offset, body_sphere_start, body_mass, body_inv_mass,
               body_inv_inertia, body_material, pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio,
@@ -507,13 +579,75 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                      sleep_steps, v_sleep, w_sleep, body_rest, body_wake)
 
 
+_STAGES = (stage_body_velocities, stage_spheres, sphere_contacts, stage_contacts, body_update,
+           stage_bodies, run_steps)
+_JITS = {
+    "stage_body_velocities": numba.njit(parallel=True, cache=True),
+    "stage_spheres": numba.njit(parallel=True, cache=True),
+    "sphere_contacts": numba.njit(cache=True),
+    "stage_contacts": numba.njit(parallel=True, cache=True),
+    "body_update": numba.njit(cache=True),
+    "stage_bodies": numba.njit(parallel=True, cache=True),
+    "run_steps": numba.njit(cache=True),
+}
+_VARIANTS: dict = {}
+
+
+def kernels(flags) -> "types.SimpleNamespace":
+    """The stage drivers compiled for ``flags`` (friction, rotation, sleeping, walls),
+    created on first use; numba compiles each (or loads it from its disk cache)
+    at its first call."""
+    flags = tuple(bool(f) for f in flags)
+    if flags not in _VARIANTS:
+        tag = "".join(f"{n[0].upper()}{int(f)}" for n, f in zip(FLAGS, flags))
+        _VARIANTS[flags] = specialize(
+            _STAGES, _JITS, {n.upper(): f for n, f in zip(FLAGS, flags)}, tag)
+    return _VARIANTS[flags]
+
+
+def scene_features(model, features=None):
+    """The Features to run ``model`` with: ``features`` (default the model's).
+
+    An override may switch features on (to run a scene through a kernel that
+    carries code it does not need, as tests and benchmarks do), never off.
+    One-sphere bodies whose sphere is off their centre of mass turn under
+    contact forces, so they need rotation whatever the features say.
+    """
+    from dataclasses import fields, replace
+
+    mf = model.features
+    if features is None:
+        features = mf
+    for f in fields(mf):
+        if getattr(mf, f.name) and not getattr(features, f.name):
+            raise ValueError(f"features.{f.name}: the scene uses it; an override may only "
+                             f"switch features on")
+    if not features.rotation and np.any(model.sphere_offset != 0.0):
+        features = replace(features, rotation=True)
+    return features
+
+
+def kernel_flags(features) -> tuple:
+    """Flags (see FLAGS) of the specialized kernel for ``features``."""
+    return (bool(features.friction), bool(features.rotation), bool(features.sleeping),
+            bool(features.walls))
+
+
 class CpuBackend:
-    """Owns the scratch arrays of one Model and advances States with ``run_steps``."""
+    """Owns the scratch arrays of one Model and advances States with ``run_steps``.
+
+    features : run as if the scene used these (default: the model's; see
+      scene_features). specialize : compile out the features not used (default);
+      False runs the general kernel, every feature compiled in.
+    """
 
     name = "cpu"
 
-    def __init__(self, model):
+    def __init__(self, model, features=None, specialize: bool = True):
         self.model = model
+        self.features = scene_features(model, features)
+        self.flags = kernel_flags(self.features) if specialize else GENERAL
+        self.k = kernels(self.flags)
         nb = model.body_mass.shape[0]
         ns = model.n_spheres
         self.grid = grid_table(ns)
@@ -573,11 +707,11 @@ class CpuBackend:
         m = self.model
         self.fit_grid(state)
         partner, spring = self.contacts(state)
-        run_steps(
+        self.k.run_steps(
             int(n_steps), int(state.step), m.dt, m.diameter, m.n_bodies, m.gravity, self.grid,
             m.sphere_body, m.sphere_offset, m.body_sphere_start, m.body_mass, m.body_inv_mass,
             m.body_inv_inertia, m.body_material, m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio,
-            m.ks_ratio, m.features.friction, partner, spring,
+            m.ks_ratio, self.features.friction, partner, spring,
             m.sleep_steps, m.sleep_linear, m.sleep_angular, self.rest(state), self.body_wake,
             m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth, m.wall_material,
             state.body_x, state.body_q, state.body_P, state.body_L,
@@ -596,7 +730,7 @@ class CpuBackend:
     def contacts(self, state):
         """The State's contact histories, allocated on first use when friction is on
         (a 1-slot dummy otherwise: frictionless kernels never touch them)."""
-        if not self.model.features.friction:
+        if not self.features.friction:
             return self._no_partner, self._no_spring
         state.ensure_contacts(self.model.n_spheres)
         return state.contact_partner, state.contact_spring
@@ -607,9 +741,9 @@ class CpuBackend:
         Reads the contact histories but does not change the State's."""
         m = self.model
         self.fit_grid(state)
-        stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
+        self.k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
                               m.body_inv_mass, m.body_inv_inertia, self.body_v, self.body_w)
-        stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q, self.body_v,
+        self.k.stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q, self.body_v,
                       self.body_w, 1.0 / m.diameter, self.grid, self.sphere_x, self.sphere_v,
                       self.sphere_r, self.sphere_key, self.sphere_hash)
         stage_grid_sort(self.sphere_hash, self.grid, self.bucket_start, self.bucket_fill,
@@ -619,11 +753,11 @@ class CpuBackend:
                           self.sorted_body)
         self.sphere_overlap[:] = 0.0
         partner, spring = self.contacts(state)
-        stage_contacts(m.diameter, 1.0 / m.diameter, self.grid, self.bucket_start,
+        self.k.stage_contacts(m.diameter, 1.0 / m.diameter, self.grid, self.bucket_start,
                        self.sorted_idx, self.sorted_x, self.sorted_v, self.sorted_key,
                        self.sorted_body, self.body_w, m.body_inv_mass, m.body_material,
                        m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio, m.ks_ratio,
-                       m.features.friction, m.dt, state.step & 1, partner.copy(), spring.copy(),
+                       self.features.friction, m.dt, state.step & 1, partner.copy(), spring.copy(),
                        m.sleep_steps, self.rest(state), self.body_wake.copy(),
                        m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth,
                        m.wall_material, self.sphere_f, self.sphere_t, self.sphere_overlap)
@@ -631,7 +765,7 @@ class CpuBackend:
     def velocities(self, state):
         """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""
         m = self.model
-        stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
+        self.k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
                               m.body_inv_mass, m.body_inv_inertia, self.body_v, self.body_w)
         return self.body_v[: m.n_bodies].copy(), self.body_w[: m.n_bodies].copy()
 

@@ -427,9 +427,10 @@ def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted
                     fx += pfx
                     fy += pfy
                     fz += pfz
-                    tx += ptx
-                    ty += pty
-                    tz += ptz
+                    if mu > 0.0:   # a frictionless contact has no torque (kernels/cpu.py TORQUE_NOTE)
+                        tx += ptx
+                        ty += pty
+                        tz += ptz
                     ov = diameter - dist
                     if ov > max_ov:
                         max_ov = ov
@@ -468,9 +469,10 @@ def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted
         fx += pfx
         fy += pfy
         fz += pfz
-        tx += ptx
-        ty += pty
-        tz += ptz
+        if mu > 0.0:
+            tx += ptx
+            ty += pty
+            tz += ptz
         ov = radius - dist
         if ov > max_ov:
             max_ov = ov
@@ -621,7 +623,7 @@ def device_scan(data, sizes, sums, level: int = 0) -> None:
         k_scan_add[_table_blocks(n), THREADS](data, sums[level])
 
 
-def scratch_layout(model) -> dict:
+def scratch_layout(model, friction=None) -> dict:
     """name -> (shape, dtype) of every device array a CudaBackend allocates."""
     nb = int(model.body_mass.shape[0])
     ns = model.n_spheres
@@ -652,8 +654,10 @@ def scratch_layout(model) -> dict:
         "max_out": ((1,), f8),
     }
     # contact histories (static friction) live only on the device, and only with friction
-    slots = CONTACT_SLOTS if model.features.friction else 1
-    nh = ns if model.features.friction else 1
+    if friction is None:
+        friction = model.features.friction
+    slots = CONTACT_SLOTS if friction else 1
+    nh = ns if friction else 1
     lay["contact_partner"] = ((nh, slots), i4)
     lay["contact_spring"] = ((nh, slots, 3), f8)
     lay["body_rest"] = ((nb,), i4)
@@ -696,9 +700,13 @@ class CudaBackend:
 
     name = "cuda"
 
-    def __init__(self, model):
+    def __init__(self, model, features=None, specialize: bool = True):
+        # The CUDA kernels are not specialized (yet): one general kernel with
+        # runtime checks. ``features`` may switch friction on (histories kept).
         self.model = model
-        layout = scratch_layout(model)
+        self.features = model.features if features is None else features
+        self.specialize = specialize
+        layout = scratch_layout(model, self.features.friction)
         ctx = cuda.current_context()
         free, total = ctx.get_memory_info()
         check_memory(memory_needed(model), free, total)
@@ -729,7 +737,7 @@ class CudaBackend:
         for name in ("body_x", "body_q", "body_P", "body_L"):
             self.d[name].copy_to_device(np.ascontiguousarray(getattr(state, name),
                                                              dtype=np.float64))
-        if self.model.features.friction:
+        if self.features.friction:
             state.ensure_contacts(self.model.n_spheres)
             self.d["contact_partner"].copy_to_device(state.contact_partner)
             self.d["contact_spring"].copy_to_device(state.contact_spring)
@@ -752,7 +760,7 @@ class CudaBackend:
         device between calls; ``contacts=True`` copies them back too, for a
         checkpoint or a comparison."""
         names = ["body_x", "body_q", "body_P", "body_L", "body_rest"]
-        if contacts and self.model.features.friction:
+        if contacts and self.features.friction:
             names += ["contact_partner", "contact_spring"]
         for name in names:
             host = getattr(state, name)
@@ -813,7 +821,7 @@ class CudaBackend:
             m.diameter, 1.0 / m.diameter, d["grid"], d["bucket_start"], d["sorted_idx"],
             d["sorted_x"], d["sorted_v"], d["sorted_key"], d["sorted_body"], d["body_w"],
             d["body_inv_mass"], d["body_material"], d["pair_k"], d["pair_zeta"], d["pair_mu"],
-            m.kt_ratio, m.ks_ratio, bool(m.features.friction), m.dt, parity,
+            m.kt_ratio, m.ks_ratio, bool(self.features.friction), m.dt, parity,
             d["contact_partner"] if partner is None else partner,
             d["contact_spring"] if spring is None else spring,
             m.sleep_steps, d["body_rest"], d["body_wake"] if wake is None else wake,
