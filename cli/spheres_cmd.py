@@ -63,7 +63,9 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
 
     MESH_OR_SHAPE is a mesh file (OBJ, STL, PLY, OFF, GLB/GLTF) or the name of a
     built-in shape (see --list-shapes; an existing file of that name wins), with
-    its default parameters. Prints per input the sphere count, the volume
+    its default parameters. Prints per input the sphere count (and how many of
+    them are surface spheres, within one lattice layer of the surface: the ones a
+    scene's default contact_layers = 1 keeps for contacts), the volume
     error (N d^3 against the mesh volume), the inertia error (relative Frobenius),
     the build time and whether the cache had it.
     """
@@ -88,7 +90,8 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
                                    "(e.g. -o spheres_{name}.npz)")
 
     from dempipe.cache import SphereCache
-    from dempipe.spheres import build_sphere_set_with_info, diameter_for_resolution, save_sphere_set
+    from dempipe.spheres import (build_sphere_set_with_info, diameter_for_resolution,
+                                 save_sphere_set, surface_mask)
 
     cache = None
     if not no_cache:
@@ -105,6 +108,7 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
             "name": name,
             "input": arg,
             "count": sphere_set.count,
+            "surface_count": int(surface_mask(sphere_set.centers, sphere_set.diameter, 1).sum()),
             "diameter": sphere_set.diameter,
             "volume": sphere_set.volume,
             "volume_error_percent": 100.0 * sphere_set.sphere_volume_error,
@@ -120,7 +124,8 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
             row["output"] = out
         results.append(row)
         if not as_json:
-            line = (f"{name}: {row['count']} spheres of d={row['diameter']:.6g} m, "
+            line = (f"{name}: {row['count']} spheres of d={row['diameter']:.6g} m "
+                    f"({row['surface_count']} on the surface), "
                     f"volume error {row['volume_error_percent']:+.2f}%, "
                     f"inertia error {row['inertia_error_percent']:.2f}%, "
                     f"{row['build_seconds']:.2f} s, cache {row['cache']}")

@@ -24,7 +24,8 @@ class Overrides:
 
     diameter [m] or resolution (spheres across the smallest shape's longest extent);
     stiffness_factor multiplies every material's stiffness (auto included);
-    dt [s] or dt_factor (times the auto step); duration [s]; sleeping on/off.
+    dt [s] or dt_factor (times the auto step); duration [s]; sleeping on/off;
+    contact_layers (0: every sphere takes part in contacts).
     """
 
     diameter: float | None = None
@@ -34,6 +35,7 @@ class Overrides:
     dt_factor: float = 1.0
     duration: float | None = None
     sleeping: bool | None = None
+    contact_layers: int | None = None
 
 
 def _shape_mesh(spec, where: str):
@@ -93,7 +95,8 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
 
     t0 = time.perf_counter()
     hits = []
-    b = ModelBuilder(d, gravity=sim.gravity)
+    layers = sim.contact_layers if o.contact_layers is None else o.contact_layers
+    b = ModelBuilder(d, gravity=sim.gravity, contact_layers=layers)
     material_index = {}
     for name, spec in scene.materials.items():
         m = spec.to_material()

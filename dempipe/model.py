@@ -30,6 +30,12 @@ if TYPE_CHECKING:  # spheres imports numba; the model only needs the type
 #: an incline's infinite extension) and ignored.
 PLANE_DEPTH_DIAMETERS = 2.0
 
+#: Default of ModelBuilder's and the scene's ``contact_layers``: spheres more than
+#: this many lattice layers inside a body are left out of the contact stages. With
+#: 1, contacts are those of the full set while every sphere-sphere overlap stays
+#: below (1 - √2/2) d ≈ 0.29 d (auto stiffness aims at 2-5%); docs/spheres.md.
+CONTACT_LAYERS = 1
+
 
 def _frozen(a, dtype=np.float64):
     a = np.ascontiguousarray(a, dtype=dtype)
@@ -44,6 +50,12 @@ class ShapeInstance:
     vertices : (V, 3) mesh vertices minus the centre of mass, mesh axes [m]
     faces : (F, 3) int triangle indices
     com : (3,) centre of mass in the mesh's own coordinates [m]
+    sphere_set : the full sphere set (its geometry error, counts and small-body
+        checks describe the shape); mass properties are the mesh's
+    contact_centers : (K, 3) body-frame centres of the spheres that take part in
+        contacts [m]: the full set's within ``contact_layers`` layers of its
+        surface (spheres.surface_mask), in the set's order; all of them when
+        contact_layers is 0. These become the Model's sphere_offset.
     """
 
     name: str
@@ -51,6 +63,12 @@ class ShapeInstance:
     faces: np.ndarray
     com: np.ndarray
     sphere_set: "SphereSet"
+    contact_centers: np.ndarray = None
+
+    @property
+    def contact_count(self) -> int:
+        """Number of contact spheres (K)."""
+        return int(np.shape(self.contact_centers)[0])
 
 
 @dataclass(frozen=True)
@@ -108,6 +126,9 @@ class Model:
     Time: dt [s], steps_per_frame, fps, n_frames, first_frame.
     Sleeping: a body slower than sleep_linear [m/s] and sleep_angular [rad/s] for
       sleep_steps steps in a row sleeps (0: sleeping off); see kernels.cpu.stage_bodies.
+    contact_layers: the spheres of each body (and static mesh) are those within this
+      many lattice layers of its sphere set's surface (0: every sphere); mass and
+      inertia never depend on it. See ShapeInstance.contact_centers.
     """
 
     diameter: float
@@ -161,6 +182,7 @@ class Model:
     sleep_steps: int = 0
     sleep_linear: float = 0.0
     sleep_angular: float = 0.0
+    contact_layers: int = 0
 
     @property
     def n_spheres(self) -> int:
@@ -275,11 +297,19 @@ class ModelBuilder:
     """Collects shapes, materials, bodies and colliders, then ``finalize()`` → Model.
 
     All lengths in metres, in the simulation's world frame.
+    contact_layers : keep for contacts only the spheres within this many lattice
+        layers of each sphere set's surface (0: all); default CONTACT_LAYERS.
     """
 
-    def __init__(self, diameter: float, gravity=(0.0, 0.0, -9.81)):
+    def __init__(self, diameter: float, gravity=(0.0, 0.0, -9.81),
+                 contact_layers: int = CONTACT_LAYERS):
         if not (diameter > 0 and math.isfinite(diameter)):
             raise SceneError(f"sphere diameter must be positive and finite, got {diameter!r}")
+        if (isinstance(contact_layers, bool) or not isinstance(contact_layers, (int, np.integer))
+                or contact_layers < 0):
+            raise SceneError(f"contact_layers must be an integer >= 0 (0: every sphere), "
+                             f"got {contact_layers!r}")
+        self.contact_layers = int(contact_layers)
         self.diameter = float(diameter)
         self.gravity = np.asarray(gravity, dtype=np.float64)
         self._shapes: list[ShapeInstance] = []
@@ -299,12 +329,22 @@ class ModelBuilder:
         self._materials.append(material)
         return len(self._materials) - 1
 
+    def _contact_centers(self, sphere_set) -> np.ndarray:
+        from .spheres import surface_mask
+
+        c = np.asarray(sphere_set.centers, dtype=np.float64).reshape(-1, 3)
+        if self.contact_layers == 0:
+            return _frozen(c)
+        return _frozen(c[surface_mask(c, self.diameter, self.contact_layers)])
+
     def add_shape(self, name: str, mesh, sphere_set: "SphereSet") -> int:
-        """Register a shape: its mesh (mesh coordinates) and its sphere set."""
+        """Register a shape: its mesh (mesh coordinates) and its full sphere set;
+        the contact spheres are chosen by the builder's ``contact_layers``."""
         com = np.asarray(sphere_set.com, dtype=np.float64)
         verts = np.asarray(mesh.vertices, dtype=np.float64) - com
         self._shapes.append(ShapeInstance(name, _frozen(verts), _frozen(mesh.faces, np.int32),
-                                          _frozen(com), sphere_set))
+                                          _frozen(com), sphere_set,
+                                          self._contact_centers(sphere_set)))
         return len(self._shapes) - 1
 
     def add_bodies(self, group: str, shape, material: int, positions, rotations=None,
@@ -362,8 +402,10 @@ class ModelBuilder:
                 self._walls.append((n, sign * surface, wlo, whi, t, material))
 
     def add_static_mesh(self, name: str, mesh, sphere_set: "SphereSet", material: int = 0) -> None:
-        """A static mesh collider given in world coordinates, with its sphere set."""
-        self._static.append((name, mesh, sphere_set, material))
+        """A static mesh collider given in world coordinates, with its sphere set
+        (its buried spheres are left out like a shape's, by ``contact_layers``)."""
+        self._static.append((name, mesh, sphere_set, material,
+                             self._contact_centers(sphere_set)))
 
     # -- derived --------------------------------------------------------------
     def finalize(self, *, fps: float = 24.0, n_frames: int = 97, first_frame: int = 0,
@@ -416,7 +458,9 @@ class ModelBuilder:
             inv = np.linalg.inv(np.asarray(ss.inertia, dtype=np.float64))  # per unit density
             shape_inv.append(np.array([inv[0, 0], inv[1, 1], inv[2, 2], inv[0, 1], inv[0, 2],
                                        inv[1, 2]]))
-            # per unit mass: I/m = inertia/volume
+            # per unit mass: I/m = inertia/volume. This, body_radius and the flat-face
+            # count are decided by outermost spheres, which are always contact
+            # spheres: full set and contact set give the same values
             shape_rot.append(rotational_mass_factor(np.asarray(ss.centers),
                                                     np.asarray(ss.inertia) / ss.volume))
         for b in range(n_dyn):
@@ -428,7 +472,7 @@ class ModelBuilder:
         # static pseudo-bodies
         static_meshes = []
         st_x, st_mat = [], []
-        for k, (name, mesh, ss, m) in enumerate(self._static):
+        for k, (name, mesh, ss, m, _) in enumerate(self._static):
             st_x.append(np.asarray(ss.com, dtype=np.float64))
             st_mat.append(m)
             static_meshes.append(StaticMesh(name, _frozen(mesh.vertices), _frozen(mesh.faces,
@@ -441,13 +485,12 @@ class ModelBuilder:
         all_inv_inertia = np.concatenate([inv_inertia, np.zeros((n_static, 6))])
         all_mat = np.concatenate([dyn_mat, np.array(st_mat, dtype=np.int32)]).astype(np.int32)
 
-        # spheres, contiguous per body
-        counts = [self._shapes[s].sphere_set.centers.shape[0] for s in body_shape]
-        counts += [ss.centers.shape[0] for (_, _, ss, _) in self._static]
+        # contact spheres (the surface layers of each set), contiguous per body
+        offsets = [self._shapes[s].contact_centers for s in body_shape]
+        offsets += [c for (_, _, _, _, c) in self._static]
+        counts = [c.shape[0] for c in offsets]
         start = np.zeros(len(counts) + 1, dtype=np.int32)
         start[1:] = np.cumsum(counts) if counts else []
-        offsets = [self._shapes[s].sphere_set.centers for s in body_shape]
-        offsets += [ss.centers for (_, _, ss, _) in self._static]
         sphere_offset = np.concatenate(offsets) if offsets else np.zeros((0, 3))
         sphere_body = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
         body_radius = np.array([np.linalg.norm(self._shapes[s].sphere_set.centers, axis=1).max()
@@ -460,7 +503,7 @@ class ModelBuilder:
         floors = [heights.min() - (body_radius.max() if n_dyn else 0.0)]
         floors += [float(p @ up) for (p, n) in self._planes if n @ up > 0.5]  # ground-like
         floors += [float(b.lo @ up) for b in self._boxes]
-        floors += [float((np.asarray(mesh.vertices) @ up).min()) for (_, mesh, _, _) in self._static]
+        floors += [float((np.asarray(mesh.vertices) @ up).min()) for (_, mesh, _, _, _) in self._static]
         floor = min(floors)
         if n_dyn:
             fall = np.sqrt(2.0 * g * np.maximum(heights - floor, 0.0))
@@ -599,5 +642,5 @@ class ModelBuilder:
             initial_x=_frozen(all_x), initial_q=_frozen(all_q),
             initial_v=_frozen(np.concatenate([v0, np.zeros((n_static, 3))])),
             initial_w=_frozen(np.concatenate([w0, np.zeros((n_static, 3))])),
-            stiffness_auto=tuple(auto_notes),
+            stiffness_auto=tuple(auto_notes), contact_layers=self.contact_layers,
         )

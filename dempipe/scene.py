@@ -121,6 +121,10 @@ class SimulationSettings:
     """Whether resting bodies are put to sleep."""
     sleep: SleepSettings = field(default_factory=SleepSettings)
     """Sleep thresholds."""
+    contact_layers: int = 1
+    """Spheres within this many lattice layers of each body's surface take part in
+    contacts [integer ≥ 0]; 0 (or "all" in the file) keeps every sphere. Mass and
+    inertia do not depend on it (docs/spheres.md, "Surface spheres")."""
 
 
 @dataclass(frozen=True)
@@ -474,7 +478,7 @@ def _range_text(lo, hi, lo_open, hi_open) -> str:
 _TOP_KEYS = ("output", "simulation", "materials", "shapes", "bodies", "colliders")
 _OUTPUT_KEYS = ("fps", "duration", "up_axis", "meters_per_unit", "start_frame")
 _SIM_KEYS = ("sphere_diameter", "resolution", "gravity", "dt", "device", "seed",
-             "stiffness_target_overlap", "dt_safety", "sleeping", "sleep")
+             "stiffness_target_overlap", "dt_safety", "sleeping", "sleep", "contact_layers")
 _SLEEP_KEYS = ("linear_speed", "angular_speed", "time")
 _MATERIAL_KEYS = ("density", "restitution", "friction", "stiffness")
 _BODY_COMMON = ("name", "shape", "material", "count", "layout", "rotation", "velocity",
@@ -563,6 +567,18 @@ def _parse_simulation(ctx: _Ctx, d: Any, up_axis: str) -> SimulationSettings:
                                      lo_open=True)
     if "sleeping" in d:
         kw["sleeping"] = ctx.boolean(d["sleeping"], "simulation.sleeping")
+    if "contact_layers" in d:
+        v = d["contact_layers"]
+        if isinstance(v, str):
+            ctx.string(v, "simulation.contact_layers", ("all",))
+            kw["contact_layers"] = 0
+        else:
+            what = 'an integer >= 0 (layers of surface spheres kept for contacts) or "all"'
+            n = ctx.integer(v, "simulation.contact_layers", what=what)
+            if n < 0:
+                raise ctx.error("simulation.contact_layers", f"{n} is out of range",
+                                f'expected {what}; 0 or "all" keeps every sphere')
+            kw["contact_layers"] = n
     if "sleep" in d:
         s = ctx.table(d["sleep"], "simulation.sleep")
         ctx.check_keys(s, "simulation.sleep", _SLEEP_KEYS)

@@ -128,6 +128,26 @@ class SphereSet:
         diff = np.linalg.norm(self.cell_inertia - self.inertia)
         return float(diff / np.linalg.norm(self.inertia))
 
+    def surface(self, layers: int = 1) -> "SphereSet":
+        """The spheres within ``layers`` lattice layers of the surface: the ones that
+        can touch another body while overlaps stay small (see :func:`surface_mask`).
+
+        Same diameter and mass properties (they are the mesh's, not the spheres');
+        lattice order kept; ``key`` is this key + ``":surface<layers>"`` and
+        ``notes`` gains ``"surface<layers>"``. ``layers`` = 0 returns ``self``.
+        The result is hollow: its ``sphere_volume_error`` and ``inertia_error``
+        describe the shell, not how well the spheres fill the mesh; take those
+        from the full set.
+        """
+        layers = _check_layers(layers)
+        if layers == 0:
+            return self
+        keep = surface_mask(self.centers, self.diameter, layers)
+        return SphereSet(centers=self.centers[keep], diameter=self.diameter,
+                         volume=self.volume, com=self.com, inertia=self.inertia,
+                         mesh_sha256=self.mesh_sha256, key=f"{self.key}:surface{layers}",
+                         notes=self.notes + (f"surface{layers}",))
+
     def __repr__(self):
         return (f"SphereSet(count={self.count}, diameter={self.diameter:.6g}, "
                 f"volume={self.volume:.6g}, key={self.key[:12]}...)")
@@ -241,6 +261,71 @@ def lattice_centers(lo, hi, diameter) -> np.ndarray:
         axes.append(center[k] + (np.arange(n, dtype=np.float64) - 0.5 * (n - 1)) * diameter)
     z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
     return np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+
+
+def _check_layers(layers) -> int:
+    if isinstance(layers, bool) or not isinstance(layers, (int, np.integer)) or layers < 0:
+        raise ShapeError(f"contact layers must be an integer >= 0 (0: every sphere), got {layers!r}")
+    return int(layers)
+
+
+#: Largest distance of a centre from its lattice site, as a fraction of the diameter,
+#: for :func:`surface_mask` to treat a set as lying on a lattice.
+_LATTICE_TOL = 1e-6
+
+
+def surface_mask(centers, diameter, layers: int = 1) -> np.ndarray:
+    """Which spheres of a lattice sphere set lie within ``layers`` layers of its surface.
+
+    ``centers`` (N, 3) on a lattice of pitch ``diameter`` (any order, any offset).
+    A sphere is *buried*, and its entry False, when every lattice site within
+    Chebyshev distance ``layers`` of it (the (2L+1)^3 - 1 sites around it; the 26
+    neighbours at ±d for L = 1) holds a sphere of the set; every other sphere is
+    True. ``layers`` = 0 keeps every sphere. Centres that are not on one lattice
+    (off by more than 1e-6 d) are all kept: the test needs the lattice.
+
+    Why buried spheres can be dropped for contacts (docs/spheres.md, "Surface
+    spheres"): another sphere of diameter d touches a buried sphere B only with its
+    centre inside the open cube of half-width d around B. To get there from outside
+    it crosses a lattice face whose four corners are spheres, and at that moment it
+    overlaps the nearest corner, a kept sphere, by at least (1 - √2/2) d ≈ 0.293 d.
+    So while every sphere-sphere overlap stays below 0.29 d, buried spheres never
+    touch anything and the contact forces are those of the full set.
+
+    Pure NumPy: a dense boolean grid over the set's bounding box, eroded by a cube
+    of half-width ``layers`` (separable: a running AND along each axis).
+    Returns (N,) bool.
+    """
+    layers = _check_layers(layers)
+    c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+    n = c.shape[0]
+    keep = np.ones(n, dtype=bool)
+    if layers == 0 or n < 27:          # fewer than 27 spheres: none can be buried
+        return keep
+    d = float(diameter)
+    rel = (c - c.min(axis=0)) / d
+    ijk = np.rint(rel)
+    if np.abs(rel - ijk).max() > _LATTICE_TOL:
+        return keep
+    ijk = ijk.astype(np.int64) + layers          # pad by `layers` empty sites
+    shape = tuple(int(v) for v in ijk.max(axis=0) + layers + 1)
+    grid = np.zeros(shape, dtype=bool)
+    grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    buried = grid
+    for axis in range(3):
+        full = buried.copy()
+        for s in range(1, layers + 1):
+            # site i stays when sites i-s and i+s along this axis are full too
+            lo = [slice(None)] * 3
+            hi = [slice(None)] * 3
+            lo[axis], hi[axis] = slice(s, None), slice(None, -s)
+            a = np.zeros_like(full)
+            a[tuple(lo)] = buried[tuple(hi)]      # a[i] = buried[i - s]
+            b = np.zeros_like(full)
+            b[tuple(hi)] = buried[tuple(lo)]      # b[i] = buried[i + s]
+            full &= a & b
+        buried = full
+    return ~buried[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
 
 
 def _cells_mass_properties(centers, diameter):
