@@ -1,0 +1,135 @@
+"""Where a CPU step goes: each of the eight stages timed on its own.
+
+    python benchmarks/profile_stages.py                  # dense pile (~25k spheres) + quickstart
+    python benchmarks/profile_stages.py --steps 50 --threads 1
+
+The backend's own compiled stage functions (the ones ``run_steps`` calls in
+a loop) are called one at a time from Python on a scene, ``--steps`` times
+each, and timed with perf_counter. Stage order and arguments are exactly
+``kernels.cpu.run_steps``'s, so the state advances as in a bake. Printed per
+scene: microseconds per step of each stage, its share of the sum, and the sum
+against ``run_steps`` itself timed over the same number of steps in the same run
+(the baseline: the difference is the cost of calling from Python and of the
+parallel regions' start-up).
+
+Scenes: the dense pile of benchmarks/cpu_bench.py (cubes of 3×3×3 spheres packed
+face to face, friction on) and examples/quickstart.toml 0.3 s into its bake
+(pieces landing in the tray).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+
+import numba
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+sys.path.insert(0, os.path.join(HERE, "..", "tests"))
+
+from cpu_bench import dense_pile  # noqa: E402
+
+from dempipe.kernels import cpu  # noqa: E402
+from dempipe.simulator import Simulator  # noqa: E402
+
+STAGES = ("1 body velocities (eq. 5-6)", "1 sphere positions + cell keys (eq. 19-21)",
+          "2 grid: counting sort (serial)", "2 grid: gather into sorted order",
+          "3-4 neighbour search + contact forces", "5-8 body momenta, positions, quaternions")
+
+
+def stage_times(sim, state, steps: int) -> np.ndarray:
+    """Seconds per step of each stage, called one by one as run_steps does."""
+    b, m = sim.backend, sim.model
+    k = b.k
+    b.fit_grid(state)
+    partner, spring = b.contacts(state)
+    rest = b.rest(state)
+    inv_d = 1.0 / m.diameter
+    g = m.gravity
+    t = np.zeros(len(STAGES))
+    for s in range(state.step, state.step + steps):
+        calls = (
+            lambda: k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
+                                            m.body_inv_mass, m.body_inv_inertia, b.body_v,
+                                            b.body_w),
+            lambda: k.stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q,
+                                    b.body_v, b.body_w, inv_d, b.grid, b.sphere_x, b.sphere_v,
+                                    b.sphere_r, b.sphere_key, b.sphere_hash),
+            lambda: cpu.stage_grid_sort(b.sphere_hash, b.grid, b.bucket_start, b.bucket_fill,
+                                        b.sorted_idx),
+            lambda: cpu.stage_grid_gather(b.sorted_idx, b.sphere_x, b.sphere_v, b.sphere_key,
+                                          m.sphere_body, b.sorted_x, b.sorted_v, b.sorted_key,
+                                          b.sorted_body),
+            lambda: k.stage_contacts(m.diameter, inv_d, b.grid, b.bucket_start, b.sorted_idx,
+                                     b.sorted_x, b.sorted_v, b.sorted_key, b.sorted_body,
+                                     b.body_w, m.body_inv_mass, m.body_material, m.pair_k,
+                                     m.pair_zeta, m.pair_mu, m.kt_ratio, m.ks_ratio,
+                                     b.features.friction, m.dt, s & 1, partner, spring,
+                                     m.sleep_steps, rest, b.body_wake, m.wall_normal,
+                                     m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth,
+                                     m.wall_material, b.sphere_f, b.sphere_t, b.sphere_overlap),
+            lambda: k.stage_bodies(m.n_bodies, m.dt, g[0], g[1], g[2], m.body_sphere_start,
+                                   b.sphere_f, b.sphere_t, b.sphere_r, m.body_mass,
+                                   m.body_inv_mass, m.body_inv_inertia, state.body_x,
+                                   state.body_q, state.body_P, state.body_L, m.sleep_steps,
+                                   m.sleep_linear, m.sleep_angular, rest, b.body_wake),
+        )
+        for i, call in enumerate(calls):
+            t0 = time.perf_counter()
+            call()
+            t[i] += time.perf_counter() - t0
+    state.step += steps
+    state.time = state.step * m.dt
+    return t / steps
+
+
+def profile(name: str, model, warm_steps: int, steps: int) -> None:
+    sim = Simulator(model, device="cpu")
+    state = model.initial_state()
+    sim.backend.step(state, warm_steps)                 # compile, reach contacts
+    stage_times(sim, state, 2)                          # compile the per-stage entry points
+    per = stage_times(sim, state, steps)
+    t0 = time.perf_counter()
+    sim.backend.step(state, steps)
+    whole = (time.perf_counter() - t0) / steps
+    total = per.sum()
+    print(f"\n### {name}: {model.n_bodies:,} bodies, {model.n_spheres:,} spheres, "
+          f"features {sim.backend.flags} (friction, rotation, sleeping, walls)\n")
+    print("| stage | µs/step | share | ns per sphere |")
+    print("|---|---:|---:|---:|")
+    for label, s in zip(STAGES, per):
+        print(f"| {label} | {s * 1e6:.0f} | {s / total:.0%} | {s / model.n_spheres * 1e9:.1f} |")
+    print(f"| sum of the stages | {total * 1e6:.0f} | 100% | {total / model.n_spheres * 1e9:.1f} |")
+    print(f"| run_steps (baseline, same steps) | {whole * 1e6:.0f} | {whole / total:.2f}x of "
+          f"the sum | {whole / model.n_spheres * 1e9:.1f} |")
+    print(f"\n{model.n_spheres / whole / 1e6:.2f} M sphere-steps/s in run_steps")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--steps", type=int, default=100, help="timed steps per scene")
+    ap.add_argument("--threads", type=int, default=None, help="numba threads (default: all)")
+    ap.add_argument("--spheres", type=int, default=30_000, help="size of the dense pile")
+    args = ap.parse_args()
+    if args.threads:
+        numba.set_num_threads(args.threads)
+    print(f"# {platform.machine()}, {os.cpu_count()} cores, numba {numba.__version__}, "
+          f"{numba.get_num_threads()} threads, {args.steps} steps per scene")
+    profile("dense pile (benchmarks/cpu_bench.py)", dense_pile(args.spheres), 20, args.steps)
+
+    from dempipe.build import build_model
+    from dempipe.scene import load_scene
+
+    model = build_model(load_scene(os.path.join(HERE, "..", "examples", "quickstart.toml")))
+    warm = int(0.3 / model.dt)
+    profile(f"quickstart at t = {warm * model.dt:.2f} s", model, warm, args.steps)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
