@@ -108,6 +108,31 @@ def profile(name: str, model, warm_steps: int, steps: int) -> None:
     print(f"| run_steps (baseline, same steps) | {whole * 1e6:.0f} | {whole / total:.2f}x of "
           f"the sum | {whole / model.n_spheres * 1e9:.1f} |")
     print(f"\n{model.n_spheres / whole / 1e6:.2f} M sphere-steps/s in run_steps")
+    cand, near = candidates(sim, state)
+    print(f"neighbour search: {cand:.1f} candidates visited per sphere, {near:.1f} of them "
+          f"in its 27 cells (the rest share aliased buckets)")
+
+
+def candidates(sim, state, sample: int = 2000) -> tuple[float, float]:
+    """(spheres visited per sphere by the neighbour search, of them in the 27 cells),
+    averaged over the first ``sample`` spheres: the buckets of the 27 cells as
+    kernels.cpu.cell_hash lays them out, counted from the grid the last step built."""
+    b = sim.backend
+    b.probe(state)
+    g = b.grid
+    counts = np.diff(b.bucket_start[: g[5] + 1])
+    c = np.floor(b.sphere_x / sim.model.diameter).astype(np.int64)
+    n = min(sample, c.shape[0])
+    visited = near = 0
+    for i in range(n):
+        for dz in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    cx, cy, cz = c[i, 0] + dx, c[i, 1] + dy, c[i, 2] + dz
+                    visited += counts[(cx & g[2]) | ((cy & g[3]) << g[0])
+                                      | ((cz & g[4]) << (g[0] + g[1]))]
+        near += np.count_nonzero(np.all(np.abs(c - c[i]) <= 1, axis=1))
+    return visited / n, near / n
 
 
 def main() -> int:

@@ -25,6 +25,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 #: name -> (quick arguments, full arguments)
 BENCHMARKS = {
     "cpu_bench": (["--quick"], []),
+    "profile_stages": (["--steps", "30"], []),
     "specialize": ([], []),
     "surface_spheres": ([], []),
     "empty_space": (["--quick"], []),
