@@ -36,6 +36,12 @@ rest_steps = F.rest_steps
 # a sphere is clamped into the outermost cell but one: still correct (distances
 # are exact), only slow; `dempipe check` warns (stability.py, "far-from-origin").
 _CELL_BITS = 21
+
+#: Sorted slots per call of sphere_contacts in the contact stage's parallel loop:
+#: small enough to balance two to a few dozen threads on piles of a few thousand
+#: spheres, large enough that a call's cost is spread over many spheres. Each
+#: sphere's result does not depend on it (gather: determinism is kept).
+CONTACT_CHUNK = 64
 _CELL_OFF = 1 << (_CELL_BITS - 1)
 _CELL_MAX = (1 << _CELL_BITS) - 1
 
@@ -232,201 +238,206 @@ def stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
         sorted_body[s] = sphere_body[i]
 
 
-def sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
-                   sorted_key, sorted_body, body_w, body_inv_mass, body_material,
-                   pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
-                   contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
-                   wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                   sphere_f, sphere_t, sphere_overlap):
-    """Stages 3-4 for the sphere in sorted slot s (the body of stage_contacts' loop;
-    a function of its own so numba's parfor pass sees a plain call)."""
+def sphere_contacts(s0, s1, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x,
+                    sorted_v, sorted_key, sorted_body, body_w, body_inv_mass, body_material,
+                    pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
+                    contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
+                    wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
+                    sphere_f, sphere_t, sphere_overlap):
+    """Stages 3-4 for the spheres in sorted slots s0 .. s1-1 (a chunk of
+    stage_contacts' parallel loop). A function of its own, looping over a chunk:
+    numba's parfor pass cannot take this body inline (it recurses without end),
+    and one call per chunk rather than per sphere lets the compiled loop keep
+    the arrays' pointers and the constants in registers (measured: see
+    docs/performance.md, "Throughput")."""
     d2 = diameter * diameter
     radius = 0.5 * diameter
     n_walls = wall_normal.shape[0]
     n_spheres = sorted_idx.shape[0]
-    i = sorted_idx[s]
-    bi = sorted_body[s]
-    imi = body_inv_mass[bi]
-    fx = 0.0
-    fy = 0.0
-    fz = 0.0
-    tx = 0.0
-    ty = 0.0
-    tz = 0.0
-    max_ov = 0.0
-    if imi == 0.0 or (SLEEPING and sleep_steps > 0 and body_rest[bi] >= sleep_steps):
-        # static, or asleep: feels nothing (but is found by its moving neighbours)
-        sphere_f[i, 0] = 0.0
-        sphere_f[i, 1] = 0.0
-        sphere_f[i, 2] = 0.0
-        sphere_t[i, 0] = 0.0
-        sphere_t[i, 1] = 0.0
-        sphere_t[i, 2] = 0.0
-        return
-    xi = sorted_x[s, 0]
-    yi = sorted_x[s, 1]
-    zi = sorted_x[s, 2]
-    vxi = sorted_v[s, 0]
-    vyi = sorted_v[s, 1]
-    vzi = sorted_v[s, 2]
-    mi = body_material[bi]
-    wxi = 0.0
-    wyi = 0.0
-    wzi = 0.0
-    if ROTATION:
-        wxi = body_w[bi, 0]
-        wyi = body_w[bi, 1]
-        wzi = body_w[bi, 2]
-    cx0 = cell_coord(xi, inv_d)
-    cy0 = cell_coord(yi, inv_d)
-    cz0 = cell_coord(zi, inv_d)
-    for dz in range(-1, 2):
-        for dy in range(-1, 2):
-            cy = cy0 + dy
-            cz = cz0 + dz
-            # the three cells (cx0-1..cx0+1, cy, cz): keys in [lo, hi]
-            key_lo = cell_key(cx0 - 1, cy, cz)
-            key_hi = cell_key(cx0 + 1, cy, cz)
-            h_lo = cell_hash(cx0 - 1, cy, cz, grid)
-            h_hi = cell_hash(cx0 + 1, cy, cz, grid)
-            if h_hi == h_lo + 2:        # one contiguous run of buckets
-                n_runs = 1
-            else:                       # the row wraps round the table
-                n_runs = 3
-            for run in range(n_runs):
-                if n_runs == 1:
-                    t0 = bucket_start[h_lo]
-                    t1 = bucket_start[h_hi + 1]
-                else:
-                    h = cell_hash(cx0 - 1 + run, cy, cz, grid)
-                    t0 = bucket_start[h]
-                    t1 = bucket_start[h + 1]
-                for t in range(t0, t1):
-                    kt = sorted_key[t]
-                    if kt < key_lo or kt > key_hi:
-                        continue        # another cell sharing the buckets
-                    bj = sorted_body[t]
-                    if bj == bi:
-                        continue        # spheres of one body never collide
-                    rx = sorted_x[t, 0] - xi
-                    ry = sorted_x[t, 1] - yi
-                    rz = sorted_x[t, 2] - zi
-                    dist2 = rx * rx + ry * ry + rz * rz
-                    if dist2 >= d2:
-                        continue
-                    if SLEEPING and sleep_steps > 0 and body_rest[bj] >= sleep_steps \
-                            and body_rest[bi] == 0:
-                        body_wake[bj] = 1   # a moving body touches a sleeper (the same
-                                            # value from any thread: deterministic)
-                    imj = body_inv_mass[bj]
-                    mj = body_material[bj]
-                    k = pair_k[mi, mj]
-                    root = np.sqrt(k / (imi + imj))
-                    eta = 2.0 * pair_zeta[mi, mj] * root
-                    dist = np.sqrt(dist2)
-                    if FRICTION and friction:
-                        mu = pair_mu[mi, mj]
-                        code = sorted_idx[t] + 1
-                        slot = history_find(contact_partner, i, code)
-                        if slot >= 0:
-                            sx = contact_spring[i, slot, 0]
-                            sy = contact_spring[i, slot, 1]
-                            sz = contact_spring[i, slot, 2]
+    for s in range(s0, s1):
+        i = sorted_idx[s]
+        bi = sorted_body[s]
+        imi = body_inv_mass[bi]
+        fx = 0.0
+        fy = 0.0
+        fz = 0.0
+        tx = 0.0
+        ty = 0.0
+        tz = 0.0
+        max_ov = 0.0
+        if imi == 0.0 or (SLEEPING and sleep_steps > 0 and body_rest[bi] >= sleep_steps):
+            # static, or asleep: feels nothing (but is found by its moving neighbours)
+            sphere_f[i, 0] = 0.0
+            sphere_f[i, 1] = 0.0
+            sphere_f[i, 2] = 0.0
+            sphere_t[i, 0] = 0.0
+            sphere_t[i, 1] = 0.0
+            sphere_t[i, 2] = 0.0
+            continue
+        xi = sorted_x[s, 0]
+        yi = sorted_x[s, 1]
+        zi = sorted_x[s, 2]
+        vxi = sorted_v[s, 0]
+        vyi = sorted_v[s, 1]
+        vzi = sorted_v[s, 2]
+        mi = body_material[bi]
+        wxi = 0.0
+        wyi = 0.0
+        wzi = 0.0
+        if ROTATION:
+            wxi = body_w[bi, 0]
+            wyi = body_w[bi, 1]
+            wzi = body_w[bi, 2]
+        cx0 = cell_coord(xi, inv_d)
+        cy0 = cell_coord(yi, inv_d)
+        cz0 = cell_coord(zi, inv_d)
+        for dz in range(-1, 2):
+            for dy in range(-1, 2):
+                cy = cy0 + dy
+                cz = cz0 + dz
+                # the three cells (cx0-1..cx0+1, cy, cz): keys in [lo, hi]
+                key_lo = cell_key(cx0 - 1, cy, cz)
+                key_hi = cell_key(cx0 + 1, cy, cz)
+                h_lo = cell_hash(cx0 - 1, cy, cz, grid)
+                h_hi = cell_hash(cx0 + 1, cy, cz, grid)
+                if h_hi == h_lo + 2:        # one contiguous run of buckets
+                    n_runs = 1
+                else:                       # the row wraps round the table
+                    n_runs = 3
+                for run in range(n_runs):
+                    if n_runs == 1:
+                        t0 = bucket_start[h_lo]
+                        t1 = bucket_start[h_hi + 1]
+                    else:
+                        h = cell_hash(cx0 - 1 + run, cy, cz, grid)
+                        t0 = bucket_start[h]
+                        t1 = bucket_start[h + 1]
+                    for t in range(t0, t1):
+                        kt = sorted_key[t]
+                        if kt < key_lo or kt > key_hi:
+                            continue        # another cell sharing the buckets
+                        bj = sorted_body[t]
+                        if bj == bi:
+                            continue        # spheres of one body never collide
+                        rx = sorted_x[t, 0] - xi
+                        ry = sorted_x[t, 1] - yi
+                        rz = sorted_x[t, 2] - zi
+                        dist2 = rx * rx + ry * ry + rz * rz
+                        if dist2 >= d2:
+                            continue
+                        if SLEEPING and sleep_steps > 0 and body_rest[bj] >= sleep_steps \
+                                and body_rest[bi] == 0:
+                            body_wake[bj] = 1   # a moving body touches a sleeper (the same
+                                                # value from any thread: deterministic)
+                        imj = body_inv_mass[bj]
+                        mj = body_material[bj]
+                        k = pair_k[mi, mj]
+                        root = np.sqrt(k / (imi + imj))
+                        eta = 2.0 * pair_zeta[mi, mj] * root
+                        dist = np.sqrt(dist2)
+                        if FRICTION and friction:
+                            mu = pair_mu[mi, mj]
+                            code = sorted_idx[t] + 1
+                            slot = history_find(contact_partner, i, code)
+                            if slot >= 0:
+                                sx = contact_spring[i, slot, 0]
+                                sy = contact_spring[i, slot, 1]
+                                sz = contact_spring[i, slot, 2]
+                            else:
+                                sx = 0.0
+                                sy = 0.0
+                                sz = 0.0
                         else:
+                            mu = 0.0
                             sx = 0.0
                             sy = 0.0
                             sz = 0.0
-                    else:
-                        mu = 0.0
-                        sx = 0.0
-                        sy = 0.0
-                        sz = 0.0
-                    wsx = wxi
-                    wsy = wyi
-                    wsz = wzi
-                    if ROTATION:
-                        wsx += body_w[bj, 0]
-                        wsy += body_w[bj, 1]
-                        wsz += body_w[bj, 2]
-                    (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_pair_force(
-                        rx, ry, rz, dist, diameter,
-                        sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
-                        wsx, wsy, wsz,
-                        k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
-                    if FRICTION and friction:
-                        history_store(contact_partner, contact_spring, i, slot, code,
-                                      parity, sx, sy, sz)
-                    fx += pfx
-                    fy += pfy
-                    fz += pfz
-                    if ROTATION and FRICTION and mu > 0.0:   # see TORQUE_NOTE
-                        tx += ptx
-                        ty += pty
-                        tz += ptz
-                    ov = diameter - dist
-                    if ov > max_ov:
-                        max_ov = ov
-    for w in range(n_walls if WALLS else 0):
-        nx = wall_normal[w, 0]
-        ny = wall_normal[w, 1]
-        nz = wall_normal[w, 2]
-        dist = nx * xi + ny * yi + nz * zi - wall_offset[w]
-        if dist >= radius or dist <= -wall_depth[w]:
-            continue
-        if (xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
-                or yi > wall_hi[w, 1] or zi < wall_lo[w, 2] or zi > wall_hi[w, 2]):
-            continue
-        mj = wall_material[w]
-        k = pair_k[mi, mj]
-        root = np.sqrt(k / imi)
-        eta = 2.0 * pair_zeta[mi, mj] * root
-        if FRICTION and friction:
-            mu = pair_mu[mi, mj]
-            code = n_spheres + w + 1
-            slot = history_find(contact_partner, i, code)
-            if slot >= 0:
-                sx = contact_spring[i, slot, 0]
-                sy = contact_spring[i, slot, 1]
-                sz = contact_spring[i, slot, 2]
+                        wsx = wxi
+                        wsy = wyi
+                        wsz = wzi
+                        if ROTATION:
+                            wsx += body_w[bj, 0]
+                            wsy += body_w[bj, 1]
+                            wsz += body_w[bj, 2]
+                        (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_pair_force(
+                            rx, ry, rz, dist, diameter,
+                            sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
+                            wsx, wsy, wsz,
+                            k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
+                        if FRICTION and friction:
+                            history_store(contact_partner, contact_spring, i, slot, code,
+                                          parity, sx, sy, sz)
+                        fx += pfx
+                        fy += pfy
+                        fz += pfz
+                        if ROTATION and FRICTION and mu > 0.0:   # see TORQUE_NOTE
+                            tx += ptx
+                            ty += pty
+                            tz += ptz
+                        ov = diameter - dist
+                        if ov > max_ov:
+                            max_ov = ov
+        for w in range(n_walls if WALLS else 0):
+            nx = wall_normal[w, 0]
+            ny = wall_normal[w, 1]
+            nz = wall_normal[w, 2]
+            dist = nx * xi + ny * yi + nz * zi - wall_offset[w]
+            if dist >= radius or dist <= -wall_depth[w]:
+                continue
+            if (xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
+                    or yi > wall_hi[w, 1] or zi < wall_lo[w, 2] or zi > wall_hi[w, 2]):
+                continue
+            mj = wall_material[w]
+            k = pair_k[mi, mj]
+            root = np.sqrt(k / imi)
+            eta = 2.0 * pair_zeta[mi, mj] * root
+            if FRICTION and friction:
+                mu = pair_mu[mi, mj]
+                code = n_spheres + w + 1
+                slot = history_find(contact_partner, i, code)
+                if slot >= 0:
+                    sx = contact_spring[i, slot, 0]
+                    sy = contact_spring[i, slot, 1]
+                    sz = contact_spring[i, slot, 2]
+                else:
+                    sx = 0.0
+                    sy = 0.0
+                    sz = 0.0
             else:
+                mu = 0.0
                 sx = 0.0
                 sy = 0.0
                 sz = 0.0
-        else:
-            mu = 0.0
-            sx = 0.0
-            sy = 0.0
-            sz = 0.0
-        (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(
-            -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
-            k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
-        if FRICTION and friction:
-            history_store(contact_partner, contact_spring, i, slot, code, parity,
-                          sx, sy, sz)
-        fx += pfx
-        fy += pfy
-        fz += pfz
-        if ROTATION and FRICTION and mu > 0.0:
-            tx += ptx
-            ty += pty
-            tz += ptz
-        ov = radius - dist
-        if ov > max_ov:
-            max_ov = ov
-    if FRICTION and friction:   # forget the contacts that ended (not touched at this parity)
-        for h in range(contact_partner.shape[1]):
-            c = contact_partner[i, h]
-            if c != 0 and (c & 1) != parity:
-                contact_partner[i, h] = 0
-    sphere_f[i, 0] = fx
-    sphere_f[i, 1] = fy
-    sphere_f[i, 2] = fz
-    if ROTATION and FRICTION:
-        sphere_t[i, 0] = tx
-        sphere_t[i, 1] = ty
-        sphere_t[i, 2] = tz
-    if max_ov > sphere_overlap[i]:
-        sphere_overlap[i] = max_ov
+            (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(
+                -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
+                k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
+            if FRICTION and friction:
+                history_store(contact_partner, contact_spring, i, slot, code, parity,
+                              sx, sy, sz)
+            fx += pfx
+            fy += pfy
+            fz += pfz
+            if ROTATION and FRICTION and mu > 0.0:
+                tx += ptx
+                ty += pty
+                tz += ptz
+            ov = radius - dist
+            if ov > max_ov:
+                max_ov = ov
+        if FRICTION and friction:   # forget the contacts that ended (not touched at this parity)
+            for h in range(contact_partner.shape[1]):
+                c = contact_partner[i, h]
+                if c != 0 and (c & 1) != parity:
+                    contact_partner[i, h] = 0
+        sphere_f[i, 0] = fx
+        sphere_f[i, 1] = fy
+        sphere_f[i, 2] = fz
+        if ROTATION and FRICTION:
+            sphere_t[i, 0] = tx
+            sphere_t[i, 1] = ty
+            sphere_t[i, 2] = tz
+        if max_ov > sphere_overlap[i]:
+            sphere_overlap[i] = max_ov
 
 
 def stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
@@ -448,8 +459,11 @@ def stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, so
     a sphere of a moving body (rest count 0) that touches a sleeping body flags
     it to wake (body_wake).
     """
-    for s in prange(sorted_idx.shape[0]):
-        sphere_contacts(s, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
+    n = sorted_idx.shape[0]
+    n_chunks = (n + CONTACT_CHUNK - 1) // CONTACT_CHUNK
+    for c in prange(n_chunks):
+        sphere_contacts(c * CONTACT_CHUNK, min(n, (c + 1) * CONTACT_CHUNK),
+                        diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
                         sorted_key, sorted_body, body_w, body_inv_mass, body_material,
                         pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
                         contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
