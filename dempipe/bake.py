@@ -68,7 +68,7 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
     """
     import warnings
 
-    from .build import build_model, initial_overlap
+    from .build import build_model, initial_overlap_all_spheres
     from .cache import SphereCache
     from .scene import load_scene
     from .simulator import BakeFailure, Simulator, resolve_device
@@ -83,8 +83,8 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
     dev = resolve_device(device_asked)
     if device_asked == "auto" and dev == "cpu":
         warn("no usable CUDA GPU: baking on the CPU")
-    model = build_model(scene, cache=cache if cache is not None else SphereCache(),
-                        force=force)
+    cache = cache if cache is not None else SphereCache()
+    model = build_model(scene, cache=cache, force=force)
     start, end = parse_frame_range(frames, model.n_frames, model.first_frame)
 
     src = Path(scene_path).name
@@ -99,7 +99,7 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
         if risk is not None:
             warn(risk.message)
 
-    overlap, body = initial_overlap(model)
+    overlap, body = initial_overlap_all_spheres(scene, model, cache=cache)
     if overlap > REFUSE_OVERLAP and not force:
         raise StabilityError(
             f"{src}: body {model.body_name(body)} overlaps another body or a collider by "

@@ -164,3 +164,29 @@ def initial_overlap(model: Model, state=None):
     i = int(np.argmax(ov))
     body = int(model.sphere_body[i]) if ov[i] > 0 else -1
     return float(ov[i] / model.diameter), body
+
+
+def full_sphere_model(scene, model: Model, *, cache=None) -> Model | None:
+    """The scene's Model with every sphere of every set taking part in contacts, or
+    None when ``model`` already has them all (contact_layers 0).
+
+    Surface spheres (docs/spheres.md) leave out the spheres no contact reaches while
+    overlaps stay small; a body placed wholly inside another at frame 0 touches only
+    those, so frame-0 overlaps are checked against this Model as well.
+    """
+    if not getattr(model, "contact_layers", 0):
+        return None
+    return build_model(scene, cache=cache, overrides=Overrides(contact_layers=0), force=True)
+
+
+def initial_overlap_all_spheres(scene, model: Model, *, cache=None):
+    """``initial_overlap`` of ``model`` and of its full-sphere twin (full_sphere_model),
+    whichever is larger: (fraction of the diameter, body index or -1)."""
+    overlap, body = initial_overlap(model)
+    full = full_sphere_model(scene, model, cache=cache)
+    if full is not None:
+        o2, b2 = initial_overlap(full)
+        if o2 > overlap:
+            overlap, body = o2, b2
+    return overlap, body
+

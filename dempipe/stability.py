@@ -552,12 +552,16 @@ def soft_contact(model: Model, closing: float, src: str) -> Finding | None:
 
 
 def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | None = None,
-            refused: str | None = None, scene: str | None = None) -> StabilityReport:
+            refused: str | None = None, scene: str | None = None,
+            full_model: Model | None = None) -> StabilityReport:
     """Check ``model`` for everything that makes a bake unstable or refused.
 
     dt : evaluate this step instead of model.dt (a user dt that finalize refused;
          ``refused`` then holds finalize's message)
     dt_setting : what the scene asked for ("auto" or seconds), for the report
+    full_model : the same scene with every sphere in contact (build.full_sphere_model):
+         frame-0 overlaps are taken from both, since surface spheres alone do not see
+         a body placed wholly inside another
     """
     d = model.diameter
     n = model.n_bodies
@@ -569,6 +573,10 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
     fastest, closing, impact = expected_speeds(model)
     travel = closing * step / d
     overlap, ob = frame0_overlap(model)
+    if full_model is not None:          # every sphere, not only the contact spheres
+        o2, b2 = frame0_overlap(full_model)
+        if o2 > overlap:
+            overlap, ob = o2, b2
     if dt_setting is None:
         setting = "given" if dt is not None else "model"
     else:
@@ -701,4 +709,7 @@ def analyze_scene(path, cache=None) -> StabilityReport:
         model = build_model(scene, cache=cache, overrides=Overrides(dt="auto"))
         return analyze(model, dt=float(user_dt), dt_setting=user_dt, refused=str(exc),
                        scene=str(path))
-    return analyze(model, dt_setting=user_dt, scene=str(path))
+    from .build import full_sphere_model
+
+    return analyze(model, dt_setting=user_dt, scene=str(path),
+                   full_model=full_sphere_model(scene, model, cache=cache))

@@ -281,3 +281,56 @@ def test_build_model_applies_contact_layers(tmp_path):
     np.testing.assert_array_equal(default.body_mass, every.body_mass)
     np.testing.assert_array_equal(default.body_inv_inertia, every.body_inv_inertia)
     assert default.dt == every.dt
+
+
+INSIDE = """
+[output]
+duration = 0.05
+[simulation]
+resolution = 2
+[shapes.crate]
+builtin = "box"
+size = [0.1, 0.1, 0.1]
+[shapes.pebble]
+builtin = "box"
+size = [0.02, 0.02, 0.02]
+[[bodies]]
+name = "crate"
+shape = "crate"
+layout = "single"
+position = [0.0, 0.0, 0.06]
+[[bodies]]
+name = "pebble"
+shape = "pebble"
+layout = "single"
+position = [0.0, 0.0, 0.06]
+[[colliders]]
+type = "plane"
+"""
+
+
+def test_a_body_inside_another_at_frame_0_is_seen_with_surface_spheres(tmp_path):
+    # A 2×2×2 pebble at the centre of a 10×10×10 crate (d = 1 cm) touches only the
+    # crate's buried spheres, which surface spheres leave out: the contact spheres
+    # alone see no overlap, so the frame-0 checks also look with every sphere
+    # (build.full_sphere_model). The pebble's spheres sit on the crate's lattice
+    # points: an overlap of a whole diameter, so check reports an error and bake
+    # refuses without --force.
+    from dempipe import stability as st
+    from dempipe.bake import bake
+    from dempipe.build import build_model, initial_overlap, initial_overlap_all_spheres
+    from dempipe.errors import StabilityError
+
+    path = tmp_path / "inside.toml"
+    path.write_text(INSIDE)
+    scene = sc.load_scene(path)
+    model = build_model(scene)
+    assert model.contact_layers == 1
+    assert initial_overlap(model)[0] == 0.0                     # the blind spot
+    overlap, body = initial_overlap_all_spheres(scene, model)
+    assert overlap > 0.9 and body >= 0
+    report = st.analyze_scene(path)
+    codes = {f.code: f.level for f in report.findings}
+    assert codes.get("frame0-overlap") == "error" and not report.ok
+    with pytest.raises(StabilityError, match="overlaps another body"):
+        bake(path, tmp_path / "out.usda")
