@@ -264,15 +264,17 @@ def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz,
 # Contact history (static friction): each sphere remembers its own contacts
 # ---------------------------------------------------------------------------
 
-def history_find(contact_partner, i, code):
-    """Slot of sphere i's remembered contact with partner ``code`` (-1: none).
+def history_recall(contact_partner, contact_spring, i, code):
+    """(slot, sx, sy, sz): where sphere i remembers its contact with partner
+    ``code`` and that contact's tangential stretch [m]; (-1, 0, 0, 0) for a new
+    contact, which starts unstretched.
 
     contact_partner[i, h] holds 2 code + parity (see State), 0 when empty.
     """
     for h in range(contact_partner.shape[1]):
         if (contact_partner[i, h] >> 1) == code:
-            return h
-    return -1
+            return h, contact_spring[i, h, 0], contact_spring[i, h, 1], contact_spring[i, h, 2]
+    return -1, 0.0, 0.0, 0.0
 
 
 def history_store(contact_partner, contact_spring, i, slot, code, parity, sx, sy, sz):

@@ -29,7 +29,7 @@ FORMULAS = (
     "sphere_pair_force",
     "sphere_wall_force",
     "body_step",
-    "history_find",
+    "history_recall",
     "history_store",
     "rest_steps",
 )

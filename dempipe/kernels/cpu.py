@@ -27,7 +27,7 @@ sphere_kinematics = F.sphere_kinematics
 sphere_pair_force = F.sphere_pair_force
 sphere_wall_force = F.sphere_wall_force
 body_step = F.body_step
-history_find = F.history_find
+history_recall = F.history_recall
 history_store = F.history_store
 rest_steps = F.rest_steps
 
@@ -338,15 +338,8 @@ def sphere_contacts(s0, s1, diameter, inv_d, grid, bucket_start, sorted_idx, sor
                         if FRICTION and friction:
                             mu = pair_mu[mi, mj]
                             code = sorted_idx[t] + 1
-                            slot = history_find(contact_partner, i, code)
-                            if slot >= 0:
-                                sx = contact_spring[i, slot, 0]
-                                sy = contact_spring[i, slot, 1]
-                                sz = contact_spring[i, slot, 2]
-                            else:
-                                sx = 0.0
-                                sy = 0.0
-                                sz = 0.0
+                            slot, sx, sy, sz = history_recall(contact_partner, contact_spring,
+                                                              i, code)
                         else:
                             mu = 0.0
                             sx = 0.0
@@ -394,15 +387,7 @@ def sphere_contacts(s0, s1, diameter, inv_d, grid, bucket_start, sorted_idx, sor
             if FRICTION and friction:
                 mu = pair_mu[mi, mj]
                 code = n_spheres + w + 1
-                slot = history_find(contact_partner, i, code)
-                if slot >= 0:
-                    sx = contact_spring[i, slot, 0]
-                    sy = contact_spring[i, slot, 1]
-                    sz = contact_spring[i, slot, 2]
-                else:
-                    sx = 0.0
-                    sy = 0.0
-                    sz = 0.0
+                slot, sx, sy, sz = history_recall(contact_partner, contact_spring, i, code)
             else:
                 mu = 0.0
                 sx = 0.0

@@ -49,7 +49,7 @@ sphere_kinematics = F.sphere_kinematics
 sphere_pair_force = F.sphere_pair_force
 sphere_wall_force = F.sphere_wall_force
 body_step = F.body_step
-history_find = F.history_find
+history_recall = F.history_recall
 history_store = F.history_store
 rest_steps = F.rest_steps
 
@@ -411,11 +411,7 @@ def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted
                     mu = 0.0
                     if friction:
                         mu = pair_mu[mi, mj]
-                        slot = history_find(contact_partner, i, code)
-                        if slot >= 0:
-                            sx = contact_spring[i, slot, 0]
-                            sy = contact_spring[i, slot, 1]
-                            sz = contact_spring[i, slot, 2]
+                        slot, sx, sy, sz = history_recall(contact_partner, contact_spring, i, code)
                     (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_pair_force(
                         rx, ry, rz, dist, diameter,
                         sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
@@ -456,11 +452,7 @@ def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted
         mu = 0.0
         if friction:
             mu = pair_mu[mi, mj]
-            slot = history_find(contact_partner, i, code)
-            if slot >= 0:
-                sx = contact_spring[i, slot, 0]
-                sy = contact_spring[i, slot, 1]
-                sz = contact_spring[i, slot, 2]
+            slot, sx, sy, sz = history_recall(contact_partner, contact_spring, i, code)
         (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(
             -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
             k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
