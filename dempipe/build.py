@@ -176,7 +176,10 @@ def full_sphere_model(scene, model: Model, *, cache=None) -> Model | None:
     """
     if not getattr(model, "contact_layers", 0):
         return None
-    return build_model(scene, cache=cache, overrides=Overrides(contact_layers=0), force=True)
+    # the model's own step (it divides a frame exactly): the same dt whatever the
+    # scene asked for, so a dt that was refused and replaced by "auto" stays replaced
+    return build_model(scene, cache=cache,
+                       overrides=Overrides(contact_layers=0, dt=float(model.dt)), force=True)
 
 
 def initial_overlap_all_spheres(scene, model: Model, *, cache=None):

@@ -694,7 +694,7 @@ def analyze_scene(path, cache=None) -> StabilityReport:
     with dt = "auto" (the sphere sets come from the cache) and the refusal becomes
     an error finding. Scene and mesh errors propagate (DempipeError).
     """
-    from .build import Overrides, build_model
+    from .build import Overrides, build_model, full_sphere_model
     from .cache import SphereCache
     from .scene import load_scene
 
@@ -708,8 +708,6 @@ def analyze_scene(path, cache=None) -> StabilityReport:
             raise
         model = build_model(scene, cache=cache, overrides=Overrides(dt="auto"))
         return analyze(model, dt=float(user_dt), dt_setting=user_dt, refused=str(exc),
-                       scene=str(path))
-    from .build import full_sphere_model
-
+                       scene=str(path), full_model=full_sphere_model(scene, model, cache=cache))
     return analyze(model, dt_setting=user_dt, scene=str(path),
                    full_model=full_sphere_model(scene, model, cache=cache))
