@@ -83,58 +83,9 @@ WALL_EXTRA_HEIGHT = 2.0
 
 LATTICE = 32 * 32 * 16
 
-# examples/chess.toml, with the piece count as a parameter.
-CHESS = """
-[output]
-fps = 24
-duration = {duration}
-up_axis = "Z"
-
-[simulation]
-resolution = 6
-stiffness_target_overlap = 0.05
-seed = 2007
-
-[materials.boxwood]
-density = 900.0
-restitution = 0.35
-friction = 0.5
-
-[materials.felt]
-density = 500.0
-restitution = 0.2
-friction = 0.7
-
-[shapes.pawn]
-builtin = "pawn"
-[shapes.rook]
-builtin = "rook"
-[shapes.knight]
-builtin = "knight"
-[shapes.bishop]
-builtin = "bishop"
-[shapes.queen]
-builtin = "queen"
-[shapes.king]
-builtin = "king"
-
-[[bodies]]
-name = "pieces"
-shape = ["rook", "knight", "bishop", "queen", "king", "bishop", "knight", "rook",
-         "pawn", "pawn", "pawn", "pawn", "pawn", "pawn", "pawn", "pawn"]
-material = "boxwood"
-count = {count}
-layout = "grid"
-origin = [-0.775, -0.775, 0.05]
-dims = [32, 32, 16]
-spacing = [0.05, 0.05, 0.12]
-
-[[colliders]]
-type = "box"
-min = [-0.82, -0.82, 0.0]
-max = [0.82, 0.82, 0.4]
-material = "felt"
-"""
+#: The scene: the example itself, with its piece count set per run.
+CHESS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "examples",
+                     "chess.toml")
 
 
 def log(msg: str) -> None:
@@ -306,14 +257,18 @@ def judge(pieces: Pieces, box, x, q, v, w, frame: str, pen_end: float) -> dict:
 
 
 def dempipe_model(count: int, duration: float, cache):
-    from dempipe.build import build_model
-    from dempipe.scene import load_scene
+    """examples/chess.toml with ``count`` pieces, ``duration`` seconds long."""
+    import re
 
-    with tempfile.TemporaryDirectory() as tmp:
-        path = os.path.join(tmp, f"chess_{count}.toml")
-        with open(path, "w") as f:
-            f.write(CHESS.format(count=count, duration=duration))
-        return build_model(load_scene(path), cache=cache)
+    from dempipe.build import Overrides, build_model
+    from dempipe.scene import parse_scene
+
+    with open(CHESS) as f:
+        text, n = re.subn(r"(?m)^count = \d+", f"count = {count}", f.read())
+    if n != 1:
+        raise SystemExit(f"vs_bullet: {CHESS} has no single 'count = N' line to set")
+    return build_model(parse_scene(text, CHESS), cache=cache,
+                       overrides=Overrides(duration=duration))
 
 
 def run_dempipe(model, pieces: Pieces, threads: int) -> dict:
