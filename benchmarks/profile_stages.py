@@ -6,8 +6,10 @@
 The backend's own compiled stage functions (the ones ``run_steps`` calls in
 a loop) are called one at a time from Python on a scene, ``--steps`` times
 each, and timed with perf_counter. Stage order and arguments are exactly
-``kernels.cpu.run_steps``'s, so the state advances as in a bake. Printed per
-scene: microseconds per step of each stage, its share of the sum, and the sum
+``kernels.cpu.run_steps``'s (the rebuild stages only when run_steps would rebuild
+the neighbour lists), so the state advances as in a bake. Printed per
+scene: microseconds per step of each stage averaged over all steps (a rebuild
+stage's figure is its cost times how often it runs), its share of the sum, and the sum
 against ``run_steps`` itself timed over the same number of steps in the same run
 (the baseline: the difference is the cost of calling from Python and of the
 parallel regions' start-up).
@@ -35,65 +37,101 @@ sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 from cpu_bench import dense_pile  # noqa: E402
 
 from dempipe.kernels import cpu  # noqa: E402
+from dempipe.kernels.neighbours import cell_size  # noqa: E402
 from dempipe.simulator import Simulator  # noqa: E402
 
-STAGES = ("1 body velocities (eq. 5-6)", "1 sphere positions + cell keys (eq. 19-21)",
-          "2 grid: counting sort (serial)", "2 grid: gather into sorted order",
-          "3-4 neighbour search + contact forces", "5-8 body momenta, positions, quaternions")
+STAGES = ("1 body velocities (eq. 5-6)", "1 sphere positions into sorted slots (eq. 19-21)",
+          "2 rebuild: sphere positions + cell keys", "2 rebuild: counting sort (serial)",
+          "2 rebuild: gather into sorted order", "3 rebuild: neighbour lists (27 cells)",
+          "3-4 contact forces over the lists", "5-8 body momenta, positions, quaternions")
 
 
-def stage_times(sim, state, steps: int) -> np.ndarray:
-    """Seconds per step of each stage, called one by one as run_steps does."""
+def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
+    """(seconds per step of each stage, rebuilds), called one by one as run_steps does:
+    the rebuild stages only at the first step and when a sphere has moved SKIN/2 d."""
     b, m = sim.backend, sim.model
     k = b.k
     b.fit_grid(state)
     partner, spring = b.contacts(state)
     rest = b.rest(state)
-    inv_d = 1.0 / m.diameter
+    inv_cell = 1.0 / cell_size(m.diameter)
     g = m.gravity
+    half = 0.5 * cpu.SKIN * m.diameter
     t = np.zeros(len(STAGES))
+    rebuilds = 0
     for s in range(state.step, state.step + steps):
-        calls = (
+        def sorted_positions():
+            return k.stage_spheres_sorted(b.sorted_idx, m.sphere_body, m.sphere_offset,
+                                          state.body_x, state.body_q, b.body_v, b.body_w,
+                                          b.built_x, half * half, b.sorted_x, b.sorted_v,
+                                          b.sphere_r)
+        every = (
             lambda: k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
                                             m.body_inv_mass, m.body_inv_inertia, b.body_v,
                                             b.body_w),
+            sorted_positions,
+        )
+        rebuild = (
             lambda: k.stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q,
-                                    b.body_v, b.body_w, inv_d, b.grid, b.sphere_x, b.sphere_v,
+                                    b.body_v, b.body_w, inv_cell, b.grid, b.sphere_x, b.sphere_v,
                                     b.sphere_r, b.sphere_key, b.sphere_hash),
             lambda: cpu.stage_grid_sort(b.sphere_hash, b.grid, b.bucket_start, b.bucket_fill,
                                         b.sorted_idx),
             lambda: cpu.stage_grid_gather(b.sorted_idx, b.sphere_x, b.sphere_v, b.sphere_key,
                                           m.sphere_body, b.sorted_x, b.sorted_v, b.sorted_key,
                                           b.sorted_body),
-            lambda: k.stage_contacts(m.diameter, inv_d, b.grid, b.bucket_start, b.sorted_idx,
-                                     b.sorted_x, b.sorted_v, b.sorted_key, b.sorted_body,
-                                     b.body_w, m.body_inv_mass, m.body_material, m.pair_k,
-                                     m.pair_zeta, m.pair_mu, m.kt_ratio, m.ks_ratio,
-                                     b.features.friction, m.dt, s & 1, partner, spring,
-                                     m.sleep_steps, rest, b.body_wake, m.wall_normal,
-                                     m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth,
-                                     m.wall_material, b.sphere_f, b.sphere_t, b.sphere_overlap),
+            lambda: cpu.stage_neighbours(m.diameter, b.grid, b.bucket_start, b.sorted_idx,
+                                         b.sorted_x, b.sorted_key, b.sorted_body,
+                                         m.body_inv_mass, b.built_x, b.nbr, b.nbr_n),
+        )
+        after = (
+            lambda: k.stage_contacts(m.diameter, b.nbr, b.nbr_n, b.sorted_idx, b.sorted_x,
+                                     b.sorted_v, b.sorted_body, b.body_w, m.body_inv_mass,
+                                     m.body_material, m.pair_k, m.pair_zeta, m.pair_mu,
+                                     m.kt_ratio, m.ks_ratio, b.features.friction, m.dt, s & 1,
+                                     partner, spring, m.sleep_steps, rest, b.body_wake,
+                                     m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi,
+                                     m.wall_depth, m.wall_material, b.sphere_f, b.sphere_t,
+                                     b.sphere_overlap),
             lambda: k.stage_bodies(m.n_bodies, m.dt, g[0], g[1], g[2], m.body_sphere_start,
                                    b.sphere_f, b.sphere_t, b.sphere_r, m.body_mass,
                                    m.body_inv_mass, m.body_inv_inertia, state.body_x,
                                    state.body_q, state.body_P, state.body_L, m.sleep_steps,
                                    m.sleep_linear, m.sleep_angular, rest, b.body_wake),
         )
-        for i, call in enumerate(calls):
+        t0 = time.perf_counter()
+        every[0]()
+        t[0] += time.perf_counter() - t0
+        moved = 1
+        if s > state.step:
+            t0 = time.perf_counter()
+            moved = every[1]()
+            t[1] += time.perf_counter() - t0
+        if moved:
+            rebuilds += 1
+            for i, call in enumerate(rebuild):
+                t0 = time.perf_counter()
+                over = call()
+                t[2 + i] += time.perf_counter() - t0
+            while over:          # a list overflowed: grow, as CpuBackend.step does
+                b.grow_neighbours()
+                over = rebuild[-1]()
+        for i, call in enumerate(after):
             t0 = time.perf_counter()
             call()
-            t[i] += time.perf_counter() - t0
+            t[6 + i] += time.perf_counter() - t0
     state.step += steps
     state.time = state.step * m.dt
-    return t / steps
+    return t / steps, rebuilds
 
 
 def profile(name: str, model, warm_steps: int, steps: int) -> None:
+    m = model
     sim = Simulator(model, device="cpu")
     state = model.initial_state()
     sim.backend.step(state, warm_steps)                 # compile, reach contacts
     stage_times(sim, state, 2)                          # compile the per-stage entry points
-    per = stage_times(sim, state, steps)
+    per, rebuilds = stage_times(sim, state, steps)
     t0 = time.perf_counter()
     sim.backend.step(state, steps)
     whole = (time.perf_counter() - t0) / steps
@@ -108,9 +146,16 @@ def profile(name: str, model, warm_steps: int, steps: int) -> None:
     print(f"| run_steps (baseline, same steps) | {whole * 1e6:.0f} | {whole / total:.2f}x of "
           f"the sum | {whole / model.n_spheres * 1e9:.1f} |")
     print(f"\n{model.n_spheres / whole / 1e6:.2f} M sphere-steps/s in run_steps")
+    print(f"neighbour lists rebuilt at {rebuilds} of {steps} steps (skin {cpu.SKIN} d)")
     cand, near = candidates(sim, state)
-    print(f"neighbour search: {cand:.1f} candidates visited per sphere, {near:.1f} of them "
-          f"in its 27 cells (the rest share aliased buckets)")
+    b = sim.backend
+    moving = m.body_inv_mass[b.sorted_body] > 0
+    n_list = b.nbr_n[moving].mean() if moving.any() else 0.0
+    touching = np.count_nonzero(b.sphere_overlap > 0)
+    print(f"neighbour search at a rebuild: {cand:.1f} candidates visited per sphere, "
+          f"{near:.1f} of them in its 27 cells (the rest share aliased buckets); "
+          f"{n_list:.1f} per list (spheres of other bodies within {1 + cpu.SKIN:g} d); "
+          f"{touching / m.n_spheres:.0%} of the spheres touch something")
 
 
 def candidates(sim, state, sample: int = 2000) -> tuple[float, float]:
@@ -121,7 +166,7 @@ def candidates(sim, state, sample: int = 2000) -> tuple[float, float]:
     b.probe(state)
     g = b.grid
     counts = np.diff(b.bucket_start[: g[5] + 1])
-    c = np.floor(b.sphere_x / sim.model.diameter).astype(np.int64)
+    c = np.floor(b.sphere_x / cell_size(sim.model.diameter)).astype(np.int64)
     n = min(sample, c.shape[0])
     visited = near = 0
     for i in range(n):

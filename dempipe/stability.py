@@ -30,6 +30,7 @@ import numpy as np
 
 from . import materials as mat
 from .errors import StabilityError
+from .kernels.neighbours import NEIGHBOURS
 from .state import CONTACT_SLOTS
 from .model import Model, quat_to_matrix, rotational_mass_factor
 
@@ -291,6 +292,8 @@ def memory_estimate(model: Model) -> dict:
                + ns * i4                               # sorted_idx
                + 2 * ns * 3 * f8                       # sorted_x, sorted_v
                + ns * i8 + ns * i4                     # sorted_key, sorted_body
+               + ns * 3 * f8                           # built_x (neighbour lists)
+               + ns * NEIGHBOURS * i4 + ns * i4        # nbr, nbr_n (to start with)
                + 2 * ns * 3 * f8                       # sphere_f, sphere_t
                + ns * f8                               # sphere_overlap
                + (2 * 3 * f8 if model.n_static else 0)  # static_lo, static_hi
@@ -299,6 +302,7 @@ def memory_estimate(model: Model) -> dict:
     state = nb * (3 + 4 + 3 + 3) * f8 + nb * i4        # x, q, P, L; body_rest
     if model.features.friction:   # contact histories (static friction), see State
         state += ns * CONTACT_SLOTS * (i4 + 3 * f8)
+        scratch += ns * CONTACT_SLOTS * (i4 + 3 * f8)   # the same in sorted-slot order
     frames = model.n_frames * (i8 + f8 + model.n_bodies * (3 + 4 + 3 + 3) * f8)
     return dict(model=int(model_bytes), cpu_scratch=int(scratch), state=int(state),
                 frames=int(frames), total=int(model_bytes + scratch + state + frames))

@@ -37,6 +37,8 @@ ROOT = HERE.parent
 D = 0.01
 #: Relative agreement of CPU and CUDA state (of the largest entry of each array).
 PARITY_RTOL = 1e-9
+#: Steps of the falling-box case in one call (the simulator is slow: keep it short).
+FALL_STEPS = 24
 
 
 def _env(sim: bool) -> dict:
@@ -108,6 +110,30 @@ def pile_model(n_side=12, layers=4, friction=0.4):
     ext = n_side * sp
     b.add_box([-0.03, -0.03, 0], [ext + 0.01, ext + 0.01, 1.0], material=mats[0])
     return b.finalize(fps=60, n_frames=4)
+
+
+def falling_model(v=1.5):
+    """A 2×2 box falling (and spinning) onto a 4×4 slab resting on a plane, each of
+    its spheres over four of the slab's: no neighbours at the first build, four
+    per sphere once within (1 + SKIN) d. Soft (k = 4000 N/m, so a coarse dt): it
+    moves SKIN/2 d every few steps and hits the slab after about 16 steps."""
+    from bodies import box_set
+    from dempipe.materials import Material
+    from dempipe.model import ModelBuilder
+
+    b = ModelBuilder(D)
+    ssa, ma = box_set(4, 4, 1, D)
+    ssb, mb = box_set(2, 2, 1, D)
+    slab, box = b.add_shape("slab", ma, ssa), b.add_shape("box", mb, ssb)
+    m1 = b.add_material(Material("m1", density=800, restitution=0.4, friction=0.4,
+                                 stiffness=4000.0))
+    m2 = b.add_material(Material("m2", density=2000, restitution=0.7, friction=0.2,
+                                 stiffness=4000.0))
+    b.add_bodies("slab", slab, m1, [[0, 0, 0.5 * D]])
+    b.add_bodies("box", box, m2, [[0.5 * D, 0.5 * D, 1.5 * D]], velocities=[[0, 0, -v]],
+                 angular_velocities=[[0, 0, 2.0]])
+    b.add_plane([0, 0, 0], [0, 0, 1], m1)
+    return b.finalize(fps=60, n_frames=2)
 
 
 def _rel(a, b) -> float:
@@ -222,6 +248,65 @@ def _sim_main() -> dict:
     out["run_to_run_identical"] = all(np.array_equal(getattr(r1, n), getattr(r2, n))
                                       for n in BODY)
 
+    # neighbour lists that overflow at a call's first step: lists shrunk to one
+    # entry; the steps are relaunched with grown lists, bit for bit the CPU's
+    def one_entry(backend):
+        backend.d["nbr"] = cuda.to_device(np.zeros((backend.model.n_spheres, 1), dtype=np.int32))
+        return backend
+
+    g, h = st0.copy(), st0.copy()
+    kcpu.CpuBackend(model).step(g, 3)
+    small = one_entry(kcu.CudaBackend(model))
+    small.step(h, 3)
+    out["overflow_first_step"] = {
+        "identical": all(np.array_equal(getattr(h, n), getattr(g, n)) for n in BODY),
+        "redos": small.redos, "cap": int(small.d["nbr"].shape[1]),
+        "longest": int(small.nbr_n.max()),
+        "histories_identical": True,
+    }
+    if model.features.friction:          # nothing changed from the overflowing step on
+        small.download(h, contacts=True)
+        out["overflow_first_step"]["histories_identical"] = bool(
+            np.array_equal(h.contact_partner, g.contact_partner)
+            and np.array_equal(h.contact_spring, g.contact_spring))
+    small_probe = one_entry(kcu.CudaBackend(model))
+    small_probe.probe(st0)
+    cpu_probe = kcpu.CpuBackend(model)
+    cpu_probe.probe(st0)
+    out["overflow_probe"] = {
+        "identical": all(bool(np.array_equal(getattr(small_probe, n), getattr(cpu_probe, n)))
+                         for n in ("sphere_f", "sphere_t", "sphere_overlap")),
+        "cap": int(small_probe.d["nbr"].shape[1]), "longest": int(small_probe.nbr_n.max())}
+
+    # a falling box: no neighbours at the first build, so the lists overflow at a
+    # rebuild in the middle of the call (one entry each), and several rebuilds in
+    # one call as it falls; contact with the slab before the end
+    fall = falling_model()
+    f_cpu_be = kcpu.CpuBackend(fall)
+    f_cpu_be.probe(fall.initial_state())
+    first_longest = int(f_cpu_be.nbr_n.max())
+    p, q = fall.initial_state(), fall.initial_state()
+    f_cu_be = one_entry(kcu.CudaBackend(fall))
+    f_cpu_be.step(p, FALL_STEPS)
+    f_cu_be.step(q, FALL_STEPS)
+    out["falling"] = {
+        "identical": all(np.array_equal(getattr(q, n), getattr(p, n)) for n in BODY),
+        "rel": {n: _rel(getattr(q, n), getattr(p, n)) for n in BODY},
+        "first_longest": first_longest, "longest": int(f_cu_be.nbr_n.max()),
+        "rebuilds": f_cu_be.rebuilds, "redos": f_cu_be.redos,
+        "cap": int(f_cu_be.d["nbr"].shape[1]),
+        "box_drop": float((fall.initial_x[1, 2] - p.body_x[1, 2]) / D),
+        "box_force": float(np.abs(f_cpu_be.sphere_f[16:20]).max()),
+        "sphere_x_identical": bool(np.array_equal(f_cu_be.sphere_x, f_cpu_be.sphere_x)),
+        "sphere_f_identical": bool(np.array_equal(f_cu_be.sphere_f, f_cpu_be.sphere_f)),
+    }
+    # and on from there (the lists are long enough now: no redo)
+    f_cpu_be.step(p, 6)
+    f_cu_be.step(q, 6)
+    out["falling"]["more_identical"] = all(np.array_equal(getattr(q, n), getattr(p, n))
+                                           for n in BODY)
+    out["falling"]["redos_after"] = f_cu_be.redos
+
     # the whole Simulator path on device="cuda": a few steps per frame
     fast = contact_model(fps=1.0 / (4 * model.dt), n_frames=4)
     f_cpu = Simulator(fast, device="cpu")
@@ -297,6 +382,28 @@ def test_sim_is_bit_identical_to_cpu(sim):
     assert all(sim["probe"]["identical"].values()), sim["probe"]["identical"]
     assert sim["step1"]["identical"] and sim["step20"]["identical"]
     assert sim["new_state_identical"] and sim["simulator"]["identical"]
+
+
+def test_sim_list_overflow_relaunches_bit_identical(sim):
+    # Lists shrunk to one entry: the first build overflows, nothing of the State
+    # (bodies, rest counts, histories) changes from there, and the steps are
+    # relaunched from that step with lists grown to the longest.
+    o = sim["overflow_first_step"]
+    assert o["redos"] == 1 and o["cap"] >= o["longest"] > 1
+    assert o["identical"] and o["histories_identical"]
+    p = sim["overflow_probe"]
+    assert p["cap"] >= p["longest"] > 1 and p["identical"]
+
+
+def test_sim_rebuilds_and_overflow_in_the_middle_of_a_call(sim):
+    f = sim["falling"]
+    assert f["first_longest"] == 0                  # nothing to overflow at the first build
+    assert f["redos"] == 1 and f["redos_after"] == 1  # so it overflowed mid-call; once
+    assert f["cap"] >= f["longest"] > 1
+    assert 2 <= f["rebuilds"] < FALL_STEPS          # rebuilt mid-call, not at every step
+    assert f["box_drop"] > 0.2 and f["box_force"] > 0  # it fell and hit the slab
+    assert f["identical"] and f["more_identical"], f["rel"]
+    assert f["sphere_x_identical"] and f["sphere_f_identical"]
 
 
 def test_sim_run_to_run_identical(sim):

@@ -89,7 +89,8 @@ def invalidate_stale_cache(module_file: str) -> None:
     module's entries when it differs.
     """
     here = os.path.dirname(os.path.abspath(module_file))
-    sources = [physics.__file__, __file__, module_file]
+    sources = [physics.__file__, __file__, module_file,
+               os.path.join(os.path.dirname(__file__), "neighbours.py")]
     digest = hashlib.sha256(b"".join(open(f, "rb").read() for f in sources)).hexdigest()[:16]
     stem = os.path.splitext(os.path.basename(module_file))[0]
     folders = [os.path.join(here, "__pycache__")]

@@ -18,6 +18,8 @@ import numpy as np
 from numba import prange
 
 from .compile import compile_formulas, invalidate_stale_cache, specialize
+from ..state import CONTACT_SLOTS
+from .neighbours import NEIGHBOURS, SKIN, cell_size
 
 invalidate_stale_cache(__file__)
 F = compile_formulas(numba.njit(inline="always", cache=False))
@@ -32,7 +34,8 @@ history_store = F.history_store
 rest_steps = F.rest_steps
 
 # Cell coordinates are packed into one int64 key, 21 bits per axis, so the world
-# spans ±2^20 cells per axis (±10 km at 1 cm spheres, ±1 km at 1 mm). Beyond that
+# spans ±2^20 cells per axis (cells of (1 + SKIN) d: ±12 km at 1 cm spheres,
+# ±1.2 km at 1 mm; stability.FAR_CELLS counts in diameters, conservatively). Beyond that
 # a sphere is clamped into the outermost cell but one: still correct (distances
 # are exact), only slow; `dempipe check` warns (stability.py, "far-from-origin").
 _CELL_BITS = 21
@@ -47,12 +50,12 @@ _CELL_MAX = (1 << _CELL_BITS) - 1
 
 
 @numba.njit(inline="always", cache=True)
-def cell_coord(x, inv_d):
+def cell_coord(x, inv_cell):
     # Clamped one cell inside the key range, so that a row's neighbours c ± 1
     # are still valid keys: a sphere beyond ±2^20 cells lands in the outermost
     # cell with everything else out there, found by the neighbour search (slow
     # but correct), not lost through a key overflowing into the next axis.
-    c = np.int64(np.floor(x * inv_d)) + _CELL_OFF
+    c = np.int64(np.floor(x * inv_cell)) + _CELL_OFF
     if c < 1:
         c = 1
     elif c > _CELL_MAX - 1:
@@ -162,27 +165,29 @@ def stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_
         body_w[b, 2] = wz
 
 
-def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d, grid,
+def sphere_state(i, sphere_body, sphere_offset, body_x, body_q, body_v, body_w):
+    """Stage 1 for sphere i (eq. 19-21): (x, v, R r') [m, m/s, m], world frame."""
+    b = sphere_body[i]
+    q = body_q[b]
+    if ROTATION:
+        return sphere_kinematics(
+            body_x[b, 0], body_x[b, 1], body_x[b, 2], q[0], q[1], q[2], q[3],
+            body_v[b, 0], body_v[b, 1], body_v[b, 2],
+            body_w[b, 0], body_w[b, 1], body_w[b, 2],
+            sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2])
+    # W = 0: sphere_kinematics with the W × r' term dropped
+    rx, ry, rz = quat_rotate(q[0], q[1], q[2], q[3], sphere_offset[i, 0],
+                             sphere_offset[i, 1], sphere_offset[i, 2])
+    return (body_x[b, 0] + rx, body_x[b, 1] + ry, body_x[b, 2] + rz,
+            body_v[b, 0], body_v[b, 1], body_v[b, 2], rx, ry, rz)
+
+
+def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_cell, grid,
                   sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash):
-    """Stage 1 (eq. 19-21) and each sphere's grid cell (stage 2's input)."""
+    """Stage 1 (eq. 19-21) in sphere order, and each sphere's grid cell (stage 2's input)."""
     for i in prange(sphere_body.shape[0]):
-        b = sphere_body[i]
-        q = body_q[b]
-        if ROTATION:
-            x, y, z, vx, vy, vz, rx, ry, rz = sphere_kinematics(
-                body_x[b, 0], body_x[b, 1], body_x[b, 2], q[0], q[1], q[2], q[3],
-                body_v[b, 0], body_v[b, 1], body_v[b, 2],
-                body_w[b, 0], body_w[b, 1], body_w[b, 2],
-                sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2])
-        else:   # W = 0: sphere_kinematics with the W × r' term dropped
-            rx, ry, rz = quat_rotate(q[0], q[1], q[2], q[3], sphere_offset[i, 0],
-                                     sphere_offset[i, 1], sphere_offset[i, 2])
-            x = body_x[b, 0] + rx
-            y = body_x[b, 1] + ry
-            z = body_x[b, 2] + rz
-            vx = body_v[b, 0]
-            vy = body_v[b, 1]
-            vz = body_v[b, 2]
+        x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset, body_x,
+                                                       body_q, body_v, body_w)
         sphere_x[i, 0] = x
         sphere_x[i, 1] = y
         sphere_x[i, 2] = z
@@ -192,11 +197,38 @@ def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, in
         sphere_r[i, 0] = rx
         sphere_r[i, 1] = ry
         sphere_r[i, 2] = rz
-        cx = cell_coord(x, inv_d)
-        cy = cell_coord(y, inv_d)
-        cz = cell_coord(z, inv_d)
+        cx = cell_coord(x, inv_cell)
+        cy = cell_coord(y, inv_cell)
+        cz = cell_coord(z, inv_cell)
         sphere_key[i] = cell_key(cx, cy, cz)
         sphere_hash[i] = cell_hash(cx, cy, cz, grid)
+
+
+def stage_spheres_sorted(sorted_idx, sphere_body, sphere_offset, body_x, body_q, body_v,
+                         body_w, built_x, rebuild_at2, sorted_x, sorted_v, sphere_r):
+    """Stage 1 (eq. 19-21) between rebuilds: straight into the sorted slots of the
+    last rebuild (no grid, no sort). Returns how many spheres have moved
+    sqrt(rebuild_at2) [m] or more since (then the lists must be rebuilt)."""
+    moved = 0
+    for s in prange(sorted_idx.shape[0]):
+        i = sorted_idx[s]
+        x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset, body_x,
+                                                       body_q, body_v, body_w)
+        sorted_x[s, 0] = x
+        sorted_x[s, 1] = y
+        sorted_x[s, 2] = z
+        sorted_v[s, 0] = vx
+        sorted_v[s, 1] = vy
+        sorted_v[s, 2] = vz
+        sphere_r[i, 0] = rx
+        sphere_r[i, 1] = ry
+        sphere_r[i, 2] = rz
+        ex = x - built_x[s, 0]
+        ey = y - built_x[s, 1]
+        ez = z - built_x[s, 2]
+        if ex * ex + ey * ey + ez * ez >= rebuild_at2:
+            moved += 1
+    return moved
 
 
 @numba.njit(cache=True)
@@ -238,18 +270,93 @@ def stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
         sorted_body[s] = sphere_body[i]
 
 
-def sphere_contacts(s0, s1, diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x,
-                    sorted_v, sorted_key, sorted_body, body_w, body_inv_mass, body_material,
+@numba.njit(cache=True)
+def sphere_neighbours(s0, s1, cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x,
+                      sorted_key, sorted_body, body_inv_mass, built_x, nbr, nbr_n):
+    """Stages 2-3 for sorted slots s0 .. s1-1: each slot's neighbour list.
+
+    nbr[s, :nbr_n[s]] are the slots of the spheres of other bodies closer than
+    sqrt(cutoff2) [m], found over the 27 cells, in the order of their sphere
+    index (so the forces are summed in an order that does not depend on the
+    grid, the slots or when lists are rebuilt). Static spheres get none (they
+    feel nothing). A list that would hold more than nbr.shape[1] keeps its true
+    count in nbr_n and stores what fits; returns how many lists overflowed.
+    Also notes each slot's position at the build (built_x)."""
+    cap = nbr.shape[1]
+    over = 0
+    for s in range(s0, s1):
+        xi = sorted_x[s, 0]
+        yi = sorted_x[s, 1]
+        zi = sorted_x[s, 2]
+        built_x[s, 0] = xi
+        built_x[s, 1] = yi
+        built_x[s, 2] = zi
+        bi = sorted_body[s]
+        n = 0
+        if body_inv_mass[bi] == 0.0:
+            nbr_n[s] = 0
+            continue
+        cx0 = cell_coord(xi, inv_cell)
+        cy0 = cell_coord(yi, inv_cell)
+        cz0 = cell_coord(zi, inv_cell)
+        for dz in range(-1, 2):
+            for dy in range(-1, 2):
+                cy = cy0 + dy
+                cz = cz0 + dz
+                # the three cells (cx0-1..cx0+1, cy, cz): keys in [lo, hi]
+                key_lo = cell_key(cx0 - 1, cy, cz)
+                key_hi = cell_key(cx0 + 1, cy, cz)
+                h_lo = cell_hash(cx0 - 1, cy, cz, grid)
+                h_hi = cell_hash(cx0 + 1, cy, cz, grid)
+                if h_hi == h_lo + 2:        # one contiguous run of buckets
+                    n_runs = 1
+                else:                       # the row wraps round the table
+                    n_runs = 3
+                for run in range(n_runs):
+                    if n_runs == 1:
+                        t0 = bucket_start[h_lo]
+                        t1 = bucket_start[h_hi + 1]
+                    else:
+                        h = cell_hash(cx0 - 1 + run, cy, cz, grid)
+                        t0 = bucket_start[h]
+                        t1 = bucket_start[h + 1]
+                    for t in range(t0, t1):
+                        kt = sorted_key[t]
+                        if kt < key_lo or kt > key_hi:
+                            continue        # another cell sharing the buckets
+                        if sorted_body[t] == bi:
+                            continue        # spheres of one body never collide
+                        rx = sorted_x[t, 0] - xi
+                        ry = sorted_x[t, 1] - yi
+                        rz = sorted_x[t, 2] - zi
+                        if rx * rx + ry * ry + rz * rz >= cutoff2:
+                            continue
+                        if n < cap:         # insert in sphere-index order
+                            it = sorted_idx[t]
+                            p = n
+                            while p > 0 and sorted_idx[nbr[s, p - 1]] > it:
+                                nbr[s, p] = nbr[s, p - 1]
+                                p -= 1
+                            nbr[s, p] = t
+                        n += 1
+        nbr_n[s] = n
+        if n > cap:
+            over += 1
+    return over
+
+
+def sphere_contacts(s0, s1, diameter, nbr, nbr_n, sorted_idx, sorted_x,
+                    sorted_v, sorted_body, body_w, body_inv_mass, body_material,
                     pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
-                    contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
+                    hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                     wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                     sphere_f, sphere_t, sphere_overlap):
     """Stages 3-4 for the spheres in sorted slots s0 .. s1-1 (a chunk of
-    stage_contacts' parallel loop). A function of its own, looping over a chunk:
-    numba's parfor pass cannot take this body inline (it recurses without end),
-    and one call per chunk rather than per sphere lets the compiled loop keep
-    the arrays' pointers and the constants in registers (measured: see
-    docs/performance.md, "Throughput")."""
+    stage_contacts' parallel loop), over their neighbour lists. A function of
+    its own, looping over a chunk: numba's parfor pass cannot take this body
+    inline (it recurses without end), and one call per chunk rather than per
+    sphere lets the compiled loop keep the arrays' pointers and the constants
+    in registers (measured: see docs/performance.md, "Throughput")."""
     d2 = diameter * diameter
     radius = 0.5 * diameter
     n_walls = wall_normal.shape[0]
@@ -288,88 +395,59 @@ def sphere_contacts(s0, s1, diameter, inv_d, grid, bucket_start, sorted_idx, sor
             wxi = body_w[bi, 0]
             wyi = body_w[bi, 1]
             wzi = body_w[bi, 2]
-        cx0 = cell_coord(xi, inv_d)
-        cy0 = cell_coord(yi, inv_d)
-        cz0 = cell_coord(zi, inv_d)
-        for dz in range(-1, 2):
-            for dy in range(-1, 2):
-                cy = cy0 + dy
-                cz = cz0 + dz
-                # the three cells (cx0-1..cx0+1, cy, cz): keys in [lo, hi]
-                key_lo = cell_key(cx0 - 1, cy, cz)
-                key_hi = cell_key(cx0 + 1, cy, cz)
-                h_lo = cell_hash(cx0 - 1, cy, cz, grid)
-                h_hi = cell_hash(cx0 + 1, cy, cz, grid)
-                if h_hi == h_lo + 2:        # one contiguous run of buckets
-                    n_runs = 1
-                else:                       # the row wraps round the table
-                    n_runs = 3
-                for run in range(n_runs):
-                    if n_runs == 1:
-                        t0 = bucket_start[h_lo]
-                        t1 = bucket_start[h_hi + 1]
-                    else:
-                        h = cell_hash(cx0 - 1 + run, cy, cz, grid)
-                        t0 = bucket_start[h]
-                        t1 = bucket_start[h + 1]
-                    for t in range(t0, t1):
-                        kt = sorted_key[t]
-                        if kt < key_lo or kt > key_hi:
-                            continue        # another cell sharing the buckets
-                        bj = sorted_body[t]
-                        if bj == bi:
-                            continue        # spheres of one body never collide
-                        rx = sorted_x[t, 0] - xi
-                        ry = sorted_x[t, 1] - yi
-                        rz = sorted_x[t, 2] - zi
-                        dist2 = rx * rx + ry * ry + rz * rz
-                        if dist2 >= d2:
-                            continue
-                        if SLEEPING and sleep_steps > 0 and body_rest[bj] >= sleep_steps \
-                                and body_rest[bi] == 0:
-                            body_wake[bj] = 1   # a moving body touches a sleeper (the same
-                                                # value from any thread: deterministic)
-                        imj = body_inv_mass[bj]
-                        mj = body_material[bj]
-                        k = pair_k[mi, mj]
-                        root = np.sqrt(k / (imi + imj))
-                        eta = 2.0 * pair_zeta[mi, mj] * root
-                        dist = np.sqrt(dist2)
-                        if FRICTION and friction:
-                            mu = pair_mu[mi, mj]
-                            code = sorted_idx[t] + 1
-                            slot, sx, sy, sz = history_recall(contact_partner, contact_spring,
-                                                              i, code)
-                        else:
-                            mu = 0.0
-                            sx = 0.0
-                            sy = 0.0
-                            sz = 0.0
-                        wsx = wxi
-                        wsy = wyi
-                        wsz = wzi
-                        if ROTATION:
-                            wsx += body_w[bj, 0]
-                            wsy += body_w[bj, 1]
-                            wsz += body_w[bj, 2]
-                        (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_pair_force(
-                            rx, ry, rz, dist, diameter,
-                            sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
-                            wsx, wsy, wsz,
-                            k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
-                        if FRICTION and friction:
-                            history_store(contact_partner, contact_spring, i, slot, code,
-                                          parity, sx, sy, sz)
-                        fx += pfx
-                        fy += pfy
-                        fz += pfz
-                        if ROTATION and FRICTION and mu > 0.0:   # see TORQUE_NOTE
-                            tx += ptx
-                            ty += pty
-                            tz += ptz
-                        ov = diameter - dist
-                        if ov > max_ov:
-                            max_ov = ov
+        for e in range(nbr_n[s]):
+            t = nbr[s, e]
+            rx = sorted_x[t, 0] - xi
+            ry = sorted_x[t, 1] - yi
+            rz = sorted_x[t, 2] - zi
+            dist2 = rx * rx + ry * ry + rz * rz
+            if dist2 >= d2:
+                continue
+            bj = sorted_body[t]
+            if SLEEPING and sleep_steps > 0 and body_rest[bj] >= sleep_steps \
+                    and body_rest[bi] == 0:
+                body_wake[bj] = 1   # a moving body touches a sleeper (the same
+                                    # value from any thread: deterministic)
+            imj = body_inv_mass[bj]
+            mj = body_material[bj]
+            k = pair_k[mi, mj]
+            root = np.sqrt(k / (imi + imj))
+            eta = 2.0 * pair_zeta[mi, mj] * root
+            dist = np.sqrt(dist2)
+            if FRICTION and friction:
+                mu = pair_mu[mi, mj]
+                code = sorted_idx[t] + 1
+                slot, sx, sy, sz = history_recall(hist_partner, hist_spring, s, code)
+            else:
+                mu = 0.0
+                sx = 0.0
+                sy = 0.0
+                sz = 0.0
+            wsx = wxi
+            wsy = wyi
+            wsz = wzi
+            if ROTATION:
+                wsx += body_w[bj, 0]
+                wsy += body_w[bj, 1]
+                wsz += body_w[bj, 2]
+            (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_pair_force(
+                rx, ry, rz, dist, diameter,
+                sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
+                wsx, wsy, wsz,
+                k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
+            if FRICTION and friction:
+                history_store(hist_partner, hist_spring, s, slot, code, parity,
+                              sx, sy, sz)
+            fx += pfx
+            fy += pfy
+            fz += pfz
+            if ROTATION and FRICTION and mu > 0.0:   # see TORQUE_NOTE
+                tx += ptx
+                ty += pty
+                tz += ptz
+            ov = diameter - dist
+            if ov > max_ov:
+                max_ov = ov
         for w in range(n_walls if WALLS else 0):
             nx = wall_normal[w, 0]
             ny = wall_normal[w, 1]
@@ -387,7 +465,7 @@ def sphere_contacts(s0, s1, diameter, inv_d, grid, bucket_start, sorted_idx, sor
             if FRICTION and friction:
                 mu = pair_mu[mi, mj]
                 code = n_spheres + w + 1
-                slot, sx, sy, sz = history_recall(contact_partner, contact_spring, i, code)
+                slot, sx, sy, sz = history_recall(hist_partner, hist_spring, s, code)
             else:
                 mu = 0.0
                 sx = 0.0
@@ -397,7 +475,7 @@ def sphere_contacts(s0, s1, diameter, inv_d, grid, bucket_start, sorted_idx, sor
                 -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
                 k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
             if FRICTION and friction:
-                history_store(contact_partner, contact_spring, i, slot, code, parity,
+                history_store(hist_partner, hist_spring, s, slot, code, parity,
                               sx, sy, sz)
             fx += pfx
             fy += pfy
@@ -410,10 +488,10 @@ def sphere_contacts(s0, s1, diameter, inv_d, grid, bucket_start, sorted_idx, sor
             if ov > max_ov:
                 max_ov = ov
         if FRICTION and friction:   # forget the contacts that ended (not touched at this parity)
-            for h in range(contact_partner.shape[1]):
-                c = contact_partner[i, h]
+            for h in range(hist_partner.shape[1]):
+                c = hist_partner[s, h]
                 if c != 0 and (c & 1) != parity:
-                    contact_partner[i, h] = 0
+                    hist_partner[s, h] = 0
         sphere_f[i, 0] = fx
         sphere_f[i, 1] = fy
         sphere_f[i, 2] = fz
@@ -425,21 +503,40 @@ def sphere_contacts(s0, s1, diameter, inv_d, grid, bucket_start, sorted_idx, sor
             sphere_overlap[i] = max_ov
 
 
-def stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
-                   sorted_key, sorted_body, body_w, body_inv_mass, body_material,
+@numba.njit(parallel=True, cache=True)
+def stage_neighbours(diameter, grid, bucket_start, sorted_idx, sorted_x, sorted_key,
+                     sorted_body, body_inv_mass, built_x, nbr, nbr_n):
+    """Stages 2-3 at a rebuild: every sorted slot's neighbour list (sphere_neighbours),
+    from the grid just sorted. Returns how many lists overflowed (0: all fit)."""
+    n = sorted_idx.shape[0]
+    n_chunks = (n + CONTACT_CHUNK - 1) // CONTACT_CHUNK
+    cutoff = (1.0 + SKIN) * diameter
+    over = 0
+    for c in prange(n_chunks):
+        over += sphere_neighbours(c * CONTACT_CHUNK, min(n, (c + 1) * CONTACT_CHUNK),
+                                  cutoff * cutoff, 1.0 / cutoff, grid, bucket_start,
+                                  sorted_idx, sorted_x, sorted_key, sorted_body,
+                                  body_inv_mass, built_x, nbr, nbr_n)
+    return over
+
+
+def stage_contacts(diameter, nbr, nbr_n, sorted_idx, sorted_x, sorted_v,
+                   sorted_body, body_w, body_inv_mass, body_material,
                    pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
-                   contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
+                   hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                    wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                    sphere_f, sphere_t, sphere_overlap):
-    """Stages 3-4: neighbour search over the 27 cells and contact forces (eq. 11-14).
+    """Stages 3-4: contact forces (eq. 11-14) between each sphere and the spheres
+    of its neighbour list that touch it, and the walls.
 
-    Each sphere gathers the forces on itself from every touching sphere of
-    another body and from the walls; writes sphere_f, sphere_t (torque about the
-    sphere's centre) and sphere_overlap (largest overlap this step, [m]).
+    Each sphere gathers the forces on itself, in its list's order (its
+    partners' index order), then the walls'; writes sphere_f, sphere_t (torque
+    about the sphere's centre) and sphere_overlap (largest overlap this step, [m]).
     With friction, each sphere also carries its contacts' tangential springs
-    (contact_partner, contact_spring; see State): a contact found again keeps
-    its stretch, a new one starts at zero, and one not touched this step
-    (``parity``) is forgotten. Only sphere i's own rows are written: gather.
+    (hist_partner, hist_spring: the State's contact_partner, contact_spring
+    with rows in sorted-slot order, see stage_history_to_slots): a contact found
+    again keeps its stretch, a new one starts at zero, and one not touched this
+    step (``parity``) is forgotten. Only the sphere's own rows are written: gather.
     Static spheres (1/m = 0) and sleeping ones feel no force and are skipped;
     a sphere of a moving body (rest count 0) that touches a sleeping body flags
     it to wake (body_wake).
@@ -448,12 +545,53 @@ def stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, so
     n_chunks = (n + CONTACT_CHUNK - 1) // CONTACT_CHUNK
     for c in prange(n_chunks):
         sphere_contacts(c * CONTACT_CHUNK, min(n, (c + 1) * CONTACT_CHUNK),
-                        diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
-                        sorted_key, sorted_body, body_w, body_inv_mass, body_material,
+                        diameter, nbr, nbr_n, sorted_idx, sorted_x, sorted_v,
+                        sorted_body, body_w, body_inv_mass, body_material,
                         pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
-                        contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
+                        hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                         wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                         sphere_f, sphere_t, sphere_overlap)
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_history_to_slots(sorted_idx, contact_partner, contact_spring, hist_partner,
+                           hist_spring):
+    """Contact histories from sphere order (the State's) into sorted-slot order.
+
+    Between rebuilds the contact stage reads and writes sphere s's history at row
+    s, next to its position, so that friction walks memory in order instead of
+    jumping to each sphere's own index (measured: docs/performance.md)."""
+    for s in prange(sorted_idx.shape[0]):
+        i = sorted_idx[s]
+        for h in range(contact_partner.shape[1]):
+            hist_partner[s, h] = contact_partner[i, h]
+            hist_spring[s, h, 0] = contact_spring[i, h, 0]
+            hist_spring[s, h, 1] = contact_spring[i, h, 1]
+            hist_spring[s, h, 2] = contact_spring[i, h, 2]
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_history_to_spheres(sorted_idx, hist_partner, hist_spring, contact_partner,
+                             contact_spring):
+    """The inverse of stage_history_to_slots (before a re-sort, and at the end of a call)."""
+    for s in prange(sorted_idx.shape[0]):
+        i = sorted_idx[s]
+        for h in range(contact_partner.shape[1]):
+            contact_partner[i, h] = hist_partner[s, h]
+            contact_spring[i, h, 0] = hist_spring[s, h, 0]
+            contact_spring[i, h, 1] = hist_spring[s, h, 1]
+            contact_spring[i, h, 2] = hist_spring[s, h, 2]
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_unsort(sorted_idx, sorted_x, sphere_x):
+    """sphere_x in sphere order from the sorted slots (where the spheres were at
+    the last step's contact search), for callers that look at them."""
+    for s in prange(sorted_idx.shape[0]):
+        i = sorted_idx[s]
+        sphere_x[i, 0] = sorted_x[s, 0]
+        sphere_x[i, 1] = sorted_x[s, 1]
+        sphere_x[i, 2] = sorted_x[s, 2]
 
 
 def body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
@@ -547,42 +685,78 @@ def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t
 def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
               sphere_body, sphere_offset, body_sphere_start, body_mass, body_inv_mass,
               body_inv_inertia, body_material, pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio,
-              friction, contact_partner, contact_spring,
+              friction, contact_partner, contact_spring, hist_partner, hist_spring,
               sleep_steps, v_sleep, w_sleep, body_rest, body_wake,
               wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
               body_x, body_q, body_P, body_L,
               body_v, body_w, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash,
               bucket_start, bucket_fill, sorted_idx, sorted_x, sorted_v, sorted_key,
-              sorted_body, sphere_f, sphere_t, sphere_overlap):
-    """Advance ``n_steps`` steps of the eight stages; everything stays in compiled code."""
-    inv_d = 1.0 / diameter
+              sorted_body, built_x, nbr, nbr_n, sphere_f, sphere_t, sphere_overlap):
+    """Advance up to ``n_steps`` steps of the eight stages; everything stays in
+    compiled code. Returns the steps done: fewer only when a rebuild found a
+    neighbour list longer than nbr holds (nbr_n has the counts; the caller grows
+    nbr and calls again, that step not yet begun).
+
+    Stages 2-3 (grid, sort, 27-cell search) run only to rebuild the neighbour
+    lists: at the first step, and when a sphere has moved SKIN/2 d since.
+    """
+    if n_steps <= 0:
+        return 0    # nothing sorted yet: the unsort below would scramble the State's rows
+    inv_cell = 1.0 / ((1.0 + SKIN) * diameter)     # neighbours.cell_size
     gx = gravity[0]
     gy = gravity[1]
     gz = gravity[2]
+    half_skin = 0.5 * SKIN * diameter
+    rebuild = True
     for step in range(first_step, first_step + n_steps):
         stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
                               body_v, body_w)
-        stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d, grid,
-                      sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash)
-        stage_grid_sort(sphere_hash, grid, bucket_start, bucket_fill, sorted_idx)
-        stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
-                          sorted_x, sorted_v, sorted_key, sorted_body)
-        stage_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
-                       sorted_key, sorted_body, body_w, body_inv_mass, body_material,
+        if not rebuild:
+            rebuild = stage_spheres_sorted(sorted_idx, sphere_body, sphere_offset, body_x,
+                                           body_q, body_v, body_w, built_x,
+                                           half_skin * half_skin, sorted_x, sorted_v,
+                                           sphere_r) > 0
+        if rebuild:
+            if FRICTION and friction and step > first_step:   # histories back to sphere order
+                stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
+                                         contact_partner, contact_spring)
+            stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_cell,
+                          grid, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash)
+            stage_grid_sort(sphere_hash, grid, bucket_start, bucket_fill, sorted_idx)
+            stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
+                              sorted_x, sorted_v, sorted_key, sorted_body)
+            if FRICTION and friction:
+                stage_history_to_slots(sorted_idx, contact_partner, contact_spring,
+                                       hist_partner, hist_spring)
+            if stage_neighbours(diameter, grid, bucket_start, sorted_idx, sorted_x,
+                                sorted_key, sorted_body, body_inv_mass, built_x,
+                                nbr, nbr_n) > 0:
+                return step - first_step        # the State's histories are current
+            rebuild = False
+        stage_contacts(diameter, nbr, nbr_n, sorted_idx, sorted_x, sorted_v,
+                       sorted_body, body_w, body_inv_mass, body_material,
                        pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, step & 1,
-                       contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
+                       hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                        wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                        sphere_f, sphere_t, sphere_overlap)
         stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
                      body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
                      sleep_steps, v_sleep, w_sleep, body_rest, body_wake)
+    stage_unsort(sorted_idx, sorted_x, sphere_x)
+    if FRICTION and friction:
+        stage_history_to_spheres(sorted_idx, hist_partner, hist_spring, contact_partner,
+                                 contact_spring)
+    return n_steps
 
 
-_STAGES = (stage_body_velocities, stage_spheres, sphere_contacts, stage_contacts, body_update,
+_STAGES = (stage_body_velocities, sphere_state, stage_spheres, stage_spheres_sorted,
+           sphere_contacts, stage_contacts, body_update,
            stage_bodies, run_steps)
 _JITS = {
     "stage_body_velocities": numba.njit(parallel=True, cache=True),
+    "sphere_state": numba.njit(inline="always", cache=True),
     "stage_spheres": numba.njit(parallel=True, cache=True),
+    "stage_spheres_sorted": numba.njit(parallel=True, cache=True),
     "sphere_contacts": numba.njit(cache=True),
     "stage_contacts": numba.njit(parallel=True, cache=True),
     "body_update": numba.njit(cache=True),
@@ -665,12 +839,20 @@ class CpuBackend:
         self.sorted_v = np.zeros((ns, 3))
         self.sorted_key = np.zeros(ns, dtype=np.int64)
         self.sorted_body = np.zeros(ns, dtype=np.int32)
+        self.built_x = np.zeros((ns, 3))
+        self.nbr = np.zeros((ns, NEIGHBOURS), dtype=np.int32)
+        self.nbr_n = np.zeros(ns, dtype=np.int32)
         self.sphere_f = np.zeros((ns, 3))
         self.sphere_t = np.zeros((ns, 3))
         self.sphere_overlap = np.zeros(ns)
         self.body_wake = np.zeros(nb, dtype=np.int32)
         self._no_partner = np.zeros((1, 1), dtype=np.int32)
         self._no_spring = np.zeros((1, 1, 3))
+        if self.features.friction:   # the histories in sorted-slot order, within a call
+            self.hist_partner = np.zeros((ns, CONTACT_SLOTS), dtype=np.int32)
+            self.hist_spring = np.zeros((ns, CONTACT_SLOTS, 3))
+        else:
+            self.hist_partner, self.hist_spring = self._no_partner, self._no_spring
         if model.n_static:
             first = model.body_sphere_start[model.n_bodies]
             pts = model.sphere_offset[first:] + model.initial_x[model.sphere_body[first:]]
@@ -680,8 +862,8 @@ class CpuBackend:
     def fit_grid(self, state) -> None:
         """Fit the grid's bits to where the bodies are now (once per call of step).
 
-        The extent is the bodies' bounding box grown by their radii and by how far
-        the fastest could move in ``margin`` seconds; bodies that leave it still
+        The extent is the bodies' bounding box grown by their radii (and the static
+        spheres' box), plus two cells; bodies that leave it during the call still
         collide correctly, only through aliased buckets.
         """
         m = self.model
@@ -699,27 +881,42 @@ class CpuBackend:
         if m.n_static:
             lo = lo_s if lo is None else np.minimum(lo, lo_s)
             hi = hi_s if hi is None else np.maximum(hi, hi_s)
-        self.grid = grid_table(m.n_spheres, (hi - lo) / m.diameter + 2.0)
+        self.grid = grid_table(m.n_spheres, (hi - lo) / cell_size(m.diameter) + 2.0)
 
     def step(self, state, n_steps: int) -> None:
         """Advance ``state`` in place by ``n_steps`` steps (and its step count and time)."""
         m = self.model
         self.fit_grid(state)
         partner, spring = self.contacts(state)
-        self.k.run_steps(
-            int(n_steps), int(state.step), m.dt, m.diameter, m.n_bodies, m.gravity, self.grid,
-            m.sphere_body, m.sphere_offset, m.body_sphere_start, m.body_mass, m.body_inv_mass,
-            m.body_inv_inertia, m.body_material, m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio,
-            m.ks_ratio, self.features.friction, partner, spring,
-            m.sleep_steps, m.sleep_linear, m.sleep_angular, self.rest(state), self.body_wake,
-            m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth, m.wall_material,
-            state.body_x, state.body_q, state.body_P, state.body_L,
-            self.body_v, self.body_w, self.sphere_x, self.sphere_v, self.sphere_r,
-            self.sphere_key, self.sphere_hash, self.bucket_start, self.bucket_fill,
-            self.sorted_idx, self.sorted_x, self.sorted_v, self.sorted_key, self.sorted_body,
-            self.sphere_f, self.sphere_t, self.sphere_overlap)
-        state.step += int(n_steps)
-        state.time = state.step * m.dt
+        left = int(n_steps)
+        while left > 0:
+            done = self.k.run_steps(
+                left, int(state.step), m.dt, m.diameter, m.n_bodies, m.gravity, self.grid,
+                m.sphere_body, m.sphere_offset, m.body_sphere_start, m.body_mass,
+                m.body_inv_mass, m.body_inv_inertia, m.body_material, m.pair_k, m.pair_zeta,
+                m.pair_mu, m.kt_ratio, m.ks_ratio, self.features.friction, partner, spring,
+                self.hist_partner, self.hist_spring, m.sleep_steps, m.sleep_linear, m.sleep_angular, self.rest(state),
+                self.body_wake, m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi,
+                m.wall_depth, m.wall_material, state.body_x, state.body_q, state.body_P,
+                state.body_L, self.body_v, self.body_w, self.sphere_x, self.sphere_v,
+                self.sphere_r, self.sphere_key, self.sphere_hash, self.bucket_start,
+                self.bucket_fill, self.sorted_idx, self.sorted_x, self.sorted_v,
+                self.sorted_key, self.sorted_body, self.built_x, self.nbr, self.nbr_n,
+                self.sphere_f, self.sphere_t, self.sphere_overlap)
+            state.step += int(done)
+            state.time = state.step * m.dt
+            left -= int(done)
+            if left > 0:
+                self.grow_neighbours()
+
+    def grow_neighbours(self) -> None:
+        """Room for the longest neighbour list the last rebuild found (nbr_n), doubled
+        at least: a pile that grows denser rarely needs a second growth."""
+        cap = self.nbr.shape[1]
+        need = int(self.nbr_n.max())
+        while cap < need:
+            cap *= 2
+        self.nbr = np.zeros((self.model.n_spheres, cap), dtype=np.int32)
 
     def rest(self, state):
         """The State's rest counts (sleeping), allocated on first use."""
@@ -741,25 +938,33 @@ class CpuBackend:
         m = self.model
         self.fit_grid(state)
         self.k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
-                              m.body_inv_mass, m.body_inv_inertia, self.body_v, self.body_w)
-        self.k.stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q, self.body_v,
-                      self.body_w, 1.0 / m.diameter, self.grid, self.sphere_x, self.sphere_v,
-                      self.sphere_r, self.sphere_key, self.sphere_hash)
+                                     m.body_inv_mass, m.body_inv_inertia, self.body_v,
+                                     self.body_w)
+        self.k.stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q,
+                             self.body_v, self.body_w, 1.0 / cell_size(m.diameter), self.grid,
+                             self.sphere_x, self.sphere_v, self.sphere_r, self.sphere_key,
+                             self.sphere_hash)
         stage_grid_sort(self.sphere_hash, self.grid, self.bucket_start, self.bucket_fill,
                         self.sorted_idx)
         stage_grid_gather(self.sorted_idx, self.sphere_x, self.sphere_v, self.sphere_key,
                           m.sphere_body, self.sorted_x, self.sorted_v, self.sorted_key,
                           self.sorted_body)
+        while stage_neighbours(m.diameter, self.grid, self.bucket_start, self.sorted_idx,
+                               self.sorted_x, self.sorted_key, self.sorted_body,
+                               m.body_inv_mass, self.built_x, self.nbr, self.nbr_n) > 0:
+            self.grow_neighbours()
         self.sphere_overlap[:] = 0.0
         partner, spring = self.contacts(state)
-        self.k.stage_contacts(m.diameter, 1.0 / m.diameter, self.grid, self.bucket_start,
-                       self.sorted_idx, self.sorted_x, self.sorted_v, self.sorted_key,
-                       self.sorted_body, self.body_w, m.body_inv_mass, m.body_material,
-                       m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio, m.ks_ratio,
-                       self.features.friction, m.dt, state.step & 1, partner.copy(), spring.copy(),
-                       m.sleep_steps, self.rest(state), self.body_wake.copy(),
-                       m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth,
-                       m.wall_material, self.sphere_f, self.sphere_t, self.sphere_overlap)
+        # copies in sorted-slot order, as the contact stage reads them
+        slots = self.sorted_idx if self.features.friction else np.zeros(1, dtype=np.int32)
+        self.k.stage_contacts(m.diameter, self.nbr, self.nbr_n, self.sorted_idx, self.sorted_x,
+                              self.sorted_v, self.sorted_body, self.body_w, m.body_inv_mass,
+                              m.body_material, m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio,
+                              m.ks_ratio, self.features.friction, m.dt, state.step & 1,
+                              partner[slots], spring[slots], m.sleep_steps, self.rest(state),
+                              self.body_wake.copy(), m.wall_normal, m.wall_offset, m.wall_lo,
+                              m.wall_hi, m.wall_depth, m.wall_material, self.sphere_f,
+                              self.sphere_t, self.sphere_overlap)
 
     def velocities(self, state):
         """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""

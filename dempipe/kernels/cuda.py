@@ -1,17 +1,28 @@
 """CUDA target: the paper's eight stages as numba.cuda kernels.
 
 Imported only when the CUDA device is used (``simulator.make_backend``); it
-imports nothing from ``kernels/cpu.py`` (that would compile the CPU kernels).
-The formulas come from physics.py, compiled as device functions; every kernel
-mirrors its CPU stage line for line, with the loop header ``cuda.grid(1)``
-instead of ``prange``. See docs/cuda.md.
+imports nothing from ``kernels/cpu.py`` (that would compile the CPU kernels),
+only the shared constants of ``kernels/neighbours.py``. The formulas come from
+physics.py, compiled as device functions; every kernel mirrors its CPU stage
+line for line, with the loop header ``cuda.grid(1)`` instead of ``prange``.
+See docs/cuda.md.
 
-Determinism: the only atomics are integer adds (bucket counts and slot
-claims: order-independent) and a float max (exact, commutative). The slots a
-bucket's spheres land in depend on thread timing, so each bucket is then
-sorted by sphere index: the sorted order is exactly the CPU's stable counting
-sort. Contacts gather, bodies sum their spheres in index order. Results are
-bit-identical run to run on one GPU.
+Neighbour lists (kernels/neighbours.py): the grid, the sort and the 27-cell
+search run only at a rebuild, as on the CPU; a small device control array
+(``ctl``, see CTL_*) says whether this step rebuilds, so the rebuild kernels
+are always launched and return at once when it does not: a step is a fixed
+sequence of launches with no host synchronisation (``CudaBackend.step_once``).
+
+Determinism: the only atomics are integer adds (bucket counts, slot claims,
+the count of spheres that moved, the count of overflowing lists), an integer
+max (the longest list) and a float max (exact, commutative); integer atomics
+give the same totals whatever the order. The slots a bucket's spheres land in
+depend on thread timing, so each bucket is then sorted by sphere index: the
+sorted order is exactly the CPU's stable counting sort. Each slot's thread
+builds its own list, inserting partners in sphere-index order: the CPU's
+lists. Contacts gather (each sphere sums its own list in that order, then the
+walls), bodies sum their spheres in index order. Results are bit-identical
+run to run on one GPU, and do not depend on when the lists were rebuilt.
 
 Everything of a Model and of the State being stepped lives on the device; the
 host State is updated once per ``step`` call (once per output frame).
@@ -29,6 +40,7 @@ from numba.core import config
 from ..errors import DeviceError
 from ..state import CONTACT_SLOTS
 from .compile import compile_formulas
+from .neighbours import NEIGHBOURS, SKIN, cell_size
 
 
 def _device_jit():
@@ -69,6 +81,24 @@ _CELL_BITS = 21
 _CELL_OFF = 1 << (_CELL_BITS - 1)
 _CELL_MAX = (1 << _CELL_BITS) - 1
 _INT64_LIMIT = 9.2e18
+
+# The control array ``ctl`` (int32, CTL_SIZE words on the device): how the steps
+# of one ``step`` call decide, on the device, whether to rebuild the neighbour
+# lists, and what the host reads back once at the end of the call.
+#: 1: rebuild at this step (set for the first step of a call by k_begin_call).
+CTL_FORCE = 0
+#: Spheres that moved SKIN/2 d or more since the last build (k_spheres_sorted).
+CTL_MOVED = 1
+#: Lists that did not fit into nbr in this call (k_neighbours): 0 = all fitted.
+CTL_OVER = 2
+#: Longest list found by an overflowing build in this call (integer atomic max).
+CTL_MAXN = 3
+#: Rebuilds done in this call (counted by k_bodies' thread 0 as it closes a step).
+CTL_REBUILDS = 4
+#: Steps done in this call (k_bodies' thread 0; not counted once CTL_OVER is set:
+#: from the overflowing step on, nothing of the State changes).
+CTL_DONE = 5
+CTL_SIZE = 8
 
 
 #: Most buckets per sphere the grid may use (as kernels/cpu.py).
@@ -123,16 +153,16 @@ def fit_grid(model, body_x, static_box) -> np.ndarray:
     if static_box is not None:
         lo = static_box[0] if lo is None else np.minimum(lo, static_box[0])
         hi = static_box[1] if hi is None else np.maximum(hi, static_box[1])
-    return grid_table(m.n_spheres, (hi - lo) / m.diameter + 2.0)
+    return grid_table(m.n_spheres, (hi - lo) / cell_size(m.diameter) + 2.0)
 
 
 @cuda.jit(device=True)
-def cell_coord(x, inv_d):
+def cell_coord(x, inv_cell):
     # int64(floor(v)) + offset, clamped, as on the CPU. NaN and |v| >= 2^63 give
     # cell 1 there (x86 float->int conversion yields INT64_MIN); do the same
     # without ever converting them (the simulator's math.floor(nan) raises).
     # Clamped to [1, _CELL_MAX - 1] as on the CPU (see kernels/cpu.py).
-    v = x * inv_d
+    v = x * inv_cell
     if v >= -_CELL_OFF and v < _CELL_OFF:
         c = int64(math.floor(v)) + _CELL_OFF
         if c < 1:
@@ -156,9 +186,28 @@ def cell_hash(cx, cy, cz, grid):
     return ((cz & grid[4]) << (grid[0] + grid[1])) | ((cy & grid[3]) << grid[0]) | (cx & grid[2])
 
 
+@cuda.jit(device=True)
+def rebuilding(ctl):
+    """Whether this step rebuilds the neighbour lists: the first step of a call
+    (CTL_FORCE), or some sphere moved SKIN/2 d since the last build (CTL_MOVED).
+    Read by every rebuild kernel; written only by k_begin_call,
+    k_spheres_sorted (before any of them runs) and k_bodies (after)."""
+    return ctl[CTL_FORCE] != 0 or ctl[CTL_MOVED] != 0
+
+
 # ---------------------------------------------------------------------------
 # Stage kernels (mirrors of kernels/cpu.py)
 # ---------------------------------------------------------------------------
+
+@cuda.jit
+def k_begin_call(ctl):
+    """Once per ``step`` call (and per probe): rebuild at the first step, and no
+    spheres moved, no overflow, no rebuilds yet."""
+    if cuda.grid(1) == 0:
+        for j in range(ctl.shape[0]):
+            ctl[j] = 0
+        ctl[CTL_FORCE] = 1
+
 
 @cuda.jit
 def k_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
@@ -182,7 +231,43 @@ def k_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_
 
 
 @cuda.jit
-def k_zero_buckets(bucket_start, bucket_fill):
+def k_spheres_sorted(sorted_idx, sphere_body, sphere_offset, body_x, body_q, body_v, body_w,
+                     built_x, rebuild_at2, sorted_x, sorted_v, sphere_r, ctl):
+    """Stage 1 (eq. 19-21) between rebuilds: straight into the sorted slots of the
+    last rebuild (kernels.cpu.stage_spheres_sorted). Counts the spheres that moved
+    sqrt(rebuild_at2) [m] or more since (integer atomic add into ctl[CTL_MOVED]):
+    then this step rebuilds. Returns at once when the step rebuilds anyway
+    (CTL_FORCE: the first step of a call), as the CPU skips it then."""
+    s = cuda.grid(1)
+    if s >= sorted_idx.shape[0] or ctl[CTL_FORCE] != 0:
+        return
+    i = sorted_idx[s]
+    b = sphere_body[i]
+    x, y, z, vx, vy, vz, rx, ry, rz = sphere_kinematics(
+        body_x[b, 0], body_x[b, 1], body_x[b, 2],
+        body_q[b, 0], body_q[b, 1], body_q[b, 2], body_q[b, 3],
+        body_v[b, 0], body_v[b, 1], body_v[b, 2], body_w[b, 0], body_w[b, 1], body_w[b, 2],
+        sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2])
+    sorted_x[s, 0] = x
+    sorted_x[s, 1] = y
+    sorted_x[s, 2] = z
+    sorted_v[s, 0] = vx
+    sorted_v[s, 1] = vy
+    sorted_v[s, 2] = vz
+    sphere_r[i, 0] = rx
+    sphere_r[i, 1] = ry
+    sphere_r[i, 2] = rz
+    ex = x - built_x[s, 0]
+    ey = y - built_x[s, 1]
+    ez = z - built_x[s, 2]
+    if ex * ex + ey * ey + ez * ez >= rebuild_at2:
+        cuda.atomic.add(ctl, CTL_MOVED, 1)       # integer: order-independent
+
+
+@cuda.jit
+def k_zero_buckets(bucket_start, bucket_fill, ctl):
+    if not rebuilding(ctl):
+        return
     start = cuda.grid(1)
     stride = cuda.gridsize(1)
     for h in range(start, bucket_start.shape[0], stride):
@@ -192,11 +277,12 @@ def k_zero_buckets(bucket_start, bucket_fill):
 
 
 @cuda.jit
-def k_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d, grid,
-              sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash, bucket_start):
-    """Stage 1 (eq. 19-21), each sphere's grid cell, and the bucket counts."""
+def k_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_cell, grid,
+              sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash, bucket_start, ctl):
+    """Stage 1 (eq. 19-21) in sphere order at a rebuild, each sphere's grid cell,
+    and the bucket counts."""
     i = cuda.grid(1)
-    if i >= sphere_body.shape[0]:
+    if i >= sphere_body.shape[0] or not rebuilding(ctl):
         return
     b = sphere_body[i]
     x, y, z, vx, vy, vz, rx, ry, rz = sphere_kinematics(
@@ -213,9 +299,9 @@ def k_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d,
     sphere_r[i, 0] = rx
     sphere_r[i, 1] = ry
     sphere_r[i, 2] = rz
-    cx = cell_coord(x, inv_d)
-    cy = cell_coord(y, inv_d)
-    cz = cell_coord(z, inv_d)
+    cx = cell_coord(x, inv_cell)
+    cy = cell_coord(y, inv_cell)
+    cz = cell_coord(z, inv_cell)
     sphere_key[i] = cell_key(cx, cy, cz)
     h = cell_hash(cx, cy, cz, grid)
     sphere_hash[i] = h
@@ -223,11 +309,14 @@ def k_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_d,
 
 
 @cuda.jit
-def k_scan_blocks(data, block_sums):
+def k_scan_blocks(data, block_sums, ctl):
     """Inclusive prefix sum of each SCAN_CHUNK-element chunk of ``data`` in place;
     each chunk's total goes to block_sums. Each thread scans SCAN_ITEMS
     consecutive elements serially, the block scans the threads' totals
-    (Hillis-Steele in shared memory), then each thread adds its offset."""
+    (Hillis-Steele in shared memory), then each thread adds its offset.
+    The whole grid returns (before any barrier) when ``ctl`` says no rebuild."""
+    if not rebuilding(ctl):
+        return
     tmp = cuda.shared.array(SCAN_B, int64)
     tid = cuda.threadIdx.x
     n = data.shape[0]
@@ -255,8 +344,10 @@ def k_scan_blocks(data, block_sums):
 
 
 @cuda.jit
-def k_scan_add(data, block_sums):
+def k_scan_add(data, block_sums, ctl):
     """Second pass of the multi-level scan: add the scanned totals of the chunks before."""
+    if not rebuilding(ctl):
+        return
     start = cuda.grid(1)
     stride = cuda.gridsize(1)
     for i in range(start + SCAN_CHUNK, data.shape[0], stride):
@@ -264,10 +355,10 @@ def k_scan_add(data, block_sums):
 
 
 @cuda.jit
-def k_scatter(sphere_hash, bucket_start, bucket_fill, sorted_idx):
+def k_scatter(sphere_hash, bucket_start, bucket_fill, sorted_idx, ctl):
     """Stage 2: each sphere claims a slot of its bucket (integer atomic add)."""
     i = cuda.grid(1)
-    if i >= sphere_hash.shape[0]:
+    if i >= sphere_hash.shape[0] or not rebuilding(ctl):
         return
     h = sphere_hash[i]
     slot = bucket_start[h] + cuda.atomic.add(bucket_fill, h, 1)
@@ -275,9 +366,11 @@ def k_scatter(sphere_hash, bucket_start, bucket_fill, sorted_idx):
 
 
 @cuda.jit
-def k_bucket_sort(bucket_start, sorted_idx):
+def k_bucket_sort(bucket_start, sorted_idx, ctl):
     """Sort each bucket's slots by sphere index (insertion sort: buckets hold 1-few
     spheres), making the order that of the CPU's stable counting sort."""
+    if not rebuilding(ctl):
+        return
     start = cuda.grid(1)
     stride = cuda.gridsize(1)
     for h in range(start, bucket_start.shape[0] - 1, stride):
@@ -294,10 +387,10 @@ def k_bucket_sort(bucket_start, sorted_idx):
 
 @cuda.jit
 def k_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
-             sorted_x, sorted_v, sorted_key, sorted_body):
+             sorted_x, sorted_v, sorted_key, sorted_body, ctl):
     """Copy sphere data into sorted order, so neighbours are read from contiguous memory."""
     s = cuda.grid(1)
-    if s >= sorted_idx.shape[0]:
+    if s >= sorted_idx.shape[0] or not rebuilding(ctl):
         return
     i = sorted_idx[s]
     sorted_x[s, 0] = sphere_x[i, 0]
@@ -311,21 +404,103 @@ def k_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
 
 
 @cuda.jit
-def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted_v,
-               sorted_key, sorted_body, body_w, body_inv_mass, body_material,
+def k_neighbours(cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x, sorted_key,
+                 sorted_body, body_inv_mass, built_x, nbr, nbr_n, ctl):
+    """Stages 2-3 at a rebuild: each sorted slot's neighbour list, from the grid
+    just sorted (kernels.cpu.sphere_neighbours, one thread per slot).
+
+    nbr[s, :nbr_n[s]] are the slots of the spheres of other bodies closer than
+    sqrt(cutoff2) [m], found over the 27 cells in the CPU's order and inserted
+    in the order of their sphere index; static spheres get none. built_x[s] is
+    the slot's position at the build. A list longer than nbr.shape[1] keeps its
+    true count in nbr_n and stores what fits; the overflow is counted in
+    ctl[CTL_OVER] and its length maxed into ctl[CTL_MAXN] (integer atomics),
+    for the host to grow nbr and carry on from this step.
+    """
+    s = cuda.grid(1)
+    if s >= sorted_idx.shape[0] or not rebuilding(ctl):
+        return
+    cap = nbr.shape[1]
+    xi = sorted_x[s, 0]
+    yi = sorted_x[s, 1]
+    zi = sorted_x[s, 2]
+    built_x[s, 0] = xi
+    built_x[s, 1] = yi
+    built_x[s, 2] = zi
+    bi = sorted_body[s]
+    n = 0
+    if body_inv_mass[bi] == 0.0:
+        nbr_n[s] = 0
+        return
+    cx0 = cell_coord(xi, inv_cell)
+    cy0 = cell_coord(yi, inv_cell)
+    cz0 = cell_coord(zi, inv_cell)
+    for dz in range(-1, 2):
+        for dy in range(-1, 2):
+            cy = cy0 + dy
+            cz = cz0 + dz
+            # the three cells (cx0-1..cx0+1, cy, cz): keys in [lo, hi]
+            key_lo = cell_key(cx0 - 1, cy, cz)
+            key_hi = cell_key(cx0 + 1, cy, cz)
+            h_lo = cell_hash(cx0 - 1, cy, cz, grid)
+            h_hi = cell_hash(cx0 + 1, cy, cz, grid)
+            if h_hi == h_lo + 2:        # one contiguous run of buckets
+                n_runs = 1
+            else:                       # the row wraps round the table
+                n_runs = 3
+            for run in range(n_runs):
+                if n_runs == 1:
+                    t0 = bucket_start[h_lo]
+                    t1 = bucket_start[h_hi + 1]
+                else:
+                    h = cell_hash(cx0 - 1 + run, cy, cz, grid)
+                    t0 = bucket_start[h]
+                    t1 = bucket_start[h + 1]
+                for t in range(t0, t1):
+                    ktt = sorted_key[t]
+                    if ktt < key_lo or ktt > key_hi:
+                        continue        # another cell sharing the buckets
+                    if sorted_body[t] == bi:
+                        continue        # spheres of one body never collide
+                    rx = sorted_x[t, 0] - xi
+                    ry = sorted_x[t, 1] - yi
+                    rz = sorted_x[t, 2] - zi
+                    if rx * rx + ry * ry + rz * rz >= cutoff2:
+                        continue
+                    if n < cap:         # insert in sphere-index order
+                        it = sorted_idx[t]
+                        p = n
+                        while p > 0 and sorted_idx[nbr[s, p - 1]] > it:
+                            nbr[s, p] = nbr[s, p - 1]
+                            p -= 1
+                        nbr[s, p] = t
+                    n += 1
+    nbr_n[s] = n
+    if n > cap:
+        cuda.atomic.add(ctl, CTL_OVER, 1)        # integer atomics: order-independent
+        cuda.atomic.max(ctl, CTL_MAXN, n)
+
+
+@cuda.jit
+def k_contacts(diameter, nbr, nbr_n, sorted_idx, sorted_x, sorted_v,
+               sorted_body, body_w, body_inv_mass, body_material,
                pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
                contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
                wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-               sphere_f, sphere_t, sphere_overlap):
-    """Stages 3-4: neighbour search over the 27 cells and contact forces (eq. 11-14),
-    with the contact histories of static friction (see kernels.cpu.stage_contacts).
+               sphere_f, sphere_t, sphere_overlap, ctl):
+    """Stages 3-4: contact forces (eq. 11-14) between each sphere and the spheres
+    of its neighbour list that touch it, then the walls, with the contact
+    histories of static friction (see kernels.cpu.stage_contacts).
 
-    One thread per sorted slot; same visiting order and sums as the CPU stage;
-    a thread writes only its own sphere's rows.
+    One thread per sorted slot; the same list, order and sums as the CPU stage
+    (its partners in sphere-index order, then the walls); a thread writes only
+    its own sphere's rows. After an overflow in this call (ctl[CTL_OVER]) it
+    returns at once: the State stays at the overflowing step, where the host
+    carries on with longer lists.
     """
     s = cuda.grid(1)
     n_spheres = sorted_idx.shape[0]
-    if s >= n_spheres:
+    if s >= n_spheres or ctl[CTL_OVER] != 0:
         return
     d2 = diameter * diameter
     radius = 0.5 * diameter
@@ -334,6 +509,7 @@ def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted
     bi = sorted_body[s]
     imi = body_inv_mass[bi]
     if imi == 0.0 or (sleep_steps > 0 and body_rest[bi] >= sleep_steps):
+        # static, or asleep: feels nothing (but is found by its moving neighbours)
         sphere_f[i, 0] = 0.0
         sphere_f[i, 1] = 0.0
         sphere_f[i, 2] = 0.0
@@ -358,78 +534,50 @@ def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted
     ty = 0.0
     tz = 0.0
     max_ov = 0.0
-    cx0 = cell_coord(xi, inv_d)
-    cy0 = cell_coord(yi, inv_d)
-    cz0 = cell_coord(zi, inv_d)
-    for dz in range(-1, 2):
-        for dy in range(-1, 2):
-            cy = cy0 + dy
-            cz = cz0 + dz
-            key_lo = cell_key(cx0 - 1, cy, cz)
-            key_hi = cell_key(cx0 + 1, cy, cz)
-            h_lo = cell_hash(cx0 - 1, cy, cz, grid)
-            h_hi = cell_hash(cx0 + 1, cy, cz, grid)
-            if h_hi == h_lo + 2:        # one contiguous run of buckets
-                n_runs = 1
-            else:                       # the row wraps round the table
-                n_runs = 3
-            for run in range(n_runs):
-                if n_runs == 1:
-                    t0 = bucket_start[h_lo]
-                    t1 = bucket_start[h_hi + 1]
-                else:
-                    h = cell_hash(cx0 - 1 + run, cy, cz, grid)
-                    t0 = bucket_start[h]
-                    t1 = bucket_start[h + 1]
-                for t in range(t0, t1):
-                    ktt = sorted_key[t]
-                    if ktt < key_lo or ktt > key_hi:
-                        continue
-                    bj = sorted_body[t]
-                    if bj == bi:
-                        continue
-                    rx = sorted_x[t, 0] - xi
-                    ry = sorted_x[t, 1] - yi
-                    rz = sorted_x[t, 2] - zi
-                    dist2 = rx * rx + ry * ry + rz * rz
-                    if dist2 >= d2:
-                        continue
-                    if sleep_steps > 0 and body_rest[bj] >= sleep_steps \
-                            and body_rest[bi] == 0:
-                        body_wake[bj] = 1   # same value from any thread: deterministic
-                    imj = body_inv_mass[bj]
-                    mj = body_material[bj]
-                    k = pair_k[mi, mj]
-                    root = math.sqrt(k / (imi + imj))
-                    eta = 2.0 * pair_zeta[mi, mj] * root
-                    dist = math.sqrt(dist2)
-                    code = sorted_idx[t] + 1
-                    slot = -1
-                    sx = 0.0
-                    sy = 0.0
-                    sz = 0.0
-                    mu = 0.0
-                    if friction:
-                        mu = pair_mu[mi, mj]
-                        slot, sx, sy, sz = history_recall(contact_partner, contact_spring, i, code)
-                    (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_pair_force(
-                        rx, ry, rz, dist, diameter,
-                        sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
-                        wxi + body_w[bj, 0], wyi + body_w[bj, 1], wzi + body_w[bj, 2],
-                        k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
-                    if friction:
-                        history_store(contact_partner, contact_spring, i, slot, code, parity,
-                                      sx, sy, sz)
-                    fx += pfx
-                    fy += pfy
-                    fz += pfz
-                    if mu > 0.0:   # a frictionless contact has no torque (kernels/cpu.py TORQUE_NOTE)
-                        tx += ptx
-                        ty += pty
-                        tz += ptz
-                    ov = diameter - dist
-                    if ov > max_ov:
-                        max_ov = ov
+    for e in range(min(nbr_n[s], nbr.shape[1])):
+        t = nbr[s, e]
+        rx = sorted_x[t, 0] - xi
+        ry = sorted_x[t, 1] - yi
+        rz = sorted_x[t, 2] - zi
+        dist2 = rx * rx + ry * ry + rz * rz
+        if dist2 >= d2:
+            continue
+        bj = sorted_body[t]
+        if sleep_steps > 0 and body_rest[bj] >= sleep_steps and body_rest[bi] == 0:
+            body_wake[bj] = 1   # a moving body touches a sleeper (same value from any thread)
+        imj = body_inv_mass[bj]
+        mj = body_material[bj]
+        k = pair_k[mi, mj]
+        root = math.sqrt(k / (imi + imj))
+        eta = 2.0 * pair_zeta[mi, mj] * root
+        dist = math.sqrt(dist2)
+        code = sorted_idx[t] + 1
+        slot = -1
+        sx = 0.0
+        sy = 0.0
+        sz = 0.0
+        mu = 0.0
+        if friction:
+            mu = pair_mu[mi, mj]
+            slot, sx, sy, sz = history_recall(contact_partner, contact_spring, i, code)
+        (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_pair_force(
+            rx, ry, rz, dist, diameter,
+            sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
+            wxi + body_w[bj, 0], wyi + body_w[bj, 1], wzi + body_w[bj, 2],
+            k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
+        if friction:
+            history_store(contact_partner, contact_spring, i, slot, code, parity,
+                          sx, sy, sz)
+        fx += pfx
+        fy += pfy
+        fz += pfz
+        if mu > 0.0:   # a frictionless contact has no torque (kernels/cpu.py TORQUE_NOTE)
+            tx += ptx
+            ty += pty
+            tz += ptz
+        ov = diameter - dist
+        if ov > max_ov:
+            max_ov = ov
     for w in range(n_walls):
         nx = wall_normal[w, 0]
         ny = wall_normal[w, 1]
@@ -486,11 +634,25 @@ def k_contacts(diameter, inv_d, grid, bucket_start, sorted_idx, sorted_x, sorted
 @cuda.jit
 def k_bodies(n_bodies, dt, gravity, body_sphere_start, sphere_f, sphere_t, sphere_r,
              body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
-             sleep_steps, v_sleep, w_sleep, body_rest, body_wake):
+             sleep_steps, v_sleep, w_sleep, body_rest, body_wake, ctl):
     """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10);
-    sleeping as kernels.cpu.body_update."""
+    sleeping as kernels.cpu.body_update.
+
+    Thread 0 also closes the step's rebuild decision: counts a rebuild if there
+    was one and clears CTL_FORCE and CTL_MOVED for the next step (no kernel of
+    this launch reads them), and counts the step done (CTL_DONE) unless a list
+    overflowed in this call (CTL_OVER): from then on the bodies are left as they
+    are, and the host carries on from the overflowing step with longer lists.
+    """
     b = cuda.grid(1)
-    if b >= n_bodies:
+    if b == 0:
+        if rebuilding(ctl):
+            ctl[CTL_REBUILDS] += 1
+        ctl[CTL_FORCE] = 0
+        ctl[CTL_MOVED] = 0
+        if ctl[CTL_OVER] == 0:
+            ctl[CTL_DONE] += 1
+    if b >= n_bodies or ctl[CTL_OVER] != 0:
         return
     if sleep_steps > 0 and body_rest[b] >= sleep_steps:
         if body_wake[b] != 0:
@@ -571,6 +733,19 @@ def k_take_max(values, out):
 
 
 @cuda.jit
+def k_unsort(sorted_idx, sorted_x, sphere_x):
+    """sphere_x in sphere order from the sorted slots (where the spheres were at
+    the last step's contact search; kernels.cpu.stage_unsort)."""
+    s = cuda.grid(1)
+    if s >= sorted_idx.shape[0]:
+        return
+    i = sorted_idx[s]
+    sphere_x[i, 0] = sorted_x[s, 0]
+    sphere_x[i, 1] = sorted_x[s, 1]
+    sphere_x[i, 2] = sorted_x[s, 2]
+
+
+@cuda.jit
 def k_fill(values, v):
     i = cuda.grid(1)
     if i < values.shape[0]:
@@ -604,15 +779,30 @@ def scan_buffers(n: int):
     return sizes, [cuda.to_device(np.zeros(m, dtype=np.int64)) for m in sizes[1:]]
 
 
-def device_scan(data, sizes, sums, level: int = 0) -> None:
+_ALWAYS = []
+
+
+def _always():
+    """A control array that says "rebuild": for a scan outside the step sequence."""
+    if not _ALWAYS:
+        a = np.zeros(CTL_SIZE, dtype=np.int32)
+        a[CTL_FORCE] = 1
+        _ALWAYS.append(cuda.to_device(a))
+    return _ALWAYS[0]
+
+
+def device_scan(data, sizes, sums, level: int = 0, ctl=None) -> None:
     """Inclusive prefix sum of the int64 device array ``data`` in place: each
     chunk is scanned, the chunks' totals are scanned (recursively), then added
-    back. A fixed sequence of launches for a given size."""
+    back. A fixed sequence of launches for a given size. With ``ctl`` (the
+    backend's control array) the launches do nothing unless the step rebuilds."""
+    if ctl is None:
+        ctl = _always()
     n = sizes[level]
-    k_scan_blocks[_blocks(n, SCAN_CHUNK), SCAN_B](data, sums[level])
+    k_scan_blocks[_blocks(n, SCAN_CHUNK), SCAN_B](data, sums[level], ctl)
     if n > SCAN_CHUNK:
-        device_scan(sums[level], sizes, sums, level + 1)
-        k_scan_add[_table_blocks(n), THREADS](data, sums[level])
+        device_scan(sums[level], sizes, sums, level + 1, ctl)
+        k_scan_add[_table_blocks(n), THREADS](data, sums[level], ctl)
 
 
 def scratch_layout(model, friction=None) -> dict:
@@ -642,6 +832,9 @@ def scratch_layout(model, friction=None) -> dict:
         "bucket_start": ((table + 1,), i8), "bucket_fill": ((table,), i8),
         "sorted_idx": ((ns,), i4), "sorted_x": ((ns, 3), f8), "sorted_v": ((ns, 3), f8),
         "sorted_key": ((ns,), i8), "sorted_body": ((ns,), i4),
+        # neighbour lists (NEIGHBOURS entries to start with; CudaBackend.grow_neighbours)
+        "built_x": ((ns, 3), f8), "nbr": ((ns, NEIGHBOURS), i4), "nbr_n": ((ns,), i4),
+        "ctl": ((CTL_SIZE,), i4),
         "sphere_f": ((ns, 3), f8), "sphere_t": ((ns, 3), f8), "sphere_overlap": ((ns,), f8),
         "max_out": ((1,), f8),
     }
@@ -659,10 +852,16 @@ def scratch_layout(model, friction=None) -> dict:
     return lay
 
 
-def memory_needed(model) -> int:
-    """Bytes of device memory a CudaBackend for ``model`` allocates (all its arrays)."""
-    return int(sum(int(np.prod(shape)) * np.dtype(dt).itemsize
-                   for shape, dt in scratch_layout(model).values()))
+def layout_bytes(layout: dict) -> int:
+    """Bytes of the arrays of a ``scratch_layout``."""
+    return int(sum(int(np.prod(shape)) * np.dtype(dt).itemsize for shape, dt in layout.values()))
+
+
+def memory_needed(model, friction=None) -> int:
+    """Bytes of device memory a CudaBackend for ``model`` allocates (all its arrays,
+    the neighbour lists at their initial NEIGHBOURS entries per sphere; a scene
+    whose lists overflow grows them, see CudaBackend.grow_neighbours)."""
+    return layout_bytes(scratch_layout(model, friction))
 
 
 #: Left free for the CUDA context, kernels' code and local memory.
@@ -701,7 +900,7 @@ class CudaBackend:
         layout = scratch_layout(model, self.features.friction)
         ctx = cuda.current_context()
         free, total = ctx.get_memory_info()
-        check_memory(memory_needed(model), free, total)
+        check_memory(layout_bytes(layout), free, total)
         self.grid = grid_table(model.n_spheres)
         self.static_box = static_extent(model)
         self.table = layout["bucket_fill"][0][0]
@@ -722,6 +921,8 @@ class CudaBackend:
         self.d = d
         self.scan_sums = [d[f"scan_{lvl + 1}"] for lvl in range(len(self.scan_sizes) - 1)]
         self._resident = None            # (state, body_x, body_q, body_P, body_L) on device
+        self.rebuilds = 0                # neighbour-list rebuilds done (all calls)
+        self.redos = 0                   # relaunches after a list overflow
 
     # -- state residency -------------------------------------------------------
     def upload(self, state) -> None:
@@ -768,50 +969,71 @@ class CudaBackend:
         self.d["grid"].copy_to_device(self.grid)
 
     # -- launches ----------------------------------------------------------------
+    def _begin_call(self):
+        """Arm the control array for a call: rebuild at its first step."""
+        k_begin_call[1, 1](self.d["ctl"])
+
     def _velocities(self):
         m, d = self.model, self.d
         k_body_velocities[_blocks(m.n_bodies, THREADS), THREADS](
             m.n_bodies, d["body_P"], d["body_L"], d["body_q"], d["body_inv_mass"],
             d["body_inv_inertia"], d["body_v"], d["body_w"])
 
+    def _spheres_sorted(self):
+        """Stage 1 into the sorted slots of the last build and the count of spheres
+        that moved SKIN/2 d since (nothing at a call's first step)."""
+        m, d = self.model, self.d
+        half_skin = 0.5 * SKIN * m.diameter
+        k_spheres_sorted[_blocks(m.n_spheres, THREADS), THREADS](
+            d["sorted_idx"], d["sphere_body"], d["sphere_offset"], d["body_x"], d["body_q"],
+            d["body_v"], d["body_w"], d["built_x"], half_skin * half_skin, d["sorted_x"],
+            d["sorted_v"], d["sphere_r"], d["ctl"])
+
     def _spheres(self):
-        """Stage 1 and each sphere's cell; also counts the spheres per bucket."""
+        """Rebuild: stage 1 in sphere order and each sphere's cell; also counts the
+        spheres per bucket."""
         m, d = self.model, self.d
         k_zero_buckets[_table_blocks(self.table + 1), THREADS](d["bucket_start"],
-                                                              d["bucket_fill"])
+                                                              d["bucket_fill"], d["ctl"])
         k_spheres[_blocks(m.n_spheres, THREADS), THREADS](
             d["sphere_body"], d["sphere_offset"], d["body_x"], d["body_q"], d["body_v"],
-            d["body_w"], 1.0 / m.diameter, d["grid"], d["sphere_x"], d["sphere_v"],
-            d["sphere_r"], d["sphere_key"], d["sphere_hash"], d["bucket_start"])
+            d["body_w"], 1.0 / cell_size(m.diameter), d["grid"], d["sphere_x"], d["sphere_v"],
+            d["sphere_r"], d["sphere_key"], d["sphere_hash"], d["bucket_start"], d["ctl"])
 
     def _grid_sort(self):
-        """Stage 2: scan of the counts, scatter, sort of each bucket by sphere index."""
+        """Rebuild, stage 2: scan of the counts, scatter, sort of each bucket by
+        sphere index."""
         d = self.d
         ns = self.model.n_spheres
         self._scan(d["bucket_start"], 0)
         k_scatter[_blocks(ns, THREADS), THREADS](d["sphere_hash"], d["bucket_start"],
-                                                 d["bucket_fill"], d["sorted_idx"])
-        k_bucket_sort[_table_blocks(self.table), THREADS](d["bucket_start"], d["sorted_idx"])
+                                                 d["bucket_fill"], d["sorted_idx"], d["ctl"])
+        k_bucket_sort[_table_blocks(self.table), THREADS](d["bucket_start"], d["sorted_idx"],
+                                                          d["ctl"])
 
     def _gather(self):
         d = self.d
         k_gather[_blocks(self.model.n_spheres, THREADS), THREADS](
             d["sorted_idx"], d["sphere_x"], d["sphere_v"], d["sphere_key"], d["sphere_body"],
-            d["sorted_x"], d["sorted_v"], d["sorted_key"], d["sorted_body"])
+            d["sorted_x"], d["sorted_v"], d["sorted_key"], d["sorted_body"], d["ctl"])
 
-    def _spheres_and_grid(self):
-        self._spheres()
-        self._grid_sort()
-        self._gather()
+    def _neighbours(self):
+        """Rebuild, stages 2-3: every sorted slot's neighbour list."""
+        m, d = self.model, self.d
+        cutoff = cell_size(m.diameter)          # (1 + SKIN) d: the lists' reach
+        k_neighbours[_blocks(m.n_spheres, THREADS), THREADS](
+            cutoff * cutoff, 1.0 / cutoff, d["grid"], d["bucket_start"], d["sorted_idx"],
+            d["sorted_x"], d["sorted_key"], d["sorted_body"], d["body_inv_mass"],
+            d["built_x"], d["nbr"], d["nbr_n"], d["ctl"])
 
     def _scan(self, data, level):
-        device_scan(data, self.scan_sizes, self.scan_sums, level)
+        device_scan(data, self.scan_sizes, self.scan_sums, level, self.d["ctl"])
 
-    def _contacts(self, parity: int, partner=None, spring=None, wake=None):
+    def _contacts(self, parity: int = 0, partner=None, spring=None, wake=None):
         m, d = self.model, self.d
         k_contacts[_blocks(m.n_spheres, CONTACT_THREADS), CONTACT_THREADS](
-            m.diameter, 1.0 / m.diameter, d["grid"], d["bucket_start"], d["sorted_idx"],
-            d["sorted_x"], d["sorted_v"], d["sorted_key"], d["sorted_body"], d["body_w"],
+            m.diameter, d["nbr"], d["nbr_n"], d["sorted_idx"],
+            d["sorted_x"], d["sorted_v"], d["sorted_body"], d["body_w"],
             d["body_inv_mass"], d["body_material"], d["pair_k"], d["pair_zeta"], d["pair_mu"],
             m.kt_ratio, m.ks_ratio, bool(self.features.friction), m.dt, parity,
             d["contact_partner"] if partner is None else partner,
@@ -819,7 +1041,7 @@ class CudaBackend:
             m.sleep_steps, d["body_rest"], d["body_wake"] if wake is None else wake,
             d["wall_normal"], d["wall_offset"],
             d["wall_lo"], d["wall_hi"], d["wall_depth"], d["wall_material"],
-            d["sphere_f"], d["sphere_t"], d["sphere_overlap"])
+            d["sphere_f"], d["sphere_t"], d["sphere_overlap"], d["ctl"])
 
     def _bodies(self):
         m, d = self.model, self.d
@@ -827,48 +1049,132 @@ class CudaBackend:
             m.n_bodies, m.dt, d["gravity"], d["body_sphere_start"], d["sphere_f"], d["sphere_t"],
             d["sphere_r"], d["body_mass"], d["body_inv_mass"], d["body_inv_inertia"],
             d["body_x"], d["body_q"], d["body_P"], d["body_L"],
-            m.sleep_steps, m.sleep_linear, m.sleep_angular, d["body_rest"], d["body_wake"])
+            m.sleep_steps, m.sleep_linear, m.sleep_angular, d["body_rest"], d["body_wake"],
+            d["ctl"])
 
-    #: The launch groups of one step, in order (benchmarks time each).
-    STAGES = ("_velocities", "_spheres", "_grid_sort", "_gather", "_contacts", "_bodies")
+    def _unsort(self):
+        d = self.d
+        k_unsort[_blocks(self.model.n_spheres, THREADS), THREADS](
+            d["sorted_idx"], d["sorted_x"], d["sphere_x"])
+
+    #: The launch groups of one step, in order (benchmarks time each; each takes
+    #: no argument).
+    STAGES = ("_velocities", "_spheres_sorted", "_spheres", "_grid_sort", "_gather",
+              "_neighbours", "_contacts", "_bodies")
 
     def step_once(self, parity: int = 0) -> None:
         """One step of the eight stages on the resident State: a fixed sequence of
         launches with fixed sizes and arguments, no host synchronisation (so the
         sequences of an even and an odd step can be captured once into a CUDA
         graph and replayed). ``parity``: the step number's lowest bit, which the
-        contact histories use to tell contacts that ended."""
+        contact histories use to tell contacts that ended.
+
+        Launch sequence (ctl: the device control array, CTL_*):
+
+        1. k_body_velocities: V, W of each body.
+        2. k_spheres_sorted: unless ctl[CTL_FORCE] (a call's first step), stage 1
+           straight into the sorted slots of the last build, and
+           ctl[CTL_MOVED] += 1 (integer atomic) per sphere that moved SKIN/2 d
+           or more since that build.
+        3. The rebuild, each kernel returning at once unless ctl[CTL_FORCE] or
+           ctl[CTL_MOVED] is set (both are stable while they run):
+           k_zero_buckets, k_spheres (stage 1 in sphere order, cells, bucket
+           counts), k_scan_blocks / k_scan_add (one or more levels), k_scatter,
+           k_bucket_sort, k_gather, k_neighbours (the lists, built_x; an
+           overflow adds to ctl[CTL_OVER] and maxes ctl[CTL_MAXN]).
+        4. k_contacts: each sorted slot over its list, then the walls (returns
+           at once once ctl[CTL_OVER] is set: the host carries on from there).
+        5. k_bodies: stages 5-8 (nothing once ctl[CTL_OVER] is set); its thread
+           0 counts the rebuild (ctl[CTL_REBUILDS]) and the step done
+           (ctl[CTL_DONE], unless overflowed) and clears ctl[CTL_FORCE] and
+           ctl[CTL_MOVED] for the next step.
+
+        ``step`` arms ctl (k_begin_call) before a call's first step.
+        """
         self._velocities()
+        self._spheres_sorted()
         self._spheres()
         self._grid_sort()
         self._gather()
+        self._neighbours()
         self._contacts(parity)
         self._bodies()
 
+    def grow_neighbours(self, need: int) -> None:
+        """Room for ``need`` partners per sphere (the longest list an overflowing
+        build found), doubling the capacity at least: a pile that grows denser
+        rarely needs a second growth. The lists' contents are not kept (the
+        steps that follow start with a rebuild)."""
+        ns = self.model.n_spheres
+        old = int(self.d["nbr"].shape[1])
+        cap = max(old, 1)
+        while cap < need:
+            cap *= 2
+        if cap == old:
+            return
+        free, total = cuda.current_context().get_memory_info()
+        check_memory(ns * (cap - old) * 4, free, total)
+        del self.d["nbr"]
+        self.d["nbr"] = cuda.to_device(np.zeros((ns, cap), dtype=np.int32))
+
     # -- CpuBackend interface ----------------------------------------------------
     def step(self, state, n_steps: int) -> None:
-        """Advance ``state`` by ``n_steps`` steps; its host arrays are updated at the end."""
+        """Advance ``state`` by ``n_steps`` steps; its host arrays are updated at the end.
+
+        The steps are launched back to back; the control array is read once at
+        the end. If a neighbour list overflowed, the State stopped changing at
+        that step (CTL_DONE counts the steps before it): the lists are grown and
+        the remaining steps launched again from there. Nothing is copied aside.
+        """
         self._ensure_resident(state)
         self.fit(state)
-        for step in range(state.step, state.step + int(n_steps)):
-            self.step_once(step & 1)
+        left = int(n_steps)
+        stepped = False
+        while left > 0:
+            self._begin_call()
+            for step in range(state.step, state.step + left):
+                self.step_once(step & 1)
+            ctl = self.d["ctl"].copy_to_host()
+            done = int(ctl[CTL_DONE])
+            self.rebuilds += int(ctl[CTL_REBUILDS])
+            state.step += done
+            left -= done
+            stepped = stepped or done > 0
+            if ctl[CTL_OVER] != 0:
+                self.redos += 1
+                self.grow_neighbours(int(ctl[CTL_MAXN]))   # room (may raise DeviceError)
+        if stepped:
+            self._unsort()
         self.download(state)
-        state.step += int(n_steps)
         state.time = state.step * self.model.dt
 
     def probe(self, state) -> None:
-        """Stages 1-4 without moving anything: fills sphere_f, sphere_overlap."""
+        """Stages 1-4 without moving anything: fills sphere_f, sphere_overlap.
+
+        Builds the neighbour lists (growing them until they fit), then the
+        contact stage on copies of the contact histories: reads them but does
+        not change the resident State's."""
         self._ensure_resident(state)
         self.fit(state)
         self._velocities()
-        self._spheres_and_grid()
+        while True:
+            self._begin_call()
+            self._spheres()
+            self._grid_sort()
+            self._gather()
+            self._neighbours()
+            ctl = self.d["ctl"].copy_to_host()
+            if ctl[CTL_OVER] == 0:
+                break
+            self.grow_neighbours(int(ctl[CTL_MAXN]))
         d = self.d
         k_fill[_blocks(self.model.n_spheres, THREADS), THREADS](d["sphere_overlap"], 0.0)
-        # on copies: a probe reads the contact histories but must not advance them
-        partner = cuda.to_device(d["contact_partner"].copy_to_host())
-        spring = cuda.to_device(d["contact_spring"].copy_to_host())
-        wake = cuda.to_device(d["body_wake"].copy_to_host())
-        self._contacts(state.step & 1, partner, spring, wake)
+        copies = {}
+        for name in ("contact_partner", "contact_spring", "body_wake"):
+            copies[name] = cuda.device_array_like(d[name])
+            copies[name].copy_to_device(d[name])          # device to device
+        self._contacts(state.step & 1, copies["contact_partner"], copies["contact_spring"],
+                       copies["body_wake"])
 
     def velocities(self, state):
         """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""
@@ -899,4 +1205,7 @@ class CudaBackend:
     sphere_r = property(lambda self: self.host("sphere_r"))
     sphere_overlap = property(lambda self: self.host("sphere_overlap"))
     sorted_idx = property(lambda self: self.host("sorted_idx"))
+    nbr = property(lambda self: self.host("nbr"))
+    nbr_n = property(lambda self: self.host("nbr_n"))
+    built_x = property(lambda self: self.host("built_x"))
     bucket_start = property(lambda self: self.host("bucket_start"))

@@ -1,0 +1,123 @@
+"""Verlet neighbour lists (kernels/neighbours.py) on the CPU target.
+
+The lists are an optimisation of stages 2-3, never of the physics: each list must
+hold every partner within its reach, and the frames must not depend on when the
+lists are rebuilt (a list is summed in its partners' index order, and a listed
+pair farther apart than d adds nothing). Both are asserted exactly here.
+"""
+
+import numpy as np
+
+from bodies import ball_set
+from dempipe.kernels import cpu
+from dempipe.kernels.neighbours import SKIN, cell_size
+from dempipe.materials import Material
+from dempipe.model import ModelBuilder
+from dempipe.simulator import Simulator
+from test_simulation import cluster_model
+
+D = 0.01
+
+
+def loose_balls(n=300, seed=3, box=0.06):
+    """One-sphere bodies scattered at random (some touching, many just outside reach)
+    in a box, thrown in every direction, no gravity: pairs at every distance."""
+    rng = np.random.default_rng(seed)
+    b = ModelBuilder(D, gravity=(0, 0, 0))
+    ss, mesh = ball_set(D)
+    s = b.add_shape("ball", mesh, ss)
+    m = b.add_material(Material("m", density=1000, restitution=0.8, friction=0.3))
+    pos = rng.uniform(D, box - D, size=(n, 3))
+    keep = [0]
+    for i in range(1, n):      # no deep overlaps at the start (they would explode)
+        if np.min(np.linalg.norm(pos[keep] - pos[i], axis=1)) > 0.9 * D:
+            keep.append(i)
+    pos = pos[keep]
+    b.add_bodies("balls", s, m, pos, velocities=rng.normal(size=pos.shape) * 0.3)
+    b.add_box([0, 0, 0], [box, box, box], material=m)
+    return b.finalize(fps=60, n_frames=6)
+
+
+def ball_lattice(n=5, pitch=1.05, seed=4):
+    """n³ one-sphere bodies on a cubic lattice pitch d apart (inside every list's reach,
+    not touching), jostled: each ball starts with up to 6 listed partners."""
+    rng = np.random.default_rng(seed)
+    b = ModelBuilder(D)
+    ss, mesh = ball_set(D)
+    s = b.add_shape("ball", mesh, ss)
+    m = b.add_material(Material("m", density=1000, restitution=0.5, friction=0.5))
+    g = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    pos = (g + 1.0) * pitch * D
+    b.add_bodies("balls", s, m, pos, velocities=rng.normal(size=pos.shape) * 0.2)
+    b.add_box([0, 0, 0], [(n + 1) * pitch * D] * 2 + [0.2], material=m)
+    return b.finalize(fps=60, n_frames=6)
+
+
+def brute_force_lists(backend, model):
+    """For each sorted slot: the set of slots of spheres of other bodies within the
+    lists' reach, by testing every pair (the oracle for the 27-cell search)."""
+    x = backend.sorted_x
+    body = backend.sorted_body
+    reach2 = cell_size(model.diameter) ** 2
+    d2 = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
+    near = (d2 < reach2) & (body[:, None] != body[None, :])
+    static = model.body_inv_mass[body] == 0
+    near[static, :] = False
+    return near
+
+
+def test_lists_hold_every_partner_within_reach_in_index_order():
+    # the cells of the rebuild grid are (1 + SKIN) d: with cells of d, partners
+    # between d and (1 + SKIN) d two cells away were missed (energy grew in the
+    # elastic gas of test_extremes)
+    for model in (loose_balls(), ball_lattice(), cluster_model(n=20)):
+        be = cpu.CpuBackend(model)
+        st = model.initial_state()
+        for _ in range(3):
+            be.step(st, max(1, model.steps_per_frame // 3))
+            be.probe(st)                     # rebuilds the lists from this state
+            near = brute_force_lists(be, model)
+            for s in range(model.n_spheres):
+                lst = be.nbr[s, : be.nbr_n[s]]
+                assert set(lst.tolist()) == set(np.flatnonzero(near[s]).tolist()), s
+                idx = be.sorted_idx[lst]
+                assert np.all(np.diff(idx) > 0), s       # partners' index order
+
+
+def test_frames_do_not_depend_on_when_lists_are_rebuilt():
+    # one call of many steps (rebuilds only when a sphere moved SKIN/2 d) against one
+    # step per call (a rebuild at every step, as the paper's loop): bit for bit
+    for model in (loose_balls(), ball_lattice(), cluster_model(n=20)):
+        a = model.initial_state()
+        b = model.initial_state()
+        sa = Simulator(model).backend
+        sb = Simulator(model).backend
+        n = 3 * model.steps_per_frame
+        sa.step(a, n)
+        for _ in range(n):
+            sb.step(b, 1)
+        for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner",
+                     "contact_spring"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
+def test_rebuilds_happen_mid_call_and_lists_grow_without_losing_contacts():
+    # lists of room 1 overflow at the first rebuild: the backend grows them and
+    # redoes the step; the result is the one with room to spare
+    for model in (ball_lattice(), ball_lattice(n=4, pitch=1.15, seed=5)):
+        ref = model.initial_state()
+        full = Simulator(model).backend
+        full.probe(ref)
+        assert full.nbr_n.max() > 1            # room 1 overflows at the first rebuild
+        full.step(ref, 2 * model.steps_per_frame)
+        be = Simulator(model).backend
+        be.nbr = np.zeros((model.n_spheres, 1), dtype=np.int32)
+        st = model.initial_state()
+        be.step(st, 2 * model.steps_per_frame)
+        assert be.nbr.shape[1] > 1
+        assert st.step == ref.step
+        for name in ("body_x", "body_q", "body_P", "body_L"):
+            assert np.array_equal(getattr(st, name), getattr(ref, name)), name
+        # the bodies move far enough that the lists are rebuilt inside one call
+        moved = np.linalg.norm(st.body_x - model.initial_state().body_x, axis=1).max()
+        assert moved > SKIN * model.diameter
