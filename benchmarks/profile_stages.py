@@ -63,8 +63,8 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
         def sorted_positions():
             return k.stage_spheres_sorted(b.sorted_idx, m.sphere_body, m.sphere_offset,
                                           state.body_x, state.body_q, b.body_v, b.body_w,
-                                          b.built_x, half * half, b.sorted_x, b.sorted_v,
-                                          b.sphere_r)
+                                          b.body_still, b.built_x, half * half, b.sorted_x,
+                                          b.sorted_v, b.sphere_r)
         every = (
             lambda: k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
                                             m.body_inv_mass, m.body_inv_inertia, b.body_v,
@@ -97,7 +97,8 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                    b.sphere_f, b.sphere_t, b.sphere_r, m.body_mass,
                                    m.body_inv_mass, m.body_inv_inertia, state.body_x,
                                    state.body_q, state.body_P, state.body_L, m.sleep_steps,
-                                   m.sleep_linear, m.sleep_angular, rest, b.body_wake),
+                                   m.sleep_linear, m.sleep_angular, rest, b.body_wake,
+                                   b.body_still),
         )
         t0 = time.perf_counter()
         every[0]()

@@ -298,7 +298,7 @@ def memory_estimate(model: Model) -> dict:
                + ns * f8                               # sphere_overlap
                + (2 * 3 * f8 if model.n_static else 0)  # static_lo, static_hi
                + i4 + 3 * f8                           # the frictionless dummy history
-               + nb * i4)                              # body_wake (sleeping)
+               + 2 * nb * i4)                          # body_wake, body_still (sleeping)
     state = nb * (3 + 4 + 3 + 3) * f8 + nb * i4        # x, q, P, L; body_rest
     if model.features.friction:   # contact histories (static friction), see State
         state += ns * CONTACT_SLOTS * (i4 + 3 * f8)

@@ -205,13 +205,17 @@ def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, in
 
 
 def stage_spheres_sorted(sorted_idx, sphere_body, sphere_offset, body_x, body_q, body_v,
-                         body_w, built_x, rebuild_at2, sorted_x, sorted_v, sphere_r):
+                         body_w, body_still, built_x, rebuild_at2, sorted_x, sorted_v, sphere_r):
     """Stage 1 (eq. 19-21) between rebuilds: straight into the sorted slots of the
     last rebuild (no grid, no sort). Returns how many spheres have moved
-    sqrt(rebuild_at2) [m] or more since (then the lists must be rebuilt)."""
+    sqrt(rebuild_at2) [m] or more since (then the lists must be rebuilt).
+    Spheres of a body that slept through the last step, or of a static collider
+    (body_still), keep the values computed before: the body has not moved since."""
     moved = 0
     for s in prange(sorted_idx.shape[0]):
         i = sorted_idx[s]
+        if body_still[sphere_body[i]] != 0:
+            continue
         x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset, body_x,
                                                        body_q, body_v, body_w)
         sorted_x[s, 0] = x
@@ -596,13 +600,20 @@ def stage_unsort(sorted_idx, sorted_x, sphere_x):
 
 def body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
                 body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
-                sleep_steps, v_sleep, w_sleep, body_rest, body_wake):
-    """Stages 5-8 for body b (the body of stage_bodies' loop), with sleeping."""
+                sleep_steps, v_sleep, w_sleep, body_rest, body_wake, body_still):
+    """Stages 5-8 for body b (the body of stage_bodies' loop), with sleeping.
+
+    Returns 1 when the body will integrate at the next step (awake), else 0.
+    body_still[b] = 1 when the body slept through this step (did not move):
+    stage 1 may keep its spheres' positions from the last step."""
     if SLEEPING and sleep_steps > 0 and body_rest[b] >= sleep_steps:
         if body_wake[b] != 0:      # touched by a moving body: integrates from next step
             body_rest[b] = 1
             body_wake[b] = 0
-        return
+            body_still[b] = 0
+            return 1
+        body_still[b] = 1
+        return 0
     m = body_mass[b]
     FX = m * gx
     FY = m * gy
@@ -665,28 +676,35 @@ def body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere
             L[2] = 0.0
         body_rest[b] = r
         body_wake[b] = 0
+        body_still[b] = 0
+        return 1 if r < sleep_steps else 0
+    return 1
 
 
 def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
                  body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
-                 sleep_steps, v_sleep, w_sleep, body_rest, body_wake):
+                 sleep_steps, v_sleep, w_sleep, body_rest, body_wake, body_still):
     """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10).
 
     With sleeping (sleep_steps > 0): a body slower than (v_sleep, w_sleep) for
     sleep_steps steps in a row falls asleep (P = L = 0, no integration) until a
-    moving body touches it (body_wake, set by the contact stage).
+    moving body touches it (body_wake, set by the contact stage). Returns the
+    bodies awake for the next step (an integer sum: the same for any thread count).
     """
+    awake = 0
     for b in prange(n_bodies):
-        body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
-                    body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
-                    sleep_steps, v_sleep, w_sleep, body_rest, body_wake)
+        awake += body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t,
+                             sphere_r, body_mass, body_inv_mass, body_inv_inertia, body_x,
+                             body_q, body_P, body_L, sleep_steps, v_sleep, w_sleep, body_rest,
+                             body_wake, body_still)
+    return awake
 
 
 def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
               sphere_body, sphere_offset, body_sphere_start, body_mass, body_inv_mass,
               body_inv_inertia, body_material, pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio,
               friction, contact_partner, contact_spring, hist_partner, hist_spring,
-              sleep_steps, v_sleep, w_sleep, body_rest, body_wake,
+              sleep_steps, v_sleep, w_sleep, body_rest, body_wake, body_still,
               wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
               body_x, body_q, body_P, body_L,
               body_v, body_w, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash,
@@ -699,6 +717,11 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
 
     Stages 2-3 (grid, sort, 27-cell search) run only to rebuild the neighbour
     lists: at the first step, and when a sphere has moved SKIN/2 d since.
+
+    With sleeping, once every body is asleep the remaining steps are skipped:
+    a step then changes nothing (a sleeping body moves only when a moving one
+    touches it, and none is left), so skipping them gives the same State bit
+    for bit, at no cost. The scratch arrays keep the last step done.
     """
     if n_steps <= 0:
         return 0    # nothing sorted yet: the unsort below would scramble the State's rows
@@ -713,7 +736,7 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                               body_v, body_w)
         if not rebuild:
             rebuild = stage_spheres_sorted(sorted_idx, sphere_body, sphere_offset, body_x,
-                                           body_q, body_v, body_w, built_x,
+                                           body_q, body_v, body_w, body_still, built_x,
                                            half_skin * half_skin, sorted_x, sorted_v,
                                            sphere_r) > 0
         if rebuild:
@@ -739,9 +762,12 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                        hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                        wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                        sphere_f, sphere_t, sphere_overlap)
-        stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
-                     body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
-                     sleep_steps, v_sleep, w_sleep, body_rest, body_wake)
+        awake = stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t,
+                             sphere_r, body_mass, body_inv_mass, body_inv_inertia, body_x,
+                             body_q, body_P, body_L, sleep_steps, v_sleep, w_sleep, body_rest,
+                             body_wake, body_still)
+        if SLEEPING and sleep_steps > 0 and awake == 0:
+            break                               # all asleep: nothing changes any more
     stage_unsort(sorted_idx, sorted_x, sphere_x)
     if FRICTION and friction:
         stage_history_to_spheres(sorted_idx, hist_partner, hist_spring, contact_partner,
@@ -846,6 +872,9 @@ class CpuBackend:
         self.sphere_t = np.zeros((ns, 3))
         self.sphere_overlap = np.zeros(ns)
         self.body_wake = np.zeros(nb, dtype=np.int32)
+        # static mesh colliders never move: stage 1 keeps their spheres from the rebuild
+        self.body_still = np.zeros(nb, dtype=np.int32)
+        self.body_still[model.n_bodies:] = 1
         self._no_partner = np.zeros((1, 1), dtype=np.int32)
         self._no_spring = np.zeros((1, 1, 3))
         if self.features.friction:   # the histories in sorted-slot order, within a call
@@ -896,7 +925,8 @@ class CpuBackend:
                 m.body_inv_mass, m.body_inv_inertia, m.body_material, m.pair_k, m.pair_zeta,
                 m.pair_mu, m.kt_ratio, m.ks_ratio, self.features.friction, partner, spring,
                 self.hist_partner, self.hist_spring, m.sleep_steps, m.sleep_linear, m.sleep_angular, self.rest(state),
-                self.body_wake, m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi,
+                self.body_wake, self.body_still, m.wall_normal, m.wall_offset, m.wall_lo,
+                m.wall_hi,
                 m.wall_depth, m.wall_material, state.body_x, state.body_q, state.body_P,
                 state.body_L, self.body_v, self.body_w, self.sphere_x, self.sphere_v,
                 self.sphere_r, self.sphere_key, self.sphere_hash, self.bucket_start,
