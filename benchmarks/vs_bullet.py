@@ -620,10 +620,15 @@ def main(argv=None) -> int:
                   for e in ("bullet", "dempipe"))
         speed = (rb["wall_seconds"] / rb["sim_seconds"]) / (rd["wall_seconds"] / rd["sim_seconds"])
         ok = rb["plausible"] and rd["plausible"]
-        goal = "meets" if ok and speed >= 2.0 else "misses"
+        if speed < 2.0:
+            goal = "misses the 2x goal"
+        elif ok:
+            goal = "meets the 2x goal"
+        else:   # fast enough, but one of the two piles is not a settled pile
+            goal = "2x on speed, but the goal asks for two settled piles"
         verdicts.append(f"- {n:,} pieces: dempipe is {speed:.2f}x Bullet's speed per simulated "
                         f"second; the comparison {'counts' if ok else 'does not count'} (Bullet: "
-                        f"{rb['why']}; dempipe: {rd['why']}); {goal} the 2x goal.")
+                        f"{rb['why']}; dempipe: {rd['why']}); {goal}.")
     print("\n" + "\n".join(verdicts))
     if args.json:
         with open(args.json, "w") as f:
