@@ -84,5 +84,8 @@ def bake(scene, output, device, layout, frames, threads, report_path, cache_dir,
         click.echo(
             f"wrote {result.path}: {r['bodies']} bodies, {r['frames']} frames, "
             f"{r['steps']} steps of {r['dt']:.3g} s in {r['simulate_seconds']:.1f} s "
-            f"({r['sphere_steps_per_second'] / 1e6:.2f} M sphere-steps/s), largest overlap "
+            f"({r['sphere_steps_per_second'] / 1e6:.2f} M sphere-steps/s"
+            + (f"; {r['steps_skipped_asleep']} skipped, every body asleep"
+               if r.get("steps_skipped_asleep") else "")
+            + "), largest overlap "
             f"{r['max_overlap']:.1%} of a diameter", err=True)

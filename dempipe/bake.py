@@ -129,8 +129,10 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
         steps=sim.stats.steps, frames=0, device=dev, threads=threads,
         wall_seconds=0.0, simulate_seconds=sim.stats.wall_seconds,
         seconds_per_step=sim.stats.seconds_per_step,
-        sphere_steps_per_second=(model.n_spheres * sim.stats.steps / sim.stats.wall_seconds
-                                 if sim.stats.wall_seconds else 0.0),
+        steps_skipped_asleep=sim.stats.steps_skipped,
+        # over the steps computed: a step skipped while every body slept costs nothing
+        sphere_steps_per_second=(model.n_spheres * (sim.stats.steps - sim.stats.steps_skipped)
+                                 / sim.stats.wall_seconds if sim.stats.wall_seconds else 0.0),
         max_overlap=sim.stats.max_overlap / model.diameter,
         sphere_build_seconds=model.build_info.get("sphere_build_seconds", 0.0),
         sphere_cache=[dict(shape=n, cache=c, seconds=s, spheres=k)

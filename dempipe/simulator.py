@@ -53,6 +53,9 @@ class RunStats:
     """What a run cost and how close it came to the limits."""
 
     steps: int = 0
+    #: Of ``steps``, those the backend skipped because every body slept (exact: such
+    #: a step changes nothing; the CPU target skips them, the CUDA one computes them).
+    steps_skipped: int = 0
     wall_seconds: float = 0.0
     max_overlap: float = 0.0          # [m]
     frame_overlap: list = field(default_factory=list)
@@ -187,6 +190,7 @@ class Simulator:
                 exc.frames = frames.head(k)
                 raise
             self.stats.steps += m.steps_per_frame
+            self.stats.steps_skipped = int(getattr(self.backend, "steps_skipped", 0))
             self.stats.wall_seconds = time.perf_counter() - t0
             overlap = self.backend.take_max_overlap()
             self.stats.frame_overlap.append(overlap)

@@ -53,6 +53,8 @@ def test_a_settled_pile_falls_asleep_and_stays_put():
     frames = sim.advance(state)
     asleep = state.asleep(model.sleep_steps)[: model.n_bodies]
     assert asleep.all(), f"{asleep.sum()} of {model.n_bodies} asleep after 1 s"
+    # once all sleep, the CPU target skips the steps (and says how many it skipped)
+    assert 0 < sim.stats.steps_skipped < sim.stats.steps
     # asleep means exactly still: the last frames are identical
     assert np.array_equal(frames.x[-1], frames.x[-2])
     assert np.all(frames.v[-1] == 0.0)

@@ -711,9 +711,10 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
               bucket_start, bucket_fill, sorted_idx, sorted_x, sorted_v, sorted_key,
               sorted_body, built_x, nbr, nbr_n, sphere_f, sphere_t, sphere_overlap):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
-    compiled code. Returns the steps done: fewer only when a rebuild found a
-    neighbour list longer than nbr holds (nbr_n has the counts; the caller grows
-    nbr and calls again, that step not yet begun).
+    compiled code. Returns (steps done, steps computed). Done is fewer than
+    n_steps only when a rebuild found a neighbour list longer than nbr holds
+    (nbr_n has the counts; the caller grows nbr and calls again, that step not
+    yet begun); computed is fewer than done when every body fell asleep.
 
     Stages 2-3 (grid, sort, 27-cell search) run only to rebuild the neighbour
     lists: at the first step, and when a sphere has moved SKIN/2 d since.
@@ -724,14 +725,16 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     for bit, at no cost. The scratch arrays keep the last step done.
     """
     if n_steps <= 0:
-        return 0    # nothing sorted yet: the unsort below would scramble the State's rows
+        return 0, 0  # nothing sorted yet: the unsort below would scramble the State's rows
     inv_cell = 1.0 / ((1.0 + SKIN) * diameter)     # neighbours.cell_size
     gx = gravity[0]
     gy = gravity[1]
     gz = gravity[2]
     half_skin = 0.5 * SKIN * diameter
     rebuild = True
+    computed = 0
     for step in range(first_step, first_step + n_steps):
+        computed += 1
         stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
                               body_v, body_w)
         if not rebuild:
@@ -754,7 +757,7 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
             if stage_neighbours(diameter, grid, bucket_start, sorted_idx, sorted_x,
                                 sorted_key, sorted_body, body_inv_mass, built_x,
                                 nbr, nbr_n) > 0:
-                return step - first_step        # the State's histories are current
+                return step - first_step, step - first_step   # the histories are current
             rebuild = False
         stage_contacts(diameter, nbr, nbr_n, sorted_idx, sorted_x, sorted_v,
                        sorted_body, body_w, body_inv_mass, body_material,
@@ -772,7 +775,7 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     if FRICTION and friction:
         stage_history_to_spheres(sorted_idx, hist_partner, hist_spring, contact_partner,
                                  contact_spring)
-    return n_steps
+    return n_steps, computed
 
 
 _STAGES = (stage_body_velocities, sphere_state, stage_spheres, stage_spheres_sorted,
@@ -844,6 +847,8 @@ class CpuBackend:
 
     def __init__(self, model, features=None, specialize: bool = True):
         self.model = model
+        #: Steps skipped because every body slept (counted as done, not computed).
+        self.steps_skipped = 0
         self.features = scene_features(model, features)
         self.flags = kernel_flags(self.features) if specialize else GENERAL
         self.k = kernels(self.flags)
@@ -919,7 +924,7 @@ class CpuBackend:
         partner, spring = self.contacts(state)
         left = int(n_steps)
         while left > 0:
-            done = self.k.run_steps(
+            done, computed = self.k.run_steps(
                 left, int(state.step), m.dt, m.diameter, m.n_bodies, m.gravity, self.grid,
                 m.sphere_body, m.sphere_offset, m.body_sphere_start, m.body_mass,
                 m.body_inv_mass, m.body_inv_inertia, m.body_material, m.pair_k, m.pair_zeta,
@@ -936,6 +941,7 @@ class CpuBackend:
             state.step += int(done)
             state.time = state.step * m.dt
             left -= int(done)
+            self.steps_skipped += int(done) - int(computed)
             if left > 0:
                 self.grow_neighbours()
 
