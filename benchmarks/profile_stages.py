@@ -5,7 +5,7 @@
 
 The backend's own compiled stage functions (the ones ``run_steps`` calls in
 a loop) are called one at a time from Python on a scene, ``--steps`` times
-each, and timed with perf_counter. Stage order and arguments are exactly
+each, and timed with perf_counter. Stage order and arguments are
 ``kernels.cpu.run_steps``'s (the rebuild stages only when run_steps would rebuild
 the neighbour lists), so the state advances as in a bake. Printed per
 scene: microseconds per step of each stage averaged over all steps (a rebuild
@@ -42,7 +42,8 @@ from dempipe.simulator import Simulator  # noqa: E402
 
 STAGES = ("1 body velocities (eq. 5-6)", "1 sphere positions into sorted slots (eq. 19-21)",
           "2 rebuild: sphere positions + cell keys", "2 rebuild: counting sort (serial)",
-          "2 rebuild: gather into sorted order", "3 rebuild: neighbour lists (27 cells)",
+          "2 rebuild: gather into sorted order (+ histories)",
+          "3 rebuild: neighbour lists (27 cells)",
           "3-4 contact forces over the lists", "5-8 body momenta, positions, quaternions")
 
 
@@ -53,6 +54,9 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
     k = b.k
     b.fit_grid(state)
     partner, spring = b.contacts(state)
+    fr = b.features.friction
+    # within a call the contact stage reads the histories in sorted-slot order (as run_steps)
+    hp, hs = (b.hist_partner, b.hist_spring) if fr else (partner, spring)
     rest = b.rest(state)
     inv_cell = 1.0 / cell_size(m.diameter)
     g = m.gravity
@@ -77,9 +81,10 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                     b.sphere_r, b.sphere_key, b.sphere_hash),
             lambda: cpu.stage_grid_sort(b.sphere_hash, b.grid, b.bucket_start, b.bucket_fill,
                                         b.sorted_idx),
-            lambda: cpu.stage_grid_gather(b.sorted_idx, b.sphere_x, b.sphere_v, b.sphere_key,
-                                          m.sphere_body, b.sorted_x, b.sorted_v, b.sorted_key,
-                                          b.sorted_body),
+            lambda: (cpu.stage_grid_gather(b.sorted_idx, b.sphere_x, b.sphere_v, b.sphere_key,
+                                           m.sphere_body, b.sorted_x, b.sorted_v, b.sorted_key,
+                                           b.sorted_body),
+                     fr and cpu.stage_history_to_slots(b.sorted_idx, partner, spring, hp, hs)),
             lambda: cpu.stage_neighbours(m.diameter, b.grid, b.bucket_start, b.sorted_idx,
                                          b.sorted_x, b.sorted_key, b.sorted_body,
                                          m.body_inv_mass, b.built_x, b.nbr, b.nbr_n),
@@ -89,7 +94,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                      b.sorted_v, b.sorted_body, b.body_w, m.body_inv_mass,
                                      m.body_material, m.pair_k, m.pair_zeta, m.pair_mu,
                                      m.kt_ratio, m.ks_ratio, b.features.friction, m.dt, s & 1,
-                                     partner, spring, m.sleep_steps, rest, b.body_wake,
+                                     hp, hs, m.sleep_steps, rest, b.body_wake,
                                      m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi,
                                      m.wall_depth, m.wall_material, b.sphere_f, b.sphere_t,
                                      b.sphere_overlap),
@@ -110,6 +115,10 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             t[1] += time.perf_counter() - t0
         if moved:
             rebuilds += 1
+            if fr and s > state.step:      # histories back to sphere order before the sort
+                t0 = time.perf_counter()
+                cpu.stage_history_to_spheres(b.sorted_idx, hp, hs, partner, spring)
+                t[4] += time.perf_counter() - t0
             for i, call in enumerate(rebuild):
                 t0 = time.perf_counter()
                 over = call()
@@ -121,6 +130,8 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             t0 = time.perf_counter()
             call()
             t[6 + i] += time.perf_counter() - t0
+    if fr:
+        cpu.stage_history_to_spheres(b.sorted_idx, hp, hs, partner, spring)
     state.step += steps
     state.time = state.step * m.dt
     return t / steps, rebuilds

@@ -128,7 +128,8 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
         diameter=model.diameter, dt=model.dt, steps_per_frame=model.steps_per_frame,
         steps=sim.stats.steps, frames=0, device=dev, threads=threads,
         wall_seconds=0.0, simulate_seconds=sim.stats.wall_seconds,
-        seconds_per_step=sim.stats.seconds_per_step,
+        seconds_per_step=(sim.stats.wall_seconds / (sim.stats.steps - sim.stats.steps_skipped)
+                          if sim.stats.steps > sim.stats.steps_skipped else 0.0),
         steps_skipped_asleep=sim.stats.steps_skipped,
         # over the steps computed: a step skipped while every body slept costs nothing
         sphere_steps_per_second=(model.n_spheres * (sim.stats.steps - sim.stats.steps_skipped)

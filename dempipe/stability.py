@@ -672,9 +672,9 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
             findings.append(Finding(
                 WARNING, "far-from-origin",
                 f"{src}: bodies start {far * d:.4g} m from the origin, {far:.3g} sphere "
-                f"diameters; beyond {2 ** 20:.3g} diameters the grid clamps them into its "
-                f"outermost cells (correct, but every sphere there is a neighbour of every "
-                f"other: slow)",
+                f"diameters; beyond about {2 ** 20:.3g} cells of 1.2 diameters the grid "
+                f"clamps them into its outermost cells (correct, but at a neighbour-list "
+                f"rebuild every sphere there is a candidate of every other: slow)",
                 "recentre the scene near the origin (move the bodies and colliders together)"))
 
     nb_all = int(model.body_mass.shape[0])

@@ -121,3 +121,28 @@ def test_rebuilds_happen_mid_call_and_lists_grow_without_losing_contacts():
         # the bodies move far enough that the lists are rebuilt inside one call
         moved = np.linalg.norm(st.body_x - model.initial_state().body_x, axis=1).max()
         assert moved > SKIN * model.diameter
+
+
+def test_an_overflow_in_the_middle_of_a_call_keeps_the_histories():
+    # A box falls onto a slab: no partner at the first build, so lists of room 1
+    # overflow at a rebuild in the middle of the call, with friction histories in
+    # sorted-slot order at that moment; the State's histories must be current when
+    # run_steps returns early, and the rest of the call must go on from there.
+    from test_cuda import falling_model
+
+    model = falling_model()
+    ref = model.initial_state()
+    Simulator(model).backend.step(ref, 30)
+    assert (ref.contact_partner != 0).any()              # friction histories in use
+    for split in (30, 13, 19):
+        be = Simulator(model).backend
+        be.probe(model.initial_state())
+        assert be.nbr_n.max() == 0                       # nothing to overflow at the start
+        be.nbr = np.zeros((model.n_spheres, 1), dtype=np.int32)
+        st = model.initial_state()
+        be.step(st, split)
+        be.step(st, 30 - split)
+        assert be.nbr.shape[1] > 1                       # it overflowed, and grew
+        for name in ("body_x", "body_q", "body_P", "body_L", "body_rest",
+                     "contact_partner", "contact_spring"):
+            assert np.array_equal(getattr(st, name), getattr(ref, name)), (split, name)

@@ -27,8 +27,9 @@ SKIN = 0.2
 
 #: Entries per sphere a backend allocates to start with. A rebuild that finds a
 #: longer list (a sphere deep in others, a dense pile of small bodies) makes the
-#: backend grow the lists and redo (the CPU: that step; CUDA: the whole call, from
-#: a copy of its start kept on the device): contacts are never dropped.
+#: backend grow the lists and carry on from that step (the CPU returns before the
+#: step's contacts; on CUDA nothing of the State changes from that step on and the
+#: host relaunches the remaining steps): contacts are never dropped.
 NEIGHBOURS = 16
 
 
