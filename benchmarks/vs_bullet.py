@@ -307,6 +307,7 @@ def run_dempipe(model, pieces: Pieces, threads: int) -> dict:
         out["plausible"], out["why"] = False, f"bake stopped: {failure}"
     out.update(
         engine="dempipe", threads=threads, steps=sim.stats.steps,
+        steps_skipped_asleep=sim.stats.steps_skipped,
         steps_per_sim_second=1.0 / model.dt, dt=model.dt,
         wall_seconds=sim.stats.wall_seconds, sim_seconds=sim_seconds,
         ms_per_step=sim.stats.wall_seconds / max(sim.stats.steps, 1) * 1e3,
@@ -533,7 +534,9 @@ def table(rows: list[dict], info: dict, duration: float) -> str:
         per = r["wall_seconds"] / r["sim_seconds"]
         speed = (base["wall_seconds"] / base["sim_seconds"]) / per
         name = "Bullet (convex hulls, 240 Hz, 10 it.)" if r["engine"] == "bullet" else \
-            f"dempipe CPU ({r['spheres']:,} spheres, d = {r['sphere_diameter'] * 1e3:.1f} mm)"
+            (f"dempipe CPU ({r['spheres']:,} spheres, d = {r['sphere_diameter'] * 1e3:.1f} mm"
+             + (f"; {r['steps_skipped_asleep']:,} of {r['steps']:,} steps skipped, all asleep"
+                if r.get("steps_skipped_asleep") else "") + ")")
         lines.append(
             f"| {r['n']:,} | {name} | {r['steps_per_sim_second']:,.0f} | {r['ms_per_step']:.2f} "
             f"| {per:.3g} | {speed:.2f}x | {r['inside']}/{r['n']} | {r['at_rest'] / r['n']:.0%} "
