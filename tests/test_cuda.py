@@ -24,6 +24,7 @@ contraction changes the last bits of a product-sum; see docs/cuda.md).
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import os
 import subprocess
 import sys
@@ -134,6 +135,24 @@ def falling_model(v=1.5):
                  angular_velocities=[[0, 0, 2.0]])
     b.add_plane([0, 0, 0], [0, 0, 1], m1)
     return b.finalize(fps=60, n_frames=2)
+
+
+def sleepy_model():
+    """Two boxes resting on a plane that fall asleep within a few steps (thresholds
+    of 1 m/s and 100 rad/s for two steps): the all-asleep shortcut of both targets."""
+    from bodies import box_set
+    from dempipe.materials import Material
+    from dempipe.model import ModelBuilder
+
+    b = ModelBuilder(D)
+    ss, mesh = box_set(2, 2, 1, D)
+    s = b.add_shape("box", mesh, ss)
+    m = b.add_material(Material("m", density=800, restitution=0.4, friction=0.4,
+                                stiffness=4000.0))
+    b.add_bodies("boxes", s, m, [[0, 0, 0.499 * D], [2.0 * D, 0, 0.499 * D]])
+    b.add_plane([0, 0, 0], [0, 0, 1], m)
+    model = b.finalize(fps=60, n_frames=2, sleep=(1.0, 100.0, 1e-9))
+    return replace(model, sleep_steps=2)
 
 
 def _rel(a, b) -> float:
@@ -307,6 +326,22 @@ def _sim_main() -> dict:
                                            for n in BODY)
     out["falling"]["redos_after"] = f_cu_be.redos
 
+    # every body asleep: both targets skip the rest of a call's steps (no-ops), and
+    # go on computing when a later call starts; bit for bit, histories included
+    nap = sleepy_model()
+    n_cpu, n_cu = kcpu.CpuBackend(nap), kcu.CudaBackend(nap)
+    u, w_ = nap.initial_state(), nap.initial_state()
+    for n_steps in (12, 5):
+        n_cpu.step(u, n_steps)
+        n_cu.step(w_, n_steps)
+    n_cu.download(w_, contacts=True)
+    out["asleep"] = {
+        "identical": all(np.array_equal(getattr(w_, n), getattr(u, n))
+                         for n in BODY + ("body_rest", "contact_partner", "contact_spring")),
+        "all_asleep": bool(u.asleep(nap.sleep_steps)[: nap.n_bodies].all()),
+        "skipped_cpu": n_cpu.steps_skipped, "skipped_cuda": n_cu.steps_skipped,
+    }
+
     # the whole Simulator path on device="cuda": a few steps per frame
     fast = contact_model(fps=1.0 / (4 * model.dt), n_frames=4)
     f_cpu = Simulator(fast, device="cpu")
@@ -404,6 +439,12 @@ def test_sim_rebuilds_and_overflow_in_the_middle_of_a_call(sim):
     assert f["box_drop"] > 0.2 and f["box_force"] > 0  # it fell and hit the slab
     assert f["identical"] and f["more_identical"], f["rel"]
     assert f["sphere_x_identical"] and f["sphere_f_identical"]
+
+
+def test_sim_all_asleep_steps_skipped_on_both_targets_bit_identical(sim):
+    a = sim["asleep"]
+    assert a["all_asleep"] and a["identical"]
+    assert a["skipped_cpu"] > 0 and a["skipped_cuda"] == a["skipped_cpu"]
 
 
 def test_sim_run_to_run_identical(sim):

@@ -98,7 +98,14 @@ CTL_REBUILDS = 4
 #: Steps done in this call (k_bodies' thread 0; not counted once CTL_OVER is set:
 #: from the overflowing step on, nothing of the State changes).
 CTL_DONE = 5
-CTL_SIZE = 8
+#: Bodies awake after the last body stage (k_bodies, integer atomic adds; reset by
+#: k_idle_check at the start of each step, 1 after k_begin_call).
+CTL_AWAKE = 6
+#: 1: every body sleeps, so the rest of the call's steps are no-ops (set by
+#: k_idle_check; the CPU target skips them the same way). Counted in CTL_IDLE_STEPS.
+CTL_IDLE = 7
+CTL_IDLE_STEPS = 8
+CTL_SIZE = 10
 
 
 #: Most buckets per sphere the grid may use (as kernels/cpu.py).
@@ -207,6 +214,18 @@ def k_begin_call(ctl):
         for j in range(ctl.shape[0]):
             ctl[j] = 0
         ctl[CTL_FORCE] = 1
+        ctl[CTL_AWAKE] = 1
+
+
+@cuda.jit
+def k_idle_check(ctl, sleep_steps):
+    """First launch of a step (one thread): with sleeping on and no body awake after
+    the last step's body stage, nothing can move any more, so this and the call's
+    remaining steps are no-ops (CTL_IDLE); then reset the awake count for this step."""
+    if cuda.grid(1) == 0:
+        if sleep_steps > 0 and ctl[CTL_AWAKE] == 0:
+            ctl[CTL_IDLE] = 1
+        ctl[CTL_AWAKE] = 0
 
 
 @cuda.jit
@@ -239,7 +258,7 @@ def k_spheres_sorted(sorted_idx, sphere_body, sphere_offset, body_x, body_q, bod
     then this step rebuilds. Returns at once when the step rebuilds anyway
     (CTL_FORCE: the first step of a call), as the CPU skips it then."""
     s = cuda.grid(1)
-    if s >= sorted_idx.shape[0] or ctl[CTL_FORCE] != 0:
+    if s >= sorted_idx.shape[0] or ctl[CTL_FORCE] != 0 or ctl[CTL_IDLE] != 0:
         return
     i = sorted_idx[s]
     b = sphere_body[i]
@@ -500,7 +519,7 @@ def k_contacts(diameter, nbr, nbr_n, sorted_idx, sorted_x, sorted_v,
     """
     s = cuda.grid(1)
     n_spheres = sorted_idx.shape[0]
-    if s >= n_spheres or ctl[CTL_OVER] != 0:
+    if s >= n_spheres or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
     d2 = diameter * diameter
     radius = 0.5 * diameter
@@ -652,12 +671,15 @@ def k_bodies(n_bodies, dt, gravity, body_sphere_start, sphere_f, sphere_t, spher
         ctl[CTL_MOVED] = 0
         if ctl[CTL_OVER] == 0:
             ctl[CTL_DONE] += 1
-    if b >= n_bodies or ctl[CTL_OVER] != 0:
+        if ctl[CTL_IDLE] != 0:
+            ctl[CTL_IDLE_STEPS] += 1
+    if b >= n_bodies or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
     if sleep_steps > 0 and body_rest[b] >= sleep_steps:
         if body_wake[b] != 0:
             body_rest[b] = 1
             body_wake[b] = 0
+            cuda.atomic.add(ctl, CTL_AWAKE, 1)   # integrates from the next step
         return
     m = body_mass[b]
     FX = m * gravity[0]
@@ -715,6 +737,10 @@ def k_bodies(n_bodies, dt, gravity, body_sphere_start, sphere_f, sphere_t, spher
             body_L[b, 2] = 0.0
         body_rest[b] = r
         body_wake[b] = 0
+        if r < sleep_steps:
+            cuda.atomic.add(ctl, CTL_AWAKE, 1)
+    else:
+        cuda.atomic.add(ctl, CTL_AWAKE, 1)
 
 
 @cuda.jit
@@ -923,6 +949,7 @@ class CudaBackend:
         self._resident = None            # (state, body_x, body_q, body_P, body_L) on device
         self.rebuilds = 0                # neighbour-list rebuilds done (all calls)
         self.redos = 0                   # relaunches after a list overflow
+        self.steps_skipped = 0           # steps that were no-ops: every body asleep
 
     # -- state residency -------------------------------------------------------
     def upload(self, state) -> None:
@@ -972,6 +999,9 @@ class CudaBackend:
     def _begin_call(self):
         """Arm the control array for a call: rebuild at its first step."""
         k_begin_call[1, 1](self.d["ctl"])
+
+    def _idle_check(self):
+        k_idle_check[1, 1](self.d["ctl"], self.model.sleep_steps)
 
     def _velocities(self):
         m, d = self.model, self.d
@@ -1059,8 +1089,8 @@ class CudaBackend:
 
     #: The launch groups of one step, in order (benchmarks time each; each takes
     #: no argument).
-    STAGES = ("_velocities", "_spheres_sorted", "_spheres", "_grid_sort", "_gather",
-              "_neighbours", "_contacts", "_bodies")
+    STAGES = ("_idle_check", "_velocities", "_spheres_sorted", "_spheres", "_grid_sort",
+              "_gather", "_neighbours", "_contacts", "_bodies")
 
     def step_once(self, parity: int = 0) -> None:
         """One step of the eight stages on the resident State: a fixed sequence of
@@ -1071,6 +1101,11 @@ class CudaBackend:
 
         Launch sequence (ctl: the device control array, CTL_*):
 
+        0. k_idle_check (one thread): with sleeping on and no body awake after
+           the last step (ctl[CTL_AWAKE] == 0), set ctl[CTL_IDLE]: this and the
+           call's remaining steps are no-ops (k_spheres_sorted, k_contacts and
+           k_bodies return at once; the rebuild kernels have nothing to do);
+           then zero ctl[CTL_AWAKE] for this step's body stage to count into.
         1. k_body_velocities: V, W of each body.
         2. k_spheres_sorted: unless ctl[CTL_FORCE] (a call's first step), stage 1
            straight into the sorted slots of the last build, and
@@ -1084,13 +1119,16 @@ class CudaBackend:
            overflow adds to ctl[CTL_OVER] and maxes ctl[CTL_MAXN]).
         4. k_contacts: each sorted slot over its list, then the walls (returns
            at once once ctl[CTL_OVER] is set: the host carries on from there).
-        5. k_bodies: stages 5-8 (nothing once ctl[CTL_OVER] is set); its thread
-           0 counts the rebuild (ctl[CTL_REBUILDS]) and the step done
-           (ctl[CTL_DONE], unless overflowed) and clears ctl[CTL_FORCE] and
-           ctl[CTL_MOVED] for the next step.
+        5. k_bodies: stages 5-8 (nothing once ctl[CTL_OVER] or ctl[CTL_IDLE] is
+           set), each body awake for the next step adding 1 to ctl[CTL_AWAKE];
+           its thread 0 counts the rebuild (ctl[CTL_REBUILDS]), the step done
+           (ctl[CTL_DONE], unless overflowed) and an idle one
+           (ctl[CTL_IDLE_STEPS]) and clears ctl[CTL_FORCE] and ctl[CTL_MOVED]
+           for the next step.
 
         ``step`` arms ctl (k_begin_call) before a call's first step.
         """
+        self._idle_check()
         self._velocities()
         self._spheres_sorted()
         self._spheres()
@@ -1137,6 +1175,7 @@ class CudaBackend:
             ctl = self.d["ctl"].copy_to_host()
             done = int(ctl[CTL_DONE])
             self.rebuilds += int(ctl[CTL_REBUILDS])
+            self.steps_skipped += int(ctl[CTL_IDLE_STEPS])
             state.step += done
             left -= done
             stepped = stepped or done > 0
