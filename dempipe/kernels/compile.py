@@ -35,6 +35,19 @@ FORMULAS = (
 )
 
 
+def compile_walk(jit, cell_coord, cell_key, cell_hash):
+    """neighbours.neighbour_list compiled with ``jit``, calling the target's own
+    (already compiled) grid cell functions."""
+    from . import neighbours
+
+    py = neighbours.neighbour_list
+    glb = dict(py.__globals__)
+    glb.update(cell_coord=cell_coord, cell_key=cell_key, cell_hash=cell_hash)
+    fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__, py.__closure__)
+    fn.__doc__ = py.__doc__
+    return jit(fn)
+
+
 def compile_formulas(jit) -> types.SimpleNamespace:
     """Return a namespace of every formula compiled with ``jit`` (a decorator)."""
     compiled: dict[str, object] = {}

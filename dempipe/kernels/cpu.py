@@ -17,7 +17,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from .compile import compile_formulas, invalidate_stale_cache, specialize
+from .compile import compile_formulas, compile_walk, invalidate_stale_cache, specialize
 from ..state import CONTACT_SLOTS
 from .neighbours import NEIGHBOURS, SKIN, cell_size
 
@@ -79,6 +79,10 @@ def cell_hash(cx, cy, cz, grid):
     their keys. grid = (bx, by, mask_x, mask_y, mask_z).
     """
     return ((cz & grid[4]) << (grid[0] + grid[1])) | ((cy & grid[3]) << grid[0]) | (cx & grid[2])
+
+
+neighbour_list = compile_walk(numba.njit(inline="always", cache=False), cell_coord, cell_key,
+                              cell_hash)
 
 
 # ---------------------------------------------------------------------------
@@ -277,74 +281,13 @@ def stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
 @numba.njit(cache=True)
 def sphere_neighbours(s0, s1, cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x,
                       sorted_key, sorted_body, body_inv_mass, built_x, nbr, nbr_n):
-    """Stages 2-3 for sorted slots s0 .. s1-1: each slot's neighbour list.
-
-    nbr[s, :nbr_n[s]] are the slots of the spheres of other bodies closer than
-    sqrt(cutoff2) [m], found over the 27 cells, in the order of their sphere
-    index (so the forces are summed in an order that does not depend on the
-    grid, the slots or when lists are rebuilt). Static spheres get none (they
-    feel nothing). A list that would hold more than nbr.shape[1] keeps its true
-    count in nbr_n and stores what fits; returns how many lists overflowed.
-    Also notes each slot's position at the build (built_x)."""
+    """Stages 2-3 for sorted slots s0 .. s1-1: each slot's neighbour list
+    (neighbours.neighbour_list); returns how many lists overflowed."""
     cap = nbr.shape[1]
     over = 0
     for s in range(s0, s1):
-        xi = sorted_x[s, 0]
-        yi = sorted_x[s, 1]
-        zi = sorted_x[s, 2]
-        built_x[s, 0] = xi
-        built_x[s, 1] = yi
-        built_x[s, 2] = zi
-        bi = sorted_body[s]
-        n = 0
-        if body_inv_mass[bi] == 0.0:
-            nbr_n[s] = 0
-            continue
-        cx0 = cell_coord(xi, inv_cell)
-        cy0 = cell_coord(yi, inv_cell)
-        cz0 = cell_coord(zi, inv_cell)
-        for dz in range(-1, 2):
-            for dy in range(-1, 2):
-                cy = cy0 + dy
-                cz = cz0 + dz
-                # the three cells (cx0-1..cx0+1, cy, cz): keys in [lo, hi]
-                key_lo = cell_key(cx0 - 1, cy, cz)
-                key_hi = cell_key(cx0 + 1, cy, cz)
-                h_lo = cell_hash(cx0 - 1, cy, cz, grid)
-                h_hi = cell_hash(cx0 + 1, cy, cz, grid)
-                if h_hi == h_lo + 2:        # one contiguous run of buckets
-                    n_runs = 1
-                else:                       # the row wraps round the table
-                    n_runs = 3
-                for run in range(n_runs):
-                    if n_runs == 1:
-                        t0 = bucket_start[h_lo]
-                        t1 = bucket_start[h_hi + 1]
-                    else:
-                        h = cell_hash(cx0 - 1 + run, cy, cz, grid)
-                        t0 = bucket_start[h]
-                        t1 = bucket_start[h + 1]
-                    for t in range(t0, t1):
-                        kt = sorted_key[t]
-                        if kt < key_lo or kt > key_hi:
-                            continue        # another cell sharing the buckets
-                        if sorted_body[t] == bi:
-                            continue        # spheres of one body never collide
-                        rx = sorted_x[t, 0] - xi
-                        ry = sorted_x[t, 1] - yi
-                        rz = sorted_x[t, 2] - zi
-                        if rx * rx + ry * ry + rz * rz >= cutoff2:
-                            continue
-                        if n < cap:         # insert in sphere-index order
-                            it = sorted_idx[t]
-                            p = n
-                            while p > 0 and sorted_idx[nbr[s, p - 1]] > it:
-                                nbr[s, p] = nbr[s, p - 1]
-                                p -= 1
-                            nbr[s, p] = t
-                        n += 1
-        nbr_n[s] = n
-        if n > cap:
+        if neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x,
+                          sorted_key, sorted_body, body_inv_mass, built_x, nbr, nbr_n) > cap:
             over += 1
     return over
 
@@ -557,6 +500,16 @@ def stage_contacts(diameter, nbr, nbr_n, sorted_idx, sorted_x, sorted_v,
                         sphere_f, sphere_t, sphere_overlap)
 
 
+@numba.njit(inline="always", cache=True)
+def history_row_copy(src_partner, src_spring, a, dst_partner, dst_spring, b):
+    """Row a of a contact history (partners and stretches) into row b of another."""
+    for h in range(src_partner.shape[1]):
+        dst_partner[b, h] = src_partner[a, h]
+        dst_spring[b, h, 0] = src_spring[a, h, 0]
+        dst_spring[b, h, 1] = src_spring[a, h, 1]
+        dst_spring[b, h, 2] = src_spring[a, h, 2]
+
+
 @numba.njit(parallel=True, cache=True)
 def stage_history_to_slots(sorted_idx, contact_partner, contact_spring, hist_partner,
                            hist_spring):
@@ -566,12 +519,8 @@ def stage_history_to_slots(sorted_idx, contact_partner, contact_spring, hist_par
     s, next to its position, so that friction walks memory in order instead of
     jumping to each sphere's own index (measured: docs/performance.md)."""
     for s in prange(sorted_idx.shape[0]):
-        i = sorted_idx[s]
-        for h in range(contact_partner.shape[1]):
-            hist_partner[s, h] = contact_partner[i, h]
-            hist_spring[s, h, 0] = contact_spring[i, h, 0]
-            hist_spring[s, h, 1] = contact_spring[i, h, 1]
-            hist_spring[s, h, 2] = contact_spring[i, h, 2]
+        history_row_copy(contact_partner, contact_spring, sorted_idx[s], hist_partner,
+                         hist_spring, s)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -579,12 +528,8 @@ def stage_history_to_spheres(sorted_idx, hist_partner, hist_spring, contact_part
                              contact_spring):
     """The inverse of stage_history_to_slots (before a re-sort, and at the end of a call)."""
     for s in prange(sorted_idx.shape[0]):
-        i = sorted_idx[s]
-        for h in range(contact_partner.shape[1]):
-            contact_partner[i, h] = hist_partner[s, h]
-            contact_spring[i, h, 0] = hist_spring[s, h, 0]
-            contact_spring[i, h, 1] = hist_spring[s, h, 1]
-            contact_spring[i, h, 2] = hist_spring[s, h, 2]
+        history_row_copy(hist_partner, hist_spring, s, contact_partner, contact_spring,
+                         sorted_idx[s])
 
 
 @numba.njit(parallel=True, cache=True)

@@ -39,7 +39,7 @@ from numba.core import config
 
 from ..errors import DeviceError
 from ..state import CONTACT_SLOTS
-from .compile import compile_formulas
+from .compile import compile_formulas, compile_walk
 from .neighbours import NEIGHBOURS, SKIN, cell_size
 
 
@@ -191,6 +191,9 @@ def cell_key(cx, cy, cz):
 def cell_hash(cx, cy, cz, grid):
     """Bucket of a cell in the wrapped 2^bx × 2^by × 2^bz table (see kernels/cpu.py)."""
     return ((cz & grid[4]) << (grid[0] + grid[1])) | ((cy & grid[3]) << grid[0]) | (cx & grid[2])
+
+
+neighbour_list = compile_walk(_device_jit(), cell_coord, cell_key, cell_hash)
 
 
 @cuda.jit(device=True)
@@ -440,61 +443,8 @@ def k_neighbours(cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x, so
     if s >= sorted_idx.shape[0] or not rebuilding(ctl):
         return
     cap = nbr.shape[1]
-    xi = sorted_x[s, 0]
-    yi = sorted_x[s, 1]
-    zi = sorted_x[s, 2]
-    built_x[s, 0] = xi
-    built_x[s, 1] = yi
-    built_x[s, 2] = zi
-    bi = sorted_body[s]
-    n = 0
-    if body_inv_mass[bi] == 0.0:
-        nbr_n[s] = 0
-        return
-    cx0 = cell_coord(xi, inv_cell)
-    cy0 = cell_coord(yi, inv_cell)
-    cz0 = cell_coord(zi, inv_cell)
-    for dz in range(-1, 2):
-        for dy in range(-1, 2):
-            cy = cy0 + dy
-            cz = cz0 + dz
-            # the three cells (cx0-1..cx0+1, cy, cz): keys in [lo, hi]
-            key_lo = cell_key(cx0 - 1, cy, cz)
-            key_hi = cell_key(cx0 + 1, cy, cz)
-            h_lo = cell_hash(cx0 - 1, cy, cz, grid)
-            h_hi = cell_hash(cx0 + 1, cy, cz, grid)
-            if h_hi == h_lo + 2:        # one contiguous run of buckets
-                n_runs = 1
-            else:                       # the row wraps round the table
-                n_runs = 3
-            for run in range(n_runs):
-                if n_runs == 1:
-                    t0 = bucket_start[h_lo]
-                    t1 = bucket_start[h_hi + 1]
-                else:
-                    h = cell_hash(cx0 - 1 + run, cy, cz, grid)
-                    t0 = bucket_start[h]
-                    t1 = bucket_start[h + 1]
-                for t in range(t0, t1):
-                    ktt = sorted_key[t]
-                    if ktt < key_lo or ktt > key_hi:
-                        continue        # another cell sharing the buckets
-                    if sorted_body[t] == bi:
-                        continue        # spheres of one body never collide
-                    rx = sorted_x[t, 0] - xi
-                    ry = sorted_x[t, 1] - yi
-                    rz = sorted_x[t, 2] - zi
-                    if rx * rx + ry * ry + rz * rz >= cutoff2:
-                        continue
-                    if n < cap:         # insert in sphere-index order
-                        it = sorted_idx[t]
-                        p = n
-                        while p > 0 and sorted_idx[nbr[s, p - 1]] > it:
-                            nbr[s, p] = nbr[s, p - 1]
-                            p -= 1
-                        nbr[s, p] = t
-                    n += 1
-    nbr_n[s] = n
+    n = neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x,
+                       sorted_key, sorted_body, body_inv_mass, built_x, nbr, nbr_n)
     if n > cap:
         cuda.atomic.add(ctl, CTL_OVER, 1)        # integer atomics: order-independent
         cuda.atomic.max(ctl, CTL_MAXN, n)

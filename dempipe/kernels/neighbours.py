@@ -17,7 +17,9 @@ adds nothing), in that order, then the walls: so the forces, and the frames, do 
 depend on SKIN, on when the lists were rebuilt, on the grid's layout or on how the
 steps were split into calls. CPU and CUDA sum in the same order.
 
-This module holds the constants both targets share; it imports no numba.
+This module holds what both targets share: the constants, and the list build of
+one slot (``neighbour_list``, compiled for each by ``compile.compile_walk``); it
+imports no numba.
 """
 
 #: Verlet skin [diameters]: a list holds the partners within (1 + SKIN) d; rebuilt
@@ -37,3 +39,76 @@ def cell_size(diameter: float) -> float:
     """Edge of the rebuild grid's cells [m]: the lists' reach, (1 + SKIN) d, so the 27
     cells round a sphere hold every partner a list may need."""
     return (1.0 + SKIN) * diameter
+
+
+def neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x, sorted_key,
+                   sorted_body, body_inv_mass, built_x, nbr, nbr_n):
+    """Stages 2-3 for sorted slot s at a rebuild: its neighbour list. Returns its
+    true length (more than nbr.shape[1] when it overflowed).
+
+    nbr[s, :nbr_n[s]] are the slots of the spheres of other bodies closer than
+    sqrt(cutoff2) [m], found over the 27 cells round s, in the order of their
+    sphere index (so the forces are summed in an order that does not depend on
+    the grid, the slots or when lists are rebuilt). A static sphere gets none (it
+    feels nothing). A list that would hold more than nbr.shape[1] keeps its true
+    count in nbr_n and stores what fits. Notes the slot's position at the build
+    (built_x). Written once, compiled for each target (compile.compile_walk) with
+    that target's cell_coord, cell_key, cell_hash.
+    """
+    cap = nbr.shape[1]
+    xi = sorted_x[s, 0]
+    yi = sorted_x[s, 1]
+    zi = sorted_x[s, 2]
+    built_x[s, 0] = xi
+    built_x[s, 1] = yi
+    built_x[s, 2] = zi
+    bi = sorted_body[s]
+    n = 0
+    if body_inv_mass[bi] == 0.0:
+        nbr_n[s] = 0
+        return 0
+    cx0 = cell_coord(xi, inv_cell)  # noqa: F821 (the target's, see compile_walk)
+    cy0 = cell_coord(yi, inv_cell)  # noqa: F821
+    cz0 = cell_coord(zi, inv_cell)  # noqa: F821
+    for dz in range(-1, 2):
+        for dy in range(-1, 2):
+            cy = cy0 + dy
+            cz = cz0 + dz
+            # the three cells (cx0-1..cx0+1, cy, cz): keys in [lo, hi]
+            key_lo = cell_key(cx0 - 1, cy, cz)  # noqa: F821
+            key_hi = cell_key(cx0 + 1, cy, cz)  # noqa: F821
+            h_lo = cell_hash(cx0 - 1, cy, cz, grid)  # noqa: F821
+            h_hi = cell_hash(cx0 + 1, cy, cz, grid)  # noqa: F821
+            if h_hi == h_lo + 2:        # one contiguous run of buckets
+                n_runs = 1
+            else:                       # the row wraps round the table
+                n_runs = 3
+            for run in range(n_runs):
+                if n_runs == 1:
+                    t0 = bucket_start[h_lo]
+                    t1 = bucket_start[h_hi + 1]
+                else:
+                    h = cell_hash(cx0 - 1 + run, cy, cz, grid)  # noqa: F821
+                    t0 = bucket_start[h]
+                    t1 = bucket_start[h + 1]
+                for t in range(t0, t1):
+                    kt = sorted_key[t]
+                    if kt < key_lo or kt > key_hi:
+                        continue        # another cell sharing the buckets
+                    if sorted_body[t] == bi:
+                        continue        # spheres of one body never collide
+                    rx = sorted_x[t, 0] - xi
+                    ry = sorted_x[t, 1] - yi
+                    rz = sorted_x[t, 2] - zi
+                    if rx * rx + ry * ry + rz * rz >= cutoff2:
+                        continue
+                    if n < cap:         # insert in sphere-index order
+                        it = sorted_idx[t]
+                        p = n
+                        while p > 0 and sorted_idx[nbr[s, p - 1]] > it:
+                            nbr[s, p] = nbr[s, p - 1]
+                            p -= 1
+                        nbr[s, p] = t
+                    n += 1
+    nbr_n[s] = n
+    return n
