@@ -43,8 +43,9 @@ from dempipe.simulator import Simulator  # noqa: E402
 STAGES = ("1 body velocities (eq. 5-6)", "1 sphere positions into sorted slots (eq. 19-21)",
           "2 rebuild: sphere positions + cell keys", "2 rebuild: counting sort (serial)",
           "2 rebuild: gather into sorted order (+ histories)",
-          "3 rebuild: neighbour lists (27 cells)",
-          "3-4 contact forces over the lists", "5-8 body momenta, positions, quaternions")
+          "3 rebuild: neighbour lists (27 cells), pair indices, walls in reach",
+          "3-4 contact forces, each computed once (its owner) + walls",
+          "4 each sphere's sum over its list", "5-8 body momenta, positions, quaternions")
 
 
 def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
@@ -85,19 +86,29 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                            m.sphere_body, b.sorted_x, b.sorted_v, b.sorted_key,
                                            b.sorted_body),
                      fr and cpu.stage_history_to_slots(b.sorted_idx, partner, spring, hp, hs)),
-            lambda: cpu.stage_neighbours(m.diameter, b.grid, b.bucket_start, b.sorted_idx,
-                                         b.sorted_x, b.sorted_key, b.sorted_body,
-                                         m.body_inv_mass, b.built_x, b.nbr, b.nbr_n),
+            lambda: (cpu.stage_neighbours(m.diameter, b.grid, b.bucket_start, b.sorted_idx,
+                                          b.sorted_x, b.sorted_key, b.sorted_body,
+                                          m.body_inv_mass, b.built_x, b.nbr, b.nbr_n)
+                     or cpu.stage_pairs(b.nbr, b.nbr_n, b.sorted_idx, b.sorted_body,
+                                        m.body_inv_mass, b.pair_start, b._pidx(),
+                                        b.pair_f.shape[0])
+                     or cpu.stage_wall_reach(m.diameter, b.sorted_x, m.wall_normal,
+                                             m.wall_offset, m.wall_lo, m.wall_hi,
+                                             m.wall_depth, b.wall_mask)),
         )
         after = (
-            lambda: k.stage_contacts(m.diameter, b.nbr, b.nbr_n, b.sorted_idx, b.sorted_x,
-                                     b.sorted_v, b.sorted_body, b.body_w, m.body_inv_mass,
-                                     m.body_material, m.pair_k, m.pair_zeta, m.pair_mu,
-                                     m.kt_ratio, m.ks_ratio, b.features.friction, m.dt, s & 1,
-                                     hp, hs, m.sleep_steps, rest, b.body_wake,
+            lambda: k.stage_contacts(m.diameter, b.nbr, b.nbr_n, b.pidx, b.sorted_idx,
+                                     b.sorted_x, b.sorted_v, b.sorted_body, b.body_w,
+                                     m.body_inv_mass, m.body_material, m.pair_k, m.pair_zeta,
+                                     m.pair_mu, m.kt_ratio, m.ks_ratio, b.features.friction,
+                                     m.dt, s & 1, hp, hs, m.sleep_steps, rest, b.body_wake,
                                      m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi,
-                                     m.wall_depth, m.wall_material, b.sphere_f, b.sphere_t,
-                                     b.sphere_overlap),
+                                     m.wall_depth, m.wall_material, b.wall_mask, b.pair_f,
+                                     b.wall_f),
+            lambda: k.stage_sums(m.diameter, b.nbr, b.nbr_n, b.pidx, b.sorted_idx, b.sorted_x,
+                                 b.sorted_body, m.body_inv_mass, m.sleep_steps, rest,
+                                 b.wall_mask, b.pair_f, b.wall_f, b.sphere_f, b.sphere_t,
+                                 b.sphere_overlap),
             lambda: k.stage_bodies(m.n_bodies, m.dt, g[0], g[1], g[2], m.body_sphere_start,
                                    b.sphere_f, b.sphere_t, b.sphere_r, m.body_mass,
                                    m.body_inv_mass, m.body_inv_inertia, state.body_x,

@@ -30,6 +30,7 @@ import numpy as np
 
 from . import materials as mat
 from .errors import StabilityError
+from .kernels.contacts import PAIR_COLS, PAIRS_PER_SPHERE
 from .kernels.neighbours import NEIGHBOURS
 from .state import CONTACT_SLOTS
 from .model import Model, quat_to_matrix, rotational_mass_factor
@@ -294,6 +295,9 @@ def memory_estimate(model: Model) -> dict:
                + ns * i8 + ns * i4                     # sorted_key, sorted_body
                + ns * 3 * f8                           # built_x (neighbour lists)
                + ns * NEIGHBOURS * i4 + ns * i4        # nbr, nbr_n (to start with)
+               + ns * NEIGHBOURS * i4 + (ns + 1) * i8  # pidx, pair_start (contacts.py)
+               + max(PAIRS_PER_SPHERE * ns, 1) * PAIR_COLS * f8   # pair_f (to start with)
+               + ns * i8 + ns * 7 * f8                 # wall_mask, wall_f
                + 2 * ns * 3 * f8                       # sphere_f, sphere_t
                + ns * f8                               # sphere_overlap
                + (2 * 3 * f8 if model.n_static else 0)  # static_lo, static_hi

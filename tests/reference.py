@@ -26,7 +26,9 @@ def reference_step(model, state):
                                         *model.sphere_offset[i])
         x[i], v[i], r[i] = out[0:3], out[3:6], out[6:9]
     d = model.diameter
-    # remembered tangential springs: (sphere, partner code) -> stretch; codes as in State
+    # remembered tangential springs: (sphere, partner code) -> stretch; codes as in State.
+    # A pair's stretch is kept once, in its owner's row (kernels/contacts.py); seen
+    # from the other sphere it is the opposite (the force law is antisymmetric).
     spring = {}
     if model.features.friction and st.contact_partner is not None:
         for i, h in zip(*np.nonzero(st.contact_partner)):
@@ -51,7 +53,10 @@ def reference_step(model, state):
             k = model.pair_k[mi, mj]
             root = np.sqrt(k / im)
             mu = model.pair_mu[mi, mj] if model.features.friction else 0.0
-            s0 = spring.get((i, j + 1), np.zeros(3))
+            if (i, j + 1) in spring:
+                s0 = spring[(i, j + 1)]
+            else:
+                s0 = -spring.get((j, i + 1), np.zeros(3))
             out = physics.sphere_pair_force(*rij, dist, d, *(v[j] - v[i]), *(W[bi] + W[bj]), k,
                                             2 * model.pair_zeta[mi, mj] * root,
                                             model.kt_ratio * root, model.ks_ratio * k, mu,

@@ -48,6 +48,47 @@ def compile_walk(jit, cell_coord, cell_key, cell_hash):
     return jit(fn)
 
 
+def compile_pairing(jit, formulas) -> types.SimpleNamespace:
+    """contacts.py's rebuild bookkeeping (wall_reach, owns, pair_count, pair_slots,
+    pair_mirror, rows_to_pairs, pairs_to_rows), each compiled with ``jit``,
+    calling ``formulas`` (the target's compile_formulas); they read no flags,
+    so they need no variants."""
+    from . import contacts
+
+    compiled: dict[str, object] = {"history_recall": formulas.history_recall,
+                                   "history_store": formulas.history_store}
+    for name in ("wall_reach", "owns", "pair_count", "pair_slots", "pair_mirror",
+                 "rows_to_pairs", "pairs_to_rows"):
+        py = getattr(contacts, name)
+        glb = dict(py.__globals__)
+        glb.update(compiled)
+        fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__, py.__closure__)
+        fn.__doc__ = py.__doc__
+        compiled[name] = jit(fn)
+    return types.SimpleNamespace(**compiled)
+
+
+def compile_contacts(jit, formulas, constants: dict) -> types.SimpleNamespace:
+    """contacts.pair_forces and contacts.sphere_forces compiled with ``jit``, calling
+    ``formulas`` (the target's compile_formulas) and reading ``constants`` (the
+    flags FRICTION, ROTATION, SLEEPING, WALLS, HIST_BY_SLOT, and sqrt) as globals.
+    The CPU compiles its variants with compile.specialize instead."""
+    from . import contacts
+
+    glb = dict(contacts.pair_forces.__globals__)
+    glb.update(history_recall=formulas.history_recall, history_store=formulas.history_store,
+               sphere_pair_force=formulas.sphere_pair_force,
+               sphere_wall_force=formulas.sphere_wall_force)
+    glb.update(constants)
+    out = {}
+    for name in ("pair_forces", "sphere_forces"):
+        py = getattr(contacts, name)
+        fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__, py.__closure__)
+        fn.__doc__ = py.__doc__
+        out[name] = jit(fn)
+    return types.SimpleNamespace(**out)
+
+
 def compile_formulas(jit) -> types.SimpleNamespace:
     """Return a namespace of every formula compiled with ``jit`` (a decorator)."""
     compiled: dict[str, object] = {}
@@ -103,7 +144,8 @@ def invalidate_stale_cache(module_file: str) -> None:
     """
     here = os.path.dirname(os.path.abspath(module_file))
     sources = [physics.__file__, __file__, module_file,
-               os.path.join(os.path.dirname(__file__), "neighbours.py")]
+               os.path.join(os.path.dirname(__file__), "neighbours.py"),
+               os.path.join(os.path.dirname(__file__), "contacts.py")]
     digest = hashlib.sha256(b"".join(open(f, "rb").read() for f in sources)).hexdigest()[:16]
     stem = os.path.splitext(os.path.basename(module_file))[0]
     folders = [os.path.join(here, "__pycache__")]

@@ -17,11 +17,16 @@ import numba
 import numpy as np
 from numba import prange
 
-from .compile import compile_formulas, compile_walk, invalidate_stale_cache, specialize
+from . import contacts
+from .compile import (compile_formulas, compile_pairing, compile_walk, invalidate_stale_cache,
+                      specialize)
 from ..state import CONTACT_SLOTS
+# UNPAIRED: read by contacts.sphere_forces, which is compiled with this module's globals
+from .contacts import PAIR_COLS, PAIRS_PER_SPHERE, UNPAIRED, WALL_SLACK  # noqa: F401
 from .neighbours import NEIGHBOURS, SKIN, cell_size
 
 invalidate_stale_cache(__file__)
+invalidate_stale_cache(contacts.__file__)   # pair_forces, sphere_forces: cached under its name
 F = compile_formulas(numba.njit(inline="always", cache=False))
 quat_rotate = F.quat_rotate
 angular_velocity = F.angular_velocity
@@ -32,6 +37,17 @@ body_step = F.body_step
 history_recall = F.history_recall
 history_store = F.history_store
 rest_steps = F.rest_steps
+sqrt = np.sqrt
+P = compile_pairing(numba.njit(inline="always", cache=False), F)
+wall_reach = P.wall_reach
+owns = P.owns
+pair_count = P.pair_count
+pair_slots = P.pair_slots
+pair_mirror = P.pair_mirror
+rows_to_pairs = P.rows_to_pairs
+pairs_to_rows = P.pairs_to_rows
+#: contacts.py: the history rows are in sorted-slot order within a call.
+HIST_BY_SLOT = True
 
 # Cell coordinates are packed into one int64 key, 21 bits per axis, so the world
 # spans ±2^20 cells per axis (cells of (1 + SKIN) d: ±12 km at 1 cm spheres,
@@ -40,7 +56,7 @@ rest_steps = F.rest_steps
 # are exact), only slow; `dempipe check` warns (stability.py, "far-from-origin").
 _CELL_BITS = 21
 
-#: Sorted slots per call of sphere_contacts in the contact stage's parallel loop:
+#: Sorted slots per call of pair_forces / sphere_forces in the contact stage's parallel loops:
 #: small enough to balance two to a few dozen threads on piles of a few thousand
 #: spheres, large enough that a call's cost is spread over many spheres. Each
 #: sphere's result does not depend on it (gather: determinism is kept).
@@ -292,164 +308,6 @@ def sphere_neighbours(s0, s1, cutoff2, inv_cell, grid, bucket_start, sorted_idx,
     return over
 
 
-def sphere_contacts(s0, s1, diameter, nbr, nbr_n, sorted_idx, sorted_x,
-                    sorted_v, sorted_body, body_w, body_inv_mass, body_material,
-                    pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
-                    hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
-                    wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                    sphere_f, sphere_t, sphere_overlap):
-    """Stages 3-4 for the spheres in sorted slots s0 .. s1-1 (a chunk of
-    stage_contacts' parallel loop), over their neighbour lists. A function of
-    its own, looping over a chunk: numba's parfor pass cannot take this body
-    inline (it recurses without end), and one call per chunk rather than per
-    sphere lets the compiled loop keep the arrays' pointers and the constants
-    in registers (measured: see docs/performance.md, "Throughput")."""
-    d2 = diameter * diameter
-    radius = 0.5 * diameter
-    n_walls = wall_normal.shape[0]
-    n_spheres = sorted_idx.shape[0]
-    for s in range(s0, s1):
-        i = sorted_idx[s]
-        bi = sorted_body[s]
-        imi = body_inv_mass[bi]
-        fx = 0.0
-        fy = 0.0
-        fz = 0.0
-        tx = 0.0
-        ty = 0.0
-        tz = 0.0
-        max_ov = 0.0
-        if imi == 0.0 or (SLEEPING and sleep_steps > 0 and body_rest[bi] >= sleep_steps):
-            # static, or asleep: feels nothing (but is found by its moving neighbours)
-            sphere_f[i, 0] = 0.0
-            sphere_f[i, 1] = 0.0
-            sphere_f[i, 2] = 0.0
-            sphere_t[i, 0] = 0.0
-            sphere_t[i, 1] = 0.0
-            sphere_t[i, 2] = 0.0
-            continue
-        xi = sorted_x[s, 0]
-        yi = sorted_x[s, 1]
-        zi = sorted_x[s, 2]
-        vxi = sorted_v[s, 0]
-        vyi = sorted_v[s, 1]
-        vzi = sorted_v[s, 2]
-        mi = body_material[bi]
-        wxi = 0.0
-        wyi = 0.0
-        wzi = 0.0
-        if ROTATION:
-            wxi = body_w[bi, 0]
-            wyi = body_w[bi, 1]
-            wzi = body_w[bi, 2]
-        for e in range(nbr_n[s]):
-            t = nbr[s, e]
-            rx = sorted_x[t, 0] - xi
-            ry = sorted_x[t, 1] - yi
-            rz = sorted_x[t, 2] - zi
-            dist2 = rx * rx + ry * ry + rz * rz
-            if dist2 >= d2:
-                continue
-            bj = sorted_body[t]
-            if SLEEPING and sleep_steps > 0 and body_rest[bj] >= sleep_steps \
-                    and body_rest[bi] == 0:
-                body_wake[bj] = 1   # a moving body touches a sleeper (the same
-                                    # value from any thread: deterministic)
-            imj = body_inv_mass[bj]
-            mj = body_material[bj]
-            k = pair_k[mi, mj]
-            root = np.sqrt(k / (imi + imj))
-            eta = 2.0 * pair_zeta[mi, mj] * root
-            dist = np.sqrt(dist2)
-            if FRICTION and friction:
-                mu = pair_mu[mi, mj]
-                code = sorted_idx[t] + 1
-                slot, sx, sy, sz = history_recall(hist_partner, hist_spring, s, code)
-            else:
-                mu = 0.0
-                sx = 0.0
-                sy = 0.0
-                sz = 0.0
-            wsx = wxi
-            wsy = wyi
-            wsz = wzi
-            if ROTATION:
-                wsx += body_w[bj, 0]
-                wsy += body_w[bj, 1]
-                wsz += body_w[bj, 2]
-            (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_pair_force(
-                rx, ry, rz, dist, diameter,
-                sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
-                wsx, wsy, wsz,
-                k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
-            if FRICTION and friction:
-                history_store(hist_partner, hist_spring, s, slot, code, parity,
-                              sx, sy, sz)
-            fx += pfx
-            fy += pfy
-            fz += pfz
-            if ROTATION and FRICTION and mu > 0.0:   # see TORQUE_NOTE
-                tx += ptx
-                ty += pty
-                tz += ptz
-            ov = diameter - dist
-            if ov > max_ov:
-                max_ov = ov
-        for w in range(n_walls if WALLS else 0):
-            nx = wall_normal[w, 0]
-            ny = wall_normal[w, 1]
-            nz = wall_normal[w, 2]
-            dist = nx * xi + ny * yi + nz * zi - wall_offset[w]
-            if dist >= radius or dist <= -wall_depth[w]:
-                continue
-            if (xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
-                    or yi > wall_hi[w, 1] or zi < wall_lo[w, 2] or zi > wall_hi[w, 2]):
-                continue
-            mj = wall_material[w]
-            k = pair_k[mi, mj]
-            root = np.sqrt(k / imi)
-            eta = 2.0 * pair_zeta[mi, mj] * root
-            if FRICTION and friction:
-                mu = pair_mu[mi, mj]
-                code = n_spheres + w + 1
-                slot, sx, sy, sz = history_recall(hist_partner, hist_spring, s, code)
-            else:
-                mu = 0.0
-                sx = 0.0
-                sy = 0.0
-                sz = 0.0
-            (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(
-                -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
-                k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
-            if FRICTION and friction:
-                history_store(hist_partner, hist_spring, s, slot, code, parity,
-                              sx, sy, sz)
-            fx += pfx
-            fy += pfy
-            fz += pfz
-            if ROTATION and FRICTION and mu > 0.0:
-                tx += ptx
-                ty += pty
-                tz += ptz
-            ov = radius - dist
-            if ov > max_ov:
-                max_ov = ov
-        if FRICTION and friction:   # forget the contacts that ended (not touched at this parity)
-            for h in range(hist_partner.shape[1]):
-                c = hist_partner[s, h]
-                if c != 0 and (c & 1) != parity:
-                    hist_partner[s, h] = 0
-        sphere_f[i, 0] = fx
-        sphere_f[i, 1] = fy
-        sphere_f[i, 2] = fz
-        if ROTATION and FRICTION:
-            sphere_t[i, 0] = tx
-            sphere_t[i, 1] = ty
-            sphere_t[i, 2] = tz
-        if max_ov > sphere_overlap[i]:
-            sphere_overlap[i] = max_ov
-
-
 @numba.njit(parallel=True, cache=True)
 def stage_neighbours(diameter, grid, bucket_start, sorted_idx, sorted_x, sorted_key,
                      sorted_body, body_inv_mass, built_x, nbr, nbr_n):
@@ -467,37 +325,105 @@ def stage_neighbours(diameter, grid, bucket_start, sorted_idx, sorted_x, sorted_
     return over
 
 
-def stage_contacts(diameter, nbr, nbr_n, sorted_idx, sorted_x, sorted_v,
+@numba.njit(parallel=True, cache=True)
+def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, pidx, rows):
+    """At a rebuild, after stage_neighbours: each list entry's pair index
+    (contacts.py). The pairs a slot owns get consecutive rows of pair_f, slot
+    after slot: pair_start[s] is slot s's first (a prefix sum of the owners'
+    counts, serial: a fixed order). Returns 0, or the rows needed when that is
+    more than ``rows`` (pair_start has the counts; the caller grows pair_f)."""
+    n = sorted_idx.shape[0]
+    for s in prange(n):
+        pair_start[s + 1] = pair_count(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass)
+    pair_start[0] = 0
+    for s in range(n):
+        pair_start[s + 1] += pair_start[s]
+    if pair_start[n] > rows:
+        return pair_start[n]
+    for s in prange(n):
+        pair_slots(s, pair_start[s], nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
+    for s in prange(n):
+        pair_mirror(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
+    return 0
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_wall_reach(diameter, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi, wall_depth,
+                     wall_mask):
+    """At a rebuild: each slot's walls within reach until the next (contacts.wall_reach)."""
+    margin = WALL_SLACK * 0.5 * SKIN * diameter
+    for s in prange(sorted_x.shape[0]):
+        wall_reach(s, 0.5 * diameter, margin, sorted_x, wall_normal, wall_offset, wall_lo,
+                   wall_hi, wall_depth, wall_mask)
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass, wall_mask,
+                        hist_partner, hist_spring, pair_f):
+    """At a rebuild, with friction: the owned pairs' stretches from the history rows
+    (sorted-slot order) into pair_f; the rows keep the walls in reach
+    (contacts.rows_to_pairs)."""
+    n = sorted_idx.shape[0]
+    for s in prange(n):
+        rows_to_pairs(s, s, n, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
+                      wall_mask, hist_partner, hist_spring, pair_f)
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_pairs_to_rows(parity, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
+                        pair_f):
+    """Before a re-sort and at the end of a call, with friction: the touching pairs'
+    stretches back into their owners' history rows (contacts.pairs_to_rows)."""
+    for s in prange(sorted_idx.shape[0]):
+        pairs_to_rows(s, s, parity, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
+                      pair_f)
+
+
+def stage_contacts(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
                    sorted_body, body_w, body_inv_mass, body_material,
                    pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
                    hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                    wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                   sphere_f, sphere_t, sphere_overlap):
-    """Stages 3-4: contact forces (eq. 11-14) between each sphere and the spheres
-    of its neighbour list that touch it, and the walls.
+                   wall_mask, pair_f, wall_f):
+    """Stages 3-4, first pass: the force of each contact, computed once, by the
+    sphere that owns it (kernels/contacts.py: pair_forces), and each sphere's
+    walls, in parallel over chunks of sorted slots.
 
-    Each sphere gathers the forces on itself, in its list's order (its
-    partners' index order), then the walls'; writes sphere_f, sphere_t (torque
-    about the sphere's centre) and sphere_overlap (largest overlap this step, [m]).
-    With friction, each sphere also carries its contacts' tangential springs
-    (hist_partner, hist_spring: the State's contact_partner, contact_spring
+    With friction, each contact's tangential spring lives in its owner's history
+    row (hist_partner, hist_spring: the State's contact_partner, contact_spring
     with rows in sorted-slot order, see stage_history_to_slots): a contact found
     again keeps its stretch, a new one starts at zero, and one not touched this
-    step (``parity``) is forgotten. Only the sphere's own rows are written: gather.
-    Static spheres (1/m = 0) and sleeping ones feel no force and are skipped;
-    a sphere of a moving body (rest count 0) that touches a sleeping body flags
+    step (``parity``) is forgotten. Only a slot's own rows are written: gather.
+    A sphere of a moving body (rest count 0) that touches a sleeping body flags
     it to wake (body_wake).
     """
     n = sorted_idx.shape[0]
     n_chunks = (n + CONTACT_CHUNK - 1) // CONTACT_CHUNK
     for c in prange(n_chunks):
-        sphere_contacts(c * CONTACT_CHUNK, min(n, (c + 1) * CONTACT_CHUNK),
-                        diameter, nbr, nbr_n, sorted_idx, sorted_x, sorted_v,
-                        sorted_body, body_w, body_inv_mass, body_material,
-                        pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
-                        hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
-                        wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                        sphere_f, sphere_t, sphere_overlap)
+        pair_forces(c * CONTACT_CHUNK, min(n, (c + 1) * CONTACT_CHUNK),
+                    diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
+                    sorted_body, body_w, body_inv_mass, body_material,
+                    pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
+                    hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
+                    wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
+                    wall_mask, pair_f, wall_f)
+
+
+def stage_sums(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body, body_inv_mass,
+               sleep_steps, body_rest, wall_mask, pair_f, wall_f, sphere_f, sphere_t,
+               sphere_overlap):
+    """Stage 4, second pass (contacts.sphere_forces): each sphere gathers the
+    forces on itself, in its list's order (its partners' index order), then its
+    walls'; writes sphere_f, sphere_t (torque about the sphere's centre) and
+    sphere_overlap (largest overlap this step, [m]). Static and sleeping spheres
+    feel no force."""
+    n = sorted_idx.shape[0]
+    n_chunks = (n + CONTACT_CHUNK - 1) // CONTACT_CHUNK
+    for c in prange(n_chunks):
+        sphere_forces(c * CONTACT_CHUNK, min(n, (c + 1) * CONTACT_CHUNK),
+                      diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body,
+                      body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
+                      sphere_f, sphere_t, sphere_overlap)
 
 
 @numba.njit(inline="always", cache=True)
@@ -654,12 +580,14 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
               body_x, body_q, body_P, body_L,
               body_v, body_w, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash,
               bucket_start, bucket_fill, sorted_idx, sorted_x, sorted_v, sorted_key,
-              sorted_body, built_x, nbr, nbr_n, sphere_f, sphere_t, sphere_overlap):
+              sorted_body, built_x, nbr, nbr_n, pidx, pair_start, pair_f, wall_mask,
+              wall_f, sphere_f, sphere_t, sphere_overlap):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
     compiled code. Returns (steps done, steps computed). Done is fewer than
     n_steps only when a rebuild found a neighbour list longer than nbr holds
-    (nbr_n has the counts; the caller grows nbr and calls again, that step not
-    yet begun); computed is fewer than done when every body fell asleep.
+    (nbr_n has the counts), or more pairs than pair_f has rows (pair_start[-1]
+    is the count): the caller grows them and calls again, that step not yet
+    begun. Computed is fewer than done when every body fell asleep.
 
     Stages 2-3 (grid, sort, 27-cell search) run only to rebuild the neighbour
     lists: at the first step, and when a sphere has moved SKIN/2 d since.
@@ -689,6 +617,8 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                                            sphere_r) > 0
         if rebuild:
             if FRICTION and friction and step > first_step:   # histories back to sphere order
+                stage_pairs_to_rows((step - 1) & 1, nbr, nbr_n, pidx, sorted_idx, hist_partner,
+                                    hist_spring, pair_f)
                 stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
                                          contact_partner, contact_spring)
             stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_cell,
@@ -701,15 +631,26 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                                        hist_partner, hist_spring)
             if stage_neighbours(diameter, grid, bucket_start, sorted_idx, sorted_x,
                                 sorted_key, sorted_body, body_inv_mass, built_x,
-                                nbr, nbr_n) > 0:
+                                nbr, nbr_n) > 0 or \
+                    stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
+                                pair_start, pidx, pair_f.shape[0]) > 0:
                 return step - first_step, step - first_step   # the histories are current
+            if WALLS:
+                stage_wall_reach(diameter, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
+                                 wall_depth, wall_mask)
+            if FRICTION and friction:
+                stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
+                                    wall_mask, hist_partner, hist_spring, pair_f)
             rebuild = False
-        stage_contacts(diameter, nbr, nbr_n, sorted_idx, sorted_x, sorted_v,
+        stage_contacts(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
                        sorted_body, body_w, body_inv_mass, body_material,
                        pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, step & 1,
                        hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                        wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                       sphere_f, sphere_t, sphere_overlap)
+                       wall_mask, pair_f, wall_f)
+        stage_sums(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body, body_inv_mass,
+                   sleep_steps, body_rest, wall_mask, pair_f, wall_f, sphere_f, sphere_t,
+                   sphere_overlap)
         awake = stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t,
                              sphere_r, body_mass, body_inv_mass, body_inv_inertia, body_x,
                              body_q, body_P, body_L, sleep_steps, v_sleep, w_sleep, body_rest,
@@ -718,21 +659,26 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
             break                               # all asleep: nothing changes any more
     stage_unsort(sorted_idx, sorted_x, sphere_x)
     if FRICTION and friction:
+        stage_pairs_to_rows((first_step + computed - 1) & 1, nbr, nbr_n, pidx, sorted_idx,
+                            hist_partner, hist_spring, pair_f)
         stage_history_to_spheres(sorted_idx, hist_partner, hist_spring, contact_partner,
                                  contact_spring)
     return n_steps, computed
 
 
 _STAGES = (stage_body_velocities, sphere_state, stage_spheres, stage_spheres_sorted,
-           sphere_contacts, stage_contacts, body_update,
+           contacts.pair_forces, contacts.sphere_forces,
+           stage_contacts, stage_sums, body_update,
            stage_bodies, run_steps)
 _JITS = {
     "stage_body_velocities": numba.njit(parallel=True, cache=True),
     "sphere_state": numba.njit(inline="always", cache=True),
     "stage_spheres": numba.njit(parallel=True, cache=True),
     "stage_spheres_sorted": numba.njit(parallel=True, cache=True),
-    "sphere_contacts": numba.njit(cache=True),
+    "pair_forces": numba.njit(cache=True),
+    "sphere_forces": numba.njit(cache=True),
     "stage_contacts": numba.njit(parallel=True, cache=True),
+    "stage_sums": numba.njit(parallel=True, cache=True),
     "body_update": numba.njit(cache=True),
     "stage_bodies": numba.njit(parallel=True, cache=True),
     "run_steps": numba.njit(cache=True),
@@ -818,6 +764,12 @@ class CpuBackend:
         self.built_x = np.zeros((ns, 3))
         self.nbr = np.zeros((ns, NEIGHBOURS), dtype=np.int32)
         self.nbr_n = np.zeros(ns, dtype=np.int32)
+        # each contact computed once (contacts.py): pair indices, rows of pair forces
+        self.pidx = np.zeros((ns, NEIGHBOURS), dtype=np.int32)
+        self.pair_start = np.zeros(ns + 1, dtype=np.int64)
+        self.pair_f = np.zeros((max(PAIRS_PER_SPHERE * ns, 1), PAIR_COLS))
+        self.wall_mask = np.zeros(ns, dtype=np.int64)    # walls within reach (contacts.py)
+        self.wall_f = np.zeros((ns, 7))                  # each slot's walls: force, torque, overlap
         self.sphere_f = np.zeros((ns, 3))
         self.sphere_t = np.zeros((ns, 3))
         self.sphere_overlap = np.zeros(ns)
@@ -882,7 +834,8 @@ class CpuBackend:
                 self.sphere_r, self.sphere_key, self.sphere_hash, self.bucket_start,
                 self.bucket_fill, self.sorted_idx, self.sorted_x, self.sorted_v,
                 self.sorted_key, self.sorted_body, self.built_x, self.nbr, self.nbr_n,
-                self.sphere_f, self.sphere_t, self.sphere_overlap)
+                self._pidx(), self.pair_start, self.pair_f, self.wall_mask,
+                self.wall_f, self.sphere_f, self.sphere_t, self.sphere_overlap)
             state.step += int(done)
             state.time = state.step * m.dt
             left -= int(done)
@@ -892,12 +845,24 @@ class CpuBackend:
 
     def grow_neighbours(self) -> None:
         """Room for the longest neighbour list the last rebuild found (nbr_n), doubled
-        at least: a pile that grows denser rarely needs a second growth."""
+        at least: a pile that grows denser rarely needs a second growth; or, when
+        the lists fitted, for the pairs it found (pair_start[-1]), 1.5 times."""
         cap = self.nbr.shape[1]
         need = int(self.nbr_n.max())
-        while cap < need:
-            cap *= 2
-        self.nbr = np.zeros((self.model.n_spheres, cap), dtype=np.int32)
+        if need > cap:
+            while cap < need:
+                cap *= 2
+            self.nbr = np.zeros((self.model.n_spheres, cap), dtype=np.int32)
+            return
+        pairs = int(self.pair_start[-1])
+        if pairs > self.pair_f.shape[0]:
+            self.pair_f = np.zeros((pairs + pairs // 2, PAIR_COLS))
+
+    def _pidx(self):
+        """The pair indices, shaped as the lists (which grow, or a test replaces)."""
+        if self.pidx.shape != self.nbr.shape:
+            self.pidx = np.zeros(self.nbr.shape, dtype=np.int32)
+        return self.pidx
 
     def rest(self, state):
         """The State's rest counts (sleeping), allocated on first use."""
@@ -930,22 +895,37 @@ class CpuBackend:
         stage_grid_gather(self.sorted_idx, self.sphere_x, self.sphere_v, self.sphere_key,
                           m.sphere_body, self.sorted_x, self.sorted_v, self.sorted_key,
                           self.sorted_body)
-        while stage_neighbours(m.diameter, self.grid, self.bucket_start, self.sorted_idx,
-                               self.sorted_x, self.sorted_key, self.sorted_body,
-                               m.body_inv_mass, self.built_x, self.nbr, self.nbr_n) > 0:
+        while (stage_neighbours(m.diameter, self.grid, self.bucket_start, self.sorted_idx,
+                                self.sorted_x, self.sorted_key, self.sorted_body,
+                                m.body_inv_mass, self.built_x, self.nbr, self.nbr_n) > 0
+               or stage_pairs(self.nbr, self.nbr_n, self.sorted_idx, self.sorted_body,
+                              m.body_inv_mass, self.pair_start, self._pidx(),
+                              self.pair_f.shape[0]) > 0):
             self.grow_neighbours()
+        stage_wall_reach(m.diameter, self.sorted_x, m.wall_normal, m.wall_offset, m.wall_lo,
+                         m.wall_hi, m.wall_depth, self.wall_mask)
         self.sphere_overlap[:] = 0.0
         partner, spring = self.contacts(state)
         # copies in sorted-slot order, as the contact stage reads them
         slots = self.sorted_idx if self.features.friction else np.zeros(1, dtype=np.int32)
-        self.k.stage_contacts(m.diameter, self.nbr, self.nbr_n, self.sorted_idx, self.sorted_x,
+        partner, spring = partner[slots], spring[slots]
+        if self.features.friction:
+            stage_rows_to_pairs(self.nbr, self.nbr_n, self.pidx, self.sorted_idx,
+                                self.sorted_body, m.body_inv_mass, self.wall_mask, partner,
+                                spring, self.pair_f)
+        self.k.stage_contacts(m.diameter, self.nbr, self.nbr_n, self.pidx, self.sorted_idx,
+                              self.sorted_x,
                               self.sorted_v, self.sorted_body, self.body_w, m.body_inv_mass,
                               m.body_material, m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio,
                               m.ks_ratio, self.features.friction, m.dt, state.step & 1,
-                              partner[slots], spring[slots], m.sleep_steps, self.rest(state),
+                              partner, spring, m.sleep_steps, self.rest(state),
                               self.body_wake.copy(), m.wall_normal, m.wall_offset, m.wall_lo,
-                              m.wall_hi, m.wall_depth, m.wall_material, self.sphere_f,
-                              self.sphere_t, self.sphere_overlap)
+                              m.wall_hi, m.wall_depth, m.wall_material, self.wall_mask,
+                              self.pair_f, self.wall_f)
+        self.k.stage_sums(m.diameter, self.nbr, self.nbr_n, self.pidx, self.sorted_idx,
+                          self.sorted_x, self.sorted_body, m.body_inv_mass, m.sleep_steps,
+                          self.rest(state), self.wall_mask, self.pair_f, self.wall_f,
+                          self.sphere_f, self.sphere_t, self.sphere_overlap)
 
     def velocities(self, state):
         """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""

@@ -39,7 +39,8 @@ from numba.core import config
 
 from ..errors import DeviceError
 from ..state import CONTACT_SLOTS
-from .compile import compile_formulas, compile_walk
+from .compile import compile_contacts, compile_formulas, compile_pairing, compile_walk
+from .contacts import PAIR_COLS, WALL_SLACK
 from .neighbours import NEIGHBOURS, SKIN, cell_size
 
 
@@ -194,6 +195,18 @@ def cell_hash(cx, cy, cz, grid):
 
 
 neighbour_list = compile_walk(_device_jit(), cell_coord, cell_key, cell_hash)
+P = compile_pairing(_device_jit(), F)
+wall_reach = P.wall_reach
+pair_slots = P.pair_slots
+pair_mirror = P.pair_mirror
+rows_to_pairs = P.rows_to_pairs
+pairs_to_rows = P.pairs_to_rows
+# The general kernel: every feature compiled in, each checked at run time (friction,
+# sleep_steps > 0, the wall masks); the histories in sphere order.
+C = compile_contacts(_device_jit(), F, dict(FRICTION=True, ROTATION=True, SLEEPING=True,
+                                            WALLS=True, HIST_BY_SLOT=False, sqrt=math.sqrt))
+pair_forces = C.pair_forces
+sphere_forces = C.sphere_forces
 
 
 @cuda.jit(device=True)
@@ -451,153 +464,92 @@ def k_neighbours(cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x, so
 
 
 @cuda.jit
-def k_contacts(diameter, nbr, nbr_n, sorted_idx, sorted_x, sorted_v,
-               sorted_body, body_w, body_inv_mass, body_material,
-               pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
-               contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
-               wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-               sphere_f, sphere_t, sphere_overlap, ctl):
-    """Stages 3-4: contact forces (eq. 11-14) between each sphere and the spheres
-    of its neighbour list that touch it, then the walls, with the contact
-    histories of static friction (see kernels.cpu.stage_contacts).
-
-    One thread per sorted slot; the same list, order and sums as the CPU stage
-    (its partners in sphere-index order, then the walls); a thread writes only
-    its own sphere's rows. After an overflow in this call (ctl[CTL_OVER]) it
-    returns at once: the State stays at the overflowing step, where the host
-    carries on with longer lists.
-    """
+def k_save_pairs(parity, at_end, friction, nbr, nbr_n, pidx, sorted_idx, contact_partner,
+                 contact_spring, pair_f, ctl):
+    """With friction: the touching pairs' stretches back into their owners' history
+    rows (contacts.pairs_to_rows, ``parity`` of the last step computed), while
+    the lists they were read from still stand: at a rebuild that is not a
+    call's first step (before the re-sort), and (``at_end``, launched by the
+    host) after a call's last step."""
     s = cuda.grid(1)
-    n_spheres = sorted_idx.shape[0]
-    if s >= n_spheres or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
+    if s >= sorted_idx.shape[0] or not friction:
         return
-    d2 = diameter * diameter
-    radius = 0.5 * diameter
-    n_walls = wall_normal.shape[0]
-    i = sorted_idx[s]
-    bi = sorted_body[s]
-    imi = body_inv_mass[bi]
-    if imi == 0.0 or (sleep_steps > 0 and body_rest[bi] >= sleep_steps):
-        # static, or asleep: feels nothing (but is found by its moving neighbours)
-        sphere_f[i, 0] = 0.0
-        sphere_f[i, 1] = 0.0
-        sphere_f[i, 2] = 0.0
-        sphere_t[i, 0] = 0.0
-        sphere_t[i, 1] = 0.0
-        sphere_t[i, 2] = 0.0
+    if not at_end and (ctl[CTL_FORCE] != 0 or ctl[CTL_MOVED] == 0 or ctl[CTL_OVER] != 0):
         return
-    xi = sorted_x[s, 0]
-    yi = sorted_x[s, 1]
-    zi = sorted_x[s, 2]
-    vxi = sorted_v[s, 0]
-    vyi = sorted_v[s, 1]
-    vzi = sorted_v[s, 2]
-    mi = body_material[bi]
-    wxi = body_w[bi, 0]
-    wyi = body_w[bi, 1]
-    wzi = body_w[bi, 2]
-    fx = 0.0
-    fy = 0.0
-    fz = 0.0
-    tx = 0.0
-    ty = 0.0
-    tz = 0.0
-    max_ov = 0.0
-    for e in range(min(nbr_n[s], nbr.shape[1])):
-        t = nbr[s, e]
-        rx = sorted_x[t, 0] - xi
-        ry = sorted_x[t, 1] - yi
-        rz = sorted_x[t, 2] - zi
-        dist2 = rx * rx + ry * ry + rz * rz
-        if dist2 >= d2:
-            continue
-        bj = sorted_body[t]
-        if sleep_steps > 0 and body_rest[bj] >= sleep_steps and body_rest[bi] == 0:
-            body_wake[bj] = 1   # a moving body touches a sleeper (same value from any thread)
-        imj = body_inv_mass[bj]
-        mj = body_material[bj]
-        k = pair_k[mi, mj]
-        root = math.sqrt(k / (imi + imj))
-        eta = 2.0 * pair_zeta[mi, mj] * root
-        dist = math.sqrt(dist2)
-        code = sorted_idx[t] + 1
-        slot = -1
-        sx = 0.0
-        sy = 0.0
-        sz = 0.0
-        mu = 0.0
-        if friction:
-            mu = pair_mu[mi, mj]
-            slot, sx, sy, sz = history_recall(contact_partner, contact_spring, i, code)
-        (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_pair_force(
-            rx, ry, rz, dist, diameter,
-            sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
-            wxi + body_w[bj, 0], wyi + body_w[bj, 1], wzi + body_w[bj, 2],
-            k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
-        if friction:
-            history_store(contact_partner, contact_spring, i, slot, code, parity,
-                          sx, sy, sz)
-        fx += pfx
-        fy += pfy
-        fz += pfz
-        if mu > 0.0:   # a frictionless contact has no torque (kernels/cpu.py TORQUE_NOTE)
-            tx += ptx
-            ty += pty
-            tz += ptz
-        ov = diameter - dist
-        if ov > max_ov:
-            max_ov = ov
-    for w in range(n_walls):
-        nx = wall_normal[w, 0]
-        ny = wall_normal[w, 1]
-        nz = wall_normal[w, 2]
-        dist = nx * xi + ny * yi + nz * zi - wall_offset[w]
-        if dist >= radius or dist <= -wall_depth[w]:
-            continue
-        if (xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
-                or yi > wall_hi[w, 1] or zi < wall_lo[w, 2] or zi > wall_hi[w, 2]):
-            continue
-        mj = wall_material[w]
-        k = pair_k[mi, mj]
-        root = math.sqrt(k / imi)
-        eta = 2.0 * pair_zeta[mi, mj] * root
-        code = n_spheres + w + 1
-        slot = -1
-        sx = 0.0
-        sy = 0.0
-        sz = 0.0
-        mu = 0.0
-        if friction:
-            mu = pair_mu[mi, mj]
-            slot, sx, sy, sz = history_recall(contact_partner, contact_spring, i, code)
-        (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(
-            -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
-            k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
-        if friction:
-            history_store(contact_partner, contact_spring, i, slot, code, parity, sx, sy, sz)
-        fx += pfx
-        fy += pfy
-        fz += pfz
-        if mu > 0.0:
-            tx += ptx
-            ty += pty
-            tz += ptz
-        ov = radius - dist
-        if ov > max_ov:
-            max_ov = ov
-    if friction:   # forget the contacts that ended (not touched at this parity)
-        for h in range(contact_partner.shape[1]):
-            c = contact_partner[i, h]
-            if c != 0 and (c & 1) != parity:
-                contact_partner[i, h] = 0
-    sphere_f[i, 0] = fx
-    sphere_f[i, 1] = fy
-    sphere_f[i, 2] = fz
-    sphere_t[i, 0] = tx
-    sphere_t[i, 1] = ty
-    sphere_t[i, 2] = tz
-    if max_ov > sphere_overlap[i]:
-        sphere_overlap[i] = max_ov
+    pairs_to_rows(s, sorted_idx[s], parity, nbr, nbr_n, pidx, sorted_idx, contact_partner,
+                  contact_spring, pair_f)
+
+
+@cuda.jit
+def k_pair_slots(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx, ctl):
+    """Rebuild: the pair index of each list entry a slot owns: row s * cap + k of
+    pair_f for its k-th (no scan: every list entry has a row)."""
+    s = cuda.grid(1)
+    if s >= sorted_idx.shape[0] or not rebuilding(ctl) or ctl[CTL_OVER] != 0:
+        return
+    pair_slots(s, s * nbr.shape[1], nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
+
+
+@cuda.jit
+def k_pair_mirror(radius, margin, nbr, nbr_n, sorted_idx, sorted_x, sorted_body,
+                  body_inv_mass, wall_normal, wall_offset, wall_lo, wall_hi, wall_depth,
+                  wall_mask, pidx, ctl):
+    """Rebuild, after k_pair_slots: the entries the partner owns
+    (contacts.pair_mirror) and the walls in reach (contacts.wall_reach)."""
+    s = cuda.grid(1)
+    if s >= sorted_idx.shape[0] or not rebuilding(ctl) or ctl[CTL_OVER] != 0:
+        return
+    pair_mirror(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
+    wall_reach(s, radius, margin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
+               wall_depth, wall_mask)
+
+
+@cuda.jit
+def k_load_pairs(friction, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
+                 wall_mask, contact_partner, contact_spring, pair_f, ctl):
+    """Rebuild, with friction, after k_pair_mirror: the owned pairs' stretches from the
+    history rows into pair_f; the rows keep the walls in reach (contacts.rows_to_pairs)."""
+    s = cuda.grid(1)
+    n = sorted_idx.shape[0]
+    if s >= n or not friction or not rebuilding(ctl) or ctl[CTL_OVER] != 0:
+        return
+    rows_to_pairs(s, sorted_idx[s], n, nbr, nbr_n, pidx, sorted_idx, sorted_body,
+                  body_inv_mass, wall_mask, contact_partner, contact_spring, pair_f)
+
+
+@cuda.jit
+def k_pair_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
+                  sorted_body, body_w, body_inv_mass, body_material,
+                  pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
+                  contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
+                  wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
+                  wall_mask, pair_f, wall_f, ctl):
+    """Stages 3-4, first pass (contacts.pair_forces, one thread per sorted slot): each
+    contact computed once, by its owner, and each sphere's walls. After an overflow
+    in this call (ctl[CTL_OVER]) or once every body sleeps it returns at once."""
+    s = cuda.grid(1)
+    if s >= sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
+        return
+    pair_forces(s, s + 1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
+                sorted_body, body_w, body_inv_mass, body_material,
+                pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
+                contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
+                wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
+                wall_mask, pair_f, wall_f)
+
+
+@cuda.jit
+def k_sphere_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body,
+                    body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
+                    sphere_f, sphere_t, sphere_overlap, ctl):
+    """Stage 4, second pass (contacts.sphere_forces): each sphere's sum over its list
+    in its partners' index order, then its walls; the CPU's order and sums."""
+    s = cuda.grid(1)
+    if s >= sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
+        return
+    sphere_forces(s, s + 1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body,
+                  body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
+                  sphere_f, sphere_t, sphere_overlap)
 
 
 @cuda.jit
@@ -810,6 +762,9 @@ def scratch_layout(model, friction=None) -> dict:
         "sorted_key": ((ns,), i8), "sorted_body": ((ns,), i4),
         # neighbour lists (NEIGHBOURS entries to start with; CudaBackend.grow_neighbours)
         "built_x": ((ns, 3), f8), "nbr": ((ns, NEIGHBOURS), i4), "nbr_n": ((ns,), i4),
+        # each contact computed once (kernels/contacts.py): a row of pair_f per list entry
+        "pidx": ((ns, NEIGHBOURS), i4), "pair_f": ((ns * NEIGHBOURS, PAIR_COLS), f8),
+        "wall_mask": ((ns,), i8), "wall_f": ((ns, 7), f8),
         "ctl": ((CTL_SIZE,), i4),
         "sphere_f": ((ns, 3), f8), "sphere_t": ((ns, 3), f8), "sphere_overlap": ((ns,), f8),
         "max_out": ((1,), f8),
@@ -1006,22 +961,52 @@ class CudaBackend:
             d["sorted_x"], d["sorted_key"], d["sorted_body"], d["body_inv_mass"],
             d["built_x"], d["nbr"], d["nbr_n"], d["ctl"])
 
+    def _save_pairs(self, parity: int = 0, at_end: bool = False):
+        """With friction, before a rebuild's re-sort (or ``at_end`` of a call): the
+        pairs' stretches back into the history rows (k_save_pairs)."""
+        m, d = self.model, self.d
+        k_save_pairs[_blocks(m.n_spheres, THREADS), THREADS](
+            parity, at_end, bool(self.features.friction), d["nbr"], d["nbr_n"], d["pidx"],
+            d["sorted_idx"], d["contact_partner"], d["contact_spring"], d["pair_f"], d["ctl"])
+
+    def _pairs(self, partner=None, spring=None):
+        """Rebuild: pair indices, walls in reach, the pairs' stretches from the rows."""
+        m, d = self.model, self.d
+        blocks = _blocks(m.n_spheres, THREADS)
+        k_pair_slots[blocks, THREADS](d["nbr"], d["nbr_n"], d["sorted_idx"], d["sorted_body"],
+                                      d["body_inv_mass"], d["pidx"], d["ctl"])
+        k_pair_mirror[blocks, THREADS](
+            0.5 * m.diameter, WALL_SLACK * 0.5 * SKIN * m.diameter, d["nbr"], d["nbr_n"],
+            d["sorted_idx"], d["sorted_x"], d["sorted_body"], d["body_inv_mass"],
+            d["wall_normal"], d["wall_offset"], d["wall_lo"], d["wall_hi"], d["wall_depth"],
+            d["wall_mask"], d["pidx"], d["ctl"])
+        k_load_pairs[blocks, THREADS](
+            bool(self.features.friction), d["nbr"], d["nbr_n"], d["pidx"], d["sorted_idx"],
+            d["sorted_body"], d["body_inv_mass"], d["wall_mask"],
+            d["contact_partner"] if partner is None else partner,
+            d["contact_spring"] if spring is None else spring, d["pair_f"], d["ctl"])
+
     def _scan(self, data, level):
         device_scan(data, self.scan_sizes, self.scan_sums, level, self.d["ctl"])
 
     def _contacts(self, parity: int = 0, partner=None, spring=None, wake=None):
         m, d = self.model, self.d
-        k_contacts[_blocks(m.n_spheres, CONTACT_THREADS), CONTACT_THREADS](
-            m.diameter, d["nbr"], d["nbr_n"], d["sorted_idx"],
+        blocks = _blocks(m.n_spheres, CONTACT_THREADS)
+        k_pair_forces[blocks, CONTACT_THREADS](
+            m.diameter, d["nbr"], d["nbr_n"], d["pidx"], d["sorted_idx"],
             d["sorted_x"], d["sorted_v"], d["sorted_body"], d["body_w"],
             d["body_inv_mass"], d["body_material"], d["pair_k"], d["pair_zeta"], d["pair_mu"],
             m.kt_ratio, m.ks_ratio, bool(self.features.friction), m.dt, parity,
             d["contact_partner"] if partner is None else partner,
             d["contact_spring"] if spring is None else spring,
             m.sleep_steps, d["body_rest"], d["body_wake"] if wake is None else wake,
-            d["wall_normal"], d["wall_offset"],
-            d["wall_lo"], d["wall_hi"], d["wall_depth"], d["wall_material"],
-            d["sphere_f"], d["sphere_t"], d["sphere_overlap"], d["ctl"])
+            d["wall_normal"], d["wall_offset"], d["wall_lo"], d["wall_hi"], d["wall_depth"],
+            d["wall_material"], d["wall_mask"], d["pair_f"], d["wall_f"], d["ctl"])
+        k_sphere_forces[_blocks(m.n_spheres, THREADS), THREADS](
+            m.diameter, d["nbr"], d["nbr_n"], d["pidx"], d["sorted_idx"], d["sorted_x"],
+            d["sorted_body"], d["body_inv_mass"], m.sleep_steps, d["body_rest"],
+            d["wall_mask"], d["pair_f"], d["wall_f"], d["sphere_f"], d["sphere_t"],
+            d["sphere_overlap"], d["ctl"])
 
     def _bodies(self):
         m, d = self.model, self.d
@@ -1039,8 +1024,8 @@ class CudaBackend:
 
     #: The launch groups of one step, in order (benchmarks time each; each takes
     #: no argument).
-    STAGES = ("_idle_check", "_velocities", "_spheres_sorted", "_spheres", "_grid_sort",
-              "_gather", "_neighbours", "_contacts", "_bodies")
+    STAGES = ("_idle_check", "_velocities", "_spheres_sorted", "_save_pairs", "_spheres",
+              "_grid_sort", "_gather", "_neighbours", "_pairs", "_contacts", "_bodies")
 
     def step_once(self, parity: int = 0) -> None:
         """One step of the eight stages on the resident State: a fixed sequence of
@@ -1053,7 +1038,7 @@ class CudaBackend:
 
         0. k_idle_check (one thread): with sleeping on and no body awake after
            the last step (ctl[CTL_AWAKE] == 0), set ctl[CTL_IDLE]: this and the
-           call's remaining steps are no-ops (k_spheres_sorted, k_contacts and
+           call's remaining steps are no-ops (k_spheres_sorted, the contact kernels and
            k_bodies return at once; the rebuild kernels have nothing to do);
            then zero ctl[CTL_AWAKE] for this step's body stage to count into.
         1. k_body_velocities: V, W of each body.
@@ -1063,12 +1048,17 @@ class CudaBackend:
            or more since that build.
         3. The rebuild, each kernel returning at once unless ctl[CTL_FORCE] or
            ctl[CTL_MOVED] is set (both are stable while they run):
+           k_save_pairs (with friction, not at a call's first step: the pairs'
+           stretches back into the history rows while the old lists stand),
            k_zero_buckets, k_spheres (stage 1 in sphere order, cells, bucket
            counts), k_scan_blocks / k_scan_add (one or more levels), k_scatter,
            k_bucket_sort, k_gather, k_neighbours (the lists, built_x; an
-           overflow adds to ctl[CTL_OVER] and maxes ctl[CTL_MAXN]).
-        4. k_contacts: each sorted slot over its list, then the walls (returns
-           at once once ctl[CTL_OVER] is set: the host carries on from there).
+           overflow adds to ctl[CTL_OVER] and maxes ctl[CTL_MAXN]); then, unless
+           a list overflowed, k_pair_slots, k_pair_mirror (pair indices, walls
+           in reach) and k_load_pairs (the stretches from the rows).
+        4. k_pair_forces (each contact once, by its owner, and the walls), then
+           k_sphere_forces (each sphere's sum), both returning at once once
+           ctl[CTL_OVER] is set: the host carries on from there.
         5. k_bodies: stages 5-8 (nothing once ctl[CTL_OVER] or ctl[CTL_IDLE] is
            set), each body awake for the next step adding 1 to ctl[CTL_AWAKE];
            its thread 0 counts the rebuild (ctl[CTL_REBUILDS]), the step done
@@ -1081,10 +1071,12 @@ class CudaBackend:
         self._idle_check()
         self._velocities()
         self._spheres_sorted()
+        self._save_pairs(parity ^ 1)
         self._spheres()
         self._grid_sort()
         self._gather()
         self._neighbours()
+        self._pairs()
         self._contacts(parity)
         self._bodies()
 
@@ -1101,9 +1093,12 @@ class CudaBackend:
         if cap == old:
             return
         free, total = cuda.current_context().get_memory_info()
-        check_memory(ns * (cap - old) * 4, free, total)
-        del self.d["nbr"]
+        check_memory(ns * (cap - old) * (8 + 8 * PAIR_COLS), free, total)
+        for name in ("nbr", "pidx", "pair_f"):
+            del self.d[name]
         self.d["nbr"] = cuda.to_device(np.zeros((ns, cap), dtype=np.int32))
+        self.d["pidx"] = cuda.to_device(np.zeros((ns, cap), dtype=np.int32))
+        self.d["pair_f"] = cuda.to_device(np.zeros((ns * cap, PAIR_COLS)))
 
     # -- CpuBackend interface ----------------------------------------------------
     def step(self, state, n_steps: int) -> None:
@@ -1130,8 +1125,11 @@ class CudaBackend:
             left -= done
             stepped = stepped or done > 0
             if ctl[CTL_OVER] != 0:
+                # the stretches went back into the rows before the overflowing build
                 self.redos += 1
                 self.grow_neighbours(int(ctl[CTL_MAXN]))   # room (may raise DeviceError)
+            elif done > 0:
+                self._save_pairs((state.step - 1) & 1, at_end=True)
         if stepped:
             self._unsort()
         self.download(state)
@@ -1162,6 +1160,7 @@ class CudaBackend:
         for name in ("contact_partner", "contact_spring", "body_wake"):
             copies[name] = cuda.device_array_like(d[name])
             copies[name].copy_to_device(d[name])          # device to device
+        self._pairs(copies["contact_partner"], copies["contact_spring"])
         self._contacts(state.step & 1, copies["contact_partner"], copies["contact_spring"],
                        copies["body_wake"])
 

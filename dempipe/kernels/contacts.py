@@ -1,0 +1,506 @@
+"""Stage 4 once per contact: each touching pair's force computed by one of its spheres.
+
+Newton's third law, taken literally. physics.contact_force is antisymmetric in
+IEEE arithmetic: seen from the other sphere, every input is negated (the line of
+centres, the relative velocity, the tangential stretch) or the same (the
+distance, the spins' sum, the material pair), and so the force comes out exactly
+negated and the torque about each sphere's own centre exactly equal. So one
+sphere of each listed pair, its *owner*, computes the contact, and the other
+reads it back, negated: half the arithmetic, and the same force as if each
+sphere computed its own.
+
+Owner: the sphere of lower index, or the dynamic one when the other is static
+(a static sphere has no list). Ownership follows the sphere indices, not the
+sorted slots, so it does not change when the lists are rebuilt.
+
+Static friction: a contact's tangential stretch is kept once, for the pair.
+Between ``step`` calls it lives in its owner's history row (the State's
+contact_partner / contact_spring, the form a checkpoint keeps); at each rebuild
+it moves into the pair's row of ``pair_f`` (rows_to_pairs), where the owner
+reads and writes it with no search at every step, and back into the row
+before the next re-sort and at the end of the call (pairs_to_rows). The rows
+hold only the walls' contacts in between. A pair's stretch is forgotten at the
+first step it does not touch (unless both bodies sleep: then nothing changes).
+Before this, each sphere kept its own copy, searched for in its row every
+step; the two copies were exact opposites except where they could drift apart
+(one side's 12 slots full, or one side asleep while the other moved).
+
+Two passes over the sorted slots per step, each writing only its own slot's
+data (gather, deterministic):
+
+1. ``pair_forces``: the owner computes each contact it owns (if either sphere
+   is awake) into ``pair_f`` at its pair index, and each awake sphere its
+   walls into ``wall_f``. Touching a sleeper from a moving body flags the
+   sleeper to wake.
+2. ``sphere_forces``: each awake dynamic sphere sums its list in its partners'
+   index order (its own pairs as stored, its partners' negated), then its
+   walls' sum.
+
+Pair indices (``pidx[s, e]`` for list entry e of slot s) are set at each
+rebuild: the owner's entry holds the row p of ``pair_f`` it writes; the other
+side's holds -(p + 1). The CPU packs the rows (a prefix sum over the owners'
+counts); CUDA gives every list entry its own row (s * cap + e), which needs no
+scan. The passes do not care which. Walls: at each rebuild a sphere marks the
+walls it can reach before the next (wall_reach); a step tests only those.
+
+Written once, compiled for each target with that target's formulas and flags
+(compile.specialize on the CPU, compile.compile_contacts on CUDA): FRICTION,
+ROTATION, SLEEPING, WALLS as in kernels/cpu.py, and HIST_BY_SLOT: the history
+rows are in sorted-slot order (the CPU, within a call) or in sphere order (CUDA).
+"""
+
+#: ``pidx`` of a list entry whose partner's list does not hold it back. Cannot
+#: happen (lists are symmetric: the same distance, cells and keys from either
+#: side), but a pair that was found from one side only is at the lists' reach,
+#: (1 + SKIN) d, and cannot touch before the next rebuild anyway.
+UNPAIRED = -(1 << 30)
+
+
+#: Columns of a row of pair_f: the force on the owner (0-2) [N], the torque about
+#: its centre (3-5) [N m], the contact's tangential stretch (6-8) [m], and 1.0 when
+#: it touched at the last step that computed it, else 0.0 (9).
+PAIR_COLS = 10
+
+#: Rows of pair_f per sphere the CPU allocates to start with (a dense pile of cubes
+#: owns 0.9 listed pairs per sphere); grown when a rebuild finds more.
+PAIRS_PER_SPHERE = 2
+
+#: Walls a slot's bit mask can name (wall_reach); with more, every slot checks every wall.
+WALL_BITS = 63
+
+#: How far past its reach a wall is still marked, in units of the distance a sphere
+#: may move between rebuilds (SKIN/2 d): room for the rounding of the dot products.
+WALL_SLACK = 1.25
+
+
+def wall_reach(s, radius, margin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
+               wall_depth, wall_mask):
+    """At a rebuild: wall_mask[s] gets bit w for each wall w that slot s may touch
+    before the next rebuild (-1: every wall, when there are more than WALL_BITS).
+
+    A sphere moves less than SKIN/2 d between rebuilds, so a wall farther than
+    that (``margin`` [m], with slack) beyond the contact test of sphere_forces
+    cannot pass it; only the marked walls are tested at each step. In a box most
+    spheres are far from every wall: their step skips the walls altogether."""
+    n_walls = wall_normal.shape[0]
+    if n_walls > WALL_BITS:
+        wall_mask[s] = -1
+        return
+    xi = sorted_x[s, 0]
+    yi = sorted_x[s, 1]
+    zi = sorted_x[s, 2]
+    mask = 0
+    for w in range(n_walls):
+        dist = wall_normal[w, 0] * xi + wall_normal[w, 1] * yi + wall_normal[w, 2] * zi \
+            - wall_offset[w]
+        if dist >= radius + margin or dist <= -wall_depth[w] - margin:
+            continue
+        if (xi < wall_lo[w, 0] - margin or xi > wall_hi[w, 0] + margin
+                or yi < wall_lo[w, 1] - margin or yi > wall_hi[w, 1] + margin
+                or zi < wall_lo[w, 2] - margin or zi > wall_hi[w, 2] + margin):
+            continue
+        mask |= 1 << w
+    wall_mask[s] = mask
+
+
+def owns(s, t, sorted_idx, sorted_body, body_inv_mass):
+    """Whether slot s computes its contact with slot t (s has a list: dynamic)."""
+    return body_inv_mass[sorted_body[t]] == 0.0 or sorted_idx[s] < sorted_idx[t]
+
+
+def pair_count(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass):
+    """How many of slot s's list entries it owns (at a rebuild)."""
+    n = 0
+    for e in range(nbr_n[s]):
+        if owns(s, nbr[s, e], sorted_idx, sorted_body, body_inv_mass):
+            n += 1
+    return n
+
+
+def pair_slots(s, base, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx):
+    """At a rebuild: the rows base, base + 1, ... of pair_f to slot s's owned
+    entries, in list order. The other entries are left for pair_mirror."""
+    p = base
+    for e in range(nbr_n[s]):
+        if owns(s, nbr[s, e], sorted_idx, sorted_body, body_inv_mass):
+            pidx[s, e] = p
+            p += 1
+
+
+def pair_mirror(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx):
+    """At a rebuild, after every slot's pair_slots: each entry of slot s that its
+    partner owns gets -(p + 1), p the row its partner writes."""
+    for e in range(nbr_n[s]):
+        t = nbr[s, e]
+        if owns(s, t, sorted_idx, sorted_body, body_inv_mass):
+            continue
+        pidx[s, e] = UNPAIRED
+        for f in range(nbr_n[t]):
+            if nbr[t, f] == s:
+                pidx[s, e] = -(pidx[t, f] + 1)
+                break
+
+
+def rows_to_pairs(s, h, n_spheres, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
+                  wall_mask, hist_partner, hist_spring, pair_f):
+    """At a rebuild, with friction: the stretch of each pair slot s owns from its
+    history row h (the State's form: partner code, stretch) into pair_f[p, 6:9],
+    with pair_f[p, 9] = 1 when it was remembered (touching at the last step) and
+    0 when not. The row then keeps only the walls within reach (wall_mask[s]):
+    during the steps a pair's stretch is read and written at its pair index
+    (no search), and a wall's in the row (history_recall, history_store).
+    Entries for partners out of the list are forgotten: they are out of reach,
+    not touching."""
+    for e in range(nbr_n[s]):
+        p = pidx[s, e]
+        if p < 0:
+            continue
+        slot, sx, sy, sz = history_recall(hist_partner, hist_spring, h,  # noqa: F821
+                                          sorted_idx[nbr[s, e]] + 1)
+        pair_f[p, 6] = sx
+        pair_f[p, 7] = sy
+        pair_f[p, 8] = sz
+        pair_f[p, 9] = 1.0 if slot >= 0 else 0.0
+    walls = wall_mask[s]
+    for c in range(hist_partner.shape[1]):
+        code = (hist_partner[h, c] >> 1) - 1 - n_spheres     # the wall, or < 0: a sphere
+        if code < 0 or (walls != -1 and (walls >> code) & 1 == 0):
+            hist_partner[h, c] = 0          # an empty slot holds no stretch: the
+            hist_spring[h, c, 0] = 0.0      # State's rows do not depend on when
+            hist_spring[h, c, 1] = 0.0      # the lists were rebuilt
+            hist_spring[h, c, 2] = 0.0
+
+
+def pairs_to_rows(s, h, parity, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
+                  pair_f):
+    """The inverse of rows_to_pairs, before a re-sort and at the end of a call: each
+    pair slot s owns and touched at the last step (``parity``) back into its
+    history row h. The row comes out in one canonical order, whatever the
+    steps did to it: the pairs in list order (their partners' index order), then
+    the walls by wall index; so the State does not depend on when the lists were
+    rebuilt or how the steps were split into calls. A row that cannot hold them
+    all keeps the walls and the first pairs (as history_store drops a contact
+    when the row is full)."""
+    cap = hist_partner.shape[1]
+    # the walls (all the row holds now) to the front, by code: an insertion sort
+    nw = 0
+    for c in range(cap):
+        code = hist_partner[h, c]
+        if code == 0:
+            continue
+        sx = hist_spring[h, c, 0]
+        sy = hist_spring[h, c, 1]
+        sz = hist_spring[h, c, 2]
+        j = nw
+        while j > 0 and hist_partner[h, j - 1] > code:
+            hist_partner[h, j] = hist_partner[h, j - 1]
+            hist_spring[h, j, 0] = hist_spring[h, j - 1, 0]
+            hist_spring[h, j, 1] = hist_spring[h, j - 1, 1]
+            hist_spring[h, j, 2] = hist_spring[h, j - 1, 2]
+            j -= 1
+        hist_partner[h, j] = code
+        hist_spring[h, j, 0] = sx
+        hist_spring[h, j, 1] = sy
+        hist_spring[h, j, 2] = sz
+        nw += 1
+    n_on = 0
+    for e in range(nbr_n[s]):
+        p = pidx[s, e]
+        if p >= 0 and pair_f[p, 9] != 0.0:
+            n_on += 1
+    keep = min(n_on, cap - nw)
+    for j in range(nw - 1, -1, -1):             # the walls after the pairs
+        hist_partner[h, keep + j] = hist_partner[h, j]
+        hist_spring[h, keep + j, 0] = hist_spring[h, j, 0]
+        hist_spring[h, keep + j, 1] = hist_spring[h, j, 1]
+        hist_spring[h, keep + j, 2] = hist_spring[h, j, 2]
+    for c in range(keep + nw, cap):
+        hist_partner[h, c] = 0
+        hist_spring[h, c, 0] = 0.0
+        hist_spring[h, c, 1] = 0.0
+        hist_spring[h, c, 2] = 0.0
+    c = 0
+    for e in range(nbr_n[s]):
+        if c >= keep:
+            break
+        p = pidx[s, e]
+        if p < 0 or pair_f[p, 9] == 0.0:
+            continue
+        hist_partner[h, c] = ((sorted_idx[nbr[s, e]] + 1) << 1) | parity
+        hist_spring[h, c, 0] = pair_f[p, 6]
+        hist_spring[h, c, 1] = pair_f[p, 7]
+        hist_spring[h, c, 2] = pair_f[p, 8]
+        c += 1
+
+
+def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
+                sorted_body, body_w, body_inv_mass, body_material,
+                pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
+                hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
+                wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
+                wall_mask, pair_f, wall_f):
+    """Stage 4, first pass, for sorted slots s0 .. s1-1 (a chunk of the CPU's
+    parallel loop; one slot on CUDA). For each slot s:
+
+    - each touching contact s owns, when either sphere is awake: the force on s
+      (eq. 11-14, physics.sphere_pair_force) and its torque about s's centre into
+      pair_f[p] (the torque only with friction and rotation, and 0 for a
+      frictionless contact: kernels/cpu.py TORQUE_NOTE);
+    - when s is awake and dynamic, the walls marked in wall_mask[s] (wall_reach)
+      that it touches, summed in wall order into wall_f[s] = (force, torque,
+      largest overlap [m]; 0 when none touches);
+    - with friction, each contact's stretch: a pair's in pair_f[p, 6:9] (kept
+      while it touches, forgotten when it does not), a wall's recalled from and
+      stored into s's history row (touched at ``parity``; when s is awake, the
+      row's walls not touched this step are forgotten).
+
+    A moving body (rest count 0) touching a sleeping one flags it to wake."""
+    d2 = diameter * diameter
+    radius = 0.5 * diameter
+    n_walls = wall_normal.shape[0]
+    n_spheres = sorted_idx.shape[0]
+    for s in range(s0, s1):
+        bi = sorted_body[s]
+        imi = body_inv_mass[bi]
+        if imi == 0.0:
+            continue
+        h = s if HIST_BY_SLOT else sorted_idx[s]  # noqa: F821 (the target's: compile_contacts)
+        asleep_i = SLEEPING and sleep_steps > 0 and body_rest[bi] >= sleep_steps  # noqa: F821
+        xi = sorted_x[s, 0]
+        yi = sorted_x[s, 1]
+        zi = sorted_x[s, 2]
+        vxi = sorted_v[s, 0]
+        vyi = sorted_v[s, 1]
+        vzi = sorted_v[s, 2]
+        mi = body_material[bi]
+        wxi = 0.0
+        wyi = 0.0
+        wzi = 0.0
+        if ROTATION:  # noqa: F821
+            wxi = body_w[bi, 0]
+            wyi = body_w[bi, 1]
+            wzi = body_w[bi, 2]
+        for e in range(nbr_n[s]):
+            p = pidx[s, e]
+            if p < 0:
+                continue                    # the partner's to compute
+            t = nbr[s, e]
+            bj = sorted_body[t]
+            imj = body_inv_mass[bj]
+            if SLEEPING and sleep_steps > 0:  # noqa: F821
+                if asleep_i and (imj == 0.0 or body_rest[bj] >= sleep_steps):
+                    continue                # neither feels it: both keep their state
+            rx = sorted_x[t, 0] - xi
+            ry = sorted_x[t, 1] - yi
+            rz = sorted_x[t, 2] - zi
+            dist2 = rx * rx + ry * ry + rz * rz
+            if dist2 >= d2:
+                if FRICTION and friction:  # noqa: F821
+                    pair_f[p, 9] = 0.0      # not touching: the contact ends, its stretch goes
+                continue
+            if SLEEPING and sleep_steps > 0:  # noqa: F821
+                # a moving body touches a sleeper (the same value from any thread)
+                if body_rest[bi] == 0 and body_rest[bj] >= sleep_steps:
+                    body_wake[bj] = 1
+                if imj != 0.0 and body_rest[bj] == 0 and asleep_i:
+                    body_wake[bi] = 1
+            mj = body_material[bj]
+            k = pair_k[mi, mj]
+            root = sqrt(k / (imi + imj))  # noqa: F821
+            eta = 2.0 * pair_zeta[mi, mj] * root
+            dist = sqrt(dist2)  # noqa: F821
+            if FRICTION and friction and pair_f[p, 9] != 0.0:  # noqa: F821 (touching last step)
+                mu = pair_mu[mi, mj]
+                sx = pair_f[p, 6]
+                sy = pair_f[p, 7]
+                sz = pair_f[p, 8]
+            elif FRICTION and friction:  # noqa: F821 (a new contact)
+                mu = pair_mu[mi, mj]
+                sx = 0.0
+                sy = 0.0
+                sz = 0.0
+            else:
+                mu = 0.0
+                sx = 0.0
+                sy = 0.0
+                sz = 0.0
+            wsx = wxi
+            wsy = wyi
+            wsz = wzi
+            if ROTATION:  # noqa: F821
+                wsx += body_w[bj, 0]
+                wsy += body_w[bj, 1]
+                wsz += body_w[bj, 2]
+            (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_pair_force(  # noqa: F821
+                rx, ry, rz, dist, diameter,
+                sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
+                wsx, wsy, wsz,
+                k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
+            if FRICTION and friction:  # noqa: F821
+                pair_f[p, 6] = sx
+                pair_f[p, 7] = sy
+                pair_f[p, 8] = sz
+                pair_f[p, 9] = 1.0
+            pair_f[p, 0] = pfx
+            pair_f[p, 1] = pfy
+            pair_f[p, 2] = pfz
+            if ROTATION and FRICTION:  # noqa: F821
+                if mu > 0.0:
+                    pair_f[p, 3] = ptx
+                    pair_f[p, 4] = pty
+                    pair_f[p, 5] = ptz
+                else:
+                    pair_f[p, 3] = 0.0
+                    pair_f[p, 4] = 0.0
+                    pair_f[p, 5] = 0.0
+        if asleep_i:
+            continue                        # feels nothing; its row stays as it was
+        walls = wall_mask[s]
+        if WALLS and walls != 0:  # noqa: F821 (only the walls marked at the rebuild)
+            fx = 0.0
+            fy = 0.0
+            fz = 0.0
+            tx = 0.0
+            ty = 0.0
+            tz = 0.0
+            max_ov = 0.0
+            for w in range(n_walls):
+                if walls != -1 and (walls >> w) & 1 == 0:
+                    continue
+                nx = wall_normal[w, 0]
+                ny = wall_normal[w, 1]
+                nz = wall_normal[w, 2]
+                dist = nx * xi + ny * yi + nz * zi - wall_offset[w]
+                if dist >= radius or dist <= -wall_depth[w]:
+                    continue
+                if (xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
+                        or yi > wall_hi[w, 1] or zi < wall_lo[w, 2] or zi > wall_hi[w, 2]):
+                    continue
+                mj = wall_material[w]
+                k = pair_k[mi, mj]
+                root = sqrt(k / imi)  # noqa: F821
+                eta = 2.0 * pair_zeta[mi, mj] * root
+                if FRICTION and friction:  # noqa: F821
+                    mu = pair_mu[mi, mj]
+                    code = n_spheres + w + 1
+                    slot, sx, sy, sz = history_recall(hist_partner, hist_spring, h,  # noqa: F821
+                                                      code)
+                else:
+                    mu = 0.0
+                    sx = 0.0
+                    sy = 0.0
+                    sz = 0.0
+                (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(  # noqa: F821
+                    -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
+                    k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
+                if FRICTION and friction:  # noqa: F821
+                    history_store(hist_partner, hist_spring, h, slot, code,  # noqa: F821
+                                  parity, sx, sy, sz)
+                fx += pfx
+                fy += pfy
+                fz += pfz
+                if ROTATION and FRICTION and mu > 0.0:  # noqa: F821 (TORQUE_NOTE)
+                    tx += ptx
+                    ty += pty
+                    tz += ptz
+                ov = radius - dist
+                if ov > max_ov:
+                    max_ov = ov
+            wall_f[s, 0] = fx
+            wall_f[s, 1] = fy
+            wall_f[s, 2] = fz
+            wall_f[s, 3] = tx
+            wall_f[s, 4] = ty
+            wall_f[s, 5] = tz
+            wall_f[s, 6] = max_ov
+            if FRICTION and friction:  # noqa: F821 (forget the walls not touched at this parity)
+                for c in range(hist_partner.shape[1]):
+                    code = hist_partner[h, c]
+                    if code != 0 and (code & 1) != parity:
+                        hist_partner[h, c] = 0
+                        hist_spring[h, c, 0] = 0.0
+                        hist_spring[h, c, 1] = 0.0
+                        hist_spring[h, c, 2] = 0.0
+
+
+def sphere_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body,
+                  body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
+                  sphere_f, sphere_t, sphere_overlap):
+    """Stage 4, second pass, for sorted slots s0 .. s1-1; for each slot s (sphere
+    i = sorted_idx[s]): the sum of the forces on it from its touching partners
+    in its list's order (its partners' index order; the pairs its partners own
+    read back negated, their torque as it is), then its walls' sum (wall_f),
+    into sphere_f[i], sphere_t[i] (about its centre) and sphere_overlap[i] (the
+    largest this step, [m], kept if larger). Static and sleeping spheres feel
+    nothing."""
+    d2 = diameter * diameter
+    for s in range(s0, s1):
+        i = sorted_idx[s]
+        bi = sorted_body[s]
+        if body_inv_mass[bi] == 0.0 or (SLEEPING and sleep_steps > 0  # noqa: F821
+                                         and body_rest[bi] >= sleep_steps):
+            # static, or asleep: feels nothing (but is found by its moving neighbours)
+            sphere_f[i, 0] = 0.0
+            sphere_f[i, 1] = 0.0
+            sphere_f[i, 2] = 0.0
+            sphere_t[i, 0] = 0.0
+            sphere_t[i, 1] = 0.0
+            sphere_t[i, 2] = 0.0
+            continue
+        xi = sorted_x[s, 0]
+        yi = sorted_x[s, 1]
+        zi = sorted_x[s, 2]
+        fx = 0.0
+        fy = 0.0
+        fz = 0.0
+        tx = 0.0
+        ty = 0.0
+        tz = 0.0
+        near2 = d2
+        for e in range(nbr_n[s]):
+            t = nbr[s, e]
+            rx = sorted_x[t, 0] - xi
+            ry = sorted_x[t, 1] - yi
+            rz = sorted_x[t, 2] - zi
+            dist2 = rx * rx + ry * ry + rz * rz
+            if dist2 >= d2:
+                continue
+            p = pidx[s, e]
+            if p >= 0:
+                fx += pair_f[p, 0]
+                fy += pair_f[p, 1]
+                fz += pair_f[p, 2]
+            elif p != UNPAIRED:  # noqa: F821
+                p = -(p + 1)
+                fx -= pair_f[p, 0]
+                fy -= pair_f[p, 1]
+                fz -= pair_f[p, 2]
+            else:
+                continue
+            if ROTATION and FRICTION:  # noqa: F821
+                tx += pair_f[p, 3]
+                ty += pair_f[p, 4]
+                tz += pair_f[p, 5]
+            if dist2 < near2:
+                near2 = dist2
+        max_ov = 0.0
+        if near2 < d2:
+            max_ov = diameter - sqrt(near2)  # noqa: F821 (sqrt is monotone: the largest)
+        if WALLS and wall_mask[s] != 0:  # noqa: F821
+            fx += wall_f[s, 0]
+            fy += wall_f[s, 1]
+            fz += wall_f[s, 2]
+            tx += wall_f[s, 3]
+            ty += wall_f[s, 4]
+            tz += wall_f[s, 5]
+            if wall_f[s, 6] > max_ov:
+                max_ov = wall_f[s, 6]
+        sphere_f[i, 0] = fx
+        sphere_f[i, 1] = fy
+        sphere_f[i, 2] = fz
+        if ROTATION and FRICTION:  # noqa: F821
+            sphere_t[i, 0] = tx
+            sphere_t[i, 1] = ty
+            sphere_t[i, 2] = tz
+        if max_ov > sphere_overlap[i]:
+            sphere_overlap[i] = max_ov

@@ -1,0 +1,222 @@
+"""Each contact computed once, by its owner (kernels/contacts.py), on the CPU target.
+
+The claim is exact: the force law is antisymmetric in IEEE arithmetic, so the
+sphere that reads its partner's result back, negated, gets the very bits it
+would have computed itself. Asserted here bit for bit against plain Python
+(physics.py's formulas, uncompiled) summing each sphere's own contacts in the
+kernels' order, on scenes with friction springs, walls, a static mesh and
+sleeping bodies; and the bookkeeping behind it (pair indices, the stretches'
+trip from the history rows into the pairs and back) exactly.
+"""
+
+import numpy as np
+import pytest
+
+from bodies import box_set
+from dempipe import physics
+from dempipe.kernels import cpu
+from dempipe.materials import Material
+from dempipe.model import ModelBuilder
+from dempipe.simulator import Simulator
+from test_cuda import falling_model
+from test_neighbours import loose_balls
+from test_sleeping import pile
+
+D = 0.01
+
+
+def boxes_on_static_slab():
+    """Four 2×2×2-sphere boxes dropped 1 mm onto a static mesh slab (8×8 spheres),
+    spinning: friction springs against static spheres."""
+    b = ModelBuilder(D)
+    slab_set, slab_mesh = box_set(8, 8, 1, D)
+    ss, mesh = box_set(2, 2, 2, D)
+    s = b.add_shape("box", mesh, ss)
+    m = b.add_material(Material("wood", density=700, restitution=0.3, friction=0.5))
+    b.add_static_mesh("slab", slab_mesh, slab_set, m)
+    pos = [[x, y, 1.6 * D] for x in (-0.02, 0.015) for y in (-0.015, 0.02)]
+    b.add_bodies("boxes", s, m, pos, angular_velocities=[[0.0, 0.0, 3.0]] * 4)
+    return b.finalize(fps=24, n_frames=2)
+
+
+def scenes():
+    """(name, model, steps): friction springs against spheres, walls, planes; a
+    static slab; a pile part asleep."""
+    return [("loose balls in a box", loose_balls(), 40),
+            ("box onto slab", falling_model(), 30),
+            ("pile, part asleep", pile(sleep=(0.05, 1.0, 0.02), n_frames=6), 1600),
+            ("boxes on a static slab", boxes_on_static_slab(), 600)]
+
+
+def owner_stretch(state, i, j):
+    """The remembered stretch of the contact of spheres i, j seen from i: from its
+    owner's row (the State's form), negated when the owner is j; 0 if none."""
+    for a, b, sign in ((i, j, 1.0), (j, i, -1.0)):
+        hit = np.nonzero((state.contact_partner[a] >> 1) == b + 1)[0]
+        if hit.size:
+            return sign * state.contact_spring[a, hit[0]]
+    return np.zeros(3)
+
+
+def own_forces(model, state, be):
+    """(force, torque) on each sphere [N], [N m], each sphere computing every one of
+    its contacts itself, in the kernels' order: partners by index, then the
+    walls' sum; positions and velocities as the backend's stage 1 left them."""
+    ns = model.n_spheres
+    x = np.empty((ns, 3))
+    v = np.empty((ns, 3))
+    x[be.sorted_idx] = be.sorted_x
+    v[be.sorted_idx] = be.sorted_v
+    W = be.body_w
+    d = model.diameter
+    rest = state.body_rest
+    asleep = (rest >= model.sleep_steps) if model.sleep_steps > 0 else np.zeros_like(rest, bool)
+    f = np.zeros((ns, 3))
+    t = np.zeros((ns, 3))
+    for i in range(ns):
+        bi = model.sphere_body[i]
+        if model.body_inv_mass[bi] == 0.0 or asleep[bi]:
+            continue
+        fx = fy = fz = tx = ty = tz = 0.0
+        for j in range(ns):
+            bj = model.sphere_body[j]
+            if bj == bi:
+                continue
+            r = x[j] - x[i]
+            dist2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+            if dist2 >= d * d:
+                continue
+            mi, mj = model.body_material[bi], model.body_material[bj]
+            k = model.pair_k[mi, mj]
+            root = np.sqrt(k / (model.body_inv_mass[bi] + model.body_inv_mass[bj]))
+            mu = model.pair_mu[mi, mj]
+            s0 = owner_stretch(state, i, j)
+            out = physics.sphere_pair_force(
+                r[0], r[1], r[2], np.sqrt(dist2), d, *(v[j] - v[i]), *(W[bi] + W[bj]),
+                k, 2.0 * model.pair_zeta[mi, mj] * root, model.kt_ratio * root,
+                model.ks_ratio * k, mu, *s0, model.dt)
+            fx += out[0]
+            fy += out[1]
+            fz += out[2]
+            if mu > 0.0:
+                tx += out[3]
+                ty += out[4]
+                tz += out[5]
+        wf = [0.0] * 6
+        for w in range(model.n_walls):
+            n = model.wall_normal[w]
+            dist = n[0] * x[i, 0] + n[1] * x[i, 1] + n[2] * x[i, 2] - model.wall_offset[w]
+            if dist >= d / 2 or dist <= -model.wall_depth[w]:
+                continue
+            if np.any(x[i] < model.wall_lo[w]) or np.any(x[i] > model.wall_hi[w]):
+                continue
+            mi, mj = model.body_material[bi], model.wall_material[w]
+            k = model.pair_k[mi, mj]
+            root = np.sqrt(k / model.body_inv_mass[bi])
+            mu = model.pair_mu[mi, mj]
+            s0 = owner_stretch(state, i, ns + w)
+            out = physics.sphere_wall_force(*(-n), d / 2 - dist, d / 2, *v[i], *W[bi], k,
+                                            2.0 * model.pair_zeta[mi, mj] * root,
+                                            model.kt_ratio * root, model.ks_ratio * k, mu,
+                                            *s0, model.dt)
+            for c in range(3):
+                wf[c] += out[c]
+                if mu > 0.0:
+                    wf[3 + c] += out[3 + c]
+        f[i] = (fx + wf[0], fy + wf[1], fz + wf[2])
+        t[i] = (tx + wf[3], ty + wf[4], tz + wf[5])
+    return f, t
+
+
+@pytest.mark.parametrize("case", range(4))
+def test_each_contact_once_gives_the_forces_of_each_sphere_computing_its_own(case):
+    name, model, steps = scenes()[case]
+    be = Simulator(model).backend
+    st = model.initial_state()
+    be.step(st, steps)
+    assert (st.contact_partner != 0).sum() >= 4, name        # stretches in use
+    be.probe(st)
+    f, t = own_forces(model, st, be)
+    assert np.abs(f).max() > 0, name
+    np.testing.assert_array_equal(be.sphere_f, f, err_msg=name)     # bit for bit
+    np.testing.assert_array_equal(be.sphere_t, t, err_msg=name)
+    if case == 2:
+        asleep = st.asleep(model.sleep_steps)[: model.n_bodies]
+        assert 0 < asleep.sum(), "no body asleep: the sleeping paths were not exercised"
+
+
+@pytest.mark.parametrize("case", range(4))
+def test_pair_indices_pair_each_entry_with_its_owner(case):
+    name, model, steps = scenes()[case]
+    be = Simulator(model).backend
+    st = model.initial_state()
+    be.step(st, steps)
+    be.probe(st)
+    idx, body, inv = be.sorted_idx, be.sorted_body, model.body_inv_mass
+    rows = []
+    for s in range(model.n_spheres):
+        for e in range(be.nbr_n[s]):
+            t, p = be.nbr[s, e], be.pidx[s, e]
+            if inv[body[t]] == 0.0 or idx[s] < idx[t]:      # s owns the pair
+                assert be.pair_start[s] <= p < be.pair_start[s + 1], name
+                rows.append(p)
+            else:                                            # t owns it: t lists s
+                back = list(be.nbr[t, : be.nbr_n[t]]).index(s)
+                assert p == -(be.pidx[t, back] + 1), name
+    assert sorted(rows) == list(range(be.pair_start[-1])), name     # each row once
+    if case == 3:                                            # pairs with static spheres
+        assert any(inv[body[t]] == 0.0 for s in range(model.n_spheres)
+                   for t in be.nbr[s, : be.nbr_n[s]])
+    static = inv[body] == 0.0
+    assert np.all(be.nbr_n[static] == 0)                     # a static sphere owns nothing
+
+
+@pytest.mark.parametrize("case", range(4))
+def test_stretches_go_into_the_pairs_and_back_unchanged(case):
+    # The State's history rows (canonical: pairs by partner index, then walls) into
+    # the pairs of a fresh build and back give the same rows, bit for bit.
+    name, model, steps = scenes()[case]
+    be = Simulator(model).backend
+    st = model.initial_state()
+    be.step(st, steps)
+    assert (st.contact_partner != 0).any()
+    be.probe(st)                       # lists, pair indices and wall reach at these positions
+    hp = st.contact_partner[be.sorted_idx]
+    hs = st.contact_spring[be.sorted_idx]
+    pair_f = np.zeros_like(be.pair_f)
+    cpu.stage_rows_to_pairs(be.nbr, be.nbr_n, be.pidx, be.sorted_idx, be.sorted_body,
+                            model.body_inv_mass, be.wall_mask, hp, hs, pair_f)
+    assert np.all(hp[hp != 0] >> 1 > model.n_spheres), name   # the rows keep the walls only
+    cpu.stage_pairs_to_rows((st.step - 1) & 1, be.nbr, be.nbr_n, be.pidx, be.sorted_idx,
+                            hp, hs, pair_f)
+    partner = np.empty_like(hp)
+    spring = np.empty_like(hs)
+    partner[be.sorted_idx] = hp
+    spring[be.sorted_idx] = hs
+    if case == 2:       # sleepers keep the parity of the step they last touched at
+        np.testing.assert_array_equal(partner >> 1, st.contact_partner >> 1, err_msg=name)
+    else:
+        np.testing.assert_array_equal(partner, st.contact_partner, err_msg=name)
+    np.testing.assert_array_equal(spring, st.contact_spring, err_msg=name)
+
+
+def test_a_pair_keeps_one_stretch_in_its_owners_row():
+    # Each remembered sphere-sphere contact appears once in the State, in the row of
+    # its owner (the lower index, or the dynamic sphere against a static one).
+    n_pairs = 0
+    for name, model, steps in scenes():
+        st = model.initial_state()
+        Simulator(model).backend.step(st, steps)
+        ns = model.n_spheres
+        seen = set()
+        for i, h in zip(*np.nonzero(st.contact_partner)):
+            j = (int(st.contact_partner[i, h]) >> 1) - 1
+            if j >= ns:
+                continue                                    # a wall
+            n_pairs += 1
+            key = (min(i, j), max(i, j))
+            assert key not in seen, name                    # not also in the partner's row
+            seen.add(key)
+            static_j = model.body_inv_mass[model.sphere_body[j]] == 0.0
+            assert i < j or static_j, name
+    assert n_pairs > 20
