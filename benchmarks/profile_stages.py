@@ -94,7 +94,10 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                         b.pair_f.shape[0])
                      or cpu.stage_wall_reach(m.diameter, b.sorted_x, m.wall_normal,
                                              m.wall_offset, m.wall_lo, m.wall_hi,
-                                             m.wall_depth, b.wall_mask)),
+                                             m.wall_depth, b.wall_mask)
+                     or (fr and cpu.stage_rows_to_pairs(b.nbr, b.nbr_n, b.pidx, b.sorted_idx,
+                                                        b.sorted_body, m.body_inv_mass,
+                                                        b.wall_mask, hp, hs, b.pair_f))),
         )
         after = (
             lambda: k.stage_contacts(m.diameter, b.nbr, b.nbr_n, b.pidx, b.sorted_idx,
@@ -128,6 +131,8 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             rebuilds += 1
             if fr and s > state.step:      # histories back to sphere order before the sort
                 t0 = time.perf_counter()
+                cpu.stage_pairs_to_rows((s - 1) & 1, b.nbr, b.nbr_n, b.pidx, b.sorted_idx, hp,
+                                        hs, b.pair_f)
                 cpu.stage_history_to_spheres(b.sorted_idx, hp, hs, partner, spring)
                 t[4] += time.perf_counter() - t0
             for i, call in enumerate(rebuild):
@@ -142,6 +147,8 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             call()
             t[6 + i] += time.perf_counter() - t0
     if fr:
+        cpu.stage_pairs_to_rows((state.step + steps - 1) & 1, b.nbr, b.nbr_n, b.pidx,
+                                b.sorted_idx, hp, hs, b.pair_f)
         cpu.stage_history_to_spheres(b.sorted_idx, hp, hs, partner, spring)
     state.step += steps
     state.time = state.step * m.dt
