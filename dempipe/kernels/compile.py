@@ -35,17 +35,29 @@ FORMULAS = (
 )
 
 
+def compile_chain(module, names, jit, given: dict) -> types.SimpleNamespace:
+    """``module``'s functions ``names`` (callees first), each re-created with its
+    module's globals overlaid by ``given`` and by the ones compiled before it,
+    then compiled with ``jit``. Returns them (and ``given``) as a namespace."""
+    compiled = dict(given)
+    for name in names:
+        py = getattr(module, name)
+        glb = dict(py.__globals__)
+        glb.update(compiled)
+        fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__, py.__closure__)
+        fn.__doc__ = py.__doc__
+        compiled[name] = jit(fn)
+    return types.SimpleNamespace(**compiled)
+
+
 def compile_walk(jit, cell_coord, cell_key, cell_hash):
     """neighbours.neighbour_list compiled with ``jit``, calling the target's own
     (already compiled) grid cell functions."""
     from . import neighbours
 
-    py = neighbours.neighbour_list
-    glb = dict(py.__globals__)
-    glb.update(cell_coord=cell_coord, cell_key=cell_key, cell_hash=cell_hash)
-    fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__, py.__closure__)
-    fn.__doc__ = py.__doc__
-    return jit(fn)
+    return compile_chain(neighbours, ("neighbour_list",), jit,
+                         dict(cell_coord=cell_coord, cell_key=cell_key,
+                              cell_hash=cell_hash)).neighbour_list
 
 
 def compile_pairing(jit, formulas) -> types.SimpleNamespace:
@@ -55,17 +67,10 @@ def compile_pairing(jit, formulas) -> types.SimpleNamespace:
     so they need no variants."""
     from . import contacts
 
-    compiled: dict[str, object] = {"history_recall": formulas.history_recall,
-                                   "history_store": formulas.history_store}
-    for name in ("wall_reach", "owns", "pair_count", "pair_slots", "pair_mirror",
-                 "rows_to_pairs", "pairs_to_rows"):
-        py = getattr(contacts, name)
-        glb = dict(py.__globals__)
-        glb.update(compiled)
-        fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__, py.__closure__)
-        fn.__doc__ = py.__doc__
-        compiled[name] = jit(fn)
-    return types.SimpleNamespace(**compiled)
+    return compile_chain(contacts, ("wall_reach", "owns", "pair_count", "pair_slots",
+                                    "pair_mirror", "rows_to_pairs", "pairs_to_rows"), jit,
+                         dict(history_recall=formulas.history_recall,
+                              history_store=formulas.history_store))
 
 
 def compile_contacts(jit, formulas, constants: dict) -> types.SimpleNamespace:
@@ -75,31 +80,16 @@ def compile_contacts(jit, formulas, constants: dict) -> types.SimpleNamespace:
     The CPU compiles its variants with compile.specialize instead."""
     from . import contacts
 
-    glb = dict(contacts.pair_forces.__globals__)
-    glb.update(history_recall=formulas.history_recall, history_store=formulas.history_store,
-               sphere_pair_force=formulas.sphere_pair_force,
-               sphere_wall_force=formulas.sphere_wall_force)
-    glb.update(constants)
-    out = {}
-    for name in ("pair_forces", "sphere_forces"):
-        py = getattr(contacts, name)
-        fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__, py.__closure__)
-        fn.__doc__ = py.__doc__
-        out[name] = jit(fn)
-    return types.SimpleNamespace(**out)
+    given = dict(history_recall=formulas.history_recall, history_store=formulas.history_store,
+                 sphere_pair_force=formulas.sphere_pair_force,
+                 sphere_wall_force=formulas.sphere_wall_force)
+    given.update(constants)
+    return compile_chain(contacts, ("pair_forces", "sphere_forces"), jit, given)
 
 
 def compile_formulas(jit) -> types.SimpleNamespace:
     """Return a namespace of every formula compiled with ``jit`` (a decorator)."""
-    compiled: dict[str, object] = {}
-    for name in FORMULAS:
-        py = getattr(physics, name)
-        glb = dict(py.__globals__)
-        glb.update(compiled)
-        fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__, py.__closure__)
-        fn.__doc__ = py.__doc__
-        compiled[name] = jit(fn)
-    return types.SimpleNamespace(**compiled)
+    return compile_chain(physics, FORMULAS, jit, {})
 
 
 def specialize(functions, jits: dict, constants: dict, tag: str) -> types.SimpleNamespace:
