@@ -131,8 +131,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             rebuilds += 1
             if fr and s > state.step:      # histories back to sphere order before the sort
                 t0 = time.perf_counter()
-                cpu.stage_pairs_to_rows((s - 1) & 1, b.nbr, b.nbr_n, b.pidx, b.sorted_idx, hp,
-                                        hs, b.pair_f)
+                cpu.stage_pairs_to_rows(b.nbr, b.nbr_n, b.pidx, b.sorted_idx, hp, hs, b.pair_f)
                 cpu.stage_history_to_spheres(b.sorted_idx, hp, hs, partner, spring)
                 t[4] += time.perf_counter() - t0
             for i, call in enumerate(rebuild):
@@ -147,8 +146,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             call()
             t[6 + i] += time.perf_counter() - t0
     if fr:
-        cpu.stage_pairs_to_rows((state.step + steps - 1) & 1, b.nbr, b.nbr_n, b.pidx,
-                                b.sorted_idx, hp, hs, b.pair_f)
+        cpu.stage_pairs_to_rows(b.nbr, b.nbr_n, b.pidx, b.sorted_idx, hp, hs, b.pair_f)
         cpu.stage_history_to_spheres(b.sorted_idx, hp, hs, partner, spring)
     state.step += steps
     state.time = state.step * m.dt

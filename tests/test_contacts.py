@@ -187,16 +187,12 @@ def test_stretches_go_into_the_pairs_and_back_unchanged(case):
     cpu.stage_rows_to_pairs(be.nbr, be.nbr_n, be.pidx, be.sorted_idx, be.sorted_body,
                             model.body_inv_mass, be.wall_mask, hp, hs, pair_f)
     assert np.all(hp[hp != 0] >> 1 > model.n_spheres), name   # the rows keep the walls only
-    cpu.stage_pairs_to_rows((st.step - 1) & 1, be.nbr, be.nbr_n, be.pidx, be.sorted_idx,
-                            hp, hs, pair_f)
+    cpu.stage_pairs_to_rows(be.nbr, be.nbr_n, be.pidx, be.sorted_idx, hp, hs, pair_f)
     partner = np.empty_like(hp)
     spring = np.empty_like(hs)
     partner[be.sorted_idx] = hp
     spring[be.sorted_idx] = hs
-    if case == 2:       # sleepers keep the parity of the step they last touched at
-        np.testing.assert_array_equal(partner >> 1, st.contact_partner >> 1, err_msg=name)
-    else:
-        np.testing.assert_array_equal(partner, st.contact_partner, err_msg=name)
+    np.testing.assert_array_equal(partner, st.contact_partner, err_msg=name)
     np.testing.assert_array_equal(spring, st.contact_spring, err_msg=name)
 
 

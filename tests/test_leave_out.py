@@ -405,8 +405,7 @@ def simulated():
     b.add_bodies("balls", ball, m, [[-0.31, -0.17, D / 2]], velocities=[[0.5, 0.2, 0]])
     slab_set, slab_mesh = box_set(6, 6, 2, D)
     centre = np.array([0.5, 0.5, 0.01])
-    slab_set.centers = slab_set.centers + centre
-    slab_set.com = centre
+    slab_set.com = centre              # the builder places the set's centres about its com
     slab_mesh.vertices = slab_mesh.vertices + centre
     b.add_static_mesh("slab", slab_mesh, slab_set, m)
     b.add_plane([0, 0, 0], [0, 0, 1], m)

@@ -31,8 +31,7 @@ def pile(sleep, ball_height=None, n_frames=24, fps=24, slab=False):
     if slab:
         slab_set, slab_mesh = box_set(8, 8, 1, D)
         centre = np.array([0.0, 0.0, -0.3 * D])      # its top 0.2 d above the plane
-        slab_set.centers = slab_set.centers + centre
-        slab_set.com = centre
+        slab_set.com = centre          # the builder places the set's centres about its com
         slab_mesh.vertices = slab_mesh.vertices + centre
         b.add_static_mesh("slab", slab_mesh, slab_set, m)
     b.add_plane([0, 0, 0], [0, 0, 1], m)

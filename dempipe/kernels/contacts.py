@@ -57,8 +57,8 @@ UNPAIRED = -(1 << 30)
 
 
 #: Columns of a row of pair_f: the force on the owner (0-2) [N], the torque about
-#: its centre (3-5) [N m], the contact's tangential stretch (6-8) [m], and 1.0 when
-#: it touched at the last step that computed it, else 0.0 (9).
+#: its centre (3-5) [N m], the contact's tangential stretch (6-8) [m], and 1 + the
+#: parity of the step when it touched at the last step that computed it, else 0 (9).
 PAIR_COLS = 10
 
 #: Rows of pair_f per sphere the CPU allocates to start with (a dense pile of cubes
@@ -145,8 +145,8 @@ def rows_to_pairs(s, h, n_spheres, nbr, nbr_n, pidx, sorted_idx, sorted_body, bo
                   wall_mask, hist_partner, hist_spring, pair_f):
     """At a rebuild, with friction: the stretch of each pair slot s owns from its
     history row h (the State's form: partner code, stretch) into pair_f[p, 6:9],
-    with pair_f[p, 9] = 1 when it was remembered (touching at the last step) and
-    0 when not. The row then keeps only the walls within reach (wall_mask[s]):
+    with pair_f[p, 9] = 1 + the parity it was touched at when it was remembered
+    (touching at the last step that computed it) and 0 when not. The row then keeps only the walls within reach (wall_mask[s]):
     during the steps a pair's stretch is read and written at its pair index
     (no search), and a wall's in the row (history_recall, history_store).
     Entries for partners out of the list are forgotten: they are out of reach,
@@ -160,7 +160,7 @@ def rows_to_pairs(s, h, n_spheres, nbr, nbr_n, pidx, sorted_idx, sorted_body, bo
         pair_f[p, 6] = sx
         pair_f[p, 7] = sy
         pair_f[p, 8] = sz
-        pair_f[p, 9] = 1.0 if slot >= 0 else 0.0
+        pair_f[p, 9] = 1.0 + (hist_partner[h, slot] & 1) if slot >= 0 else 0.0
     walls = wall_mask[s]
     for c in range(hist_partner.shape[1]):
         code = (hist_partner[h, c] >> 1) - 1 - n_spheres     # the wall, or < 0: a sphere
@@ -171,11 +171,11 @@ def rows_to_pairs(s, h, n_spheres, nbr, nbr_n, pidx, sorted_idx, sorted_body, bo
             hist_spring[h, c, 2] = 0.0
 
 
-def pairs_to_rows(s, h, parity, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
-                  pair_f):
+def pairs_to_rows(s, h, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f):
     """The inverse of rows_to_pairs, before a re-sort and at the end of a call: each
-    pair slot s owns and touched at the last step (``parity``) back into its
-    history row h. The row comes out in one canonical order, whatever the
+    pair slot s owns that touched at the last step that computed it back into its
+    history row h, with the parity of that step (a pair of two sleeping bodies
+    keeps the one it had when they fell asleep, as a sleeper's row always did). The row comes out in one canonical order, whatever the
     steps did to it: the pairs in list order (their partners' index order), then
     the walls by wall index; so the State does not depend on when the lists were
     rebuilt or how the steps were split into calls. A row that cannot hold them
@@ -226,7 +226,7 @@ def pairs_to_rows(s, h, parity, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist
         p = pidx[s, e]
         if p < 0 or pair_f[p, 9] == 0.0:
             continue
-        hist_partner[h, c] = ((sorted_idx[nbr[s, e]] + 1) << 1) | parity
+        hist_partner[h, c] = ((sorted_idx[nbr[s, e]] + 1) << 1) | (int(pair_f[p, 9]) - 1)
         hist_spring[h, c, 0] = pair_f[p, 6]
         hist_spring[h, c, 1] = pair_f[p, 7]
         hist_spring[h, c, 2] = pair_f[p, 8]
@@ -340,7 +340,7 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted
                 pair_f[p, 6] = sx
                 pair_f[p, 7] = sy
                 pair_f[p, 8] = sz
-                pair_f[p, 9] = 1.0
+                pair_f[p, 9] = 1.0 + parity
             pair_f[p, 0] = pfx
             pair_f[p, 1] = pfy
             pair_f[p, 2] = pfz

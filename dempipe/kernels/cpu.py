@@ -370,13 +370,11 @@ def stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_pairs_to_rows(parity, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
-                        pair_f):
+def stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f):
     """Before a re-sort and at the end of a call, with friction: the touching pairs'
     stretches back into their owners' history rows (contacts.pairs_to_rows)."""
     for s in prange(sorted_idx.shape[0]):
-        pairs_to_rows(s, s, parity, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
-                      pair_f)
+        pairs_to_rows(s, s, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f)
 
 
 def stage_contacts(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
@@ -617,8 +615,8 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                                            sphere_r) > 0
         if rebuild:
             if FRICTION and friction and step > first_step:   # histories back to sphere order
-                stage_pairs_to_rows((step - 1) & 1, nbr, nbr_n, pidx, sorted_idx, hist_partner,
-                                    hist_spring, pair_f)
+                stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
+                                    pair_f)
                 stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
                                          contact_partner, contact_spring)
             stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_cell,
@@ -659,8 +657,7 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
             break                               # all asleep: nothing changes any more
     stage_unsort(sorted_idx, sorted_x, sphere_x)
     if FRICTION and friction:
-        stage_pairs_to_rows((first_step + computed - 1) & 1, nbr, nbr_n, pidx, sorted_idx,
-                            hist_partner, hist_spring, pair_f)
+        stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f)
         stage_history_to_spheres(sorted_idx, hist_partner, hist_spring, contact_partner,
                                  contact_spring)
     return n_steps, computed

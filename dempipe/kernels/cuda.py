@@ -464,10 +464,10 @@ def k_neighbours(cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x, so
 
 
 @cuda.jit
-def k_save_pairs(parity, at_end, friction, nbr, nbr_n, pidx, sorted_idx, contact_partner,
+def k_save_pairs(at_end, friction, nbr, nbr_n, pidx, sorted_idx, contact_partner,
                  contact_spring, pair_f, ctl):
     """With friction: the touching pairs' stretches back into their owners' history
-    rows (contacts.pairs_to_rows, ``parity`` of the last step computed), while
+    rows (contacts.pairs_to_rows), while
     the lists they were read from still stand: at a rebuild that is not a
     call's first step (before the re-sort), and (``at_end``, launched by the
     host) after a call's last step."""
@@ -476,7 +476,7 @@ def k_save_pairs(parity, at_end, friction, nbr, nbr_n, pidx, sorted_idx, contact
         return
     if not at_end and (ctl[CTL_FORCE] != 0 or ctl[CTL_MOVED] == 0 or ctl[CTL_OVER] != 0):
         return
-    pairs_to_rows(s, sorted_idx[s], parity, nbr, nbr_n, pidx, sorted_idx, contact_partner,
+    pairs_to_rows(s, sorted_idx[s], nbr, nbr_n, pidx, sorted_idx, contact_partner,
                   contact_spring, pair_f)
 
 
@@ -961,12 +961,12 @@ class CudaBackend:
             d["sorted_x"], d["sorted_key"], d["sorted_body"], d["body_inv_mass"],
             d["built_x"], d["nbr"], d["nbr_n"], d["ctl"])
 
-    def _save_pairs(self, parity: int = 0, at_end: bool = False):
+    def _save_pairs(self, at_end: bool = False):
         """With friction, before a rebuild's re-sort (or ``at_end`` of a call): the
         pairs' stretches back into the history rows (k_save_pairs)."""
         m, d = self.model, self.d
         k_save_pairs[_blocks(m.n_spheres, THREADS), THREADS](
-            parity, at_end, bool(self.features.friction), d["nbr"], d["nbr_n"], d["pidx"],
+            at_end, bool(self.features.friction), d["nbr"], d["nbr_n"], d["pidx"],
             d["sorted_idx"], d["contact_partner"], d["contact_spring"], d["pair_f"], d["ctl"])
 
     def _pairs(self, partner=None, spring=None):
@@ -1071,7 +1071,7 @@ class CudaBackend:
         self._idle_check()
         self._velocities()
         self._spheres_sorted()
-        self._save_pairs(parity ^ 1)
+        self._save_pairs()
         self._spheres()
         self._grid_sort()
         self._gather()
@@ -1129,7 +1129,7 @@ class CudaBackend:
                 self.redos += 1
                 self.grow_neighbours(int(ctl[CTL_MAXN]))   # room (may raise DeviceError)
             elif done > 0:
-                self._save_pairs((state.step - 1) & 1, at_end=True)
+                self._save_pairs(at_end=True)
         if stepped:
             self._unsort()
         self.download(state)
