@@ -184,10 +184,10 @@ def time_cpu(model, steps: int) -> float:
 
 
 #: CudaBackend.STAGES without the underscore: the launch groups of a step. The
-#: rebuild groups (spheres, grid_sort, gather, neighbours) exit at once on the
+#: rebuild groups (save_pairs, spheres, grid_sort, gather, neighbours, pairs) exit at once on the
 #: steps that do not rebuild the neighbour lists, so their shares are averages.
-GROUPS = ("idle_check", "velocities", "spheres_sorted", "spheres", "grid_sort", "gather",
-          "neighbours", "contacts", "bodies")
+GROUPS = ("idle_check", "velocities", "spheres_sorted", "save_pairs", "spheres", "grid_sort",
+          "gather", "neighbours", "pairs", "contacts", "bodies")
 
 
 def time_gpu(model, steps: int):

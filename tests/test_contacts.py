@@ -12,7 +12,7 @@ trip from the history rows into the pairs and back) exactly.
 import numpy as np
 import pytest
 
-from bodies import box_set
+from bodies import ball_set, box_set
 from dempipe import physics
 from dempipe.kernels import cpu
 from dempipe.materials import Material
@@ -39,19 +39,39 @@ def boxes_on_static_slab():
     return b.finalize(fps=24, n_frames=2)
 
 
+def pressed_boxes_woken():
+    """Three 2×2×2-sphere boxes pressed side by side in a tight box, asleep within a
+    few steps, and a fourth dropped spinning onto two of them: pairs whose owner
+    sleeps while the partner moves, pairs of two sleepers, and sleepers woken."""
+    b = ModelBuilder(D)
+    ss, mesh = box_set(2, 2, 2, D)
+    s = b.add_shape("box", mesh, ss)
+    m = b.add_material(Material("wood", density=700, restitution=0.3, friction=0.5))
+    b.add_bodies("boxes", s, m, [[(i - 1) * 1.999 * D, 0.0, 0.0100 + 0.00002 * i]
+                                 for i in range(3)])
+    b.add_bodies("drop", s, m, [[-1.0 * D, 0.0, 0.06]], angular_velocities=[[0, 0, 4.0]])
+    b.add_box([-3.0 * D + 0.0003 * D, -2 * D, 0], [3.0 * D - 0.0003 * D, 2 * D, 0.1],
+              material=m)
+    return b.finalize(fps=24, n_frames=6, sleep=(0.05, 1.0, 0.003))
+
+
 def scenes():
     """(name, model, steps): friction springs against spheres, walls, planes; a
-    static slab; a pile part asleep."""
+    static slab; a pile part asleep; sleeping pairs."""
     return [("loose balls in a box", loose_balls(), 40),
             ("box onto slab", falling_model(), 30),
             ("pile, part asleep", pile(sleep=(0.05, 1.0, 0.02), n_frames=6), 1600),
-            ("boxes on a static slab", boxes_on_static_slab(), 600)]
+            ("boxes on a static slab", boxes_on_static_slab(), 600),
+            ("pressed boxes asleep, one dropped on them", pressed_boxes_woken(), 4600)]
 
 
 def owner_stretch(state, i, j):
-    """The remembered stretch of the contact of spheres i, j seen from i: from its
-    owner's row (the State's form), negated when the owner is j; 0 if none."""
-    for a, b, sign in ((i, j, 1.0), (j, i, -1.0)):
+    """The remembered stretch of the contact of sphere i with sphere or wall code j
+    (a wall: number of spheres + its index) seen from i: from its owner's row (the
+    State's form), negated when the owner is sphere j; 0 if none."""
+    pairs = ((i, j, 1.0), (j, i, -1.0)) if j < state.contact_partner.shape[0] else \
+        ((i, j, 1.0),)
+    for a, b, sign in pairs:
         hit = np.nonzero((state.contact_partner[a] >> 1) == b + 1)[0]
         if hit.size:
             return sign * state.contact_spring[a, hit[0]]
@@ -128,7 +148,7 @@ def own_forces(model, state, be):
     return f, t
 
 
-@pytest.mark.parametrize("case", range(4))
+@pytest.mark.parametrize("case", range(5))
 def test_each_contact_once_gives_the_forces_of_each_sphere_computing_its_own(case):
     name, model, steps = scenes()[case]
     be = Simulator(model).backend
@@ -140,12 +160,15 @@ def test_each_contact_once_gives_the_forces_of_each_sphere_computing_its_own(cas
     assert np.abs(f).max() > 0, name
     np.testing.assert_array_equal(be.sphere_f, f, err_msg=name)     # bit for bit
     np.testing.assert_array_equal(be.sphere_t, t, err_msg=name)
-    if case == 2:
+    if case in (2, 4):
         asleep = st.asleep(model.sleep_steps)[: model.n_bodies]
         assert 0 < asleep.sum(), "no body asleep: the sleeping paths were not exercised"
+    if case == 4:                                   # a sleeper owns a pair with a mover
+        assert be.pair_start[-1] > 0
+        assert not asleep.all()
 
 
-@pytest.mark.parametrize("case", range(4))
+@pytest.mark.parametrize("case", range(5))
 def test_pair_indices_pair_each_entry_with_its_owner(case):
     name, model, steps = scenes()[case]
     be = Simulator(model).backend
@@ -171,7 +194,7 @@ def test_pair_indices_pair_each_entry_with_its_owner(case):
     assert np.all(be.nbr_n[static] == 0)                     # a static sphere owns nothing
 
 
-@pytest.mark.parametrize("case", range(4))
+@pytest.mark.parametrize("case", range(5))
 def test_stretches_go_into_the_pairs_and_back_unchanged(case):
     # The State's history rows (canonical: pairs by partner index, then walls) into
     # the pairs of a fresh build and back give the same rows, bit for bit.
@@ -216,3 +239,38 @@ def test_a_pair_keeps_one_stretch_in_its_owners_row():
             static_j = model.body_inv_mass[model.sphere_body[j]] == 0.0
             assert i < j or static_j, name
     assert n_pairs > 20
+
+
+def many_walls_model(n_floors):
+    """Two spinning balls pushed (gravity along -x and -z) into a corner made of
+    ``n_floors`` copies of the floor plane and one side wall: the first ball touches
+    n_floors + 1 walls and its partner, more than its 12-slot row holds when
+    n_floors is 11."""
+    b = ModelBuilder(D, gravity=(-9.81, 0, -9.81))
+    ss, mesh = ball_set(D)
+    s = b.add_shape("ball", mesh, ss)
+    m = b.add_material(Material("m", density=1000, restitution=0.3, friction=0.5))
+    b.add_bodies("balls", s, m, [[0, 0, 0.5 * D], [1.0 * D, 0, 0.5 * D]],
+                 angular_velocities=[[0, 0, 5.0], [0, 0, 5.0]])
+    for _ in range(n_floors):
+        b.add_plane([0, 0, 0], [0, 0, 1], m)
+    b.add_plane([-0.5 * D, 0, 0], [1, 0, 0], m)
+    return b.finalize(fps=60, n_frames=2)
+
+
+@pytest.mark.parametrize("n_floors", [10, 11])
+def test_a_full_history_row_does_not_depend_on_how_steps_are_split(n_floors):
+    # With 11 floors the first ball remembers 12 walls and its pair: one more than its
+    # row holds. The pair's stretch is then forgotten at every step (walls first),
+    # in one call of 200 steps as in four of 50 (found by review: it was kept within
+    # a call and dropped at each call's end).
+    model = many_walls_model(n_floors)
+    ref = model.initial_state()
+    Simulator(model).backend.step(ref, 200)
+    assert (ref.contact_partner[0] != 0).sum() == 12
+    be = Simulator(model).backend
+    st = model.initial_state()
+    for _ in range(4):
+        be.step(st, 50)
+    for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner", "contact_spring"):
+        assert np.array_equal(getattr(st, name), getattr(ref, name)), name

@@ -7,7 +7,10 @@ distance, the spins' sum, the material pair), and so the force comes out exactly
 negated and the torque about each sphere's own centre exactly equal. So one
 sphere of each listed pair, its *owner*, computes the contact, and the other
 reads it back, negated: half the arithmetic, and the same force as if each
-sphere computed its own.
+sphere computed its own. (One exception: two centres exactly coincident, where
+physics.sphere_pair_force picks +z as the normal from either side, so each sphere
+alone would push both the same way; computed once, the pair is pushed apart along
+±z and momentum is kept.)
 
 Owner: the sphere of lower index, or the dynamic one when the other is static
 (a static sphere has no list). Ownership follows the sphere indices, not the
@@ -280,6 +283,7 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted
             wxi = body_w[bi, 0]
             wyi = body_w[bi, 1]
             wzi = body_w[bi, 2]
+        kept = 0                            # pairs that remember a stretch after this step
         for e in range(nbr_n[s]):
             p = pidx[s, e]
             if p < 0:
@@ -289,6 +293,8 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted
             imj = body_inv_mass[bj]
             if SLEEPING and sleep_steps > 0:  # noqa: F821
                 if asleep_i and (imj == 0.0 or body_rest[bj] >= sleep_steps):
+                    if FRICTION and friction and pair_f[p, 9] != 0.0:  # noqa: F821
+                        kept += 1
                     continue                # neither feels it: both keep their state
             rx = sorted_x[t, 0] - xi
             ry = sorted_x[t, 1] - yi
@@ -341,6 +347,7 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted
                 pair_f[p, 7] = sy
                 pair_f[p, 8] = sz
                 pair_f[p, 9] = 1.0 + parity
+                kept += 1
             pair_f[p, 0] = pfx
             pair_f[p, 1] = pfy
             pair_f[p, 2] = pfz
@@ -353,10 +360,9 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted
                     pair_f[p, 3] = 0.0
                     pair_f[p, 4] = 0.0
                     pair_f[p, 5] = 0.0
-        if asleep_i:
-            continue                        # feels nothing; its row stays as it was
         walls = wall_mask[s]
-        if WALLS and walls != 0:  # noqa: F821 (only the walls marked at the rebuild)
+        # the walls marked at the rebuild; a sleeper feels nothing, its row stays as it was
+        if WALLS and walls != 0 and not asleep_i:  # noqa: F821
             fx = 0.0
             fy = 0.0
             fz = 0.0
@@ -421,6 +427,25 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted
                         hist_spring[h, c, 0] = 0.0
                         hist_spring[h, c, 1] = 0.0
                         hist_spring[h, c, 2] = 0.0
+        if FRICTION and friction and kept > 0:  # noqa: F821
+            # Between calls s's row must hold all it remembers (pairs_to_rows): beyond its
+            # room, the pairs last in list order forget their stretch, as a full row
+            # drops a contact (history_store). So the State does not depend on how
+            # the steps were split into calls.
+            room = hist_partner.shape[1]
+            if walls != 0:                  # the row holds walls only while stepping
+                for c in range(hist_partner.shape[1]):
+                    if hist_partner[h, c] != 0:
+                        room -= 1
+            if kept <= room:
+                continue
+            for e in range(nbr_n[s]):
+                p = pidx[s, e]
+                if p >= 0 and pair_f[p, 9] != 0.0:
+                    if room > 0:
+                        room -= 1
+                    else:
+                        pair_f[p, 9] = 0.0
 
 
 def sphere_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body,
