@@ -34,6 +34,7 @@ BENCHMARKS = {
     "sleeping": (["--duration", "2"], []),
     "restitution_vs_dt": ([], []),
     "vs_bullet": (["--n", "256", "--duration", "1"], ["--n", "256,1024,4096"]),
+    "concurrent": ([], []),
 }
 
 
