@@ -60,6 +60,13 @@ def compile_walk(jit, cell_coord, cell_key, cell_hash):
                               cell_hash=cell_hash)).neighbour_list
 
 
+def compile_slot_store(jit):
+    """neighbours.slot_store compiled with ``jit``."""
+    from . import neighbours
+
+    return compile_chain(neighbours, ("slot_store",), jit, {}).slot_store
+
+
 def compile_pairing(jit, formulas) -> types.SimpleNamespace:
     """contacts.py's rebuild bookkeeping (wall_reach, owns, pair_count, pair_slots,
     pair_mirror, rows_to_pairs, pairs_to_rows), each compiled with ``jit``,
@@ -69,8 +76,7 @@ def compile_pairing(jit, formulas) -> types.SimpleNamespace:
 
     return compile_chain(contacts, ("wall_reach", "owns", "pair_count", "pair_slots",
                                     "pair_mirror", "rows_to_pairs", "pairs_to_rows"), jit,
-                         dict(history_recall=formulas.history_recall,
-                              history_store=formulas.history_store))
+                         dict(history_recall=formulas.history_recall))
 
 
 def compile_contacts(jit, formulas, constants: dict) -> types.SimpleNamespace:

@@ -178,12 +178,13 @@ def pairs_to_rows(s, h, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
     """The inverse of rows_to_pairs, before a re-sort and at the end of a call: each
     pair slot s owns that touched at the last step that computed it back into its
     history row h, with the parity of that step (a pair of two sleeping bodies
-    keeps the one it had when they fell asleep, as a sleeper's row always did). The row comes out in one canonical order, whatever the
-    steps did to it: the pairs in list order (their partners' index order), then
-    the walls by wall index; so the State does not depend on when the lists were
-    rebuilt or how the steps were split into calls. A row that cannot hold them
-    all keeps the walls and the first pairs (as history_store drops a contact
-    when the row is full)."""
+    keeps the one it had when they fell asleep, as a sleeper's row always did).
+    The row comes out in one canonical order, whatever the steps did to it: the
+    pairs in list order (their partners' index order), then the walls by wall
+    index; so the State does not depend on when the lists were rebuilt or how
+    the steps were split into calls. They always fit: pair_forces forgets the
+    stretches of the pairs beyond the row's room at every step (the walls and
+    the first pairs are kept; the guard here keeps the same ones)."""
     cap = hist_partner.shape[1]
     # the walls (all the row holds now) to the front, by code: an insertion sort
     nw = 0

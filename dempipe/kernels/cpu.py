@@ -18,7 +18,8 @@ import numpy as np
 from numba import prange
 
 from . import contacts
-from .compile import (compile_formulas, compile_pairing, compile_walk, invalidate_stale_cache,
+from .compile import (compile_formulas, compile_pairing, compile_slot_store, compile_walk,
+                      invalidate_stale_cache,
                       specialize)
 from ..state import CONTACT_SLOTS
 # UNPAIRED: read by contacts.sphere_forces, which is compiled with this module's globals
@@ -97,6 +98,7 @@ def cell_hash(cx, cy, cz, grid):
     return ((cz & grid[4]) << (grid[0] + grid[1])) | ((cy & grid[3]) << grid[0]) | (cx & grid[2])
 
 
+slot_store = compile_slot_store(numba.njit(inline="always", cache=False))
 neighbour_list = compile_walk(numba.njit(inline="always", cache=False), cell_coord, cell_key,
                               cell_hash)
 
@@ -238,20 +240,8 @@ def stage_spheres_sorted(sorted_idx, sphere_body, sphere_offset, body_x, body_q,
             continue
         x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset, body_x,
                                                        body_q, body_v, body_w)
-        sorted_x[s, 0] = x
-        sorted_x[s, 1] = y
-        sorted_x[s, 2] = z
-        sorted_v[s, 0] = vx
-        sorted_v[s, 1] = vy
-        sorted_v[s, 2] = vz
-        sphere_r[i, 0] = rx
-        sphere_r[i, 1] = ry
-        sphere_r[i, 2] = rz
-        ex = x - built_x[s, 0]
-        ey = y - built_x[s, 1]
-        ez = z - built_x[s, 2]
-        if ex * ex + ey * ey + ez * ez >= rebuild_at2:
-            moved += 1
+        moved += slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r,
+                            built_x, rebuild_at2)
     return moved
 
 

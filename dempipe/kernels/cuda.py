@@ -39,7 +39,8 @@ from numba.core import config
 
 from ..errors import DeviceError
 from ..state import CONTACT_SLOTS
-from .compile import compile_contacts, compile_formulas, compile_pairing, compile_walk
+from .compile import (compile_contacts, compile_formulas, compile_pairing, compile_slot_store,
+                      compile_walk)
 from .contacts import PAIR_COLS, WALL_SLACK
 from .neighbours import NEIGHBOURS, SKIN, cell_size
 
@@ -195,6 +196,7 @@ def cell_hash(cx, cy, cz, grid):
 
 
 neighbour_list = compile_walk(_device_jit(), cell_coord, cell_key, cell_hash)
+slot_store = compile_slot_store(_device_jit())
 P = compile_pairing(_device_jit(), F)
 wall_reach = P.wall_reach
 pair_slots = P.pair_slots
@@ -283,19 +285,8 @@ def k_spheres_sorted(sorted_idx, sphere_body, sphere_offset, body_x, body_q, bod
         body_q[b, 0], body_q[b, 1], body_q[b, 2], body_q[b, 3],
         body_v[b, 0], body_v[b, 1], body_v[b, 2], body_w[b, 0], body_w[b, 1], body_w[b, 2],
         sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2])
-    sorted_x[s, 0] = x
-    sorted_x[s, 1] = y
-    sorted_x[s, 2] = z
-    sorted_v[s, 0] = vx
-    sorted_v[s, 1] = vy
-    sorted_v[s, 2] = vz
-    sphere_r[i, 0] = rx
-    sphere_r[i, 1] = ry
-    sphere_r[i, 2] = rz
-    ex = x - built_x[s, 0]
-    ey = y - built_x[s, 1]
-    ez = z - built_x[s, 2]
-    if ex * ex + ey * ey + ez * ez >= rebuild_at2:
+    if slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r, built_x,
+                  rebuild_at2):
         cuda.atomic.add(ctl, CTL_MOVED, 1)       # integer: order-independent
 
 

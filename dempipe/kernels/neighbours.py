@@ -17,9 +17,9 @@ adds nothing), in that order, then the walls: so the forces, and the frames, do 
 depend on SKIN, on when the lists were rebuilt, on the grid's layout or on how the
 steps were split into calls. CPU and CUDA sum in the same order.
 
-This module holds what both targets share: the constants, and the list build of
-one slot (``neighbour_list``, compiled for each by ``compile.compile_walk``); it
-imports no numba.
+This module holds what both targets share: the constants, the list build of one
+slot (``neighbour_list``, compiled for each by ``compile.compile_walk``) and the
+store of one slot between rebuilds (``slot_store``); it imports no numba.
 """
 
 #: Verlet skin [diameters]: a list holds the partners within (1 + SKIN) d; rebuilt
@@ -39,6 +39,28 @@ def cell_size(diameter: float) -> float:
     """Edge of the rebuild grid's cells [m]: the lists' reach, (1 + SKIN) d, so the 27
     cells round a sphere hold every partner a list may need."""
     return (1.0 + SKIN) * diameter
+
+
+def slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r, built_x,
+               rebuild_at2):
+    """Stage 1 between rebuilds, for sorted slot s (sphere i): its position and
+    velocity [m, m/s] into the slot of the last build, its offset R r' [m] into
+    sphere_r[i]. Returns 1 when it has moved sqrt(rebuild_at2) [m] or more since
+    that build (then the lists must be rebuilt), else 0. Written once, compiled
+    for each target (kernels.cpu.stage_spheres_sorted, kernels.cuda.k_spheres_sorted)."""
+    sorted_x[s, 0] = x
+    sorted_x[s, 1] = y
+    sorted_x[s, 2] = z
+    sorted_v[s, 0] = vx
+    sorted_v[s, 1] = vy
+    sorted_v[s, 2] = vz
+    sphere_r[i, 0] = rx
+    sphere_r[i, 1] = ry
+    sphere_r[i, 2] = rz
+    ex = x - built_x[s, 0]
+    ey = y - built_x[s, 1]
+    ez = z - built_x[s, 2]
+    return 1 if ex * ex + ey * ey + ez * ez >= rebuild_at2 else 0
 
 
 def neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x, sorted_key,
