@@ -34,7 +34,8 @@ BENCHMARKS = {
     "sleeping": (["--duration", "2"], []),
     "restitution_vs_dt": ([], []),
     "vs_bullet": (["--n", "256", "--duration", "1"], ["--n", "256,1024,4096"]),
-    "concurrent": ([], []),
+    "two_bakes": ([], []),
+    "sphere_table": (["--resolutions", "8", "--repeat", "1"], []),
 }
 
 

@@ -1,7 +1,7 @@
 """Two bakes at once on one machine: the dense pile alone against two copies running together.
 
-    python benchmarks/concurrent.py                       # default threading settings
-    OMP_WAIT_POLICY=PASSIVE python benchmarks/concurrent.py
+    python benchmarks/two_bakes.py                       # default threading settings
+    OMP_WAIT_POLICY=PASSIVE python benchmarks/two_bakes.py
 
 Each copy is a fresh process stepping the dense pile of benchmarks/cpu_bench.py
 (25 k spheres) in 60-step calls and printing its best ms/step of five. Baseline,
@@ -13,6 +13,7 @@ the same cores should each take twice as long as one alone). The environment
 
 from __future__ import annotations
 
+import argparse
 import os
 import subprocess
 import sys
@@ -41,7 +42,8 @@ def run(copies: int) -> list[float]:
     return [float(p.communicate()[0].strip().splitlines()[-1]) for p in procs]
 
 
-def main() -> int:
+def main(argv=None) -> int:
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args(argv)
     import numba
 
     run(1)                                     # compile (or load) the kernels once
