@@ -14,7 +14,7 @@ import pytest
 
 from bodies import ball_set, box_set
 from dempipe import physics
-from dempipe.kernels import cpu
+from dempipe.kernels import contacts, cpu
 from dempipe.materials import Material
 from dempipe.model import ModelBuilder
 from dempipe.simulator import Simulator
@@ -274,3 +274,67 @@ def test_a_full_history_row_does_not_depend_on_how_steps_are_split(n_floors):
         be.step(st, 50)
     for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner", "contact_spring"):
         assert np.array_equal(getattr(st, name), getattr(ref, name)), name
+
+
+def test_rows_to_pairs_puts_each_marked_wall_at_its_column():
+    # While stepping, the j-th wall a slot's mask marks keeps its stretch at column j
+    # of the slot's history row (contacts.wall_column), found with no search; walls
+    # not marked, and spheres, leave the row. pairs_to_rows sorts them back.
+    n_spheres, cap = 2, 12
+    walls = (1 << 1) | (1 << 3) | (1 << 4)         # columns: wall 1 -> 0, 3 -> 1, 4 -> 2
+    hp = np.zeros((1, cap), dtype=np.int32)
+    hs = np.zeros((1, cap, 3))
+    code = lambda w: ((n_spheres + w + 1) << 1) | 1     # noqa: E731 (touched at parity 1)
+    for col, c, s in ((0, code(4), 4.0), (1, code(0), 9.0), (2, (2 << 1) | 1, 7.0),
+                      (5, code(1), 1.0)):
+        hp[0, col] = c
+        hs[0, col] = (s, -s, 2 * s)
+    empty = np.zeros((1, 4), dtype=np.int32)
+    args = (empty, np.zeros(1, dtype=np.int32), empty, np.arange(n_spheres, dtype=np.int32),
+            np.zeros(n_spheres, dtype=np.int32), np.ones(1))
+    cpu.rows_to_pairs(0, 0, n_spheres, *args, np.array([walls], dtype=np.int64), hp, hs,
+                      np.zeros((1, 10)))
+    want_p = np.zeros(cap, dtype=np.int32)
+    want_p[0], want_p[2] = code(1), code(4)
+    np.testing.assert_array_equal(hp[0], want_p)
+    np.testing.assert_array_equal(hs[0, 0], (1.0, -1.0, 2.0))
+    np.testing.assert_array_equal(hs[0, 2], (4.0, -4.0, 8.0))
+    assert not hs[0, [1] + list(range(3, cap))].any()
+    nbr, nbr_n, pidx = empty, np.zeros(1, dtype=np.int32), empty
+    cpu.pairs_to_rows(0, 0, nbr, nbr_n, pidx, args[3], hp, hs, np.zeros((1, 10)))
+    want_p[:] = 0
+    want_p[0], want_p[1] = code(1), code(4)
+    np.testing.assert_array_equal(hp[0], want_p)
+    np.testing.assert_array_equal(hs[0, 1], (4.0, -4.0, 8.0))
+
+
+def test_walls_beyond_a_mask_give_the_same_motion():
+    # With more walls than a mask names (WALL_BITS), every slot tests every wall and
+    # finds its walls' stretches by a search of its row instead of at their columns.
+    # Eleven closed boxes far away (66 walls that never touch) must change nothing.
+    near = many_walls_model(1)
+    b = ModelBuilder(D, gravity=(-9.81, 0, -9.81))
+    ss, mesh = ball_set(D)
+    s = b.add_shape("ball", mesh, ss)
+    m = b.add_material(Material("m", density=1000, restitution=0.3, friction=0.5))
+    b.add_bodies("balls", s, m, [[0, 0, 0.5 * D], [1.0 * D, 0, 0.5 * D]],
+                 angular_velocities=[[0, 0, 5.0], [0, 0, 5.0]])
+    b.add_plane([0, 0, 0], [0, 0, 1], m)
+    b.add_plane([-0.5 * D, 0, 0], [1, 0, 0], m)
+    for k in range(11):
+        b.add_box([1.0 + k, 1.0, 1.0], [1.5 + k, 1.5, 1.5], open_top=False, material=m)
+    far = b.finalize(fps=60, n_frames=2)
+    assert far.n_walls > contacts.WALL_BITS >= near.n_walls
+    assert far.dt == near.dt
+    states = []
+    for model in (near, far):
+        st = model.initial_state()
+        be = Simulator(model).backend
+        be.step(st, 150)
+        be.probe(st)
+        assert (be.wall_mask == -1).all() == (model is far)
+        be.step(st, 150)
+        states.append(st)
+    assert (states[0].contact_partner != 0).sum() >= 3          # both walls and the pair
+    for name in ("body_x", "body_q", "body_P", "body_L"):
+        assert np.array_equal(getattr(states[0], name), getattr(states[1], name)), name

@@ -22,7 +22,8 @@ contact_partner / contact_spring, the form a checkpoint keeps); at each rebuild
 it moves into the pair's row of ``pair_f`` (rows_to_pairs), where the owner
 reads and writes it with no search at every step, and back into the row
 before the next re-sort and at the end of the call (pairs_to_rows). The rows
-hold only the walls' contacts in between. A pair's stretch is forgotten at the
+hold only the walls' contacts in between, each marked wall at a fixed column
+(wall_column), also read and written with no search. A pair's stretch is forgotten at the
 first step it does not touch (unless both bodies sleep: then nothing changes).
 Before this, each sphere kept its own copy, searched for in its row every
 step; the two copies were exact opposites except where they could drift apart
@@ -149,9 +150,11 @@ def rows_to_pairs(s, h, n_spheres, nbr, nbr_n, pidx, sorted_idx, sorted_body, bo
     """At a rebuild, with friction: the stretch of each pair slot s owns from its
     history row h (the State's form: partner code, stretch) into pair_f[p, 6:9],
     with pair_f[p, 9] = 1 + the parity it was touched at when it was remembered
-    (touching at the last step that computed it) and 0 when not. The row then keeps only the walls within reach (wall_mask[s]):
-    during the steps a pair's stretch is read and written at its pair index
-    (no search), and a wall's in the row (history_recall, history_store).
+    (touching at the last step that computed it) and 0 when not. The row then
+    keeps only the walls within reach (wall_mask[s]), each at its column
+    (wall_column): during the steps a pair's stretch is read and written at its
+    pair index and a wall's at its column, with no search (with more walls than
+    a mask names, the steps search the row: history_recall, history_store).
     Entries for partners out of the list are forgotten: they are out of reach,
     not touching."""
     for e in range(nbr_n[s]):
@@ -172,21 +175,32 @@ def rows_to_pairs(s, h, n_spheres, nbr, nbr_n, pidx, sorted_idx, sorted_body, bo
             hist_spring[h, c, 0] = 0.0      # State's rows do not depend on when
             hist_spring[h, c, 1] = 0.0      # the lists were rebuilt
             hist_spring[h, c, 2] = 0.0
-
-
-def pairs_to_rows(s, h, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f):
-    """The inverse of rows_to_pairs, before a re-sort and at the end of a call: each
-    pair slot s owns that touched at the last step that computed it back into its
-    history row h, with the parity of that step (a pair of two sleeping bodies
-    keeps the one it had when they fell asleep, as a sleeper's row always did).
-    The row comes out in one canonical order, whatever the steps did to it: the
-    pairs in list order (their partners' index order), then the walls by wall
-    index; so the State does not depend on when the lists were rebuilt or how
-    the steps were split into calls. They always fit: pair_forces forgets the
-    stretches of the pairs beyond the row's room at every step (the walls and
-    the first pairs are kept; the guard here keeps the same ones)."""
+    if walls == -1:
+        return                              # too many walls for a mask: pair_forces searches
+    # each marked wall's stretch to its column (wall_column): the j-th marked wall in
+    # column j, so pair_forces reads and writes it with no search. Sorted, the k-th
+    # entry's column is at least k: moved from the last, none overwrites another.
     cap = hist_partner.shape[1]
-    # the walls (all the row holds now) to the front, by code: an insertion sort
+    for c in range(walls_to_front(hist_partner, hist_spring, h) - 1, -1, -1):
+        j = wall_column(walls, (hist_partner[h, c] >> 1) - 1 - n_spheres)
+        if j == c:
+            continue
+        if j < cap:
+            hist_partner[h, j] = hist_partner[h, c]
+            hist_spring[h, j, 0] = hist_spring[h, c, 0]
+            hist_spring[h, j, 1] = hist_spring[h, c, 1]
+            hist_spring[h, j, 2] = hist_spring[h, c, 2]
+        hist_partner[h, c] = 0
+        hist_spring[h, c, 0] = 0.0
+        hist_spring[h, c, 1] = 0.0
+        hist_spring[h, c, 2] = 0.0
+
+
+def walls_to_front(hist_partner, hist_spring, h):
+    """History row h, which holds walls only, sorted by wall into its first
+    columns (an insertion sort; the codes grow with the wall index), the other
+    columns emptied. Returns how many walls it holds."""
+    cap = hist_partner.shape[1]
     nw = 0
     for c in range(cap):
         code = hist_partner[h, c]
@@ -207,6 +221,43 @@ def pairs_to_rows(s, h, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
         hist_spring[h, j, 1] = sy
         hist_spring[h, j, 2] = sz
         nw += 1
+    for c in range(nw, cap):
+        hist_partner[h, c] = 0
+        hist_spring[h, c, 0] = 0.0
+        hist_spring[h, c, 1] = 0.0
+        hist_spring[h, c, 2] = 0.0
+    return nw
+
+
+def wall_column(walls, w):
+    """The column of a history row that wall w's stretch takes while stepping:
+    how many walls below w the mask ``walls`` marks (wall_reach).
+
+    Found by a search of the row every step before (history_recall, history_store),
+    that cost a dense pile in a box 12 % of its step. A sphere within reach of more
+    walls than its row has columns (12: never in a box, where at most three
+    meet) keeps no stretch for those beyond, touching or not; the search lost
+    only the ones beyond the touching 12."""
+    j = 0
+    for b in range(w):
+        if (walls >> b) & 1:
+            j += 1
+    return j
+
+
+def pairs_to_rows(s, h, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f):
+    """The inverse of rows_to_pairs, before a re-sort and at the end of a call: each
+    pair slot s owns that touched at the last step that computed it back into its
+    history row h, with the parity of that step (a pair of two sleeping bodies
+    keeps the one it had when they fell asleep, as a sleeper's row always did).
+    The row comes out in one canonical order, whatever the steps did to it: the
+    pairs in list order (their partners' index order), then the walls by wall
+    index; so the State does not depend on when the lists were rebuilt or how
+    the steps were split into calls. They always fit: pair_forces forgets the
+    stretches of the pairs beyond the row's room at every step (the walls and
+    the first pairs are kept; the guard here keeps the same ones)."""
+    cap = hist_partner.shape[1]
+    nw = walls_to_front(hist_partner, hist_spring, h)
     n_on = 0
     for e in range(nbr_n[s]):
         p = pidx[s, e]
@@ -254,8 +305,8 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted
       that it touches, summed in wall order into wall_f[s] = (force, torque,
       largest overlap [m]; 0 when none touches);
     - with friction, each contact's stretch: a pair's in pair_f[p, 6:9] (kept
-      while it touches, forgotten when it does not), a wall's recalled from and
-      stored into s's history row (touched at ``parity``; when s is awake, the
+      while it touches, forgotten when it does not), a wall's at its column of
+      s's history row (wall_column; touched at ``parity``; when s is awake, the
       row's walls not touched this step are forgotten).
 
     A moving body (rest count 0) touching a sleeping one flags it to wake."""
@@ -263,11 +314,13 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted
     radius = 0.5 * diameter
     n_walls = wall_normal.shape[0]
     n_spheres = sorted_idx.shape[0]
+    cap = hist_partner.shape[1]
     for s in range(s0, s1):
         bi = sorted_body[s]
         imi = body_inv_mass[bi]
         if imi == 0.0:
             continue
+        n_wall_on = -1                      # walls the row remembers (-1: count them)
         h = s if HIST_BY_SLOT else sorted_idx[s]  # noqa: F821 (the target's: compile_contacts)
         asleep_i = SLEEPING and sleep_steps > 0 and body_rest[bi] >= sleep_steps  # noqa: F821
         xi = sorted_x[s, 0]
@@ -371,17 +424,26 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted
             ty = 0.0
             tz = 0.0
             max_ov = 0.0
+            col = -1                        # the wall's column in s's history row
+            n_wall_on = 0
             for w in range(n_walls):
-                if walls != -1 and (walls >> w) & 1 == 0:
-                    continue
+                if walls != -1:
+                    if (walls >> w) & 1 == 0:
+                        continue
+                    col += 1                # wall_column(walls, w), counted as we go
                 nx = wall_normal[w, 0]
                 ny = wall_normal[w, 1]
                 nz = wall_normal[w, 2]
                 dist = nx * xi + ny * yi + nz * zi - wall_offset[w]
-                if dist >= radius or dist <= -wall_depth[w]:
-                    continue
-                if (xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
+                if (dist >= radius or dist <= -wall_depth[w]
+                        or xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
                         or yi > wall_hi[w, 1] or zi < wall_lo[w, 2] or zi > wall_hi[w, 2]):
+                    if FRICTION and friction and 0 <= col < cap and \
+                            hist_partner[h, col] != 0:  # noqa: F821
+                        hist_partner[h, col] = 0        # not touching: forgotten
+                        hist_spring[h, col, 0] = 0.0
+                        hist_spring[h, col, 1] = 0.0
+                        hist_spring[h, col, 2] = 0.0
                     continue
                 mj = wall_material[w]
                 k = pair_k[mi, mj]
@@ -390,8 +452,19 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted
                 if FRICTION and friction:  # noqa: F821
                     mu = pair_mu[mi, mj]
                     code = n_spheres + w + 1
-                    slot, sx, sy, sz = history_recall(hist_partner, hist_spring, h,  # noqa: F821
-                                                      code)
+                    if walls == -1:
+                        slot, sx, sy, sz = history_recall(hist_partner, hist_spring,  # noqa: F821
+                                                          h, code)
+                    elif col < cap and hist_partner[h, col] != 0:
+                        slot = col
+                        sx = hist_spring[h, col, 0]
+                        sy = hist_spring[h, col, 1]
+                        sz = hist_spring[h, col, 2]
+                    else:
+                        slot = -1
+                        sx = 0.0
+                        sy = 0.0
+                        sz = 0.0
                 else:
                     mu = 0.0
                     sx = 0.0
@@ -401,8 +474,15 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted
                     -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
                     k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
                 if FRICTION and friction:  # noqa: F821
-                    history_store(hist_partner, hist_spring, h, slot, code,  # noqa: F821
-                                  parity, sx, sy, sz)
+                    if walls == -1:
+                        history_store(hist_partner, hist_spring, h, slot, code,  # noqa: F821
+                                      parity, sx, sy, sz)
+                    elif col < cap:
+                        hist_partner[h, col] = (code << 1) | parity
+                        hist_spring[h, col, 0] = sx
+                        hist_spring[h, col, 1] = sy
+                        hist_spring[h, col, 2] = sz
+                        n_wall_on += 1
                 fx += pfx
                 fy += pfy
                 fz += pfz
@@ -420,7 +500,8 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted
             wall_f[s, 4] = ty
             wall_f[s, 5] = tz
             wall_f[s, 6] = max_ov
-            if FRICTION and friction:  # noqa: F821 (forget the walls not touched at this parity)
+            if FRICTION and friction and walls == -1:  # noqa: F821 (forget the walls not
+                n_wall_on = -1                              # touched at this parity)
                 for c in range(hist_partner.shape[1]):
                     code = hist_partner[h, c]
                     if code != 0 and (code & 1) != parity:
@@ -433,9 +514,11 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted
             # room, the pairs last in list order forget their stretch, as a full row
             # drops a contact (history_store). So the State does not depend on how
             # the steps were split into calls.
-            room = hist_partner.shape[1]
-            if walls != 0:                  # the row holds walls only while stepping
-                for c in range(hist_partner.shape[1]):
+            room = cap
+            if walls != 0 and n_wall_on >= 0:
+                room -= n_wall_on           # the walls it remembers, counted above
+            elif walls != 0:                # the row holds walls only while stepping
+                for c in range(cap):
                     if hist_partner[h, c] != 0:
                         room -= 1
             if kept <= room:
