@@ -66,7 +66,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
     rebuilds = 0
     for s in range(state.step, state.step + steps):
         def sorted_positions():
-            return k.stage_spheres_sorted(b.sorted_idx, m.sphere_body, m.sphere_offset,
+            return k.stage_spheres_sorted(b.slot_of, m.sphere_body, m.sphere_offset,
                                           state.body_x, state.body_q, b.body_v, b.body_w,
                                           b.body_still, b.built_x, half * half, b.sorted_x,
                                           b.sorted_v, b.sphere_r)
@@ -84,7 +84,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                         b.sorted_idx),
             lambda: (cpu.stage_grid_gather(b.sorted_idx, b.sphere_x, b.sphere_v, b.sphere_key,
                                            m.sphere_body, b.sorted_x, b.sorted_v, b.sorted_key,
-                                           b.sorted_body),
+                                           b.sorted_body, b.slot_of),
                      fr and cpu.stage_history_to_slots(b.sorted_idx, partner, spring, hp, hs)),
             lambda: (cpu.stage_neighbours(m.diameter, b.grid, b.bucket_start, b.sorted_idx,
                                           b.sorted_x, b.sorted_key, b.sorted_body,
