@@ -241,11 +241,12 @@ def test_a_pair_keeps_one_stretch_in_its_owners_row():
     assert n_pairs > 20
 
 
-def many_walls_model(n_floors):
+def many_walls_model(n_floors, far_boxes=0):
     """Two spinning balls pushed (gravity along -x and -z) into a corner made of
     ``n_floors`` copies of the floor plane and one side wall: the first ball touches
     n_floors + 1 walls and its partner, more than its 12-slot row holds when
-    n_floors is 11."""
+    n_floors is 11. ``far_boxes`` closed boxes (six walls each) far above and
+    aside, which nothing ever touches."""
     b = ModelBuilder(D, gravity=(-9.81, 0, -9.81))
     ss, mesh = ball_set(D)
     s = b.add_shape("ball", mesh, ss)
@@ -255,6 +256,8 @@ def many_walls_model(n_floors):
     for _ in range(n_floors):
         b.add_plane([0, 0, 0], [0, 0, 1], m)
     b.add_plane([-0.5 * D, 0, 0], [1, 0, 0], m)
+    for k in range(far_boxes):
+        b.add_box([1.0 + k, 1.0, 1.0], [1.5 + k, 1.5, 1.5], open_top=False, material=m)
     return b.finalize(fps=60, n_frames=2)
 
 
@@ -312,18 +315,7 @@ def test_walls_beyond_a_mask_give_the_same_motion():
     # With more walls than a mask names (WALL_BITS), every slot tests every wall and
     # finds its walls' stretches by a search of its row instead of at their columns.
     # Eleven closed boxes far away (66 walls that never touch) must change nothing.
-    near = many_walls_model(1)
-    b = ModelBuilder(D, gravity=(-9.81, 0, -9.81))
-    ss, mesh = ball_set(D)
-    s = b.add_shape("ball", mesh, ss)
-    m = b.add_material(Material("m", density=1000, restitution=0.3, friction=0.5))
-    b.add_bodies("balls", s, m, [[0, 0, 0.5 * D], [1.0 * D, 0, 0.5 * D]],
-                 angular_velocities=[[0, 0, 5.0], [0, 0, 5.0]])
-    b.add_plane([0, 0, 0], [0, 0, 1], m)
-    b.add_plane([-0.5 * D, 0, 0], [1, 0, 0], m)
-    for k in range(11):
-        b.add_box([1.0 + k, 1.0, 1.0], [1.5 + k, 1.5, 1.5], open_top=False, material=m)
-    far = b.finalize(fps=60, n_frames=2)
+    near, far = many_walls_model(1), many_walls_model(1, far_boxes=11)
     assert far.n_walls > contacts.WALL_BITS >= near.n_walls
     assert far.dt == near.dt
     states = []
