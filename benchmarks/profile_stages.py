@@ -7,7 +7,8 @@ The backend's own compiled stage functions (the ones ``run_steps`` calls in
 a loop) are called one at a time from Python on a scene, ``--steps`` times
 each, and timed with perf_counter. Stage order and arguments are
 ``kernels.cpu.run_steps``'s (the rebuild stages only when run_steps would rebuild
-the neighbour lists), so the state advances as in a bake. Printed per
+the neighbour lists, at the fixed skin SKIN: run_steps' adaptive skin is held
+there for the profile), so the state advances as in a bake. Printed per
 scene: microseconds per step of each stage averaged over all steps (a rebuild
 stage's figure is its cost times how often it runs), its share of the sum, and the sum
 against ``run_steps`` itself timed over the same number of steps in the same run
@@ -86,13 +87,13 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                            m.sphere_body, b.sorted_x, b.sorted_v, b.sorted_key,
                                            b.sorted_body, b.slot_of),
                      fr and cpu.stage_history_to_slots(b.sorted_idx, partner, spring, hp, hs)),
-            lambda: (cpu.stage_neighbours(m.diameter, b.grid, b.bucket_start, b.sorted_idx,
+            lambda: (cpu.stage_neighbours(m.diameter, cpu.SKIN, b.grid, b.bucket_start, b.sorted_idx,
                                           b.sorted_x, b.sorted_key, b.sorted_body,
                                           m.body_inv_mass, b.built_x, b.nbr, b.nbr_n)
                      or cpu.stage_pairs(b.nbr, b.nbr_n, b.sorted_idx, b.sorted_body,
                                         m.body_inv_mass, b.pair_start, b._pidx(),
                                         b.pair_f.shape[0])
-                     or cpu.stage_wall_reach(m.diameter, b.sorted_x, m.wall_normal,
+                     or cpu.stage_wall_reach(m.diameter, cpu.SKIN, b.sorted_x, m.wall_normal,
                                              m.wall_offset, m.wall_lo, m.wall_hi,
                                              m.wall_depth, b.wall_mask)
                      or (fr and cpu.stage_rows_to_pairs(b.nbr, b.nbr_n, b.pidx, b.sorted_idx,
@@ -158,6 +159,9 @@ def profile(name: str, model, warm_steps: int, steps: int) -> None:
     sim = Simulator(model, device="cpu")
     state = model.initial_state()
     sim.backend.step(state, warm_steps)                 # compile, reach contacts
+    # the stage loop below rebuilds at the fixed skin SKIN: hold run_steps' adaptive
+    # skin (neighbours.adapt_skin) there too, so the two are timed alike
+    sim.backend.skin_ctl[0] = sim.backend.skin_ctl[2] = cpu.SKIN
     stage_times(sim, state, 2)                          # compile the per-stage entry points
     per, rebuilds = stage_times(sim, state, steps)
     t0 = time.perf_counter()

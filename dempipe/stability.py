@@ -290,7 +290,8 @@ def memory_estimate(model: Model) -> dict:
                + 3 * ns * 3 * f8                       # sphere_x, sphere_v, sphere_r
                + 2 * ns * i8                           # sphere_key, sphere_hash
                + (table + 1) * i8 + table * i8         # bucket_start, bucket_fill
-               + ns * i4                               # sorted_idx
+               + 2 * ns * i4                           # sorted_idx, slot_of
+               + 4 * f8                                # skin_ctl (adaptive skin)
                + 2 * ns * 3 * f8                       # sorted_x, sorted_v
                + ns * i8 + ns * i4                     # sorted_key, sorted_body
                + ns * 3 * f8                           # built_x (neighbour lists)

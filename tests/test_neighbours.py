@@ -10,7 +10,7 @@ import numpy as np
 
 from bodies import ball_set
 from dempipe.kernels import cpu
-from dempipe.kernels.neighbours import SKIN, cell_size
+from dempipe.kernels.neighbours import SKIN, SKIN_MAX, adapt_skin, cell_size
 from dempipe.materials import Material
 from dempipe.model import ModelBuilder
 from dempipe.simulator import Simulator
@@ -99,6 +99,43 @@ def test_frames_do_not_depend_on_when_lists_are_rebuilt():
         for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner",
                      "contact_spring"):
             assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
+def test_the_skin_grows_while_bodies_fly_and_the_frames_do_not_change():
+    # Balls thrown about force a rebuild every few steps at the smallest skin: the CPU
+    # widens the lists' reach (neighbours.adapt_skin) and rebuilds less often. A list
+    # still holds every pair that can touch before the next rebuild, so the State is
+    # the same bit for bit as with the skin held at SKIN (skin_ctl[2]).
+    model = loose_balls()
+    runs = []
+    for skin_max in (SKIN_MAX, SKIN):
+        st = model.initial_state()
+        be = Simulator(model).backend
+        be.skin_ctl[2] = skin_max
+        skins = []
+        for _ in range(3):
+            be.step(st, model.steps_per_frame)
+            skins.append(be.skin_ctl[0])
+        runs.append((st, be.skin_ctl[3], max(skins)))
+    (adaptive, rebuilds, widest), (fixed, rebuilds_fixed, widest_fixed) = runs
+    assert widest_fixed == SKIN and SKIN < widest <= SKIN_MAX
+    assert rebuilds < 0.6 * rebuilds_fixed
+    for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner", "contact_spring"):
+        assert np.array_equal(getattr(adaptive, name), getattr(fixed, name)), name
+
+
+def test_the_skin_shrinks_back_when_rebuilds_are_rare():
+    # the rule itself: grow by a step when rebuilds come fast, shrink back when slow
+    from dempipe.kernels.neighbours import SKIN_GROW_BELOW, SKIN_SHRINK_ABOVE, SKIN_STEP
+    assert adapt_skin(SKIN, SKIN_GROW_BELOW - 1, SKIN_MAX, True) == SKIN + SKIN_STEP
+    assert adapt_skin(SKIN, SKIN_GROW_BELOW - 1, SKIN_MAX, False) == SKIN  # a call's start
+    assert adapt_skin(SKIN_MAX, 1, SKIN_MAX, True) == SKIN_MAX
+    for moved in (True, False):
+        assert adapt_skin(SKIN_MAX, SKIN_SHRINK_ABOVE + 1, SKIN_MAX, moved) == \
+            SKIN_MAX - SKIN_STEP
+        assert adapt_skin(SKIN, SKIN_SHRINK_ABOVE + 1, SKIN_MAX, moved) == SKIN
+    assert adapt_skin(0.4, (SKIN_GROW_BELOW + SKIN_SHRINK_ABOVE) // 2, SKIN_MAX, True) == 0.4
+    assert adapt_skin(SKIN, 1, SKIN, True) == SKIN                  # held: a fixed skin
 
 
 def test_rebuilds_happen_mid_call_and_lists_grow_without_losing_contacts():

@@ -69,9 +69,9 @@ def compile_slot_store(jit):
 
 def compile_pairing(jit, formulas) -> types.SimpleNamespace:
     """contacts.py's rebuild bookkeeping (wall_reach, owns, pair_count, pair_slots,
-    pair_mirror, walls_to_front, wall_column, rows_to_pairs, pairs_to_rows), each compiled with ``jit``,
-    calling ``formulas`` (the target's compile_formulas); they read no flags,
-    so they need no variants."""
+    pair_mirror, walls_to_front, wall_column, rows_to_pairs, pairs_to_rows), each
+    compiled with ``jit``, calling ``formulas`` (the target's compile_formulas);
+    they read no flags, so they need no variants."""
     from . import contacts
 
     return compile_chain(contacts, ("wall_reach", "owns", "pair_count", "pair_slots",

@@ -17,14 +17,13 @@ import numba
 import numpy as np
 from numba import prange
 
-from . import contacts
-from .compile import (compile_formulas, compile_pairing, compile_slot_store, compile_walk,
-                      invalidate_stale_cache,
-                      specialize)
+from . import contacts, neighbours
+from .compile import (compile_chain, compile_formulas, compile_pairing, compile_slot_store,
+                      compile_walk, invalidate_stale_cache, specialize)
 from ..state import CONTACT_SLOTS
 # UNPAIRED: read by contacts.sphere_forces, which is compiled with this module's globals
 from .contacts import PAIR_COLS, PAIRS_PER_SPHERE, UNPAIRED, WALL_SLACK  # noqa: F401
-from .neighbours import NEIGHBOURS, SKIN, cell_size
+from .neighbours import NEIGHBOURS, SKIN, SKIN_MAX, SKIN_SHRINK_ABOVE, cell_size
 
 invalidate_stale_cache(__file__)
 invalidate_stale_cache(contacts.__file__)   # pair_forces, sphere_forces: cached under its name
@@ -99,6 +98,8 @@ def cell_hash(cx, cy, cz, grid):
 
 
 slot_store = compile_slot_store(numba.njit(inline="always", cache=False))
+adapt_skin = compile_chain(neighbours, ("adapt_skin",), numba.njit(inline="always", cache=False),
+                           {}).adapt_skin
 neighbour_list = compile_walk(numba.njit(inline="always", cache=False), cell_coord, cell_key,
                               cell_hash)
 
@@ -308,13 +309,14 @@ def sphere_neighbours(s0, s1, cutoff2, inv_cell, grid, bucket_start, sorted_idx,
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_neighbours(diameter, grid, bucket_start, sorted_idx, sorted_x, sorted_key,
+def stage_neighbours(diameter, skin, grid, bucket_start, sorted_idx, sorted_x, sorted_key,
                      sorted_body, body_inv_mass, built_x, nbr, nbr_n):
-    """Stages 2-3 at a rebuild: every sorted slot's neighbour list (sphere_neighbours),
-    from the grid just sorted. Returns how many lists overflowed (0: all fit)."""
+    """Stages 2-3 at a rebuild: every sorted slot's neighbour list (sphere_neighbours)
+    of reach (1 + skin) d, from the grid just sorted (cells of that edge). Returns how
+    many lists overflowed (0: all fit)."""
     n = sorted_idx.shape[0]
     n_chunks = (n + CONTACT_CHUNK - 1) // CONTACT_CHUNK
-    cutoff = (1.0 + SKIN) * diameter
+    cutoff = (1.0 + skin) * diameter
     over = 0
     for c in prange(n_chunks):
         over += sphere_neighbours(c * CONTACT_CHUNK, min(n, (c + 1) * CONTACT_CHUNK),
@@ -347,10 +349,11 @@ def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, 
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_wall_reach(diameter, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi, wall_depth,
-                     wall_mask):
-    """At a rebuild: each slot's walls within reach until the next (contacts.wall_reach)."""
-    margin = WALL_SLACK * 0.5 * SKIN * diameter
+def stage_wall_reach(diameter, skin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
+                     wall_depth, wall_mask):
+    """At a rebuild: each slot's walls within reach until the next (contacts.wall_reach),
+    for lists of reach (1 + skin) d."""
+    margin = WALL_SLACK * 0.5 * skin * diameter
     for s in prange(sorted_x.shape[0]):
         wall_reach(s, 0.5 * diameter, margin, sorted_x, wall_normal, wall_offset, wall_lo,
                    wall_hi, wall_depth, wall_mask)
@@ -578,7 +581,7 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
               body_v, body_w, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash,
               bucket_start, bucket_fill, sorted_idx, slot_of, sorted_x, sorted_v, sorted_key,
               sorted_body, built_x, nbr, nbr_n, pidx, pair_start, pair_f, wall_mask,
-              wall_f, sphere_f, sphere_t, sphere_overlap):
+              wall_f, sphere_f, sphere_t, sphere_overlap, skin_ctl):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
     compiled code. Returns (steps done, steps computed). Done is fewer than
     n_steps only when a rebuild found a neighbour list longer than nbr holds
@@ -587,7 +590,12 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     begun. Computed is fewer than done when every body fell asleep.
 
     Stages 2-3 (grid, sort, 27-cell search) run only to rebuild the neighbour
-    lists: at the first step, and when a sphere has moved SKIN/2 d since.
+    lists: at the first step, and when a sphere has moved skin/2 d since. The
+    skin (skin_ctl[0], [d]) adapts at each rebuild a move forced to how many
+    steps came since the last (neighbours.adapt_skin, up to skin_ctl[2]); it
+    changes which pairs are listed, never a force (the frames do not depend on
+    it). skin_ctl[1] carries the steps since the last rebuild from call to call,
+    skin_ctl[3] counts the rebuilds.
 
     With sleeping, once every body is asleep the remaining steps are skipped:
     a step then changes nothing (a sleeping body moves only when a moving one
@@ -596,12 +604,15 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     """
     if n_steps <= 0:
         return 0, 0  # nothing sorted yet: the unsort below would scramble the State's rows
-    inv_cell = 1.0 / ((1.0 + SKIN) * diameter)     # neighbours.cell_size
+    skin = skin_ctl[0]
+    since = skin_ctl[1]
+    inv_cell = 1.0 / ((1.0 + skin) * diameter)     # neighbours.cell_size
     gx = gravity[0]
     gy = gravity[1]
     gz = gravity[2]
-    half_skin = 0.5 * SKIN * diameter
+    half_skin = 0.5 * skin * diameter
     rebuild = True
+    moved = False
     computed = 0
     for step in range(first_step, first_step + n_steps):
         computed += 1
@@ -612,7 +623,16 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                                            body_q, body_v, body_w, body_still, built_x,
                                            half_skin * half_skin, sorted_x, sorted_v,
                                            sphere_r) > 0
+            moved = rebuild
+            if not rebuild and skin > SKIN and since > SKIN_SHRINK_ABOVE:
+                rebuild = True                  # at rest with a wide skin: shrink it
         if rebuild:
+            skin = adapt_skin(skin, since, skin_ctl[2], moved)    # the reach for this build
+            inv_cell = 1.0 / ((1.0 + skin) * diameter)
+            half_skin = 0.5 * skin * diameter
+            since = 0.0
+            moved = False
+            skin_ctl[3] += 1.0
             if FRICTION and friction and step > first_step:   # histories back to sphere order
                 stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
                                     pair_f)
@@ -626,15 +646,15 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
             if FRICTION and friction:
                 stage_history_to_slots(sorted_idx, contact_partner, contact_spring,
                                        hist_partner, hist_spring)
-            if stage_neighbours(diameter, grid, bucket_start, sorted_idx, sorted_x,
+            if stage_neighbours(diameter, skin, grid, bucket_start, sorted_idx, sorted_x,
                                 sorted_key, sorted_body, body_inv_mass, built_x,
                                 nbr, nbr_n) > 0 or \
                     stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
                                 pair_start, pidx, pair_f.shape[0]) > 0:
                 return step - first_step, step - first_step   # the histories are current
             if WALLS:
-                stage_wall_reach(diameter, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
-                                 wall_depth, wall_mask)
+                stage_wall_reach(diameter, skin, sorted_x, wall_normal, wall_offset, wall_lo,
+                                 wall_hi, wall_depth, wall_mask)
             if FRICTION and friction:
                 stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
                                     wall_mask, hist_partner, hist_spring, pair_f)
@@ -652,8 +672,11 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                              sphere_r, body_mass, body_inv_mass, body_inv_inertia, body_x,
                              body_q, body_P, body_L, sleep_steps, v_sleep, w_sleep, body_rest,
                              body_wake, body_still)
+        since += 1.0
         if SLEEPING and sleep_steps > 0 and awake == 0:
             break                               # all asleep: nothing changes any more
+    skin_ctl[0] = skin
+    skin_ctl[1] = since
     stage_unsort(sorted_idx, sorted_x, sphere_x)
     if FRICTION and friction:
         stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f)
@@ -754,6 +777,9 @@ class CpuBackend:
         self.bucket_fill = np.zeros(table, dtype=np.int64)
         self.sorted_idx = np.zeros(ns, dtype=np.int32)
         self.slot_of = np.zeros(ns, dtype=np.int32)
+        # the lists' skin [d] (neighbours.adapt_skin), steps since the last rebuild, the
+        # largest skin allowed (SKIN: a fixed skin), rebuilds so far
+        self.skin_ctl = np.array([SKIN, 0.0, SKIN_MAX, 0.0])
         self.sorted_x = np.zeros((ns, 3))
         self.sorted_v = np.zeros((ns, 3))
         self.sorted_key = np.zeros(ns, dtype=np.int64)
@@ -832,7 +858,7 @@ class CpuBackend:
                 self.bucket_fill, self.sorted_idx, self.slot_of, self.sorted_x, self.sorted_v,
                 self.sorted_key, self.sorted_body, self.built_x, self.nbr, self.nbr_n,
                 self._pidx(), self.pair_start, self.pair_f, self.wall_mask,
-                self.wall_f, self.sphere_f, self.sphere_t, self.sphere_overlap)
+                self.wall_f, self.sphere_f, self.sphere_t, self.sphere_overlap, self.skin_ctl)
             state.step += int(done)
             state.time = state.step * m.dt
             left -= int(done)
@@ -892,14 +918,14 @@ class CpuBackend:
         stage_grid_gather(self.sorted_idx, self.sphere_x, self.sphere_v, self.sphere_key,
                           m.sphere_body, self.sorted_x, self.sorted_v, self.sorted_key,
                           self.sorted_body, self.slot_of)
-        while (stage_neighbours(m.diameter, self.grid, self.bucket_start, self.sorted_idx,
+        while (stage_neighbours(m.diameter, SKIN, self.grid, self.bucket_start, self.sorted_idx,
                                 self.sorted_x, self.sorted_key, self.sorted_body,
                                 m.body_inv_mass, self.built_x, self.nbr, self.nbr_n) > 0
                or stage_pairs(self.nbr, self.nbr_n, self.sorted_idx, self.sorted_body,
                               m.body_inv_mass, self.pair_start, self._pidx(),
                               self.pair_f.shape[0]) > 0):
             self.grow_neighbours()
-        stage_wall_reach(m.diameter, self.sorted_x, m.wall_normal, m.wall_offset, m.wall_lo,
+        stage_wall_reach(m.diameter, SKIN, self.sorted_x, m.wall_normal, m.wall_offset, m.wall_lo,
                          m.wall_hi, m.wall_depth, self.wall_mask)
         self.sphere_overlap[:] = 0.0
         partner, spring = self.contacts(state)

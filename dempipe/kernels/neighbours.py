@@ -2,19 +2,20 @@
 
 The paper builds the grid and searches the 27 neighbour cells at every step. Both
 targets instead keep, for each sphere, the list of spheres of other bodies closer
-than (1 + SKIN) d when the list was built, and walk only that list at each step.
+than (1 + skin) d when the list was built, and walk only that list at each step.
 The lists are rebuilt (grid, counting sort, 27-cell search) at the first step of
-each ``step`` call and whenever some sphere has moved SKIN/2 d or more since the
+each ``step`` call and whenever some sphere has moved skin/2 d or more since the
 last build. Between rebuilds no pair outside the lists can touch: each of its two
-spheres has moved less than SKIN/2 d, so their distance is still above d.
+spheres has moved less than skin/2 d, so their distance is still above d. The skin
+is SKIN on CUDA; the CPU adapts it at each rebuild (``adapt_skin``).
 
-The grid of the rebuild has cells of edge (1 + SKIN) d (``cell_size``), not d: its 27
-cells must hold every sphere within the list's reach, (1 + SKIN) d.
+The grid of the rebuild has cells of edge (1 + skin) d (``cell_size``), not d: its 27
+cells must hold every sphere within the list's reach, (1 + skin) d.
 
 A list is kept in its partners' sphere-index order. The force on a sphere is the
 sum over the list of the partners that touch it (a listed pair farther apart than d
 adds nothing), in that order, then the walls: so the forces, and the frames, do not
-depend on SKIN, on when the lists were rebuilt, on the grid's layout or on how the
+depend on the skin, on when the lists were rebuilt, on the grid's layout or on how the
 steps were split into calls. CPU and CUDA sum in the same order.
 
 This module holds what both targets share: the constants, the list build of one
@@ -24,8 +25,22 @@ store of one slot between rebuilds (``slot_store``); it imports no numba.
 
 #: Verlet skin [diameters]: a list holds the partners within (1 + SKIN) d; rebuilt
 #: when a sphere has moved SKIN/2 d. Larger: longer lists walked every step, fewer
-#: rebuilds. Measured: docs/performance.md, "Throughput".
+#: rebuilds. Measured: docs/performance.md, "Throughput". The CPU adapts its skin
+#: between SKIN and SKIN_MAX to how often the lists are rebuilt (adapt_skin); CUDA
+#: keeps SKIN.
 SKIN = 0.2
+
+#: The CPU's skin grows by SKIN_STEP [diameters] at a rebuild that a sphere's move
+#: forced fewer than SKIN_GROW_BELOW steps after the last one (bodies flying and
+#: landing: the rebuilds cost more than walking longer lists), up to SKIN_MAX; and
+#: shrinks by SKIN_STEP, down to SKIN, at any rebuild more than SKIN_SHRINK_ABOVE
+#: steps after the last (a pile coming to rest: walking the lists is the cost; a
+#: wide skin that no move forces a rebuild of is rebuilt then, to shrink). Measured on
+#: the quickstart, the dense pile and the chess scene: docs/performance.md.
+SKIN_MAX = 0.6
+SKIN_STEP = 0.1
+SKIN_GROW_BELOW = 20
+SKIN_SHRINK_ABOVE = 100
 
 #: Entries per sphere a backend allocates to start with. A rebuild that finds a
 #: longer list (a sphere deep in others, a dense pile of small bodies) makes the
@@ -35,10 +50,22 @@ SKIN = 0.2
 NEIGHBOURS = 16
 
 
-def cell_size(diameter: float) -> float:
-    """Edge of the rebuild grid's cells [m]: the lists' reach, (1 + SKIN) d, so the 27
+def cell_size(diameter: float, skin: float = SKIN) -> float:
+    """Edge of the rebuild grid's cells [m]: the lists' reach, (1 + skin) d, so the 27
     cells round a sphere hold every partner a list may need."""
-    return (1.0 + SKIN) * diameter
+    return (1.0 + skin) * diameter
+
+
+def adapt_skin(skin, since, skin_max, moved):
+    """The skin [diameters] for a rebuild ``since`` steps after the last one, forced
+    by a sphere's move (``moved``) or not (a call's first step, or to shrink; see
+    SKIN_MAX). The frames do not depend on it: a list holds every pair that can
+    touch before the next rebuild, whatever its reach."""
+    if since > SKIN_SHRINK_ABOVE:
+        return max(SKIN, skin - SKIN_STEP)
+    if moved and since < SKIN_GROW_BELOW:
+        return min(skin_max, skin + SKIN_STEP)
+    return skin
 
 
 def slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r, built_x,
