@@ -136,6 +136,8 @@ def test_the_skin_shrinks_back_when_rebuilds_are_rare():
         assert adapt_skin(SKIN, SKIN_SHRINK_ABOVE + 1, SKIN_MAX, moved) == SKIN
     assert adapt_skin(0.4, (SKIN_GROW_BELOW + SKIN_SHRINK_ABOVE) // 2, SKIN_MAX, True) == 0.4
     assert adapt_skin(SKIN, 1, SKIN, True) == SKIN                  # held: a fixed skin
+    up = adapt_skin(SKIN, 1, SKIN_MAX, True)                        # 0.30000000000000004
+    assert adapt_skin(up, SKIN_SHRINK_ABOVE + 1, SKIN_MAX, False) == SKIN   # exactly
 
 
 def test_rebuilds_happen_mid_call_and_lists_grow_without_losing_contacts():

@@ -632,7 +632,6 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
             half_skin = 0.5 * skin * diameter
             since = 0.0
             moved = False
-            skin_ctl[3] += 1.0
             if FRICTION and friction and step > first_step:   # histories back to sphere order
                 stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
                                     pair_f)
@@ -651,7 +650,10 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                                 nbr, nbr_n) > 0 or \
                     stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
                                 pair_start, pidx, pair_f.shape[0]) > 0:
+                skin_ctl[0] = skin              # the redo keeps this build's skin
+                skin_ctl[1] = since
                 return step - first_step, step - first_step   # the histories are current
+            skin_ctl[3] += 1.0
             if WALLS:
                 stage_wall_reach(diameter, skin, sorted_x, wall_normal, wall_offset, wall_lo,
                                  wall_hi, wall_depth, wall_mask)

@@ -62,7 +62,9 @@ def adapt_skin(skin, since, skin_max, moved):
     SKIN_MAX). The frames do not depend on it: a list holds every pair that can
     touch before the next rebuild, whatever its reach."""
     if since > SKIN_SHRINK_ABOVE:
-        return max(SKIN, skin - SKIN_STEP)
+        # exactly SKIN at the bottom (0.2 + 0.1 - 0.1 is 0.20000000000000004 in
+        # floating point, which would keep asking run_steps for a rebuild to shrink)
+        return SKIN if skin - SKIN_STEP < SKIN + 0.5 * SKIN_STEP else skin - SKIN_STEP
     if moved and since < SKIN_GROW_BELOW:
         return min(skin_max, skin + SKIN_STEP)
     return skin
