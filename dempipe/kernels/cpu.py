@@ -590,11 +590,11 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     begun. Computed is fewer than done when every body fell asleep.
 
     Stages 2-3 (grid, sort, 27-cell search) run only to rebuild the neighbour
-    lists: at the first step, and when a sphere has moved skin/2 d since. The
-    skin (skin_ctl[0], [d]) adapts at each rebuild a move forced to how many
-    steps came since the last (neighbours.adapt_skin, up to skin_ctl[2]); it
-    changes which pairs are listed, never a force (the frames do not depend on
-    it). skin_ctl[1] carries the steps since the last rebuild from call to call,
+    lists: at the first step, when a sphere has moved skin/2 d since, and when a
+    wide skin has gone SKIN_SHRINK_ABOVE steps without one (to shrink it). The
+    skin (skin_ctl[0], [d]) adapts at each rebuild to how many steps came since
+    the last (neighbours.adapt_skin, up to skin_ctl[2]); it changes which pairs
+    are listed, never a force (the frames do not depend on it). skin_ctl[1] carries the steps since the last rebuild from call to call,
     skin_ctl[3] counts the rebuilds.
 
     With sleeping, once every body is asleep the remaining steps are skipped:
@@ -606,7 +606,7 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
         return 0, 0  # nothing sorted yet: the unsort below would scramble the State's rows
     skin = skin_ctl[0]
     since = skin_ctl[1]
-    inv_cell = 1.0 / ((1.0 + skin) * diameter)     # neighbours.cell_size
+    inv_cell = 1.0 / ((1.0 + skin) * diameter)     # neighbours.cell_size, at this skin
     gx = gravity[0]
     gy = gravity[1]
     gz = gravity[2]

@@ -50,10 +50,12 @@ SKIN_SHRINK_ABOVE = 100
 NEIGHBOURS = 16
 
 
-def cell_size(diameter: float, skin: float = SKIN) -> float:
-    """Edge of the rebuild grid's cells [m]: the lists' reach, (1 + skin) d, so the 27
-    cells round a sphere hold every partner a list may need."""
-    return (1.0 + skin) * diameter
+def cell_size(diameter: float) -> float:
+    """Edge of the rebuild grid's cells [m] at the smallest skin: the lists' reach,
+    (1 + SKIN) d, so the 27 cells round a sphere hold every partner a list may need.
+    CUDA's cells always; the CPU's grid table is sized for them, and its wider skins
+    (adapt_skin) only make the cells larger (run_steps)."""
+    return (1.0 + SKIN) * diameter
 
 
 def adapt_skin(skin, since, skin_max, moved):
