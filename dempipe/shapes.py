@@ -32,7 +32,7 @@ import manifold3d
 import numpy as np
 import trimesh
 
-from dempipe.errors import MeshError, ShapeError
+from .errors import MeshError, ShapeError
 
 __all__ = [
     "Param",
