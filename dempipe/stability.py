@@ -290,10 +290,12 @@ def memory_estimate(model: Model) -> dict:
                + 3 * ns * 3 * f8                       # sphere_x, sphere_v, sphere_r
                + 2 * ns * i8                           # sphere_key, sphere_hash
                + (table + 1) * i8 + table * i8         # bucket_start, bucket_fill
-               + 2 * ns * i4                           # sorted_idx, slot_of
+               + 2 * ns * i4 + nb * i8                 # sorted_idx, slot_of, body_key
                + 4 * f8                                # skin_ctl (adaptive skin)
                + 2 * ns * 3 * f8                       # sorted_x, sorted_v
-               + ns * i8 + ns * i4                     # sorted_key, sorted_body
+               + ns * i4                               # sorted_body
+               + ns * 3 * f8 + ns * i8 + 3 * ns * i4   # grid_x, grid_key, grid_idx, grid_slot,
+                                                       # grid_body (the CPU's grid)
                + ns * 3 * f8                           # built_x (neighbour lists)
                + ns * NEIGHBOURS * i4 + ns * i4        # nbr, nbr_n (to start with)
                + ns * NEIGHBOURS * i4 + (ns + 1) * i8  # pidx, pair_start (contacts.py)

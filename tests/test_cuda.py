@@ -227,7 +227,8 @@ def _sim_main() -> dict:
         "grid_equal": bool(np.array_equal(cpu.grid, be.grid)),
         "bucket_start_equal": bool(np.array_equal(cpu.bucket_start[:nb5 + 1],
                                                   be.bucket_start[:nb5 + 1])),
-        "sorted_idx_equal": bool(np.array_equal(cpu.sorted_idx, be.sorted_idx)),
+        # CUDA's slots are the grid; the CPU's are in body order, its grid through grid_slot
+        "sorted_idx_equal": bool(np.array_equal(cpu.grid_idx, be.sorted_idx)),
         "max_force": float(np.abs(cpu.sphere_f).max()),
         "max_overlap": float(cpu.sphere_overlap.max() / D),
         "rel": {n: _rel(getattr(be, n), getattr(cpu, n))

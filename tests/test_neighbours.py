@@ -84,6 +84,55 @@ def test_lists_hold_every_partner_within_reach_in_index_order():
                 assert np.all(np.diff(idx) > 0), s       # partners' index order
 
 
+def z_order(c):
+    """Place on the Z-order curve of integer cell coordinates (x, y, z): bit k of
+    x, y, z to bits 3k, 3k+1, 3k+2 (the reference for kernels.cpu.morton_key)."""
+    key = 0
+    for bit in range(21):
+        for axis in range(3):
+            key |= ((int(c[axis]) >> bit) & 1) << (3 * bit + axis)
+    return key
+
+
+def test_slots_follow_the_bodies_and_the_grid_holds_every_sphere_once():
+    # The CPU's slots (stage_grid_sort): bodies in Z-order of the cell their centre is
+    # in (ties in body order), each body's spheres in consecutive slots in their own
+    # order; the grid beside them holds every sphere once, by bucket, in index order
+    # within a bucket, with its slot, position, cell key and body.
+    from test_contacts import boxes_on_static_slab      # (test_contacts imports this module)
+
+    for model in (cluster_model(n=20), loose_balls(), boxes_on_static_slab()):
+        be = cpu.CpuBackend(model)
+        st = model.initial_state()
+        be.step(st, model.steps_per_frame)
+        be.probe(st)
+        ns = model.n_spheres
+        idx, slot = be.sorted_idx, be.slot_of
+        assert np.array_equal(np.sort(idx), np.arange(ns))
+        assert np.array_equal(slot[idx], np.arange(ns))
+        start = model.body_sphere_start
+        nb = len(start) - 1
+        first = np.array([slot[start[b]] for b in range(nb)])
+        for b in range(nb):
+            assert np.array_equal(slot[start[b]:start[b + 1]],
+                                  first[b] + np.arange(start[b + 1] - start[b])), b
+        cells = np.floor(st.body_x * (1.0 / cell_size(model.diameter))).astype(np.int64)
+        keys = [z_order(c + (1 << 20)) for c in cells]          # cpu._CELL_OFF
+        order = sorted(range(nb), key=lambda b: (keys[b], b))
+        assert np.array_equal(np.argsort(first), order)
+        g = be.grid
+        assert np.array_equal(np.sort(be.grid_idx), np.arange(ns))
+        assert np.array_equal(be.grid_slot, slot[be.grid_idx])
+        assert np.array_equal(be.grid_x, be.sphere_x[be.grid_idx])
+        assert np.array_equal(be.grid_key, be.sphere_key[be.grid_idx])
+        assert np.array_equal(be.grid_body, model.sphere_body[be.grid_idx])
+        bucket = be.sphere_hash[be.grid_idx]
+        assert np.all((np.diff(bucket) > 0) | ((np.diff(bucket) == 0)
+                                               & (np.diff(be.grid_idx) > 0)))
+        counts = np.bincount(bucket, minlength=int(g[5]))
+        assert np.array_equal(np.diff(be.bucket_start[: g[5] + 1]), counts)
+
+
 def test_frames_do_not_depend_on_when_lists_are_rebuilt():
     # one call of many steps (rebuilds only when a sphere moved SKIN/2 d) against one
     # step per call (a rebuild at every step, as the paper's loop): bit for bit

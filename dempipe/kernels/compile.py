@@ -50,14 +50,15 @@ def compile_chain(module, names, jit, given: dict) -> types.SimpleNamespace:
     return types.SimpleNamespace(**compiled)
 
 
-def compile_walk(jit, cell_coord, cell_key, cell_hash):
+def compile_walk(jit, cell_coord, cell_key, cell_hash, grid_slots: bool):
     """neighbours.neighbour_list compiled with ``jit``, calling the target's own
-    (already compiled) grid cell functions."""
+    (already compiled) grid cell functions; ``grid_slots``: the grid holds slots
+    through grid_slot (the CPU's body-ordered slots) rather than being the slots."""
     from . import neighbours
 
     return compile_chain(neighbours, ("neighbour_list",), jit,
                          dict(cell_coord=cell_coord, cell_key=cell_key,
-                              cell_hash=cell_hash)).neighbour_list
+                              cell_hash=cell_hash, GRID_SLOTS=grid_slots)).neighbour_list
 
 
 def compile_slot_store(jit):

@@ -5,7 +5,7 @@ with ``numba.njit(inline="always")``. ``run_steps`` loops over steps inside
 compiled code, so a frame of hundreds of steps costs one Python call.
 
 Determinism: every parallel loop writes only its own index (gather, no
-scatter, no atomics); the counting sort is serial and stable; each body sums
+scatter, no atomics); the sorts of a rebuild are serial and stable; each body sums
 its spheres in index order. The output is bit-identical for any thread count.
 """
 
@@ -90,18 +90,36 @@ def cell_hash(cx, cy, cz, grid):
 
     A wrapped grid, not a scrambling hash: cells next to each other in x land in
     consecutive buckets, so a row of three neighbour cells is one contiguous run
-    of sorted slots and the spheres' sorted order is spatially coherent (cache
-    friendly). Far-apart cells that wrap onto the same bucket are told apart by
+    of grid positions (cache friendly). Far-apart cells that wrap onto the same bucket are told apart by
     their keys. grid = (bx, by, mask_x, mask_y, mask_z).
     """
     return ((cz & grid[4]) << (grid[0] + grid[1])) | ((cy & grid[3]) << grid[0]) | (cx & grid[2])
+
+
+@numba.njit(inline="always", cache=True)
+def spread_bits(v):
+    """The 21 low bits of v spread to every third bit (bit k to bit 3k)."""
+    v &= 0x1FFFFF
+    v = (v | (v << 32)) & 0x1F00000000FFFF
+    v = (v | (v << 16)) & 0x1F0000FF0000FF
+    v = (v | (v << 8)) & 0x100F00F00F00F00F
+    v = (v | (v << 4)) & 0x10C30C30C30C30C3
+    v = (v | (v << 2)) & 0x1249249249249249
+    return v
+
+
+@numba.njit(inline="always", cache=True)
+def morton_key(cx, cy, cz):
+    """A cell's place on the Z-order curve (21 bits per axis interleaved): cells
+    near each other in all three axes get keys near each other."""
+    return (spread_bits(cz) << 2) | (spread_bits(cy) << 1) | spread_bits(cx)
 
 
 slot_store = compile_slot_store(numba.njit(inline="always", cache=False))
 adapt_skin = compile_chain(neighbours, ("adapt_skin",), numba.njit(inline="always", cache=False),
                            {}).adapt_skin
 neighbour_list = compile_walk(numba.njit(inline="always", cache=False), cell_coord, cell_key,
-                              cell_hash)
+                              cell_hash, True)
 
 
 # ---------------------------------------------------------------------------
@@ -238,8 +256,10 @@ def stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x, body_q, bo
 
     In sphere order, not slot order: a body's spheres are contiguous, so their
     offsets are read and sphere_r written in order and the body's state is read
-    once per run of its spheres; only the slots' stores scatter (1.04-1.06x on
-    the 25 k dense pile than the other way round, the same at 275 k).
+    once per run of its spheres (1.04-1.06x on the 25 k dense pile than the
+    other way round, the same at 275 k, when the slots were sorted by cell); and
+    a body's slots are consecutive too (stage_grid_sort), so the stores run in
+    order as well.
     CUDA (k_spheres_sorted) runs a thread per slot."""
     moved = 0
     for i in prange(slot_of.shape[0]):
@@ -254,33 +274,59 @@ def stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x, body_q, bo
 
 
 @numba.njit(cache=True)
-def stage_grid_sort(sphere_hash, grid, bucket_start, bucket_fill, sorted_idx):
-    """Stage 2: counting sort of the spheres by hash bucket (serial, stable).
+def stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start, bucket_start,
+                    bucket_fill, body_key, sorted_idx, slot_of, grid_idx, grid_slot):
+    """Stage 2 at a rebuild: the slots, and the grid (serial, stable).
 
-    bucket_start[h]:bucket_start[h+1] are the slots of bucket h; within a bucket
+    Slots in body order: the bodies sorted by the bucket of the cell their
+    centre is in (stable: ties in body order), each body's spheres in
+    consecutive slots in their own order; sorted_idx[s] is the sphere at slot s,
+    slot_of[i] the slot of sphere i. Bodies near each other in space get slots
+    near each other, and a body's spheres are one run of slots, so stage 1
+    stores, the second contact pass writes and the body stage reads each body's
+    spheres in order (docs/performance.md: "Bodies in slot order").
+
+    The grid: a counting sort of the spheres by bucket, as CUDA's (k_scatter,
+    k_bucket_sort). bucket_start[h]:bucket_start[h+1] are the grid positions of
+    bucket h, grid_idx[g] the sphere at position g and grid_slot[g] its slot; within a bucket
     the spheres stay in index order, which keeps everything downstream
     independent of the thread count. Only the first grid[5] buckets are in use.
     """
-    nb = grid[5]
-    for h in range(nb + 1):
+    nb = body_sphere_start.shape[0] - 1
+    for b in range(nb):
+        body_key[b] = morton_key(cell_coord(body_x[b, 0], inv_cell),
+                                 cell_coord(body_x[b, 1], inv_cell),
+                                 cell_coord(body_x[b, 2], inv_cell))
+    order = np.argsort(body_key[:nb], kind="mergesort")
+    s = 0
+    for k in range(nb):
+        b = order[k]
+        for i in range(body_sphere_start[b], body_sphere_start[b + 1]):
+            sorted_idx[s] = i
+            slot_of[i] = s
+            s += 1
+    nbk = grid[5]
+    for h in range(nbk + 1):
         bucket_start[h] = 0
     for i in range(sphere_hash.shape[0]):
         bucket_start[sphere_hash[i] + 1] += 1
-    for h in range(nb):
+    for h in range(nbk):
         bucket_start[h + 1] += bucket_start[h]
-    for h in range(nb):
+    for h in range(nbk):
         bucket_fill[h] = bucket_start[h]
     for i in range(sphere_hash.shape[0]):
         h = sphere_hash[i]
-        sorted_idx[bucket_fill[h]] = i
+        grid_idx[bucket_fill[h]] = i
+        grid_slot[bucket_fill[h]] = slot_of[i]
         bucket_fill[h] += 1
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
-                      sorted_x, sorted_v, sorted_key, sorted_body, slot_of):
-    """Copy sphere data into sorted order, so neighbours are read from contiguous
-    memory; slot_of[i] = the slot of sphere i (the inverse of sorted_idx)."""
+def stage_grid_gather(sorted_idx, grid_idx, sphere_x, sphere_v, sphere_key, sphere_body,
+                      sorted_x, sorted_v, sorted_body, grid_x, grid_key, grid_body):
+    """Copy sphere data into slot order (what each step reads: a body's spheres,
+    and bodies near each other, from contiguous memory), and what the neighbour
+    search reads into grid order (a row of three cells from contiguous memory)."""
     for s in prange(sorted_idx.shape[0]):
         i = sorted_idx[s]
         sorted_x[s, 0] = sphere_x[i, 0]
@@ -289,28 +335,36 @@ def stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
         sorted_v[s, 0] = sphere_v[i, 0]
         sorted_v[s, 1] = sphere_v[i, 1]
         sorted_v[s, 2] = sphere_v[i, 2]
-        sorted_key[s] = sphere_key[i]
         sorted_body[s] = sphere_body[i]
-        slot_of[i] = s
+    for g in prange(grid_idx.shape[0]):
+        i = grid_idx[g]
+        grid_x[g, 0] = sphere_x[i, 0]
+        grid_x[g, 1] = sphere_x[i, 1]
+        grid_x[g, 2] = sphere_x[i, 2]
+        grid_key[g] = sphere_key[i]
+        grid_body[g] = sphere_body[i]
 
 
 @numba.njit(cache=True)
-def sphere_neighbours(s0, s1, cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x,
-                      sorted_key, sorted_body, body_inv_mass, built_x, nbr, nbr_n):
+def sphere_neighbours(s0, s1, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x,
+                      grid_key, grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
+                      body_inv_mass, built_x, nbr, nbr_n):
     """Stages 2-3 for sorted slots s0 .. s1-1: each slot's neighbour list
     (neighbours.neighbour_list); returns how many lists overflowed."""
     cap = nbr.shape[1]
     over = 0
     for s in range(s0, s1):
-        if neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x,
-                          sorted_key, sorted_body, body_inv_mass, built_x, nbr, nbr_n) > cap:
+        if neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x,
+                          grid_key, grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
+                          body_inv_mass, built_x, nbr, nbr_n) > cap:
             over += 1
     return over
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_neighbours(diameter, skin, grid, bucket_start, sorted_idx, sorted_x, sorted_key,
-                     sorted_body, body_inv_mass, built_x, nbr, nbr_n):
+def stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_key, grid_body,
+                     grid_slot, sorted_idx, sorted_x, sorted_body, body_inv_mass, built_x,
+                     nbr, nbr_n):
     """Stages 2-3 at a rebuild: every sorted slot's neighbour list (sphere_neighbours)
     of reach (1 + skin) d, from the grid just sorted (cells of that edge). Returns how
     many lists overflowed (0: all fit)."""
@@ -321,7 +375,8 @@ def stage_neighbours(diameter, skin, grid, bucket_start, sorted_idx, sorted_x, s
     for c in prange(n_chunks):
         over += sphere_neighbours(c * CONTACT_CHUNK, min(n, (c + 1) * CONTACT_CHUNK),
                                   cutoff * cutoff, 1.0 / cutoff, grid, bucket_start,
-                                  sorted_idx, sorted_x, sorted_key, sorted_body,
+                                  grid_idx, grid_x, grid_key, grid_body, grid_slot,
+                                  sorted_idx, sorted_x, sorted_body,
                                   body_inv_mass, built_x, nbr, nbr_n)
     return over
 
@@ -579,9 +634,10 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
               wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
               body_x, body_q, body_P, body_L,
               body_v, body_w, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash,
-              bucket_start, bucket_fill, sorted_idx, slot_of, sorted_x, sorted_v, sorted_key,
-              sorted_body, built_x, nbr, nbr_n, pidx, pair_start, pair_f, wall_mask,
-              wall_f, sphere_f, sphere_t, sphere_overlap, skin_ctl):
+              bucket_start, bucket_fill, body_key, grid_slot, sorted_idx, slot_of, sorted_x,
+              sorted_v, sorted_body, grid_idx, grid_x, grid_key, grid_body, built_x, nbr,
+              nbr_n, pidx, pair_start, pair_f,
+              wall_mask, wall_f, sphere_f, sphere_t, sphere_overlap, skin_ctl):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
     compiled code. Returns (steps done, steps computed). Done is fewer than
     n_steps only when a rebuild found a neighbour list longer than nbr holds
@@ -639,15 +695,17 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                                          contact_partner, contact_spring)
             stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_cell,
                           grid, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash)
-            stage_grid_sort(sphere_hash, grid, bucket_start, bucket_fill, sorted_idx)
-            stage_grid_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
-                              sorted_x, sorted_v, sorted_key, sorted_body, slot_of)
+            stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start,
+                            bucket_start, bucket_fill, body_key, sorted_idx, slot_of, grid_idx,
+                            grid_slot)
+            stage_grid_gather(sorted_idx, grid_idx, sphere_x, sphere_v, sphere_key, sphere_body,
+                              sorted_x, sorted_v, sorted_body, grid_x, grid_key, grid_body)
             if FRICTION and friction:
                 stage_history_to_slots(sorted_idx, contact_partner, contact_spring,
                                        hist_partner, hist_spring)
-            if stage_neighbours(diameter, skin, grid, bucket_start, sorted_idx, sorted_x,
-                                sorted_key, sorted_body, body_inv_mass, built_x,
-                                nbr, nbr_n) > 0 or \
+            if stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_key,
+                                grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
+                                body_inv_mass, built_x, nbr, nbr_n) > 0 or \
                     stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
                                 pair_start, pidx, pair_f.shape[0]) > 0:
                 skin_ctl[0] = skin              # the redo keeps this build's skin
@@ -777,6 +835,13 @@ class CpuBackend:
         self.sphere_hash = np.zeros(ns, dtype=np.int64)
         self.bucket_start = np.zeros(table + 1, dtype=np.int64)
         self.bucket_fill = np.zeros(table, dtype=np.int64)
+        self.body_key = np.zeros(nb, dtype=np.int64)     # each body's bucket (the slots' order)
+        # the grid (stage_grid_sort): each position's sphere, slot, position, cell, body
+        self.grid_idx = np.zeros(ns, dtype=np.int32)
+        self.grid_slot = np.zeros(ns, dtype=np.int32)
+        self.grid_x = np.zeros((ns, 3))
+        self.grid_key = np.zeros(ns, dtype=np.int64)
+        self.grid_body = np.zeros(ns, dtype=np.int32)
         self.sorted_idx = np.zeros(ns, dtype=np.int32)
         self.slot_of = np.zeros(ns, dtype=np.int32)
         # the lists' skin [d] (neighbours.adapt_skin), steps since the last rebuild, the
@@ -784,7 +849,6 @@ class CpuBackend:
         self.skin_ctl = np.array([SKIN, 0.0, SKIN_MAX, 0.0])
         self.sorted_x = np.zeros((ns, 3))
         self.sorted_v = np.zeros((ns, 3))
-        self.sorted_key = np.zeros(ns, dtype=np.int64)
         self.sorted_body = np.zeros(ns, dtype=np.int32)
         self.built_x = np.zeros((ns, 3))
         self.nbr = np.zeros((ns, NEIGHBOURS), dtype=np.int32)
@@ -857,8 +921,9 @@ class CpuBackend:
                 m.wall_depth, m.wall_material, state.body_x, state.body_q, state.body_P,
                 state.body_L, self.body_v, self.body_w, self.sphere_x, self.sphere_v,
                 self.sphere_r, self.sphere_key, self.sphere_hash, self.bucket_start,
-                self.bucket_fill, self.sorted_idx, self.slot_of, self.sorted_x, self.sorted_v,
-                self.sorted_key, self.sorted_body, self.built_x, self.nbr, self.nbr_n,
+                self.bucket_fill, self.body_key, self.grid_slot, self.sorted_idx, self.slot_of,
+                self.sorted_x, self.sorted_v, self.sorted_body, self.grid_idx, self.grid_x,
+                self.grid_key, self.grid_body, self.built_x, self.nbr, self.nbr_n,
                 self._pidx(), self.pair_start, self.pair_f, self.wall_mask,
                 self.wall_f, self.sphere_f, self.sphere_t, self.sphere_overlap, self.skin_ctl)
             state.step += int(done)
@@ -915,13 +980,15 @@ class CpuBackend:
                              self.body_v, self.body_w, 1.0 / cell_size(m.diameter), self.grid,
                              self.sphere_x, self.sphere_v, self.sphere_r, self.sphere_key,
                              self.sphere_hash)
-        stage_grid_sort(self.sphere_hash, self.grid, self.bucket_start, self.bucket_fill,
-                        self.sorted_idx)
-        stage_grid_gather(self.sorted_idx, self.sphere_x, self.sphere_v, self.sphere_key,
-                          m.sphere_body, self.sorted_x, self.sorted_v, self.sorted_key,
-                          self.sorted_body, self.slot_of)
-        while (stage_neighbours(m.diameter, SKIN, self.grid, self.bucket_start, self.sorted_idx,
-                                self.sorted_x, self.sorted_key, self.sorted_body,
+        stage_grid_sort(self.sphere_hash, state.body_x, 1.0 / cell_size(m.diameter), self.grid,
+                        m.body_sphere_start, self.bucket_start, self.bucket_fill, self.body_key,
+                        self.sorted_idx, self.slot_of, self.grid_idx, self.grid_slot)
+        stage_grid_gather(self.sorted_idx, self.grid_idx, self.sphere_x, self.sphere_v,
+                          self.sphere_key, m.sphere_body, self.sorted_x, self.sorted_v,
+                          self.sorted_body, self.grid_x, self.grid_key, self.grid_body)
+        while (stage_neighbours(m.diameter, SKIN, self.grid, self.bucket_start, self.grid_idx,
+                                self.grid_x, self.grid_key, self.grid_body, self.grid_slot,
+                                self.sorted_idx, self.sorted_x, self.sorted_body,
                                 m.body_inv_mass, self.built_x, self.nbr, self.nbr_n) > 0
                or stage_pairs(self.nbr, self.nbr_n, self.sorted_idx, self.sorted_body,
                               m.body_inv_mass, self.pair_start, self._pidx(),

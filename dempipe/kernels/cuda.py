@@ -195,7 +195,7 @@ def cell_hash(cx, cy, cz, grid):
     return ((cz & grid[4]) << (grid[0] + grid[1])) | ((cy & grid[3]) << grid[0]) | (cx & grid[2])
 
 
-neighbour_list = compile_walk(_device_jit(), cell_coord, cell_key, cell_hash)
+neighbour_list = compile_walk(_device_jit(), cell_coord, cell_key, cell_hash, False)
 slot_store = compile_slot_store(_device_jit())
 P = compile_pairing(_device_jit(), F)
 wall_reach = P.wall_reach
@@ -447,8 +447,12 @@ def k_neighbours(cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x, so
     if s >= sorted_idx.shape[0] or not rebuilding(ctl):
         return
     cap = nbr.shape[1]
+    # the slots are sorted by bucket: they are the grid, and a grid position is a
+    # slot (grid_slot, the tenth argument, is not read; the CPU's slots are in
+    # body order instead)
     n = neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x,
-                       sorted_key, sorted_body, body_inv_mass, built_x, nbr, nbr_n)
+                       sorted_key, sorted_body, sorted_idx, sorted_idx, sorted_x, sorted_body,
+                       body_inv_mass, built_x, nbr, nbr_n)
     if n > cap:
         cuda.atomic.add(ctl, CTL_OVER, 1)        # integer atomics: order-independent
         cuda.atomic.max(ctl, CTL_MAXN, n)

@@ -94,8 +94,9 @@ def slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere
     return 1 if ex * ex + ey * ey + ez * ez >= rebuild_at2 else 0
 
 
-def neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x, sorted_key,
-                   sorted_body, body_inv_mass, built_x, nbr, nbr_n):
+def neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x, grid_key,
+                   grid_body, grid_slot, sorted_idx, sorted_x, sorted_body, body_inv_mass,
+                   built_x, nbr, nbr_n):
     """Stages 2-3 for sorted slot s at a rebuild: its neighbour list. Returns its
     true length (more than nbr.shape[1] when it overflowed).
 
@@ -106,7 +107,15 @@ def neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_
     feels nothing). A list that would hold more than nbr.shape[1] keeps its true
     count in nbr_n and stores what fits. Notes the slot's position at the build
     (built_x). Written once, compiled for each target (compile.compile_walk) with
-    that target's cell_coord, cell_key, cell_hash.
+    that target's cell_coord, cell_key, cell_hash and GRID_SLOTS.
+
+    The grid: bucket_start[h]:bucket_start[h+1] are the grid positions of bucket
+    h; grid_idx, grid_x, grid_key, grid_body are the sphere index, position, cell
+    key and body at each position, read in order along a row of cells. On CUDA
+    (GRID_SLOTS False) the slots are sorted by bucket: they are the grid (the
+    grid_* arrays are the sorted_* ones) and a position is a slot. On the CPU
+    the slots are in body order (kernels/cpu.py: stage_grid_sort) and
+    grid_slot[g] is the slot of the sphere at position g.
     """
     cap = nbr.shape[1]
     xi = sorted_x[s, 0]
@@ -144,24 +153,24 @@ def neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_
                     h = cell_hash(cx0 - 1 + run, cy, cz, grid)  # noqa: F821
                     t0 = bucket_start[h]
                     t1 = bucket_start[h + 1]
-                for t in range(t0, t1):
-                    kt = sorted_key[t]
+                for g in range(t0, t1):
+                    kt = grid_key[g]
                     if kt < key_lo or kt > key_hi:
                         continue        # another cell sharing the buckets
-                    if sorted_body[t] == bi:
+                    if grid_body[g] == bi:
                         continue        # spheres of one body never collide
-                    rx = sorted_x[t, 0] - xi
-                    ry = sorted_x[t, 1] - yi
-                    rz = sorted_x[t, 2] - zi
+                    rx = grid_x[g, 0] - xi
+                    ry = grid_x[g, 1] - yi
+                    rz = grid_x[g, 2] - zi
                     if rx * rx + ry * ry + rz * rz >= cutoff2:
                         continue
                     if n < cap:         # insert in sphere-index order
-                        it = sorted_idx[t]
+                        it = grid_idx[g]
                         p = n
                         while p > 0 and sorted_idx[nbr[s, p - 1]] > it:
                             nbr[s, p] = nbr[s, p - 1]
                             p -= 1
-                        nbr[s, p] = t
+                        nbr[s, p] = grid_slot[g] if GRID_SLOTS else g  # noqa: F821
                     n += 1
     nbr_n[s] = n
     return n
