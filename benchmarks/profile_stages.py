@@ -2,6 +2,7 @@
 
     python benchmarks/profile_stages.py                  # dense pile (~25k spheres) + quickstart
     python benchmarks/profile_stages.py --steps 50 --threads 1
+    python benchmarks/profile_stages.py --chess 4096 --at 0.6 --steps 300   # chess pile, busy phase
 
 The backend's own compiled stage functions (the ones ``run_steps`` calls in
 a loop) are called one at a time from Python on a scene, ``--steps`` times
@@ -17,7 +18,9 @@ parallel regions' start-up).
 
 Scenes: the dense pile of benchmarks/cpu_bench.py (cubes of 3×3×3 spheres packed
 face to face, friction on) and examples/quickstart.toml 0.3 s into its bake
-(pieces landing in the tray).
+(pieces landing in the tray); with ``--chess N``, instead, examples/chess.toml
+with N pieces (the scene of benchmarks/vs_bullet.py) ``--at`` seconds into its
+bake, where the upper layers are still falling onto the lower ones.
 """
 
 from __future__ import annotations
@@ -220,15 +223,30 @@ def main() -> int:
     ap.add_argument("--steps", type=int, default=100, help="timed steps per scene")
     ap.add_argument("--threads", type=int, default=None, help="numba threads (default: all)")
     ap.add_argument("--spheres", type=int, default=30_000, help="size of the dense pile")
+    ap.add_argument("--chess", type=int, default=None, metavar="N",
+                    help="profile examples/chess.toml with N pieces instead (vs_bullet's scene)")
+    ap.add_argument("--at", type=float, default=0.6, metavar="SECONDS",
+                    help="with --chess: how far into the bake to profile (default 0.6 s)")
     args = ap.parse_args()
     if args.threads:
         numba.set_num_threads(args.threads)
     print(f"# {platform.machine()}, {os.cpu_count()} cores, numba {numba.__version__}, "
           f"{numba.get_num_threads()} threads, {args.steps} steps per scene")
-    profile("dense pile (benchmarks/cpu_bench.py)", dense_pile(args.spheres), 20, args.steps)
 
     from dempipe.build import build_model
     from dempipe.scene import load_scene
+
+    if args.chess:
+        from vs_bullet import dempipe_model
+
+        from dempipe.cache import SphereCache
+
+        model = dempipe_model(args.chess, args.at + 1.0, SphereCache())
+        warm = int(round(args.at / model.dt))
+        profile(f"chess, {args.chess:,} pieces, at t = {warm * model.dt:.2f} s", model, warm,
+                args.steps)
+        return 0
+    profile("dense pile (benchmarks/cpu_bench.py)", dense_pile(args.spheres), 20, args.steps)
 
     model = build_model(load_scene(os.path.join(HERE, "..", "examples", "quickstart.toml")))
     warm = int(0.3 / model.dt)
