@@ -30,7 +30,7 @@ import numpy as np
 
 from . import materials as mat
 from .errors import StabilityError
-from .kernels.contacts import PAIR_COLS, PAIRS_PER_SPHERE
+from .kernels.contacts import CONTACT_CHUNK, PAIR_COLS, PAIRS_PER_SPHERE
 from .kernels.neighbours import NEIGHBOURS
 from .state import CONTACT_SLOTS
 from .model import Model, quat_to_matrix, rotational_mass_factor
@@ -305,7 +305,9 @@ def memory_estimate(model: Model) -> dict:
                + ns * f8                               # sphere_overlap
                + (2 * 3 * f8 if model.n_static else 0)  # static_lo, static_hi
                + i4 + 3 * f8                           # the frictionless dummy history
-               + 2 * nb * i4)                          # body_wake, body_still (sleeping)
+               + 2 * nb * i4                           # body_wake, body_still (sleeping)
+               + 2 * (-(-max(ns, 1) // CONTACT_CHUNK)) * 2 * i8 + 2 * i8)  # chunks, spans,
+                                                       # span_ctl (the contact passes' work)
     state = nb * (3 + 4 + 3 + 3) * f8 + nb * i4        # x, q, P, L; body_rest
     if model.features.friction:   # contact histories (static friction), see State
         state += ns * CONTACT_SLOTS * (i4 + 3 * f8)

@@ -69,6 +69,12 @@ PAIR_COLS = 10
 #: owns 0.9 listed pairs per sphere); grown when a rebuild finds more.
 PAIRS_PER_SPHERE = 2
 
+#: Sorted slots per call of pair_forces / sphere_forces in the CPU's parallel loops
+#: (kernels/cpu.py): small enough to balance two to a few dozen threads on piles of
+#: a few thousand spheres, large enough that a call's cost is spread over many
+#: spheres. Each sphere's result does not depend on it (gather: determinism is kept).
+CONTACT_CHUNK = 64
+
 #: Walls a slot's bit mask can name (wall_reach); with more, every slot checks every wall.
 WALL_BITS = 63
 

@@ -22,7 +22,7 @@ from .compile import (compile_chain, compile_formulas, compile_pairing, compile_
                       compile_walk, invalidate_stale_cache, specialize)
 from ..state import CONTACT_SLOTS
 # UNPAIRED: read by contacts.sphere_forces, which is compiled with this module's globals
-from .contacts import PAIR_COLS, PAIRS_PER_SPHERE, UNPAIRED, WALL_SLACK  # noqa: F401
+from .contacts import CONTACT_CHUNK, PAIR_COLS, PAIRS_PER_SPHERE, UNPAIRED, WALL_SLACK  # noqa: F401
 from .neighbours import NEIGHBOURS, SKIN, SKIN_MAX, SKIN_SHRINK_ABOVE, cell_size
 
 invalidate_stale_cache(__file__)
@@ -56,11 +56,6 @@ HIST_BY_SLOT = True
 # are exact), only slow; `dempipe check` warns (stability.py, "far-from-origin").
 _CELL_BITS = 21
 
-#: Sorted slots per call of pair_forces / sphere_forces in the contact stage's parallel loops:
-#: small enough to balance two to a few dozen threads on piles of a few thousand
-#: spheres, large enough that a call's cost is spread over many spheres. Each
-#: sphere's result does not depend on it (gather: determinism is kept).
-CONTACT_CHUNK = 64
 _CELL_OFF = 1 << (_CELL_BITS - 1)
 _CELL_MAX = (1 << _CELL_BITS) - 1
 
@@ -434,15 +429,84 @@ def stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
         pairs_to_rows(s, s, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f)
 
 
+def chunk_spans(n_slots: int) -> np.ndarray:
+    """(n_chunks, 2) int64: the first and one past the last slot of each chunk of
+    CONTACT_CHUNK sorted slots (the contact passes' work when every slot has some)."""
+    lo = np.arange(0, max(n_slots, 1), CONTACT_CHUNK, dtype=np.int64)
+    return np.stack([lo, np.minimum(lo + CONTACT_CHUNK, n_slots)], axis=1)
+
+
+#: A sleeping pile's contact passes run over only the chunks with work left in
+#: them (stage_active) once at least this share of the bodies is quiet; below it
+#: finding the chunks would cost about what it saves.
+QUIET_SHARE = 0.25
+
+
+@numba.njit(inline="always", cache=True)
+def body_quiet(b, body_inv_mass, body_rest, body_still, sleep_steps):
+    """Whether body b will do nothing in the contact passes of the next step: a
+    static collider, or a body asleep that also slept through the step just done
+    (body_still), so that its pass-1 and pass-2 results are those already stored."""
+    return body_inv_mass[b] == 0.0 or (body_rest[b] >= sleep_steps and body_still[b] != 0)
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still, sleep_steps,
+                 chunks, spans):
+    """After the body stage: spans[:n] (returned) = for each chunk of sorted slots
+    (chunks) with a slot the next step's contact passes must visit, the first and
+    one past the last such slot; the rest of the chunk's slots are left out.
+
+    A slot must be visited unless it is static or its body is quiet (body_quiet)
+    and so is the body of every partner in its list. Such a slot's visit writes
+    nothing: pass 1 at a sleeper computes only pairs with a moving partner (and
+    its walls not at all; its trim of the pairs it remembers was done when it
+    was last visited, asleep among the same sleepers), pass 2 writes the zero
+    force it wrote at its last visit. So the spans give the same State bit for
+    bit as every chunk (tests/test_sleeping.py), and a pile where most bodies
+    sleep costs what its moving part costs, not its size. Valid for the next
+    step only if it rebuilds no list and no body's quiet state changes
+    (run_steps)."""
+    n_chunks = chunks.shape[0]
+    for c in prange(n_chunks):
+        lo = -1
+        hi = -1
+        for s in range(chunks[c, 0], chunks[c, 1]):
+            bi = sorted_body[s]
+            if body_inv_mass[bi] == 0.0:
+                continue
+            visit = not body_quiet(bi, body_inv_mass, body_rest, body_still, sleep_steps)
+            e = 0
+            while not visit and e < nbr_n[s]:
+                visit = not body_quiet(sorted_body[nbr[s, e]], body_inv_mass, body_rest,
+                                       body_still, sleep_steps)
+                e += 1
+            if visit:
+                if lo < 0:
+                    lo = s
+                hi = s + 1
+        spans[c, 0] = lo
+        spans[c, 1] = hi
+    n = 0
+    for c in range(n_chunks):        # serial, in chunk order: the same spans for any threads
+        if spans[c, 0] >= 0:
+            spans[n, 0] = spans[c, 0]
+            spans[n, 1] = spans[c, 1]
+            n += 1
+    return n
+
+
 def stage_contacts(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
                    sorted_body, body_w, body_inv_mass, body_material,
                    pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
                    hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                    wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                   wall_mask, pair_f, wall_f):
+                   wall_mask, pair_f, wall_f, spans, n_spans):
     """Stages 3-4, first pass: the force of each contact, computed once, by the
     sphere that owns it (kernels/contacts.py: pair_forces), and each sphere's
-    walls, in parallel over chunks of sorted slots.
+    walls, in parallel over the spans of sorted slots spans[:n_spans] (every
+    chunk of CONTACT_CHUNK slots, or only those a sleeping pile leaves to do:
+    stage_active).
 
     With friction, each contact's tangential spring lives in its owner's history
     row (hist_partner, hist_spring: the State's contact_partner, contact_spring
@@ -452,10 +516,8 @@ def stage_contacts(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
     A sphere of a moving body (rest count 0) that touches a sleeping body flags
     it to wake (body_wake).
     """
-    n = sorted_idx.shape[0]
-    n_chunks = (n + CONTACT_CHUNK - 1) // CONTACT_CHUNK
-    for c in prange(n_chunks):
-        pair_forces(c * CONTACT_CHUNK, min(n, (c + 1) * CONTACT_CHUNK),
+    for c in prange(n_spans):
+        pair_forces(spans[c, 0], spans[c, 1],
                     diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
                     sorted_body, body_w, body_inv_mass, body_material,
                     pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
@@ -466,16 +528,14 @@ def stage_contacts(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
 
 def stage_sums(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body, body_inv_mass,
                sleep_steps, body_rest, wall_mask, pair_f, wall_f, sphere_f, sphere_t,
-               sphere_overlap):
+               sphere_overlap, spans, n_spans):
     """Stage 4, second pass (contacts.sphere_forces): each sphere gathers the
     forces on itself, in its list's order (its partners' index order), then its
     walls'; writes sphere_f, sphere_t (torque about the sphere's centre) and
     sphere_overlap (largest overlap this step, [m]). Static and sleeping spheres
-    feel no force."""
-    n = sorted_idx.shape[0]
-    n_chunks = (n + CONTACT_CHUNK - 1) // CONTACT_CHUNK
-    for c in prange(n_chunks):
-        sphere_forces(c * CONTACT_CHUNK, min(n, (c + 1) * CONTACT_CHUNK),
+    feel no force. Over spans[:n_spans], as stage_contacts."""
+    for c in prange(n_spans):
+        sphere_forces(spans[c, 0], spans[c, 1],
                       diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body,
                       body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
                       sphere_f, sphere_t, sphere_overlap)
@@ -529,17 +589,21 @@ def body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere
                 sleep_steps, v_sleep, w_sleep, body_rest, body_wake, body_still):
     """Stages 5-8 for body b (the body of stage_bodies' loop), with sleeping.
 
-    Returns 1 when the body will integrate at the next step (awake), else 0.
-    body_still[b] = 1 when the body slept through this step (did not move):
-    stage 1 may keep its spheres' positions from the last step."""
+    Returns awake + 2 flip + 4 quiet: awake (1) when the body will integrate at
+    the next step; quiet (4) when it is asleep and slept through this step
+    (stage_active's body_quiet); flip (2) when it was quiet before this step and
+    is not now, or the other way round. body_still[b] = 1 when the body slept
+    through this step (did not move): stage 1 may keep its spheres' positions
+    from the last step."""
     if SLEEPING and sleep_steps > 0 and body_rest[b] >= sleep_steps:
+        was_quiet = body_still[b] != 0
         if body_wake[b] != 0:      # touched by a moving body: integrates from next step
             body_rest[b] = 1
             body_wake[b] = 0
             body_still[b] = 0
-            return 1
+            return 1 + (2 if was_quiet else 0)
         body_still[b] = 1
-        return 0
+        return 4 + (0 if was_quiet else 2)
     m = body_mass[b]
     FX = m * gx
     FY = m * gy
@@ -614,16 +678,22 @@ def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t
 
     With sleeping (sleep_steps > 0): a body slower than (v_sleep, w_sleep) for
     sleep_steps steps in a row falls asleep (P = L = 0, no integration) until a
-    moving body touches it (body_wake, set by the contact stage). Returns the
-    bodies awake for the next step (an integer sum: the same for any thread count).
+    moving body touches it (body_wake, set by the contact stage). Returns (bodies
+    awake for the next step, bodies whose quiet state changed, bodies quiet:
+    body_update), integer sums: the same for any thread count.
     """
     awake = 0
+    flips = 0
+    quiet = 0
     for b in prange(n_bodies):
-        awake += body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t,
-                             sphere_r, body_mass, body_inv_mass, body_inv_inertia, body_x,
-                             body_q, body_P, body_L, sleep_steps, v_sleep, w_sleep, body_rest,
-                             body_wake, body_still)
-    return awake
+        r = body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t,
+                        sphere_r, body_mass, body_inv_mass, body_inv_inertia, body_x,
+                        body_q, body_P, body_L, sleep_steps, v_sleep, w_sleep, body_rest,
+                        body_wake, body_still)
+        awake += r & 1
+        flips += (r >> 1) & 1
+        quiet += r >> 2
+    return awake, flips, quiet
 
 
 def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
@@ -637,7 +707,8 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
               bucket_start, bucket_fill, body_key, grid_slot, sorted_idx, slot_of, sorted_x,
               sorted_v, sorted_body, grid_idx, grid_x, grid_key, grid_body, built_x, nbr,
               nbr_n, pidx, pair_start, pair_f,
-              wall_mask, wall_f, sphere_f, sphere_t, sphere_overlap, skin_ctl):
+              wall_mask, wall_f, sphere_f, sphere_t, sphere_overlap, skin_ctl,
+              chunks, spans, span_ctl):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
     compiled code. Returns (steps done, steps computed). Done is fewer than
     n_steps only when a rebuild found a neighbour list longer than nbr holds
@@ -657,6 +728,10 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     a step then changes nothing (a sleeping body moves only when a moving one
     touches it, and none is left), so skipping them gives the same State bit
     for bit, at no cost. The scratch arrays keep the last step done.
+    And once at least QUIET_SHARE of the bodies are quiet, the contact passes
+    visit only the chunks of slots stage_active finds work in (spans), found
+    again after each step that rebuilt the lists or changed a body's quiet
+    state; exact too. span_ctl counts the steps run so (0) and the searches (1).
     """
     if n_steps <= 0:
         return 0, 0  # nothing sorted yet: the unsort below would scramble the State's rows
@@ -670,6 +745,10 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     rebuild = True
     moved = False
     computed = 0
+    n_chunks = chunks.shape[0]
+    n_spans = 0
+    spans_ok = False        # spans[:n_spans] hold this step's work (stage_active)
+    rebuilt = True
     for step in range(first_step, first_step + n_steps):
         computed += 1
         stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
@@ -712,6 +791,8 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                 skin_ctl[1] = since
                 return step - first_step, step - first_step   # the histories are current
             skin_ctl[3] += 1.0
+            spans_ok = False                    # new slots, new lists
+            rebuilt = True
             if WALLS:
                 stage_wall_reach(diameter, skin, sorted_x, wall_normal, wall_offset, wall_lo,
                                  wall_hi, wall_depth, wall_mask)
@@ -719,19 +800,33 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                 stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
                                     wall_mask, hist_partner, hist_spring, pair_f)
             rebuild = False
+        work = spans if spans_ok else chunks
+        n_work = n_spans if spans_ok else n_chunks
+        if spans_ok:
+            span_ctl[0] += 1
         stage_contacts(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
                        sorted_body, body_w, body_inv_mass, body_material,
                        pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, step & 1,
                        hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                        wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                       wall_mask, pair_f, wall_f)
+                       wall_mask, pair_f, wall_f, work, n_work)
         stage_sums(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body, body_inv_mass,
                    sleep_steps, body_rest, wall_mask, pair_f, wall_f, sphere_f, sphere_t,
-                   sphere_overlap)
-        awake = stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t,
-                             sphere_r, body_mass, body_inv_mass, body_inv_inertia, body_x,
-                             body_q, body_P, body_L, sleep_steps, v_sleep, w_sleep, body_rest,
-                             body_wake, body_still)
+                   sphere_overlap, work, n_work)
+        awake, flips, quiet = stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start,
+                                           sphere_f, sphere_t, sphere_r, body_mass,
+                                           body_inv_mass, body_inv_inertia, body_x, body_q,
+                                           body_P, body_L, sleep_steps, v_sleep, w_sleep,
+                                           body_rest, body_wake, body_still)
+        if SLEEPING and sleep_steps > 0 and quiet >= QUIET_SHARE * n_bodies and quiet > 0:
+            if rebuilt or flips > 0 or not spans_ok:   # (the first step's body_still was stale)
+                n_spans = stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest,
+                                       body_still, sleep_steps, chunks, spans)
+                span_ctl[1] += 1
+                spans_ok = True
+        else:
+            spans_ok = False
+        rebuilt = False
         since += 1.0
         if SLEEPING and sleep_steps > 0 and awake == 0:
             break                               # all asleep: nothing changes any more
@@ -866,6 +961,11 @@ class CpuBackend:
         # static mesh colliders never move: stage 1 keeps their spheres from the rebuild
         self.body_still = np.zeros(nb, dtype=np.int32)
         self.body_still[model.n_bodies:] = 1
+        # the contact passes' work: every chunk of slots, or a sleeping pile's (stage_active)
+        self.chunks = chunk_spans(ns)
+        self.spans = np.zeros_like(self.chunks)
+        #: Steps whose contact passes ran over the spans alone, and the spans' searches.
+        self.span_ctl = np.zeros(2, dtype=np.int64)
         self._no_partner = np.zeros((1, 1), dtype=np.int32)
         self._no_spring = np.zeros((1, 1, 3))
         if self.features.friction:   # the histories in sorted-slot order, within a call
@@ -925,7 +1025,8 @@ class CpuBackend:
                 self.sorted_x, self.sorted_v, self.sorted_body, self.grid_idx, self.grid_x,
                 self.grid_key, self.grid_body, self.built_x, self.nbr, self.nbr_n,
                 self._pidx(), self.pair_start, self.pair_f, self.wall_mask,
-                self.wall_f, self.sphere_f, self.sphere_t, self.sphere_overlap, self.skin_ctl)
+                self.wall_f, self.sphere_f, self.sphere_t, self.sphere_overlap, self.skin_ctl,
+                self.chunks, self.spans, self.span_ctl)
             state.step += int(done)
             state.time = state.step * m.dt
             left -= int(done)
@@ -1013,11 +1114,12 @@ class CpuBackend:
                               partner, spring, m.sleep_steps, self.rest(state),
                               self.body_wake.copy(), m.wall_normal, m.wall_offset, m.wall_lo,
                               m.wall_hi, m.wall_depth, m.wall_material, self.wall_mask,
-                              self.pair_f, self.wall_f)
+                              self.pair_f, self.wall_f, self.chunks, self.chunks.shape[0])
         self.k.stage_sums(m.diameter, self.nbr, self.nbr_n, self.pidx, self.sorted_idx,
                           self.sorted_x, self.sorted_body, m.body_inv_mass, m.sleep_steps,
                           self.rest(state), self.wall_mask, self.pair_f, self.wall_f,
-                          self.sphere_f, self.sphere_t, self.sphere_overlap)
+                          self.sphere_f, self.sphere_t, self.sphere_overlap, self.chunks,
+                          self.chunks.shape[0])
 
     def velocities(self, state):
         """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""
