@@ -32,6 +32,7 @@ BENCHMARKS = {
     "startup": (["--repeat", "2"], []),
     "output_size": (["--quick"], []),
     "sleeping": (["--duration", "2"], []),
+    "sleeping_pile": (["--spheres", "25000", "--steps", "300"], []),
     "restitution_vs_dt": ([], []),
     "vs_bullet": (["--n", "256", "--duration", "1"], ["--n", "256,1024,4096"]),
     "two_bakes": ([], []),

@@ -708,7 +708,7 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
               sorted_v, sorted_body, grid_idx, grid_x, grid_key, grid_body, built_x, nbr,
               nbr_n, pidx, pair_start, pair_f,
               wall_mask, wall_f, sphere_f, sphere_t, sphere_overlap, skin_ctl,
-              chunks, spans, span_ctl):
+              chunks, spans, span_ctl, quiet_share):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
     compiled code. Returns (steps done, steps computed). Done is fewer than
     n_steps only when a rebuild found a neighbour list longer than nbr holds
@@ -728,7 +728,7 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     a step then changes nothing (a sleeping body moves only when a moving one
     touches it, and none is left), so skipping them gives the same State bit
     for bit, at no cost. The scratch arrays keep the last step done.
-    And once at least QUIET_SHARE of the bodies are quiet, the contact passes
+    And once at least quiet_share of the bodies are quiet, the contact passes
     visit only the chunks of slots stage_active finds work in (spans), found
     again after each step that rebuilt the lists or changed a body's quiet
     state; exact too. span_ctl counts the steps run so (0) and the searches (1).
@@ -818,7 +818,7 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                                            body_inv_mass, body_inv_inertia, body_x, body_q,
                                            body_P, body_L, sleep_steps, v_sleep, w_sleep,
                                            body_rest, body_wake, body_still)
-        if SLEEPING and sleep_steps > 0 and quiet >= QUIET_SHARE * n_bodies and quiet > 0:
+        if SLEEPING and sleep_steps > 0 and quiet >= quiet_share * n_bodies and quiet > 0:
             if rebuilt or flips > 0 or not spans_ok:   # (the first step's body_still was stale)
                 n_spans = stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest,
                                        body_still, sleep_steps, chunks, spans)
@@ -966,6 +966,9 @@ class CpuBackend:
         self.spans = np.zeros_like(self.chunks)
         #: Steps whose contact passes ran over the spans alone, and the spans' searches.
         self.span_ctl = np.zeros(2, dtype=np.int64)
+        #: Share of quiet bodies from which the contact passes skip the quiet chunks
+        #: (stage_active); above 1, never (the same State: benchmarks/sleeping_pile.py).
+        self.quiet_share = QUIET_SHARE
         self._no_partner = np.zeros((1, 1), dtype=np.int32)
         self._no_spring = np.zeros((1, 1, 3))
         if self.features.friction:   # the histories in sorted-slot order, within a call
@@ -1026,7 +1029,7 @@ class CpuBackend:
                 self.grid_key, self.grid_body, self.built_x, self.nbr, self.nbr_n,
                 self._pidx(), self.pair_start, self.pair_f, self.wall_mask,
                 self.wall_f, self.sphere_f, self.sphere_t, self.sphere_overlap, self.skin_ctl,
-                self.chunks, self.spans, self.span_ctl)
+                self.chunks, self.spans, self.span_ctl, float(self.quiet_share))
             state.step += int(done)
             state.time = state.step * m.dt
             left -= int(done)
