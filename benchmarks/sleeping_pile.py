@@ -11,7 +11,7 @@ alternated, REPEATS times:
 
 * the baseline: the contact passes visit every chunk of sorted slots
   (``CpuBackend.quiet_share`` above 1), as before kernels.cpu.stage_active;
-* the default: once a quarter of the bodies is quiet, they visit only the chunks
+* the default: once half the bodies are quiet, they visit only the chunks
   with a slot that is awake or touches an awake body (stage_active).
 
 Printed: ms per step of each (the best of the runs), the ratio, bodies awake

@@ -283,11 +283,17 @@ def run_dempipe(model, pieces: Pieces, threads: int) -> dict:
     n_frames = model.n_frames
     every = max(1, (n_frames - 1) // 10)
 
+    last = [0, 0.0]                      # frame and wall time of the last line
+
     def progress(k, n, stats):
         if k and (k % every == 0 or k == n - 1):
             eta = stats.wall_seconds / k * (n - 1 - k)
+            per = (stats.wall_seconds - last[1]) / (k - last[0])
+            last[:] = [k, stats.wall_seconds]
+            asleep = int(state.asleep(model.sleep_steps)[: model.n_bodies].sum())
             log(f"dempipe {pieces.n}: frame {k}/{n - 1}, {stats.wall_seconds:.0f} s, "
-                f"~{eta:.0f} s left")
+                f"~{eta:.0f} s left; {per:.1f} s per frame since the last line, "
+                f"{asleep:,} of {model.n_bodies:,} pieces asleep")
 
     from dempipe.simulator import BakeFailure
 

@@ -114,7 +114,7 @@ def test_skipping_what_sleeps_changes_nothing(ball_height, slab):
     fast = Simulator(model).backend
     fast.step(a, n)
     assert fast.steps_skipped > 0                       # the shortcut was taken
-    # and the third: once a quarter of the bodies is quiet, the contact passes visit
+    # and the third: once half the bodies are quiet, the contact passes visit
     # only the chunks of slots with work in them (kernels.cpu.stage_active); the
     # calls of one step below never do (a call's first step visits every chunk)
     assert fast.span_ctl[0] > 0

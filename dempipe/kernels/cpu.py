@@ -439,7 +439,15 @@ def chunk_spans(n_slots: int) -> np.ndarray:
 #: A sleeping pile's contact passes run over only the chunks with work left in
 #: them (stage_active) once at least this share of the bodies is quiet; below it
 #: finding the chunks would cost about what it saves.
-QUIET_SHARE = 0.25
+QUIET_SHARE = 0.5
+
+#: Steps at least between two searches for the spans (stage_active): the search is
+#: a pass over every slot, about what a step with few sleepers spends on them.
+#: Between searches the spans stay valid while bodies only fall quiet (they cover
+#: more than needed); a body that wakes sends the passes back to every chunk
+#: until the next search. (Searching at every change cost 0.91x on a pile waking
+#: and settling, half of it quiet; benchmarks/sleeping_pile.py --wake 1800.)
+SEARCH_GAP = 8
 
 
 @numba.njit(inline="always", cache=True)
@@ -589,10 +597,10 @@ def body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere
                 sleep_steps, v_sleep, w_sleep, body_rest, body_wake, body_still):
     """Stages 5-8 for body b (the body of stage_bodies' loop), with sleeping.
 
-    Returns awake + 2 flip + 4 quiet: awake (1) when the body will integrate at
-    the next step; quiet (4) when it is asleep and slept through this step
-    (stage_active's body_quiet); flip (2) when it was quiet before this step and
-    is not now, or the other way round. body_still[b] = 1 when the body slept
+    Returns awake + 2 woke + 4 quiet + 8 calmed: awake (1) when the body will
+    integrate at the next step; quiet (4) when it is asleep and slept through
+    this step (stage_active's body_quiet); woke (2) when it was quiet before this
+    step and is not now; calmed (8) the other way round. body_still[b] = 1 when the body slept
     through this step (did not move): stage 1 may keep its spheres' positions
     from the last step."""
     if SLEEPING and sleep_steps > 0 and body_rest[b] >= sleep_steps:
@@ -603,7 +611,7 @@ def body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere
             body_still[b] = 0
             return 1 + (2 if was_quiet else 0)
         body_still[b] = 1
-        return 4 + (0 if was_quiet else 2)
+        return 4 + (0 if was_quiet else 8)
     m = body_mass[b]
     FX = m * gx
     FY = m * gy
@@ -679,21 +687,23 @@ def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t
     With sleeping (sleep_steps > 0): a body slower than (v_sleep, w_sleep) for
     sleep_steps steps in a row falls asleep (P = L = 0, no integration) until a
     moving body touches it (body_wake, set by the contact stage). Returns (bodies
-    awake for the next step, bodies whose quiet state changed, bodies quiet:
-    body_update), integer sums: the same for any thread count.
+    awake for the next step, bodies that woke from quiet, bodies quiet, bodies
+    that became quiet: body_update), integer sums: the same for any thread count.
     """
     awake = 0
-    flips = 0
+    woke = 0
     quiet = 0
+    calmed = 0
     for b in prange(n_bodies):
         r = body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t,
                         sphere_r, body_mass, body_inv_mass, body_inv_inertia, body_x,
                         body_q, body_P, body_L, sleep_steps, v_sleep, w_sleep, body_rest,
                         body_wake, body_still)
         awake += r & 1
-        flips += (r >> 1) & 1
-        quiet += r >> 2
-    return awake, flips, quiet
+        woke += (r >> 1) & 1
+        quiet += (r >> 2) & 1
+        calmed += r >> 3
+    return awake, woke, quiet, calmed
 
 
 def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
@@ -729,9 +739,12 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     touches it, and none is left), so skipping them gives the same State bit
     for bit, at no cost. The scratch arrays keep the last step done.
     And once at least quiet_share of the bodies are quiet, the contact passes
-    visit only the chunks of slots stage_active finds work in (spans), found
-    again after each step that rebuilt the lists or changed a body's quiet
-    state; exact too. span_ctl counts the steps run so (0) and the searches (1).
+    visit only the chunks of slots stage_active finds work in (spans): searched
+    at most every SEARCH_GAP steps, after a rebuild (new slots), a wake (a woken
+    body's chunks may be missing: every chunk until the next search) or once a
+    quarter of the bodies not quiet at the last search have become quiet (the
+    spans cover more than needed until then); exact too. span_ctl counts the
+    steps run so (0) and the searches (1).
     """
     if n_steps <= 0:
         return 0, 0  # nothing sorted yet: the unsort below would scramble the State's rows
@@ -749,6 +762,9 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     n_spans = 0
     spans_ok = False        # spans[:n_spans] hold this step's work (stage_active)
     rebuilt = True
+    since_search = SEARCH_GAP
+    calmed_since = 0        # bodies that became quiet since the last search
+    quiet_then = 0          # and how many were quiet at it
     for step in range(first_step, first_step + n_steps):
         computed += 1
         stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
@@ -813,17 +829,25 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
         stage_sums(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body, body_inv_mass,
                    sleep_steps, body_rest, wall_mask, pair_f, wall_f, sphere_f, sphere_t,
                    sphere_overlap, work, n_work)
-        awake, flips, quiet = stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start,
-                                           sphere_f, sphere_t, sphere_r, body_mass,
-                                           body_inv_mass, body_inv_inertia, body_x, body_q,
-                                           body_P, body_L, sleep_steps, v_sleep, w_sleep,
-                                           body_rest, body_wake, body_still)
+        awake, woke, quiet, calmed = stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start,
+                                                  sphere_f, sphere_t, sphere_r, body_mass,
+                                                  body_inv_mass, body_inv_inertia, body_x,
+                                                  body_q, body_P, body_L, sleep_steps, v_sleep,
+                                                  w_sleep, body_rest, body_wake, body_still)
+        since_search += 1
+        calmed_since += calmed
+        if rebuilt or woke > 0:
+            spans_ok = False    # (at the first step: body_still was stale, rebuilt is set)
         if SLEEPING and sleep_steps > 0 and quiet >= quiet_share * n_bodies and quiet > 0:
-            if rebuilt or flips > 0 or not spans_ok:   # (the first step's body_still was stale)
+            if since_search >= SEARCH_GAP and (
+                    not spans_ok or 4 * calmed_since >= n_bodies - quiet_then):
                 n_spans = stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest,
                                        body_still, sleep_steps, chunks, spans)
                 span_ctl[1] += 1
                 spans_ok = True
+                since_search = 0
+                calmed_since = 0
+                quiet_then = quiet
         else:
             spans_ok = False
         rebuilt = False
