@@ -35,8 +35,9 @@ from dempipe.simulator import Simulator  # noqa: E402
 D = 0.01
 
 
-def dense_pile(n_spheres: int):
-    """A box packed with touching 3×3×3-sphere cubes: about n_spheres spheres."""
+def dense_pile(n_spheres: int, sleep=None):
+    """A box packed with touching 3×3×3-sphere cubes: about n_spheres spheres
+    (``sleep``: ModelBuilder.finalize's, off by default)."""
     cubes = max(1, n_spheres // 27)
     side = int(round(cubes ** (1 / 3)))
     nx = ny = max(1, int(np.sqrt(cubes / max(side // 2, 1))))
@@ -50,7 +51,7 @@ def dense_pile(n_spheres: int):
     pos = np.stack([ix, iy, iz], -1).reshape(-1, 3) * pitch + [pitch / 2, pitch / 2, pitch / 2]
     b.add_bodies("cubes", s, m, pos)
     b.add_box([0, 0, 0], [nx * pitch, ny * pitch, nz * pitch + 1.0], material=m)
-    return b.finalize(fps=60, n_frames=2)
+    return b.finalize(fps=60, n_frames=2, sleep=sleep)
 
 
 #: Timed runs per thread count and size, alternating 1 thread and all threads; the

@@ -29,16 +29,13 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tests"))
-from bodies import box_set  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from cpu_bench import dense_pile  # noqa: E402
 
 import numba  # noqa: E402
 
-from dempipe.materials import Material  # noqa: E402
-from dempipe.model import ModelBuilder  # noqa: E402
 from dempipe.simulator import Simulator  # noqa: E402
 
-D = 0.01
 REPEATS = 3
 #: How long a body must be at rest before it sleeps here [s]: short, so the pile
 #: sleeps within a few thousand steps (the scene default is 0.5 s).
@@ -47,20 +44,7 @@ SLEEP_TIME = 0.05
 
 def sleeping_pile(n_spheres: int):
     """cpu_bench's dense pile (about n_spheres spheres) with sleeping on."""
-    cubes = max(1, n_spheres // 27)
-    side = int(round(cubes ** (1 / 3)))
-    nx = ny = max(1, int(np.sqrt(cubes / max(side // 2, 1))))
-    nz = max(1, cubes // (nx * ny))
-    ss, mesh = box_set(3, 3, 3, D)
-    b = ModelBuilder(D)
-    s = b.add_shape("cube", mesh, ss)
-    m = b.add_material(Material("m", density=1000, restitution=0.3, friction=0.5))
-    pitch = 3 * D
-    ix, iy, iz = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
-    pos = np.stack([ix, iy, iz], -1).reshape(-1, 3) * pitch + pitch / 2
-    b.add_bodies("cubes", s, m, pos)
-    b.add_box([0, 0, 0], [nx * pitch, ny * pitch, nz * pitch + 1.0], material=m)
-    return b.finalize(fps=60, n_frames=2, sleep=(None, None, SLEEP_TIME))
+    return dense_pile(n_spheres, sleep=(None, None, SLEEP_TIME))
 
 
 def main() -> int:
