@@ -472,9 +472,9 @@ def stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still, 
     was last visited, asleep among the same sleepers), pass 2 writes the zero
     force it wrote at its last visit. So the spans give the same State bit for
     bit as every chunk (tests/test_sleeping.py), and a pile where most bodies
-    sleep costs what its moving part costs, not its size. Valid for the next
-    step only if it rebuilds no list and no body's quiet state changes
-    (run_steps)."""
+    sleep costs what its moving part costs, not its size. Valid for the steps
+    after it until a rebuild (new slots) or a quiet body wakes; bodies that fall
+    quiet meanwhile only make the spans cover more than needed (run_steps)."""
     n_chunks = chunks.shape[0]
     for c in prange(n_chunks):
         lo = -1
