@@ -127,3 +127,23 @@ def test_skipping_what_sleeps_changes_nothing(ball_height, slab):
     for name in ("body_x", "body_q", "body_P", "body_L", "body_rest", "contact_partner",
                  "contact_spring"):
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
+def test_contact_passes_over_spans_change_nothing_frame_by_frame():
+    # kernels.cpu.stage_active at its most eager (quiet_share 0: the spans are used
+    # whenever any body is quiet, so also while most still move, through wakes and
+    # bodies falling quiet between searches) against never (quiet_share above 1):
+    # the same State bit for bit at every frame, not only at the end. The ball
+    # lands on the boxes as they settle and wakes some of them.
+    model = pile(sleep=(None, None, 0.2), ball_height=0.3, n_frames=37)
+    eager, never = Simulator(model).backend, Simulator(model).backend
+    eager.quiet_share, never.quiet_share = 0.0, 2.0
+    a, b = model.initial_state(), model.initial_state()
+    for frame in range(36):
+        eager.step(a, model.steps_per_frame)
+        never.step(b, model.steps_per_frame)
+        for name in ("body_x", "body_q", "body_P", "body_L", "body_rest", "contact_partner",
+                     "contact_spring"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), (frame, name)
+    assert eager.span_ctl[0] > 0 and eager.span_ctl[1] > 0   # the spans were used
+    assert never.span_ctl[0] == 0
