@@ -97,24 +97,28 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                           b.grid_slot, b.sorted_idx, b.sorted_x, b.sorted_body,
                                           m.body_inv_mass, b.built_x, b.nbr, b.nbr_n)
                      or cpu.stage_pairs(b.nbr, b.nbr_n, b.sorted_idx, b.sorted_body,
-                                        m.body_inv_mass, b.pair_start, b._pidx(),
+                                        m.body_inv_mass, b.pair_start, b._pidx(), b.pair_t,
                                         b.pair_f.shape[0])
                      or cpu.stage_wall_reach(m.diameter, cpu.SKIN, b.sorted_x, m.wall_normal,
                                              m.wall_offset, m.wall_lo, m.wall_hi,
-                                             m.wall_depth, b.wall_mask)
+                                             m.wall_depth, b.wall_mask, b.wall_start,
+                                             hp.shape[1] if fr else 0, b.wall_s.shape[0])
                      or (fr and cpu.stage_rows_to_pairs(b.nbr, b.nbr_n, b.pidx, b.sorted_idx,
                                                         b.sorted_body, m.body_inv_mass,
-                                                        b.wall_mask, hp, hs, b.pair_f))),
+                                                        b.wall_mask, hp, hs, b.pair_f,
+                                                        b.wall_start, b.wall_s))),
         )
         after = (
-            lambda: k.stage_contacts(m.diameter, b.nbr, b.nbr_n, b.pidx, b.sorted_idx,
+            lambda: k.stage_contacts(m.diameter, b.nbr, b.nbr_n, b.pidx, b.pair_start,
+                                     b.pair_t, b.sorted_idx,
                                      b.sorted_x, b.sorted_v, b.sorted_body, b.body_w,
                                      m.body_inv_mass, m.body_material, m.pair_k, m.pair_zeta,
                                      m.pair_mu, m.kt_ratio, m.ks_ratio, b.features.friction,
                                      m.dt, s & 1, hp, hs, m.sleep_steps, rest, b.body_wake,
                                      m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi,
                                      m.wall_depth, m.wall_material, b.wall_mask, b.pair_f,
-                                     b.wall_f, b.chunks, b.chunks.shape[0]),
+                                     b.wall_f, b.wall_start, b.wall_s, b.chunks,
+                                     b.chunks.shape[0]),
             lambda: k.stage_sums(m.diameter, b.nbr, b.nbr_n, b.pidx, b.sorted_idx, b.sorted_x,
                                  b.sorted_body, m.body_inv_mass, m.sleep_steps, rest,
                                  b.wall_mask, b.pair_f, b.wall_f, b.sphere_f, b.sphere_t,
@@ -138,7 +142,8 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             rebuilds += 1
             if fr and s > state.step:      # histories back to sphere order before the sort
                 t0 = time.perf_counter()
-                cpu.stage_pairs_to_rows(b.nbr, b.nbr_n, b.pidx, b.sorted_idx, hp, hs, b.pair_f)
+                cpu.stage_pairs_to_rows(b.nbr, b.nbr_n, b.pidx, b.sorted_idx, hp, hs, b.pair_f,
+                                        b.wall_mask, b.wall_start, b.wall_s)
                 cpu.stage_history_to_spheres(b.sorted_idx, hp, hs, partner, spring)
                 t[4] += time.perf_counter() - t0
             for i, call in enumerate(rebuild):
@@ -153,7 +158,8 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             call()
             t[6 + i] += time.perf_counter() - t0
     if fr:
-        cpu.stage_pairs_to_rows(b.nbr, b.nbr_n, b.pidx, b.sorted_idx, hp, hs, b.pair_f)
+        cpu.stage_pairs_to_rows(b.nbr, b.nbr_n, b.pidx, b.sorted_idx, hp, hs, b.pair_f,
+                                        b.wall_mask, b.wall_start, b.wall_s)
         cpu.stage_history_to_spheres(b.sorted_idx, hp, hs, partner, spring)
     state.step += steps
     state.time = state.step * m.dt

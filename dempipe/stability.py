@@ -299,7 +299,10 @@ def memory_estimate(model: Model) -> dict:
                + ns * 3 * f8                           # built_x (neighbour lists)
                + ns * NEIGHBOURS * i4 + ns * i4        # nbr, nbr_n (to start with)
                + ns * NEIGHBOURS * i4 + (ns + 1) * i8  # pidx, pair_start (contacts.py)
-               + max(PAIRS_PER_SPHERE * ns, 1) * PAIR_COLS * f8   # pair_f (to start with)
+               + max(PAIRS_PER_SPHERE * ns, 1) * (PAIR_COLS * f8 + i4)   # pair_f, pair_t
+                                                       # (to start with)
+               + (ns + 1) * i8                         # wall_start (packed wall rows)
+               + (max(ns // 8, 1) if model.features.friction else 1) * 4 * f8  # wall_s
                + ns * i8 + ns * 7 * f8                 # wall_mask, wall_f
                + 2 * ns * 3 * f8                       # sphere_f, sphere_t
                + ns * f8                               # sphere_overlap

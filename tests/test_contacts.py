@@ -182,6 +182,7 @@ def test_pair_indices_pair_each_entry_with_its_owner(case):
             t, p = be.nbr[s, e], be.pidx[s, e]
             if inv[body[t]] == 0.0 or idx[s] < idx[t]:      # s owns the pair
                 assert be.pair_start[s] <= p < be.pair_start[s + 1], name
+                assert be.pair_t[p] == t, name               # the row knows its partner
                 rows.append(p)
             else:                                            # t owns it: t lists s
                 back = list(be.nbr[t, : be.nbr_n[t]]).index(s)
@@ -208,9 +209,11 @@ def test_stretches_go_into_the_pairs_and_back_unchanged(case):
     hs = st.contact_spring[be.sorted_idx]
     pair_f = np.zeros_like(be.pair_f)
     cpu.stage_rows_to_pairs(be.nbr, be.nbr_n, be.pidx, be.sorted_idx, be.sorted_body,
-                            model.body_inv_mass, be.wall_mask, hp, hs, pair_f)
+                            model.body_inv_mass, be.wall_mask, hp, hs, pair_f, be.wall_start,
+                            be.wall_s)
     assert np.all(hp[hp != 0] >> 1 > model.n_spheres), name   # the rows keep the walls only
-    cpu.stage_pairs_to_rows(be.nbr, be.nbr_n, be.pidx, be.sorted_idx, hp, hs, pair_f)
+    cpu.stage_pairs_to_rows(be.nbr, be.nbr_n, be.pidx, be.sorted_idx, hp, hs, pair_f,
+                            be.wall_mask, be.wall_start, be.wall_s)
     partner = np.empty_like(hp)
     spring = np.empty_like(hs)
     partner[be.sorted_idx] = hp
@@ -330,3 +333,56 @@ def test_walls_beyond_a_mask_give_the_same_motion():
     assert (states[0].contact_partner != 0).sum() >= 3          # both walls and the pair
     for name in ("body_x", "body_q", "body_P", "body_L"):
         assert np.array_equal(getattr(states[0], name), getattr(states[1], name)), name
+
+
+def balls_on_the_floor(n_side):
+    """n_side² one-sphere balls side by side on a floor with friction, sliding and
+    spinning: every sphere rests on the floor and bumps into its neighbours."""
+    b = ModelBuilder(D)
+    ss, mesh = ball_set(D)
+    s = b.add_shape("ball", mesh, ss)
+    m = b.add_material(Material("m", density=1000, restitution=0.3, friction=0.5))
+    ix, iy = np.meshgrid(np.arange(n_side), np.arange(n_side), indexing="ij")
+    pos = np.stack([ix.ravel() * 1.0001 * D, iy.ravel() * 1.0001 * D,
+                    np.full(n_side * n_side, 0.5 * D)], -1)
+    rng = np.random.default_rng(3)
+    b.add_bodies("balls", s, m, pos, velocities=rng.normal(0, 0.05, (len(pos), 3)) * [1, 1, 0],
+                 angular_velocities=rng.normal(0, 5.0, (len(pos), 3)))
+    b.add_box([-D, -D, 0], [n_side * D, n_side * D, 1.0], material=m)
+    return b.finalize(fps=60, n_frames=2)
+
+
+def test_packed_wall_rows_grow_and_change_nothing():
+    # While stepping, the CPU keeps the walls' stretches in packed rows (contacts.py
+    # WALL_ROWS), one per marked wall, allocated for an eighth of the spheres. Here
+    # every sphere touches the floor, so the first rebuild finds too few rows: the
+    # step stops, the backend grows them and redoes it. Against a backend that had
+    # room from the start, and against calls of one step (each rebuilds, copying
+    # the stretches out of the history rows and back), the State is the same.
+    model = balls_on_the_floor(12)
+    runs = []
+    for mode in ("grow", "room", "one step per call"):
+        be = Simulator(model).backend
+        rows0 = be.wall_s.shape[0]
+        if mode == "room":
+            be.wall_s = np.zeros((4 * model.n_spheres, 4))
+        st = model.initial_state()
+        if mode == "one step per call":
+            for _ in range(120):
+                be.step(st, 1)
+        else:
+            be.step(st, 120)
+        assert be.wall_start[-1] >= model.n_spheres           # a row per sphere at least
+        if mode == "grow":
+            assert rows0 < model.n_spheres < be.wall_s.shape[0]
+        runs.append(st)
+    walls = runs[0].contact_partner >> 1 > model.n_spheres
+    assert walls.sum() >= 0.9 * model.n_spheres                # the floor's stretches kept
+    assert np.abs(runs[0].contact_spring[walls]).max() > 0.0
+    # a wall entry not touched at a step is forgotten (nothing sleeps here), so each
+    # one left was touched at the last, step 119: its parity bit says so
+    assert np.all(runs[0].contact_partner[walls] & 1 == 119 & 1)
+    for st in runs[1:]:
+        for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner",
+                     "contact_spring"):
+            assert np.array_equal(getattr(st, name), getattr(runs[0], name)), name

@@ -48,6 +48,10 @@ rows_to_pairs = P.rows_to_pairs
 pairs_to_rows = P.pairs_to_rows
 #: contacts.py: the history rows are in sorted-slot order within a call.
 HIST_BY_SLOT = True
+#: contacts.py: the first pass walks each slot's packed rows (pair_start, pair_t).
+PAIR_ROWS = True
+#: contacts.py: while stepping, the walls' stretches live in packed rows (wall_s).
+WALL_ROWS = True
 
 # Cell coordinates are packed into one int64 key, 21 bits per axis, so the world
 # spans ±2^20 cells per axis (cells of (1 + SKIN) d: ±12 km at 1 cm spheres,
@@ -377,12 +381,14 @@ def stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, pidx, rows):
+def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, pidx, pair_t,
+                rows):
     """At a rebuild, after stage_neighbours: each list entry's pair index
     (contacts.py). The pairs a slot owns get consecutive rows of pair_f, slot
     after slot: pair_start[s] is slot s's first (a prefix sum of the owners'
-    counts, serial: a fixed order). Returns 0, or the rows needed when that is
-    more than ``rows`` (pair_start has the counts; the caller grows pair_f)."""
+    counts, serial: a fixed order), and pair_t[p] is row p's partner slot.
+    Returns 0, or the rows needed when that is more than ``rows`` (pair_start
+    has the counts; the caller grows pair_f and pair_t)."""
     n = sorted_idx.shape[0]
     for s in prange(n):
         pair_start[s + 1] = pair_count(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass)
@@ -395,37 +401,93 @@ def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, 
         pair_slots(s, pair_start[s], nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
     for s in prange(n):
         pair_mirror(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
+        for e in range(nbr_n[s]):        # (pair_mirror has set every entry of s's row)
+            if pidx[s, e] >= 0:
+                pair_t[pidx[s, e]] = nbr[s, e]
     return 0
 
 
 @numba.njit(parallel=True, cache=True)
 def stage_wall_reach(diameter, skin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
-                     wall_depth, wall_mask):
+                     wall_depth, wall_mask, wall_start, cap, rows):
     """At a rebuild: each slot's walls within reach until the next (contacts.wall_reach),
-    for lists of reach (1 + skin) d."""
+    for lists of reach (1 + skin) d, and its packed wall rows (contacts.py WALL_ROWS):
+    wall_start[s] .. wall_start[s + 1] - 1, one per marked wall up to the ``cap``
+    columns of a history row (none for a mask of -1: those search the row). A
+    prefix sum, serial: a fixed order. Returns 0, or the rows needed when that is
+    more than ``rows`` (the caller grows wall_s)."""
     margin = WALL_SLACK * 0.5 * skin * diameter
-    for s in prange(sorted_x.shape[0]):
+    n = sorted_x.shape[0]
+    for s in prange(n):
         wall_reach(s, 0.5 * diameter, margin, sorted_x, wall_normal, wall_offset, wall_lo,
                    wall_hi, wall_depth, wall_mask)
+    wall_start[0] = 0
+    for s in range(n):
+        m = wall_mask[s]
+        c = 0
+        if m != -1:
+            while m != 0 and c < cap:
+                m &= m - 1                  # one marked wall fewer
+                c += 1
+        wall_start[s + 1] = wall_start[s] + c
+    return wall_start[n] if wall_start[n] > rows else 0
+
+
+@numba.njit(inline="always", cache=True)
+def nth_wall(walls, j):
+    """The wall whose bit is the j-th set one of the mask ``walls`` (the inverse of
+    contacts.wall_column)."""
+    w = 0
+    while True:
+        if (walls >> w) & 1:
+            if j == 0:
+                return w
+            j -= 1
+        w += 1
 
 
 @numba.njit(parallel=True, cache=True)
 def stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass, wall_mask,
-                        hist_partner, hist_spring, pair_f):
+                        hist_partner, hist_spring, pair_f, wall_start, wall_s):
     """At a rebuild, with friction: the owned pairs' stretches from the history rows
     (sorted-slot order) into pair_f; the rows keep the walls in reach
-    (contacts.rows_to_pairs)."""
+    (contacts.rows_to_pairs), whose columns are then copied into the packed wall
+    rows wall_s (stretch, 1 + parity or 0), where the steps keep them: the rows'
+    copies go stale until stage_pairs_to_rows puts the packed ones back."""
     n = sorted_idx.shape[0]
     for s in prange(n):
         rows_to_pairs(s, s, n, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
                       wall_mask, hist_partner, hist_spring, pair_f)
+        q = wall_start[s]
+        for j in range(wall_start[s + 1] - q if WALL_ROWS else 0):
+            code = hist_partner[s, j]
+            wall_s[q + j, 0] = hist_spring[s, j, 0]
+            wall_s[q + j, 1] = hist_spring[s, j, 1]
+            wall_s[q + j, 2] = hist_spring[s, j, 2]
+            wall_s[q + j, 3] = 1.0 + (code & 1) if code != 0 else 0.0
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f):
-    """Before a re-sort and at the end of a call, with friction: the touching pairs'
-    stretches back into their owners' history rows (contacts.pairs_to_rows)."""
-    for s in prange(sorted_idx.shape[0]):
+def stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f,
+                        wall_mask, wall_start, wall_s):
+    """Before a re-sort and at the end of a call, with friction: the packed wall rows
+    back into their columns of the history rows (the inverse of stage_rows_to_pairs'
+    copy), then the touching pairs' stretches (contacts.pairs_to_rows)."""
+    n = sorted_idx.shape[0]
+    for s in prange(n):
+        q = wall_start[s]
+        for j in range(wall_start[s + 1] - q if WALL_ROWS else 0):
+            if wall_s[q + j, 3] != 0.0:
+                code = n + nth_wall(wall_mask[s], j) + 1
+                hist_partner[s, j] = (code << 1) | (int(wall_s[q + j, 3]) - 1)
+                hist_spring[s, j, 0] = wall_s[q + j, 0]
+                hist_spring[s, j, 1] = wall_s[q + j, 1]
+                hist_spring[s, j, 2] = wall_s[q + j, 2]
+            else:
+                hist_partner[s, j] = 0
+                hist_spring[s, j, 0] = 0.0
+                hist_spring[s, j, 1] = 0.0
+                hist_spring[s, j, 2] = 0.0
         pairs_to_rows(s, s, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f)
 
 
@@ -504,12 +566,13 @@ def stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still, 
     return n
 
 
-def stage_contacts(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
+def stage_contacts(diameter, nbr, nbr_n, pidx, pair_start, pair_t, sorted_idx, sorted_x,
+                   sorted_v,
                    sorted_body, body_w, body_inv_mass, body_material,
                    pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
                    hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                    wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                   wall_mask, pair_f, wall_f, spans, n_spans):
+                   wall_mask, pair_f, wall_f, wall_start, wall_s, spans, n_spans):
     """Stages 3-4, first pass: the force of each contact, computed once, by the
     sphere that owns it (kernels/contacts.py: pair_forces), and each sphere's
     walls, in parallel over the spans of sorted slots spans[:n_spans] (every
@@ -526,7 +589,8 @@ def stage_contacts(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
     """
     for c in prange(n_spans):
         pair_forces(spans[c, 0], spans[c, 1],
-                    diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
+                    diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s,
+                    sorted_idx, sorted_x, sorted_v,
                     sorted_body, body_w, body_inv_mass, body_material,
                     pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
                     hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
@@ -716,8 +780,8 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
               body_v, body_w, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash,
               bucket_start, bucket_fill, body_key, grid_slot, sorted_idx, slot_of, sorted_x,
               sorted_v, sorted_body, grid_idx, grid_x, grid_key, grid_body, built_x, nbr,
-              nbr_n, pidx, pair_start, pair_f,
-              wall_mask, wall_f, sphere_f, sphere_t, sphere_overlap, skin_ctl,
+              nbr_n, pidx, pair_start, pair_t, pair_f,
+              wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_overlap, skin_ctl,
               chunks, spans, span_ctl, quiet_share):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
     compiled code. Returns (steps done, steps computed). Done is fewer than
@@ -785,7 +849,7 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
             moved = False
             if FRICTION and friction and step > first_step:   # histories back to sphere order
                 stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
-                                    pair_f)
+                                    pair_f, wall_mask, wall_start, wall_s)
                 stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
                                          contact_partner, contact_spring)
             stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_cell,
@@ -802,30 +866,33 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                                 grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
                                 body_inv_mass, built_x, nbr, nbr_n) > 0 or \
                     stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
-                                pair_start, pidx, pair_f.shape[0]) > 0:
+                                pair_start, pidx, pair_t, pair_f.shape[0]) > 0 or \
+                    (WALLS and stage_wall_reach(diameter, skin, sorted_x, wall_normal,
+                                                wall_offset, wall_lo, wall_hi, wall_depth,
+                                                wall_mask, wall_start,
+                                                hist_partner.shape[1] if FRICTION and friction
+                                                else 0, wall_s.shape[0]) > 0):
                 skin_ctl[0] = skin              # the redo keeps this build's skin
                 skin_ctl[1] = since
                 return step - first_step, step - first_step   # the histories are current
             skin_ctl[3] += 1.0
             spans_ok = False                    # new slots, new lists
             rebuilt = True
-            if WALLS:
-                stage_wall_reach(diameter, skin, sorted_x, wall_normal, wall_offset, wall_lo,
-                                 wall_hi, wall_depth, wall_mask)
             if FRICTION and friction:
                 stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
-                                    wall_mask, hist_partner, hist_spring, pair_f)
+                                    wall_mask, hist_partner, hist_spring, pair_f, wall_start,
+                                    wall_s)
             rebuild = False
         work = spans if spans_ok else chunks
         n_work = n_spans if spans_ok else n_chunks
         if spans_ok:
             span_ctl[0] += 1
-        stage_contacts(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
-                       sorted_body, body_w, body_inv_mass, body_material,
+        stage_contacts(diameter, nbr, nbr_n, pidx, pair_start, pair_t, sorted_idx, sorted_x,
+                       sorted_v, sorted_body, body_w, body_inv_mass, body_material,
                        pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, step & 1,
                        hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                        wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                       wall_mask, pair_f, wall_f, work, n_work)
+                       wall_mask, pair_f, wall_f, wall_start, wall_s, work, n_work)
         stage_sums(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body, body_inv_mass,
                    sleep_steps, body_rest, wall_mask, pair_f, wall_f, sphere_f, sphere_t,
                    sphere_overlap, work, n_work)
@@ -858,7 +925,8 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     skin_ctl[1] = since
     stage_unsort(sorted_idx, sorted_x, sphere_x)
     if FRICTION and friction:
-        stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f)
+        stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f,
+                            wall_mask, wall_start, wall_s)
         stage_history_to_spheres(sorted_idx, hist_partner, hist_spring, contact_partner,
                                  contact_spring)
     return n_steps, computed
@@ -976,7 +1044,13 @@ class CpuBackend:
         self.pidx = np.zeros((ns, NEIGHBOURS), dtype=np.int32)
         self.pair_start = np.zeros(ns + 1, dtype=np.int64)
         self.pair_f = np.zeros((max(PAIRS_PER_SPHERE * ns, 1), PAIR_COLS))
+        self.pair_t = np.zeros(self.pair_f.shape[0], dtype=np.int32)   # each row's partner
         self.wall_mask = np.zeros(ns, dtype=np.int64)    # walls within reach (contacts.py)
+        # with friction, the walls' stretches while stepping (contacts.py WALL_ROWS):
+        # an eighth of the spheres to start with (a pile in a box: 15 % touch a wall;
+        # grown when a rebuild finds more)
+        self.wall_start = np.zeros(ns + 1, dtype=np.int64)
+        self.wall_s = np.zeros((max(ns // 8, 1) if self.features.friction else 1, 4))
         self.wall_f = np.zeros((ns, 7))                  # each slot's walls: force, torque, overlap
         self.sphere_f = np.zeros((ns, 3))
         self.sphere_t = np.zeros((ns, 3))
@@ -1051,7 +1125,8 @@ class CpuBackend:
                 self.bucket_fill, self.body_key, self.grid_slot, self.sorted_idx, self.slot_of,
                 self.sorted_x, self.sorted_v, self.sorted_body, self.grid_idx, self.grid_x,
                 self.grid_key, self.grid_body, self.built_x, self.nbr, self.nbr_n,
-                self._pidx(), self.pair_start, self.pair_f, self.wall_mask,
+                self._pidx(), self.pair_start, self.pair_t, self.pair_f, self.wall_mask,
+                self.wall_start, self.wall_s,
                 self.wall_f, self.sphere_f, self.sphere_t, self.sphere_overlap, self.skin_ctl,
                 self.chunks, self.spans, self.span_ctl, float(self.quiet_share))
             state.step += int(done)
@@ -1072,9 +1147,13 @@ class CpuBackend:
                 cap *= 2
             self.nbr = np.zeros((self.model.n_spheres, cap), dtype=np.int32)
             return
+        walls = int(self.wall_start[-1])
+        if walls > self.wall_s.shape[0]:
+            self.wall_s = np.zeros((walls + walls // 2, 4))
         pairs = int(self.pair_start[-1])
         if pairs > self.pair_f.shape[0]:
             self.pair_f = np.zeros((pairs + pairs // 2, PAIR_COLS))
+            self.pair_t = np.zeros(self.pair_f.shape[0], dtype=np.int32)
 
     def _pidx(self):
         """The pair indices, shaped as the lists (which grow, or a test replaces)."""
@@ -1119,11 +1198,14 @@ class CpuBackend:
                                 self.sorted_idx, self.sorted_x, self.sorted_body,
                                 m.body_inv_mass, self.built_x, self.nbr, self.nbr_n) > 0
                or stage_pairs(self.nbr, self.nbr_n, self.sorted_idx, self.sorted_body,
-                              m.body_inv_mass, self.pair_start, self._pidx(),
-                              self.pair_f.shape[0]) > 0):
+                              m.body_inv_mass, self.pair_start, self._pidx(), self.pair_t,
+                              self.pair_f.shape[0]) > 0
+               or stage_wall_reach(m.diameter, SKIN, self.sorted_x, m.wall_normal,
+                                   m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth,
+                                   self.wall_mask, self.wall_start,
+                                   self.hist_partner.shape[1] if self.features.friction else 0,
+                                   self.wall_s.shape[0]) > 0):
             self.grow_neighbours()
-        stage_wall_reach(m.diameter, SKIN, self.sorted_x, m.wall_normal, m.wall_offset, m.wall_lo,
-                         m.wall_hi, m.wall_depth, self.wall_mask)
         self.sphere_overlap[:] = 0.0
         partner, spring = self.contacts(state)
         # copies in sorted-slot order, as the contact stage reads them
@@ -1132,16 +1214,17 @@ class CpuBackend:
         if self.features.friction:
             stage_rows_to_pairs(self.nbr, self.nbr_n, self.pidx, self.sorted_idx,
                                 self.sorted_body, m.body_inv_mass, self.wall_mask, partner,
-                                spring, self.pair_f)
-        self.k.stage_contacts(m.diameter, self.nbr, self.nbr_n, self.pidx, self.sorted_idx,
-                              self.sorted_x,
+                                spring, self.pair_f, self.wall_start, self.wall_s)
+        self.k.stage_contacts(m.diameter, self.nbr, self.nbr_n, self.pidx, self.pair_start,
+                              self.pair_t, self.sorted_idx, self.sorted_x,
                               self.sorted_v, self.sorted_body, self.body_w, m.body_inv_mass,
                               m.body_material, m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio,
                               m.ks_ratio, self.features.friction, m.dt, state.step & 1,
                               partner, spring, m.sleep_steps, self.rest(state),
                               self.body_wake.copy(), m.wall_normal, m.wall_offset, m.wall_lo,
                               m.wall_hi, m.wall_depth, m.wall_material, self.wall_mask,
-                              self.pair_f, self.wall_f, self.chunks, self.chunks.shape[0])
+                              self.pair_f, self.wall_f, self.wall_start, self.wall_s,
+                              self.chunks, self.chunks.shape[0])
         self.k.stage_sums(m.diameter, self.nbr, self.nbr_n, self.pidx, self.sorted_idx,
                           self.sorted_x, self.sorted_body, m.body_inv_mass, m.sleep_steps,
                           self.rest(state), self.wall_mask, self.pair_f, self.wall_f,

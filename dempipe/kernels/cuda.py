@@ -206,7 +206,9 @@ pairs_to_rows = P.pairs_to_rows
 # The general kernel: every feature compiled in, each checked at run time (friction,
 # sleep_steps > 0, the wall masks); the histories in sphere order.
 C = compile_contacts(_device_jit(), F, dict(FRICTION=True, ROTATION=True, SLEEPING=True,
-                                            WALLS=True, HIST_BY_SLOT=False, sqrt=math.sqrt))
+                                            WALLS=True, HIST_BY_SLOT=False, PAIR_ROWS=False,
+                                            WALL_ROWS=False,
+                                            sqrt=math.sqrt))
 pair_forces = C.pair_forces
 sphere_forces = C.sphere_forces
 
@@ -525,7 +527,8 @@ def k_pair_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
     s = cuda.grid(1)
     if s >= sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
-    pair_forces(s, s + 1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
+    pair_forces(s, s + 1, diameter, nbr, nbr_n, pidx, nbr_n, nbr_n, nbr_n, pair_f, sorted_idx,
+                sorted_x, sorted_v,
                 sorted_body, body_w, body_inv_mass, body_material,
                 pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
                 contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
