@@ -98,7 +98,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                           m.body_inv_mass, b.built_x, b.nbr, b.nbr_n)
                      or cpu.stage_pairs(b.nbr, b.nbr_n, b.sorted_idx, b.sorted_body,
                                         m.body_inv_mass, b.pair_start, b._pidx(), b.pair_t,
-                                        b.pair_f.shape[0])
+                                        b.pair_f.shape[0], b.list_start, b.list_e)
                      or cpu.stage_wall_reach(m.diameter, cpu.SKIN, b.sorted_x, m.wall_normal,
                                              m.wall_offset, m.wall_lo, m.wall_hi,
                                              m.wall_depth, b.wall_mask, b.wall_start,
@@ -119,7 +119,8 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                      m.wall_depth, m.wall_material, b.wall_mask, b.pair_f,
                                      b.wall_f, b.wall_start, b.wall_s, b.chunks,
                                      b.chunks.shape[0]),
-            lambda: k.stage_sums(m.diameter, b.nbr, b.nbr_n, b.pidx, b.sorted_idx, b.sorted_x,
+            lambda: k.stage_sums(m.diameter, b.nbr, b.nbr_n, b.pidx, b.list_start, b.list_e,
+                                 b.sorted_idx, b.sorted_x,
                                  b.sorted_body, m.body_inv_mass, m.sleep_steps, rest,
                                  b.wall_mask, b.pair_f, b.wall_f, b.sphere_f, b.sphere_t,
                                  b.sphere_overlap, b.chunks, b.chunks.shape[0]),

@@ -30,7 +30,7 @@ import numpy as np
 
 from . import materials as mat
 from .errors import StabilityError
-from .kernels.contacts import CONTACT_CHUNK, PAIR_COLS, PAIRS_PER_SPHERE
+from .kernels.contacts import CONTACT_CHUNK, LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE
 from .kernels.neighbours import NEIGHBOURS
 from .state import CONTACT_SLOTS
 from .model import Model, quat_to_matrix, rotational_mass_factor
@@ -302,6 +302,8 @@ def memory_estimate(model: Model) -> dict:
                + max(PAIRS_PER_SPHERE * ns, 1) * (PAIR_COLS * f8 + i4)   # pair_f, pair_t
                                                        # (to start with)
                + (ns + 1) * i8                         # wall_start (packed wall rows)
+               + (ns + 1) * i8 + max(LIST_PER_SPHERE * ns, 1) * 2 * i4   # list_start,
+                                                       # list_e (packed lists)
                + (max(ns // 8, 1) if model.features.friction else 1) * 4 * f8  # wall_s
                + ns * i8 + ns * 7 * f8                 # wall_mask, wall_f
                + 2 * ns * 3 * f8                       # sphere_f, sphere_t

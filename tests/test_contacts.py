@@ -188,6 +188,11 @@ def test_pair_indices_pair_each_entry_with_its_owner(case):
                 back = list(be.nbr[t, : be.nbr_n[t]]).index(s)
                 assert p == -(be.pidx[t, back] + 1), name
     assert sorted(rows) == list(range(be.pair_start[-1])), name     # each row once
+    for s in range(model.n_spheres):             # the lists packed for the second pass
+        q, n = be.list_start[s], be.nbr_n[s]
+        assert be.list_start[s + 1] == q + n, name
+        np.testing.assert_array_equal(be.list_e[q:q + n, 0], be.nbr[s, :n], err_msg=name)
+        np.testing.assert_array_equal(be.list_e[q:q + n, 1], be.pidx[s, :n], err_msg=name)
     if case == 3:                                            # pairs with static spheres
         assert any(inv[body[t]] == 0.0 for s in range(model.n_spheres)
                    for t in be.nbr[s, : be.nbr_n[s]])
@@ -382,6 +387,44 @@ def test_packed_wall_rows_grow_and_change_nothing():
     # a wall entry not touched at a step is forgotten (nothing sleeps here), so each
     # one left was touched at the last, step 119: its parity bit says so
     assert np.all(runs[0].contact_partner[walls] & 1 == 119 & 1)
+    for st in runs[1:]:
+        for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner",
+                     "contact_spring"):
+            assert np.array_equal(getattr(st, name), getattr(runs[0], name)), name
+
+
+def test_packed_lists_grow_and_change_nothing():
+    # The second pass reads each slot's list packed (contacts.py LIST_ROWS), with room
+    # for LIST_PER_SPHERE entries a sphere to start with. A cubic lattice of balls
+    # lists six neighbours inside: the first rebuild finds too little room, the step
+    # stops, the backend grows it and redoes the step. Against a backend with room
+    # from the start and calls of one step, the State is the same.
+    b = ModelBuilder(D)
+    ss, mesh = ball_set(D)
+    s = b.add_shape("ball", mesh, ss)
+    m = b.add_material(Material("m", density=1000, restitution=0.3, friction=0.5))
+    g = np.arange(6) * 1.0001 * D
+    pos = np.stack(np.meshgrid(g, g, g + 0.5 * D, indexing="ij"), -1).reshape(-1, 3)
+    rng = np.random.default_rng(5)
+    b.add_bodies("balls", s, m, pos, velocities=rng.normal(0, 0.05, (len(pos), 3)))
+    b.add_plane([0, 0, 0], [0, 0, 1], m)
+    model = b.finalize(fps=60, n_frames=2)
+    runs = []
+    for mode in ("grow", "room", "one step per call"):
+        be = Simulator(model).backend
+        rows0 = be.list_e.shape[0]
+        if mode == "room":
+            be.list_e = np.zeros((16 * model.n_spheres, 2), dtype=np.int32)
+        st = model.initial_state()
+        if mode == "one step per call":
+            for _ in range(100):
+                be.step(st, 1)
+        else:
+            be.step(st, 100)
+        if mode == "grow":
+            assert rows0 < be.list_start[-1] <= be.list_e.shape[0]
+        runs.append(st)
+    assert (runs[0].contact_partner != 0).sum() >= 50          # stretches to compare
     for st in runs[1:]:
         for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner",
                      "contact_spring"):

@@ -59,7 +59,12 @@ history row lives in row wall_start[s] + j of ``wall_s`` (the CPU's packed wall
 rows, filled and emptied at each rebuild by kernels/cpu.py), rather than in the
 history row itself (CUDA). The same numbers either way: packed, the few slots
 that touch walls read consecutive rows instead of one scattered history row
-each, which cost a fifth of the first pass on a pile in a box.
+each, which cost a fifth of the first pass on a pile in a box. And LIST_ROWS:
+the second pass walks slot s's list entries as packed (partner slot, pair
+index) rows list_start[s] .. list_start[s + 1] - 1 of ``list_e`` (the CPU's,
+filled at each rebuild) rather than its list and pair-index rows (CUDA): the
+same entries in the same order, 8 bytes an entry read instead of two 64-byte
+rows a sphere.
 """
 
 #: ``pidx`` of a list entry whose partner's list does not hold it back. Cannot
@@ -77,6 +82,10 @@ PAIR_COLS = 10
 #: Rows of pair_f per sphere the CPU allocates to start with (a dense pile of cubes
 #: owns 0.9 listed pairs per sphere); grown when a rebuild finds more.
 PAIRS_PER_SPHERE = 2
+
+#: Packed list entries per sphere the CPU allocates to start with (the dense pile
+#: lists 1.8); grown when a rebuild finds more.
+LIST_PER_SPHERE = 4
 
 #: Sorted slots per call of pair_forces / sphere_forces in the CPU's parallel loops
 #: (kernels/cpu.py): small enough to balance two to a few dozen threads on piles of
@@ -584,9 +593,9 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                         pair_f[p, 9] = 0.0
 
 
-def sphere_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body,
-                  body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
-                  sphere_f, sphere_t, sphere_overlap):
+def sphere_forces(s0, s1, diameter, nbr, nbr_n, pidx, list_start, list_e, sorted_idx,
+                  sorted_x, sorted_body, body_inv_mass, sleep_steps, body_rest, wall_mask,
+                  pair_f, wall_f, sphere_f, sphere_t, sphere_overlap):
     """Stage 4, second pass, for sorted slots s0 .. s1-1; for each slot s (sphere
     i = sorted_idx[s]): the sum of the forces on it from its touching partners
     in its list's order (its partners' index order; the pairs its partners own
@@ -618,15 +627,21 @@ def sphere_forces(s0, s1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sort
         ty = 0.0
         tz = 0.0
         near2 = d2
-        for e in range(nbr_n[s]):
-            t = nbr[s, e]
+        if LIST_ROWS:  # noqa: F821
+            e0 = list_start[s]
+            e1 = list_start[s + 1]
+        else:
+            e0 = 0
+            e1 = nbr_n[s]
+        for e in range(e0, e1):
+            t = list_e[e, 0] if LIST_ROWS else nbr[s, e]  # noqa: F821
             rx = sorted_x[t, 0] - xi
             ry = sorted_x[t, 1] - yi
             rz = sorted_x[t, 2] - zi
             dist2 = rx * rx + ry * ry + rz * rz
             if dist2 >= d2:
                 continue
-            p = pidx[s, e]
+            p = list_e[e, 1] if LIST_ROWS else pidx[s, e]  # noqa: F821
             if p >= 0:
                 fx += pair_f[p, 0]
                 fy += pair_f[p, 1]

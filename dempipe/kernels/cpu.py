@@ -22,7 +22,8 @@ from .compile import (compile_chain, compile_formulas, compile_pairing, compile_
                       compile_walk, invalidate_stale_cache, specialize)
 from ..state import CONTACT_SLOTS
 # UNPAIRED: read by contacts.sphere_forces, which is compiled with this module's globals
-from .contacts import CONTACT_CHUNK, PAIR_COLS, PAIRS_PER_SPHERE, UNPAIRED, WALL_SLACK  # noqa: F401
+from .contacts import (CONTACT_CHUNK, LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE,  # noqa: F401
+                       UNPAIRED, WALL_SLACK)
 from .neighbours import NEIGHBOURS, SKIN, SKIN_MAX, SKIN_SHRINK_ABOVE, cell_size
 
 invalidate_stale_cache(__file__)
@@ -52,7 +53,8 @@ HIST_BY_SLOT = True
 PAIR_ROWS = True
 #: contacts.py: while stepping, the walls' stretches live in packed rows (wall_s).
 WALL_ROWS = True
-
+#: contacts.py: the second pass walks each slot's packed list entries (list_e).
+LIST_ROWS = True
 # Cell coordinates are packed into one int64 key, 21 bits per axis, so the world
 # spans ±2^20 cells per axis (cells of (1 + SKIN) d: ±12 km at 1 cm spheres,
 # ±1.2 km at 1 mm; stability.FAR_CELLS counts in diameters, conservatively). Beyond that
@@ -382,13 +384,16 @@ def stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_
 
 @numba.njit(parallel=True, cache=True)
 def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, pidx, pair_t,
-                rows):
+                rows, list_start, list_e):
     """At a rebuild, after stage_neighbours: each list entry's pair index
     (contacts.py). The pairs a slot owns get consecutive rows of pair_f, slot
     after slot: pair_start[s] is slot s's first (a prefix sum of the owners'
     counts, serial: a fixed order), and pair_t[p] is row p's partner slot.
     Returns 0, or the rows needed when that is more than ``rows`` (pair_start
-    has the counts; the caller grows pair_f and pair_t)."""
+    has the counts; the caller grows pair_f and pair_t). Then each slot's list
+    entries packed, (partner slot, pair index), into list_e[list_start[s] ..]
+    (contacts.py LIST_ROWS; a serial prefix sum), or a return of the rows needed
+    when list_e is too short."""
     n = sorted_idx.shape[0]
     for s in prange(n):
         pair_start[s + 1] = pair_count(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass)
@@ -404,6 +409,16 @@ def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, 
         for e in range(nbr_n[s]):        # (pair_mirror has set every entry of s's row)
             if pidx[s, e] >= 0:
                 pair_t[pidx[s, e]] = nbr[s, e]
+    list_start[0] = 0
+    for s in range(n):
+        list_start[s + 1] = list_start[s] + nbr_n[s]
+    if list_start[n] > list_e.shape[0]:
+        return list_start[n]
+    for s in prange(n):
+        q = list_start[s]
+        for e in range(nbr_n[s]):
+            list_e[q + e, 0] = nbr[s, e]
+            list_e[q + e, 1] = pidx[s, e]
     return 0
 
 
@@ -598,9 +613,9 @@ def stage_contacts(diameter, nbr, nbr_n, pidx, pair_start, pair_t, sorted_idx, s
                     wall_mask, pair_f, wall_f)
 
 
-def stage_sums(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body, body_inv_mass,
-               sleep_steps, body_rest, wall_mask, pair_f, wall_f, sphere_f, sphere_t,
-               sphere_overlap, spans, n_spans):
+def stage_sums(diameter, nbr, nbr_n, pidx, list_start, list_e, sorted_idx, sorted_x,
+               sorted_body, body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
+               sphere_f, sphere_t, sphere_overlap, spans, n_spans):
     """Stage 4, second pass (contacts.sphere_forces): each sphere gathers the
     forces on itself, in its list's order (its partners' index order), then its
     walls'; writes sphere_f, sphere_t (torque about the sphere's centre) and
@@ -608,7 +623,8 @@ def stage_sums(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body, bo
     feel no force. Over spans[:n_spans], as stage_contacts."""
     for c in prange(n_spans):
         sphere_forces(spans[c, 0], spans[c, 1],
-                      diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body,
+                      diameter, nbr, nbr_n, pidx, list_start, list_e, sorted_idx, sorted_x,
+                      sorted_body,
                       body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
                       sphere_f, sphere_t, sphere_overlap)
 
@@ -780,7 +796,7 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
               body_v, body_w, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash,
               bucket_start, bucket_fill, body_key, grid_slot, sorted_idx, slot_of, sorted_x,
               sorted_v, sorted_body, grid_idx, grid_x, grid_key, grid_body, built_x, nbr,
-              nbr_n, pidx, pair_start, pair_t, pair_f,
+              nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
               wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_overlap, skin_ctl,
               chunks, spans, span_ctl, quiet_share):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
@@ -866,7 +882,8 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                                 grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
                                 body_inv_mass, built_x, nbr, nbr_n) > 0 or \
                     stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
-                                pair_start, pidx, pair_t, pair_f.shape[0]) > 0 or \
+                                pair_start, pidx, pair_t, pair_f.shape[0], list_start,
+                                list_e) > 0 or \
                     (WALLS and stage_wall_reach(diameter, skin, sorted_x, wall_normal,
                                                 wall_offset, wall_lo, wall_hi, wall_depth,
                                                 wall_mask, wall_start,
@@ -893,7 +910,8 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                        hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                        wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                        wall_mask, pair_f, wall_f, wall_start, wall_s, work, n_work)
-        stage_sums(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body, body_inv_mass,
+        stage_sums(diameter, nbr, nbr_n, pidx, list_start, list_e, sorted_idx, sorted_x,
+                   sorted_body, body_inv_mass,
                    sleep_steps, body_rest, wall_mask, pair_f, wall_f, sphere_f, sphere_t,
                    sphere_overlap, work, n_work)
         awake, woke, quiet, calmed = stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start,
@@ -1045,6 +1063,9 @@ class CpuBackend:
         self.pair_start = np.zeros(ns + 1, dtype=np.int64)
         self.pair_f = np.zeros((max(PAIRS_PER_SPHERE * ns, 1), PAIR_COLS))
         self.pair_t = np.zeros(self.pair_f.shape[0], dtype=np.int32)   # each row's partner
+        # the lists packed for the second pass (contacts.py LIST_ROWS): (partner, pair index)
+        self.list_start = np.zeros(ns + 1, dtype=np.int64)
+        self.list_e = np.zeros((max(LIST_PER_SPHERE * ns, 1), 2), dtype=np.int32)
         self.wall_mask = np.zeros(ns, dtype=np.int64)    # walls within reach (contacts.py)
         # with friction, the walls' stretches while stepping (contacts.py WALL_ROWS):
         # an eighth of the spheres to start with (a pile in a box: 15 % touch a wall;
@@ -1125,8 +1146,8 @@ class CpuBackend:
                 self.bucket_fill, self.body_key, self.grid_slot, self.sorted_idx, self.slot_of,
                 self.sorted_x, self.sorted_v, self.sorted_body, self.grid_idx, self.grid_x,
                 self.grid_key, self.grid_body, self.built_x, self.nbr, self.nbr_n,
-                self._pidx(), self.pair_start, self.pair_t, self.pair_f, self.wall_mask,
-                self.wall_start, self.wall_s,
+                self._pidx(), self.pair_start, self.pair_t, self.pair_f, self.list_start,
+                self.list_e, self.wall_mask, self.wall_start, self.wall_s,
                 self.wall_f, self.sphere_f, self.sphere_t, self.sphere_overlap, self.skin_ctl,
                 self.chunks, self.spans, self.span_ctl, float(self.quiet_share))
             state.step += int(done)
@@ -1147,6 +1168,9 @@ class CpuBackend:
                 cap *= 2
             self.nbr = np.zeros((self.model.n_spheres, cap), dtype=np.int32)
             return
+        entries = int(self.list_start[-1])
+        if entries > self.list_e.shape[0]:
+            self.list_e = np.zeros((entries + entries // 2, 2), dtype=np.int32)
         walls = int(self.wall_start[-1])
         if walls > self.wall_s.shape[0]:
             self.wall_s = np.zeros((walls + walls // 2, 4))
@@ -1199,7 +1223,7 @@ class CpuBackend:
                                 m.body_inv_mass, self.built_x, self.nbr, self.nbr_n) > 0
                or stage_pairs(self.nbr, self.nbr_n, self.sorted_idx, self.sorted_body,
                               m.body_inv_mass, self.pair_start, self._pidx(), self.pair_t,
-                              self.pair_f.shape[0]) > 0
+                              self.pair_f.shape[0], self.list_start, self.list_e) > 0
                or stage_wall_reach(m.diameter, SKIN, self.sorted_x, m.wall_normal,
                                    m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth,
                                    self.wall_mask, self.wall_start,
@@ -1225,7 +1249,8 @@ class CpuBackend:
                               m.wall_hi, m.wall_depth, m.wall_material, self.wall_mask,
                               self.pair_f, self.wall_f, self.wall_start, self.wall_s,
                               self.chunks, self.chunks.shape[0])
-        self.k.stage_sums(m.diameter, self.nbr, self.nbr_n, self.pidx, self.sorted_idx,
+        self.k.stage_sums(m.diameter, self.nbr, self.nbr_n, self.pidx, self.list_start,
+                          self.list_e, self.sorted_idx,
                           self.sorted_x, self.sorted_body, m.body_inv_mass, m.sleep_steps,
                           self.rest(state), self.wall_mask, self.pair_f, self.wall_f,
                           self.sphere_f, self.sphere_t, self.sphere_overlap, self.chunks,

@@ -207,7 +207,7 @@ pairs_to_rows = P.pairs_to_rows
 # sleep_steps > 0, the wall masks); the histories in sphere order.
 C = compile_contacts(_device_jit(), F, dict(FRICTION=True, ROTATION=True, SLEEPING=True,
                                             WALLS=True, HIST_BY_SLOT=False, PAIR_ROWS=False,
-                                            WALL_ROWS=False,
+                                            WALL_ROWS=False, LIST_ROWS=False,
                                             sqrt=math.sqrt))
 pair_forces = C.pair_forces
 sphere_forces = C.sphere_forces
@@ -545,8 +545,8 @@ def k_sphere_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_bod
     s = cuda.grid(1)
     if s >= sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
-    sphere_forces(s, s + 1, diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body,
-                  body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
+    sphere_forces(s, s + 1, diameter, nbr, nbr_n, pidx, nbr_n, nbr, sorted_idx, sorted_x,
+                  sorted_body, body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
                   sphere_f, sphere_t, sphere_overlap)
 
 
