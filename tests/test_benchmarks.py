@@ -28,7 +28,8 @@ def test_run_all_lists_every_script():
         import run_all
     finally:
         sys.path.remove(BENCH)
-    helpers = {"run_all", "gpu_bench"}   # gpu_bench needs a CUDA GPU: run alone there
+    # gpu_bench needs a CUDA GPU, perf_samples Linux perf (a tool, not a benchmark): run alone
+    helpers = {"run_all", "gpu_bench", "perf_samples"}
     missing = set(SCRIPTS) - set(run_all.BENCHMARKS) - helpers
     assert not missing, f"benchmarks not run by run_all.py: {sorted(missing)}"
     unknown = set(run_all.BENCHMARKS) - set(SCRIPTS)
