@@ -357,6 +357,29 @@ def balls_on_the_floor(n_side):
     return b.finalize(fps=60, n_frames=2)
 
 
+def three_ways(model, steps, give_room):
+    """The States after ``steps`` steps of ``model`` from a backend that grows its
+    packed rows when a rebuild needs more (returned too, with the room its
+    ``give_room`` array had to start with), from one that give_room(backend) gave
+    room first, and from calls of one step; (states, grown backend, first room)."""
+    states = []
+    for mode in ("grow", "room", "one step per call"):
+        be = Simulator(model).backend
+        if mode == "grow":
+            grown, room0 = be, give_room(be, False)
+        else:
+            give_room(be, mode == "room")
+        st = model.initial_state()
+        for _ in range(steps if mode == "one step per call" else 1):
+            be.step(st, 1 if mode == "one step per call" else steps)
+        states.append(st)
+    for st in states[1:]:
+        for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner",
+                     "contact_spring"):
+            assert np.array_equal(getattr(st, name), getattr(states[0], name)), name
+    return states, grown, room0
+
+
 def test_packed_wall_rows_grow_and_change_nothing():
     # While stepping, the CPU keeps the walls' stretches in packed rows (contacts.py
     # WALL_ROWS), one per marked wall, allocated for an eighth of the spheres. Here
@@ -365,32 +388,21 @@ def test_packed_wall_rows_grow_and_change_nothing():
     # room from the start, and against calls of one step (each rebuilds, copying
     # the stretches out of the history rows and back), the State is the same.
     model = balls_on_the_floor(12)
-    runs = []
-    for mode in ("grow", "room", "one step per call"):
-        be = Simulator(model).backend
-        rows0 = be.wall_s.shape[0]
-        if mode == "room":
+
+    def room(be, give):
+        if give:
             be.wall_s = np.zeros((4 * model.n_spheres, 4))
-        st = model.initial_state()
-        if mode == "one step per call":
-            for _ in range(120):
-                be.step(st, 1)
-        else:
-            be.step(st, 120)
-        assert be.wall_start[-1] >= model.n_spheres           # a row per sphere at least
-        if mode == "grow":
-            assert rows0 < model.n_spheres < be.wall_s.shape[0]
-        runs.append(st)
+        return be.wall_s.shape[0]
+
+    runs, be, rows0 = three_ways(model, 120, room)
+    assert be.wall_start[-1] >= model.n_spheres               # a row per sphere at least
+    assert rows0 < model.n_spheres < be.wall_s.shape[0]        # so they grew
     walls = runs[0].contact_partner >> 1 > model.n_spheres
     assert walls.sum() >= 0.9 * model.n_spheres                # the floor's stretches kept
     assert np.abs(runs[0].contact_spring[walls]).max() > 0.0
     # a wall entry not touched at a step is forgotten (nothing sleeps here), so each
     # one left was touched at the last, step 119: its parity bit says so
     assert np.all(runs[0].contact_partner[walls] & 1 == 119 & 1)
-    for st in runs[1:]:
-        for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner",
-                     "contact_spring"):
-            assert np.array_equal(getattr(st, name), getattr(runs[0], name)), name
 
 
 def test_packed_lists_grow_and_change_nothing():
@@ -409,23 +421,12 @@ def test_packed_lists_grow_and_change_nothing():
     b.add_bodies("balls", s, m, pos, velocities=rng.normal(0, 0.05, (len(pos), 3)))
     b.add_plane([0, 0, 0], [0, 0, 1], m)
     model = b.finalize(fps=60, n_frames=2)
-    runs = []
-    for mode in ("grow", "room", "one step per call"):
-        be = Simulator(model).backend
-        rows0 = be.list_e.shape[0]
-        if mode == "room":
+
+    def room(be, give):
+        if give:
             be.list_e = np.zeros((16 * model.n_spheres, 2), dtype=np.int32)
-        st = model.initial_state()
-        if mode == "one step per call":
-            for _ in range(100):
-                be.step(st, 1)
-        else:
-            be.step(st, 100)
-        if mode == "grow":
-            assert rows0 < be.list_start[-1] <= be.list_e.shape[0]
-        runs.append(st)
+        return be.list_e.shape[0]
+
+    runs, be, rows0 = three_ways(model, 100, room)
+    assert rows0 < be.list_start[-1] <= be.list_e.shape[0]     # the lists' room grew
     assert (runs[0].contact_partner != 0).sum() >= 50          # stretches to compare
-    for st in runs[1:]:
-        for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner",
-                     "contact_spring"):
-            assert np.array_equal(getattr(st, name), getattr(runs[0], name)), name

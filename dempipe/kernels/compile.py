@@ -69,26 +69,29 @@ def compile_slot_store(jit):
 
 
 def compile_pairing(jit, formulas) -> types.SimpleNamespace:
-    """contacts.py's rebuild bookkeeping (wall_reach, owns, pair_count, pair_slots,
-    pair_mirror, walls_to_front, wall_column, rows_to_pairs, pairs_to_rows), each
-    compiled with ``jit``, calling ``formulas`` (the target's compile_formulas);
+    """contacts.py's bookkeeping (entry_range, wall_reach, owns, pair_count,
+    pair_slots, pair_mirror, walls_to_front, wall_column, rows_to_pairs,
+    pairs_to_rows), each compiled with ``jit``, calling ``formulas`` (the target's compile_formulas);
     they read no flags, so they need no variants."""
     from . import contacts
 
-    return compile_chain(contacts, ("wall_reach", "owns", "pair_count", "pair_slots",
+    return compile_chain(contacts, ("entry_range", "wall_reach", "owns", "pair_count",
+                                    "pair_slots",
                                     "pair_mirror", "walls_to_front", "wall_column",
                                     "rows_to_pairs", "pairs_to_rows"), jit,
                          dict(history_recall=formulas.history_recall))
 
 
-def compile_contacts(jit, formulas, constants: dict) -> types.SimpleNamespace:
+def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNamespace:
     """contacts.pair_forces and contacts.sphere_forces compiled with ``jit``, calling
-    ``formulas`` (the target's compile_formulas) and reading ``constants`` (the
+    ``formulas`` (the target's compile_formulas) and ``pairing``'s entry_range (its
+    compile_pairing), and reading ``constants`` (the
     flags FRICTION, ROTATION, SLEEPING, WALLS, HIST_BY_SLOT, and sqrt) as globals.
     The CPU compiles its variants with compile.specialize instead."""
     from . import contacts
 
     given = dict(history_recall=formulas.history_recall, history_store=formulas.history_store,
+                 entry_range=pairing.entry_range,
                  sphere_pair_force=formulas.sphere_pair_force,
                  sphere_wall_force=formulas.sphere_wall_force)
     given.update(constants)

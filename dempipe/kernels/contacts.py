@@ -131,6 +131,14 @@ def wall_reach(s, radius, margin, sorted_x, wall_normal, wall_offset, wall_lo, w
     wall_mask[s] = mask
 
 
+def entry_range(packed, starts, nbr_n, s):
+    """The entries slot s walks: its packed rows starts[s] .. starts[s + 1] - 1
+    (``packed``: PAIR_ROWS, LIST_ROWS), or its list's 0 .. nbr_n[s] - 1."""
+    if packed:
+        return starts[s], starts[s + 1]
+    return 0, nbr_n[s]
+
+
 def owns(s, t, sorted_idx, sorted_body, body_inv_mass):
     """Whether slot s computes its contact with slot t (s has a list: dynamic)."""
     return body_inv_mass[sorted_body[t]] == 0.0 or sorted_idx[s] < sorted_idx[t]
@@ -367,12 +375,7 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
             wyi = body_w[bi, 1]
             wzi = body_w[bi, 2]
         kept = 0                            # pairs that remember a stretch after this step
-        if PAIR_ROWS:  # noqa: F821
-            e0 = pair_start[s]
-            e1 = pair_start[s + 1]
-        else:
-            e0 = 0
-            e1 = nbr_n[s]
+        e0, e1 = entry_range(PAIR_ROWS, pair_start, nbr_n, s)  # noqa: F821
         for e in range(e0, e1):
             if PAIR_ROWS:  # noqa: F821
                 p = e
@@ -627,12 +630,7 @@ def sphere_forces(s0, s1, diameter, nbr, nbr_n, pidx, list_start, list_e, sorted
         ty = 0.0
         tz = 0.0
         near2 = d2
-        if LIST_ROWS:  # noqa: F821
-            e0 = list_start[s]
-            e1 = list_start[s + 1]
-        else:
-            e0 = 0
-            e1 = nbr_n[s]
+        e0, e1 = entry_range(LIST_ROWS, list_start, nbr_n, s)  # noqa: F821
         for e in range(e0, e1):
             t = list_e[e, 0] if LIST_ROWS else nbr[s, e]  # noqa: F821
             rx = sorted_x[t, 0] - xi

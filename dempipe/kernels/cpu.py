@@ -40,6 +40,7 @@ history_store = F.history_store
 rest_steps = F.rest_steps
 sqrt = np.sqrt
 P = compile_pairing(numba.njit(inline="always", cache=False), F)
+entry_range = P.entry_range
 wall_reach = P.wall_reach
 owns = P.owns
 pair_count = P.pair_count

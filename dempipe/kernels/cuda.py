@@ -205,10 +205,10 @@ rows_to_pairs = P.rows_to_pairs
 pairs_to_rows = P.pairs_to_rows
 # The general kernel: every feature compiled in, each checked at run time (friction,
 # sleep_steps > 0, the wall masks); the histories in sphere order.
-C = compile_contacts(_device_jit(), F, dict(FRICTION=True, ROTATION=True, SLEEPING=True,
-                                            WALLS=True, HIST_BY_SLOT=False, PAIR_ROWS=False,
-                                            WALL_ROWS=False, LIST_ROWS=False,
-                                            sqrt=math.sqrt))
+C = compile_contacts(_device_jit(), F, P,
+                     dict(FRICTION=True, ROTATION=True, SLEEPING=True, WALLS=True,
+                          HIST_BY_SLOT=False, PAIR_ROWS=False, WALL_ROWS=False,
+                          LIST_ROWS=False, sqrt=math.sqrt))
 pair_forces = C.pair_forces
 sphere_forces = C.sphere_forces
 
