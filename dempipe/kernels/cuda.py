@@ -527,6 +527,9 @@ def k_pair_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
     s = cuda.grid(1)
     if s >= sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
+    # pair_start, pair_t, wall_start, wall_s: the CPU's packed rows, unread here
+    # (PAIR_ROWS, WALL_ROWS are off); stand-ins of the same array kinds, so the
+    # kernel types either way
     pair_forces(s, s + 1, diameter, nbr, nbr_n, pidx, nbr_n, nbr_n, nbr_n, pair_f, sorted_idx,
                 sorted_x, sorted_v,
                 sorted_body, body_w, body_inv_mass, body_material,
@@ -545,6 +548,7 @@ def k_sphere_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_bod
     s = cuda.grid(1)
     if s >= sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
+    # list_start, list_e: the CPU's packed lists, unread here (LIST_ROWS is off)
     sphere_forces(s, s + 1, diameter, nbr, nbr_n, pidx, nbr_n, nbr, sorted_idx, sorted_x,
                   sorted_body, body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
                   sphere_f, sphere_t, sphere_overlap)
