@@ -54,9 +54,12 @@ class MovieProgress:
               help="Picture size in pixels.")
 @click.option("--fps", type=float, default=None,
               help="Movie frame rate [default: the stage's framesPerSecond].")
+@click.option("--msaa", type=click.Choice(["0", "2", "4", "8"]), default=None,
+              help="Multisamples a pixel (antialiasing) [default: 4 for a still, 0 for a "
+                   "movie, 2.4x faster a frame].")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
-def preview(bake, output, frame, frames, camera, size, fps, quiet, debug):
+def preview(bake, output, frame, frames, camera, size, fps, msaa, quiet, debug):
     """Render a still or a movie of BAKE (a USD stage: any dempipe bake, either layout).
 
     Shaded meshes in the colours the USD carries (bound UsdPreviewSurface or
@@ -79,13 +82,15 @@ def preview(bake, output, frame, frames, camera, size, fps, quiet, debug):
     if ext in STILL_EXTENSIONS:
         if frames is not None:
             raise PreviewError("--frames is for movies (.mp4, .gif); use --frame N for a still")
-        path = render_frame(bake, out, frame=frame, camera=camera, size=wh)
+        path = render_frame(bake, out, frame=frame, camera=camera, size=wh,
+                            **({"samples": int(msaa)} if msaa else {}))
         what = "frame " + (str(frame) if frame is not None else "(last)")
     else:
         if frame is not None:
             raise PreviewError("--frame is for stills (.png); use --frames START:END for a movie")
         path = render_movie(bake, out, frames=frames, camera=camera, size=wh, fps=fps,
-                            progress=MovieProgress(quiet))
+                            progress=MovieProgress(quiet),
+                            **({"samples": int(msaa)} if msaa else {}))
         what = "frames " + (frames or "(all)")
     if not quiet:
         click.echo(f"wrote {path}: {what}, {wh[0]}x{wh[1]}, {camera} camera, "

@@ -31,6 +31,13 @@ CAMERAS = tuple(PRESETS)
 STILL_EXTENSIONS = (".png",)
 MOVIE_EXTENSIONS = (".mp4", ".gif")
 DEFAULT_SIZE = (1280, 720)
+#: Instanced triangles drawn at most; above it the bodies' shared meshes are coarsened
+#: (reader.simplify). llvmpipe transforms vertices on one thread: 1,024 chess pieces at
+#: full detail (2.8 M triangles) cost ~1 s of CPU a frame, at this budget a fraction.
+TRIANGLE_BUDGET = 600_000
+#: Multisampling: stills and contact sheets 4x, movies none (a frame of the chess bake
+#: costs 2.4x the CPU with 4x; docs/preview.md "Speed").
+STILL_SAMPLES, MOVIE_SAMPLES = 4, 0
 
 _EXTRA = ("dempipe preview needs the preview extra (moderngl, av, pillow): "
           "pip install 'dempipe[preview]'")
@@ -84,7 +91,7 @@ class Preview:
     """
 
     def __init__(self, path, *, size=DEFAULT_SIZE, camera: str = "three-quarter",
-                 renderer=None):
+                 samples: int = STILL_SAMPLES, renderer=None):
         require()
         if camera not in PRESETS:
             raise PreviewError(f"--camera: unknown camera {camera!r} (known: "
@@ -93,6 +100,8 @@ class Preview:
         self.path = self.reader.path
         self.frames = self.reader.frames
         self.width, self.height = (int(v) for v in size)
+        first = self.reader.batches(self.frames[0])
+        self.triangles = self.reader.simplify_bodies(TRIANGLE_BUDGET, first)
         first = self.reader.batches(self.frames[0])
         last = first if len(self.frames) == 1 else self.reader.batches(self.frames[-1])
         boxes = [b for b in (batch_bounds(first), batch_bounds(last)) if b is not None]
@@ -108,6 +117,7 @@ class Preview:
         self.camera: Camera = frame_box(camera, lo, hi, self.reader.up_axis, self.width,
                                         self.height, scene_radius=radius)
         self.has_statics = any(not b.body for b in first)
+        self.samples = int(samples)
         self._renderer = renderer
         self._own_renderer = renderer is None
 
@@ -116,7 +126,7 @@ class Preview:
         if self._renderer is None:
             from .gl import Renderer
 
-            self._renderer = Renderer(self.width, self.height)
+            self._renderer = Renderer(self.width, self.height, samples=self.samples)
         return self._renderer
 
     def close(self):
@@ -174,8 +184,7 @@ def save_png(image: np.ndarray, out) -> Path:
     """Write an (H, W, 3) uint8 picture to ``out`` as PNG, atomically."""
     from PIL import Image
 
-    return _atomic(Path(out), lambda tmp: Image.fromarray(image).save(tmp, format="PNG",
-                                                                       optimize=True))
+    return _atomic(Path(out), lambda tmp: Image.fromarray(image).save(tmp, format="PNG"))
 
 
 def _check_extension(out: Path, allowed) -> None:
@@ -185,16 +194,17 @@ def _check_extension(out: Path, allowed) -> None:
 
 
 def render_frame(path, out_png, *, frame: int | None = None, camera: str = "three-quarter",
-                 size=DEFAULT_SIZE) -> Path:
+                 size=DEFAULT_SIZE, samples: int = STILL_SAMPLES) -> Path:
     """Render time code ``frame`` (default: the last) of the bake at ``path`` to a PNG."""
     out = Path(out_png)
     _check_extension(out, STILL_EXTENSIONS)
-    with Preview(path, size=size, camera=camera) as pv:
+    with Preview(path, size=size, camera=camera, samples=samples) as pv:
         return save_png(pv.image(frame), out)
 
 
 def render_movie(path, out, *, frames: str | None = None, camera: str = "three-quarter",
-                 size=DEFAULT_SIZE, fps: float | None = None, progress=None) -> Path:
+                 size=DEFAULT_SIZE, fps: float | None = None, samples: int = MOVIE_SAMPLES,
+                 progress=None) -> Path:
     """Render the bake (or the frames 'A:B') to an MP4 (H.264) or a GIF.
 
     ``fps`` defaults to the stage's framesPerSecond; ``progress(done, total)`` is called
@@ -208,7 +218,7 @@ def render_movie(path, out, *, frames: str | None = None, camera: str = "three-q
     if kind == ".mp4" and (w % 2 or h % 2):
         raise PreviewError(f"--size {w}x{h}: an MP4 (H.264, yuv420p) needs an even width and "
                            f"height")
-    with Preview(path, size=size, camera=camera) as pv:
+    with Preview(path, size=size, camera=camera, samples=samples) as pv:
         chosen = parse_frames(frames, pv.frames, pv.path.name)
         rate = float(fps or pv.reader.fps)
 

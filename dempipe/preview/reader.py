@@ -32,6 +32,26 @@ USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
 DEFAULT_COLOR = (0.5, 0.5, 0.5)
 
 
+def simplify(geom: Geometry, cell: float) -> Geometry:
+    """A coarser copy of ``geom`` by vertex clustering: the points in each cube of edge
+    ``cell`` merge into their mean; triangles that collapse are dropped. Keeps the
+    silhouette to about a cell, which is all a preview of small bodies needs."""
+    if cell <= 0 or not len(geom.triangles):
+        return geom
+    q = np.floor((geom.points - geom.lo) / cell).astype(np.int64)
+    _, cluster, counts = np.unique(q, axis=0, return_inverse=True, return_counts=True)
+    cluster = cluster.reshape(-1)
+    pts = np.zeros((len(counts), 3))
+    np.add.at(pts, cluster, geom.points)
+    pts /= counts[:, None]
+    tri = cluster[geom.triangles]
+    keep = (tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])
+    tri = tri[keep]
+    if len(tri):
+        tri = np.unique(tri, axis=0)   # (sorted rows would merge a face with its flip)
+    return Geometry(geom.key, pts.astype(np.float32), tri.astype(np.int32))
+
+
 class PreviewError(DempipeError):
     """A file cannot be previewed (not USD, nothing to draw, no such frame) or written."""
 
@@ -277,6 +297,28 @@ class StageReader:
             self._instancers.append(_Instancer(prim, protos))
 
     # --------------------------------------------------------------------- frames
+
+    def simplify_bodies(self, budget: int, batches) -> int:
+        """Coarsen the bodies' shared geometries (vertex clustering) until the instanced
+        triangles of ``batches`` are at most ``budget``; returns the triangles left."""
+        used: dict[str, int] = {}
+        total = 0
+        for b in batches:
+            total += len(b.geometry.triangles) * len(b.matrices)
+            if b.body and len(b.matrices) > 1:
+                used[b.geometry.key] = used.get(b.geometry.key, 0) + len(b.matrices)
+        original = {k: self._geometries[k] for k in used}
+        divisions = 48
+        while total > budget and used and divisions >= 6:
+            total = sum(len(b.geometry.triangles) * len(b.matrices) for b in batches
+                        if b.geometry.key not in used)
+            for key, n in used.items():
+                g = original[key]
+                diag = float(np.linalg.norm(g.hi - g.lo))
+                self._geometries[key] = simplify(g, diag / divisions)
+                total += len(self._geometries[key].triangles) * n
+            divisions = divisions * 2 // 3
+        return total
 
     def check_frame(self, frame: int) -> None:
         if frame not in self.frames:
