@@ -56,7 +56,7 @@ class MovieProgress:
               help="Movie frame rate [default: the stage's framesPerSecond].")
 @click.option("--msaa", type=click.Choice(["0", "2", "4", "8"]), default=None,
               help="Multisamples a pixel (antialiasing) [default: 4 for a still, 0 for a "
-                   "movie, 2.4x faster a frame].")
+                   "movie, 2.7x faster a frame].")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
 def preview(bake, output, frame, frames, camera, size, fps, msaa, quiet, debug):

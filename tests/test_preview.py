@@ -73,6 +73,20 @@ SIZE = (320, 180)
 
 
 @pytest.fixture(scope="module")
+def egl():
+    """An offscreen OpenGL context, or the reason there is none: a failure on CI (which
+    must have libEGL and Mesa), a skip on a developer's machine without them."""
+    from dempipe.preview.gl import create_context
+
+    try:
+        create_context().release()
+    except preview.PreviewError as exc:
+        if os.environ.get("CI"):
+            pytest.fail(str(exc))
+        pytest.skip(str(exc))
+
+
+@pytest.fixture(scope="module")
 def bakes(tmp_path_factory):
     d = tmp_path_factory.mktemp("preview")
     scene = d / "scene.toml"
@@ -128,7 +142,7 @@ GREY = (0.55, 0.55, 0.55)
 
 
 @pytest.mark.parametrize("layout", ["instancer", "xforms"])
-def test_bodies_are_where_the_usd_says(bakes, layout):
+def test_bodies_are_where_the_usd_says(egl, bakes, layout):
     with preview.Preview(bakes[layout], size=SIZE) as pv:
         assert pv.frames == list(range(0, 7))
         for frame in (pv.frames[0], pv.frames[-1]):
@@ -144,7 +158,7 @@ def test_bodies_are_where_the_usd_says(bakes, layout):
                 assert nearest_color(color_at(img, xy), candidates) == b, (frame, b, xy)
 
 
-def test_first_and_last_frames_differ_where_bodies_moved(bakes):
+def test_first_and_last_frames_differ_where_bodies_moved(egl, bakes):
     with preview.Preview(bakes["instancer"], size=SIZE) as pv:
         first, last = pv.image(pv.frames[0]), pv.image(pv.frames[-1])
         c0, colors = body_centres_and_colors(bakes["instancer"], pv.frames[0])
@@ -163,7 +177,7 @@ def test_first_and_last_frames_differ_where_bodies_moved(bakes):
         assert not changed[:10, :10].any()
 
 
-def test_both_layouts_give_the_same_picture(bakes):
+def test_both_layouts_give_the_same_picture(egl, bakes):
     """Same bake, two layouts: only the quaternions' precision (half against float)
     differs, so at most a few edge pixels may."""
     images = []
@@ -179,7 +193,7 @@ def _dempipe(*args, env=None, cwd=None):
                           capture_output=True, text=True, env=env, cwd=cwd, timeout=600)
 
 
-def test_cli_still_and_movies(bakes, tmp_path):
+def test_cli_still_and_movies(egl, bakes, tmp_path):
     png = tmp_path / "still.png"
     proc = _dempipe("preview", bakes["xforms"], "-o", png, "--frame", 3, "--size", "160x90",
                     "--camera", "top")
@@ -212,7 +226,7 @@ def test_cli_still_and_movies(bakes, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["movie.gif", "movie.mp4", "still.png"]
 
 
-def test_contact_sheet(bakes, tmp_path):
+def test_contact_sheet(egl, bakes, tmp_path):
     out = preview.contact_sheet([bakes["instancer"], bakes["xforms"]], tmp_path / "sheet.png",
                                 labels=["instancer", "xforms"], tile=SIZE)
     from PIL import Image
@@ -229,7 +243,7 @@ def test_contact_sheet(bakes, tmp_path):
         preview.contact_sheet([bakes["xforms"]], tmp_path / "x.png", labels=["a", "b"])
 
 
-def test_generic_stage_material_and_time_sampled_xform_ops(tmp_path):
+def test_generic_stage_material_and_time_sampled_xform_ops(egl, tmp_path):
     """Not a dempipe bake: a cube under an Xform with time-sampled translate, coloured by a
     bound UsdPreviewSurface (which wins over its displayColor, as in Hydra), no time range."""
     path = tmp_path / "generic.usda"
@@ -337,6 +351,23 @@ def test_without_the_extra_the_rest_runs_and_preview_says_how_to_install(bakes, 
     assert help_.returncode == 0 and "preview" in help_.stdout and "bake" in help_.stdout
     check = run("check", Path(__file__).parents[1] / "examples" / "quickstart.toml")
     assert check.returncode == 0, check.stderr
+
+
+def test_without_egl_one_line_naming_the_system_packages(bakes, tmp_path):
+    """A farm node without libEGL/libGL: stand-ins that dlopen cannot load come first on
+    LD_LIBRARY_PATH, so context creation really fails."""
+    fake = tmp_path / "lib"
+    fake.mkdir()
+    for name in ("libEGL.so.1", "libEGL.so", "libGL.so.1", "libGL.so"):
+        (fake / name).write_bytes(b"")
+    env = {k: v for k, v in os.environ.items() if k != "DISPLAY"}
+    env["LD_LIBRARY_PATH"] = str(fake)
+    proc = _dempipe("preview", bakes["instancer"], "-o", tmp_path / "p.png", env=env)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "cannot create an offscreen OpenGL context" in lines[0]
+    assert "apt-get install libegl1" in lines[0] and "Traceback" not in proc.stderr
+    assert not (tmp_path / "p.png").exists()
 
 
 def test_the_extra_is_optional():

@@ -36,7 +36,7 @@ DEFAULT_SIZE = (1280, 720)
 #: full detail (2.8 M triangles) cost ~1 s of CPU a frame, at this budget a fraction.
 TRIANGLE_BUDGET = 600_000
 #: Multisampling: stills and contact sheets 4x, movies none (a frame of the chess bake
-#: costs 2.4x the CPU with 4x; docs/preview.md "Speed").
+#: costs 2.7x the CPU with 4x; docs/preview.md "Speed").
 STILL_SAMPLES, MOVIE_SAMPLES = 4, 0
 
 _EXTRA = ("dempipe preview needs the preview extra (moderngl, av, pillow): "

@@ -1,8 +1,7 @@
 """Offscreen OpenGL drawing of preview frames with moderngl (EGL, no display needed).
 
 On a machine without a GPU, Mesa's llvmpipe rasterizes on the CPU through EGL: the
-system needs libEGL and Mesa's drivers (Debian/Ubuntu: ``libegl1 libgl1-mesa-dri``;
-RHEL/Rocky/Alma: ``mesa-libEGL mesa-dri-drivers``), which docs/preview.md lists. With a
+system needs libEGL, libGL and Mesa's drivers (:data:`SYSTEM_HINT`, docs/preview.md). With a
 GPU and its driver's libEGL, the same code runs on the GPU.
 
 A frame is drawn in passes: the bodies into a shadow map from a sun above; the bodies,
@@ -25,8 +24,9 @@ from .reader import PreviewError
 INSTALL_HINT = ("pip install 'dempipe[preview]'")
 
 #: How to get the system libraries EGL rendering needs (docs/preview.md).
-SYSTEM_HINT = ("needs libEGL and Mesa's drivers (Debian/Ubuntu: apt-get install libegl1 "
-               "libgl1-mesa-dri; RHEL/Rocky: dnf install mesa-libEGL mesa-dri-drivers)")
+SYSTEM_HINT = ("needs libEGL, libGL and Mesa's drivers (Debian/Ubuntu: apt-get install libegl1 "
+               "libegl-mesa0 libgl1 libgl1-mesa-dri; RHEL/Rocky: dnf install mesa-libEGL "
+               "mesa-libGL mesa-dri-drivers)")
 
 _VERTEX = """
 #version 330
