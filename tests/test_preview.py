@@ -286,6 +286,30 @@ def test_generic_stage_material_and_time_sampled_xform_ops(egl, tmp_path):
         assert nearest_color(color_at(img, floor_point), candidates) == 2
 
 
+def test_ground_grid_without_colliders(egl, bakes, tmp_path):
+    """The bake with its colliders deactivated in an overlay (a sublayer): the ground gets
+    a grid under the bodies, with lines on the multiples of its step."""
+    from dempipe.preview.gl import ground_grid
+
+    layer = Sdf.Layer.CreateNew(str(tmp_path / "overlay.usda"))
+    layer.subLayerPaths.append(str(bakes["instancer"]))
+    stage = Usd.Stage.Open(layer)
+    stage.OverridePrim("/World/Colliders").SetActive(False)
+    layer.Save()
+    with preview.Preview(tmp_path / "overlay.usda", size=(640, 360)) as pv:
+        assert not pv.has_statics
+        img = pv.image()
+        height, step, _, _ = ground_grid(*pv.bounds, "Z")
+        y = step * (np.floor(pv.bounds[0][1] / step) - 1)    # in front of the bodies
+        on_line = pv.camera.project([(0.0, y, height)])[0]
+        in_cell = pv.camera.project([(step / 2, y + step / 2, height)])[0]
+        assert ((on_line > 2) & (on_line < (638, 358))).all(), on_line
+        assert ((in_cell > 2) & (in_cell < (638, 358))).all(), in_cell
+        x, y = (int(round(v)) for v in on_line)
+        darkest_near_line = img[y - 2:y + 3, x - 2:x + 3].reshape(-1, 3).sum(axis=1).min()
+        assert darkest_near_line + 45 < color_at(img, in_cell).sum()
+
+
 def test_bad_files_one_line_and_nothing_written(bakes, tmp_path):
     garbage = tmp_path / "garbage.usdc"
     garbage.write_bytes(b"not a crate file\x00\x01")
