@@ -24,6 +24,7 @@ COMMANDS = {
     "bake": ("dempipe_cli.bake_cmd", "bake"),
     "check": ("dempipe_cli.check_cmd", "check"),
     "report": ("dempipe_cli.report_cmd", "report"),
+    "wedge": ("dempipe_cli.wedge_cmd", "wedge"),
 }
 
 HELP = {
@@ -32,6 +33,7 @@ HELP = {
     "bake": "Simulate a scene and write the animation to USD.",
     "check": "Predict stability problems of a scene without simulating.",
     "report": "Measure error against run time for a scene's settings.",
+    "wedge": "Bake variants of a scene (seeds, any key) as tasks on Dask.",
 }
 
 
