@@ -35,7 +35,7 @@ import math
 import os
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import DempipeError
@@ -445,7 +445,8 @@ def _bake_variant(scene: str, output: str, tries: str, *, device=None, layout="i
     with open(tries, "a", encoding="utf-8") as fh:           # one line per start
         fh.write(worker + "\n")
     t0 = time.perf_counter()
-    out = dict(worker=worker, threads=None, frames=None, steps=None)
+    warnings: list[str] = []
+    out = dict(worker=worker, threads=None, frames=None, steps=None, warnings=warnings)
     try:
         import numba
 
@@ -457,7 +458,7 @@ def _bake_variant(scene: str, output: str, tries: str, *, device=None, layout="i
         out["threads"] = threads
         kwargs = dict(device=device, layout=layout, threads=threads, force=force,
                       cache=SphereCache(cache_dir) if cache_dir else None,
-                      warn=lambda msg: None, progress=None)
+                      warn=warnings.append, progress=None)
         if resume and _bake_can_resume():
             kwargs["resume"] = True          # issue 22: carry on from the partial bake
         if not Path(scene).is_file():
@@ -604,10 +605,15 @@ def _run(farm, valid, rows, result, say, warn, csv_path, keys, device, layout, f
                           resume=partial.exists(), key=f"dempipe-wedge-{v.name}-{os.getpid()}"
                                                        f"-{time.time_ns()}")
         futures[fut] = v
+    warned = set()
     for fut, value, error in farm.finished(list(futures)):
         v = futures[fut]
         if error is not None:
             value = dict(status="failed: " + failure_reason(error))
+        for msg in value.get("warnings") or ():
+            if msg not in warned:          # a warning every variant shares: once
+                warned.add(msg)
+                warn(f"{v.name}: {msg}")
         _finish(rows[v.name], value, v, result, say, csv_path, keys)
 
 
@@ -621,6 +627,9 @@ def _finish(row: VariantResult, value: dict, v: Variant, result: WedgeResult, sa
         row.tries = len(_tries_file(v).read_text(encoding="utf-8").split())
     except OSError:
         row.tries = 0
+    if not row.ok:       # what a failed bake kept, if anything
+        partial = v.output.with_name(f"{v.output.stem}.partial{v.output.suffix}")
+        row.output = str(partial) if partial.exists() else ""
     _atomic_write(csv_path, format_csv(keys, result.variants))
     done = sum(1 for r in result.variants if r.status != "pending")
     values = " ".join(f"{k.rsplit('.', 1)[-1]}={_cell(row.values[k])}" for k in keys)

@@ -221,8 +221,8 @@ def test_four_seeds_give_four_different_bakes(farm, shared, tmp_path):
 
     root, cache = shared
     lines = []
-    r = wedge(write_scene(tmp_path), tmp_path / "w", seeds=4, farm=farm, cache_dir=cache,
-              progress=lines.append)
+    r = wedge(write_scene(tmp_path), tmp_path / "w", seeds=4, farm=farm, device="cpu",
+              cache_dir=cache, progress=lines.append)
     rows = read_rows(r.csv)
     assert [row["variant"] for row in rows] == ["v000", "v001", "v002", "v003"]
     assert [int(row["simulation.seed"]) for row in rows] == [3, 4, 5, 6]
@@ -247,7 +247,8 @@ def test_four_seeds_give_four_different_bakes(farm, shared, tmp_path):
 def test_a_vary_grid_writes_its_values(farm, shared, tmp_path):
     import tomllib
 
-    r = wedge(write_scene(tmp_path), tmp_path / "w", farm=farm, cache_dir=shared[1],
+    r = wedge(write_scene(tmp_path), tmp_path / "w", farm=farm, device="cpu",
+              cache_dir=shared[1],
               vary=["materials.rubber.restitution=0.2,0.6", "simulation.resolution=2,3"])
     rows = read_rows(r.csv)
     got = {(float(row["materials.rubber.restitution"]), int(row["simulation.resolution"]))
@@ -266,7 +267,8 @@ def test_a_vary_grid_writes_its_values(farm, shared, tmp_path):
 
 
 def test_a_bad_variant_fails_its_row_only(farm, shared, tmp_path):
-    r = wedge(write_scene(tmp_path), tmp_path / "w", farm=farm, cache_dir=shared[1],
+    r = wedge(write_scene(tmp_path), tmp_path / "w", farm=farm, device="cpu",
+              cache_dir=shared[1],
               vary=["materials.rubber.restitution=0.3,7", "simulation.dt=\"auto\",0.01"])
     rows = {row["variant"]: row for row in read_rows(r.csv)}
     assert rows["v000"]["status"] == "ok"
@@ -282,19 +284,20 @@ def test_a_bad_variant_fails_its_row_only(farm, shared, tmp_path):
 
 def test_a_second_run_skips_the_done_variants(farm, shared, tmp_path):
     scene, out = write_scene(tmp_path), tmp_path / "w"
-    first = wedge(scene, out, seeds=2, farm=farm, cache_dir=shared[1])
+    first = wedge(scene, out, seeds=2, farm=farm, device="cpu", cache_dir=shared[1])
     assert len(first.ok) == 2
     stamp = {p.name: p.stat().st_mtime_ns for p in out.glob("v00*.usdc")}
     (out / "v001.usdc").unlink()                          # lost: baked again
     lines = []
-    second = wedge(scene, out, seeds=3, farm=farm, cache_dir=shared[1], progress=lines.append)
+    second = wedge(scene, out, seeds=3, farm=farm, device="cpu", cache_dir=shared[1],
+                   progress=lines.append)
     assert [v.name for v in second.skipped] == ["v000"]
     assert (out / "v000.usdc").stat().st_mtime_ns == stamp["v000.usdc"]
     assert {row["status"] for row in read_rows(second.csv)} == {"ok"}
     assert any("1 of 3 variants done by an earlier run" in line for line in lines), lines
     # a changed scene is a changed variant: baked again
     scene.write_text(scene.read_text().replace("friction = 0.4", "friction = 0.3"))
-    third = wedge(scene, out, seeds=3, farm=farm, cache_dir=shared[1])
+    third = wedge(scene, out, seeds=3, farm=farm, device="cpu", cache_dir=shared[1])
     assert third.skipped == [] and len(third.ok) == 3
 
 
@@ -305,7 +308,8 @@ def test_a_killed_worker_loses_no_variant(farm, shared, tmp_path):
 
     def run():
         try:
-            box["result"] = wedge(scene, out, seeds=4, farm=farm, cache_dir=shared[1])
+            box["result"] = wedge(scene, out, seeds=4, farm=farm, device="cpu",
+                                  cache_dir=shared[1])
         except BaseException as exc:           # seen by the test below
             box["error"] = exc
 
@@ -381,7 +385,7 @@ def test_scheduler_and_workers_as_processes_run_the_cli(shared, tmp_path):
         proc = subprocess.run(
             [sys.executable, "-m", "dempipe_cli.main", "wedge", str(scene), "-o", str(out),
              "--seeds", "2", "--vary", "materials.rubber.restitution=0.3,7",
-             "--scheduler", address, "--cache-dir", str(shared[1])],
+             "--scheduler", address, "--device", "cpu", "--cache-dir", str(shared[1])],
             capture_output=True, text=True, env=env, timeout=400)
     finally:
         _stop(procs)
@@ -452,7 +456,7 @@ def test_report_on_the_farm_measures_what_it_measures_alone(farm, shared, tmp_pa
 
     scene = write_scene(tmp_path)
     sweep = Sweep(resolutions=(2, 3), dt_factors=(1.0,), stiffness_factors=(1.0,),
-                  duration=0.125, plots=False, threads=1)
+                  duration=0.125, plots=False, threads=1, device="cpu")
     cache = SphereCache(shared[1])
     lines = []
     farmed = run_report(scene, tmp_path / "farm", sweep, cache=cache, farm=farm,
