@@ -1,7 +1,7 @@
 """A wedge of seeds on a local Dask cluster against the same bakes in a row in one process.
 
     python benchmarks/wedge.py                  # quickstart, 4 seeds, 0.5 s each
-    python benchmarks/wedge.py --quick          # 0.25 s each
+    python benchmarks/wedge.py --quick          # 0.125 s each
     python benchmarks/wedge.py --workers 2 --threads 1 --serial-threads 2 --repeat 2
 
 The wedge: `dempipe.wedge.wedge(scene, seeds=N)` on a LocalCluster of --workers
@@ -75,7 +75,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default=os.path.join(ROOT, "examples", "quickstart.toml"))
     ap.add_argument("--duration", type=float, default=0.5, help="simulated seconds per bake")
-    ap.add_argument("--quick", action="store_true", help="--duration 0.25")
+    ap.add_argument("--quick", action="store_true", help="--duration 0.125")
     ap.add_argument("--seeds", type=int, default=4)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--threads", type=int, default=1, help="numba threads per worker")
@@ -92,7 +92,7 @@ def main(argv=None) -> int:
     from dempipe.bake import bake
     from dempipe.cache import SphereCache
 
-    duration = 0.25 if args.quick else args.duration
+    duration = 0.125 if args.quick else args.duration
     with tempfile.TemporaryDirectory(prefix="dempipe-wedge-bench-") as tmp:
         tmp = Path(tmp)
         scene = scene_copy(Path(args.scene), tmp, duration)
@@ -103,22 +103,23 @@ def main(argv=None) -> int:
         warm = scene_copy(Path(args.scene), tmp / "warm", 2.0 / 24)
         bake(warm, tmp / "warm.usdc", device="cpu", threads=args.serial_threads, cache=cache,
              warn=lambda msg: None)
-        rows = []
+        env = {k: os.environ[k] for k in ("OMP_WAIT_POLICY", "NUMBA_NUM_THREADS")
+               if k in os.environ}
+        print(f"# {os.cpu_count()} cores, numba {numba.__version__}, {Path(args.scene).name}, "
+              f"{args.seeds} seeds of {duration:g} s, this process's environment "
+              f"{env or 'default'}", flush=True)
+        print("| run | wedge: workers x threads | wedge wall s | its bakes' s | "
+              f"in a row ({args.serial_threads} threads) wall s | their bakes' s | "
+              "in a row / wedge |", flush=True)
+        print("|---:|---|---:|---:|---:|---:|---:|", flush=True)
         t_all = time.perf_counter()
-        for k in range(args.repeat):
+        for k in range(args.repeat):       # alternate: the machine's load changes
             w = farmed(scene, tmp / f"wedge{k}", args.seeds, args.workers, args.threads,
                        cache_dir)
             s = serial(scene, tmp / f"serial{k}", args.seeds, args.serial_threads, cache)
-            rows.append((w, s))
-    print(f"# {os.cpu_count()} cores, numba {numba.__version__}, {Path(args.scene).name}, "
-          f"{args.seeds} seeds of {duration:g} s, {time.perf_counter() - t_all:.0f} s")
-    print("| run | wedge: workers x threads | wedge wall s | its bakes' s | "
-          f"in a row ({args.serial_threads} threads) wall s | their bakes' s | "
-          "in a row / wedge |")
-    print("|---:|---|---:|---:|---:|---:|---:|")
-    for k, (w, s) in enumerate(rows):
-        print(f"| {k + 1} | {args.workers} x {args.threads} | {w[0]:.1f} | {w[1]:.1f} | "
-              f"{s[0]:.1f} | {s[1]:.1f} | {s[0] / w[0]:.2f}x |")
+            print(f"| {k + 1} | {args.workers} x {args.threads} | {w[0]:.1f} | {w[1]:.1f} | "
+                  f"{s[0]:.1f} | {s[1]:.1f} | {s[0] / w[0]:.2f}x |", flush=True)
+        print(f"# {time.perf_counter() - t_all:.0f} s", flush=True)
     return 0
 
 
