@@ -381,13 +381,18 @@ def _cell(v) -> str:
     return str(v)
 
 
+def _value_cell(v) -> str:
+    return "" if v is None else v if isinstance(v, str) else _tvalue(v)
+
+
 def format_csv(keys, rows) -> str:
     """wedge.csv's text: variant, the wedged keys, then CSV_TAIL."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["variant", *keys, *CSV_TAIL])
     for r in rows:
-        w.writerow([r.name, *(_cell(r.values.get(k)) for k in keys),
+        # the wedged values exactly as the scene files hold them; figures to 6 digits
+        w.writerow([r.name, *(_value_cell(r.values.get(k)) for k in keys),
                     *(_cell(getattr(r, c)) for c in CSV_TAIL)])
     return buf.getvalue()
 
@@ -632,7 +637,7 @@ def _finish(row: VariantResult, value: dict, v: Variant, result: WedgeResult, sa
         row.output = str(partial) if partial.exists() else ""
     _atomic_write(csv_path, format_csv(keys, result.variants))
     done = sum(1 for r in result.variants if r.status != "pending")
-    values = " ".join(f"{k.rsplit('.', 1)[-1]}={_cell(row.values[k])}" for k in keys)
+    values = " ".join(f"{k.rsplit('.', 1)[-1]}={_value_cell(row.values[k])}" for k in keys)
     tail = (f"ok in {row.wall_s:.1f} s on {row.worker}" if row.ok else row.status)
     again = f" (started {row.tries} times: a worker died)" if row.tries > 1 else ""
     say(f"[{done}/{len(result.variants)}] {row.name} {values}: {tail}{again}")
