@@ -25,6 +25,7 @@ COMMANDS = {
     "check": ("dempipe_cli.check_cmd", "check"),
     "report": ("dempipe_cli.report_cmd", "report"),
     "preview": ("dempipe_cli.preview_cmd", "preview"),
+    "wedge": ("dempipe_cli.wedge_cmd", "wedge"),
 }
 
 HELP = {
@@ -34,6 +35,7 @@ HELP = {
     "check": "Predict stability problems of a scene without simulating.",
     "report": "Measure error against run time for a scene's settings.",
     "preview": "Render a still or a movie of a bake (needs dempipe[preview]).",
+    "wedge": "Bake variants of a scene (seeds, any key) as tasks on Dask.",
 }
 
 

@@ -33,13 +33,19 @@ import click
               help="Compute device (default: the scene's simulation.device).")
 @click.option("--threads", type=click.IntRange(min=1), default=None,
               help="CPU threads (default: all cores).")
+@click.option("--workers", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Bake the runs side by side on a local Dask cluster of N workers, each "
+                   "with --threads threads (needs dempipe[farm]; docs/farm.md).")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="Bake the runs on a running Dask scheduler's workers (docs/farm.md).")
 @click.option("--cache-dir", type=click.Path(file_okay=False), default=None,
               help="Sphere-set cache folder (default: $DEMPIPE_CACHE_DIR or the user cache).")
 @click.option("--no-plots", is_flag=True, help="Skip the PNG plots (no matplotlib needed).")
 @click.option("--quiet", "-q", is_flag=True, help="No line per run.")
 @click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
 def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, horizon,
-           tolerance, bodies, device, threads, cache_dir, no_plots, quiet, debug):
+           tolerance, bodies, device, threads, workers, scheduler, cache_dir, no_plots, quiet,
+           debug):
     """Bake SCENE at every combination of resolution, dt and stiffness factors; write
     the error of each run against its run time to OUTPUT (report.md, report.csv, PNGs).
 
@@ -61,7 +67,18 @@ def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, 
         threads=threads, plots=not no_plots)
     cache = SphereCache(cache_dir, strict=True) if cache_dir else None
     say = (lambda line: None) if quiet else (lambda line: click.echo(line, err=True))
-    result = run_report(scene, output, sweep, cache=cache, progress=say)
+    if workers is None and scheduler is None:
+        result = run_report(scene, output, sweep, cache=cache, progress=say)
+    else:
+        # Run times measured side by side share the machine's memory bandwidth: compare
+        # them with each other, not with a lone bake (docs/farm.md).
+        from dempipe.farm import connect
+
+        with connect(workers=workers, scheduler=scheduler, threads=threads,
+                     what="dempipe report --workers/--scheduler") as farm:
+            if farm.dashboard:
+                say(f"Dask dashboard: {farm.dashboard}")
+            result = run_report(scene, output, sweep, cache=cache, progress=say, farm=farm)
     rec = result.recommended
     click.echo(f"wrote {', '.join(str(p) for p in result.files)} ({len(result.runs)} runs, "
                f"{result.wall_s:.0f} s)")

@@ -257,11 +257,47 @@ def _bake(model, device: str, threads):
     return frames, sim.stats.wall_seconds, sim.stats.steps
 
 
+def _farm_bake(model, device: str, threads):
+    """A farm task: _bake, with the bake's own failures returned as a line, not raised."""
+    from .simulator import BakeFailure
+
+    if threads is None:          # the pool this worker process was given
+        import numba
+
+        threads = numba.config.NUMBA_NUM_THREADS
+    try:
+        return _bake(model, device, threads)
+    except (StabilityError, BakeFailure) as exc:
+        return " ".join(str(exc).split())
+
+
+def _gather_farmed(farm, farmed, n_runs: int, say) -> None:
+    """Fill each farmed run as its task finishes (a line each); the reference must pass."""
+    from .farm import failure_reason
+
+    by_future = {fut: (i, run) for i, run, fut in farmed}
+    for fut, value, error in farm.finished(list(by_future)):
+        i, run = by_future[fut]
+        reason = failure_reason(error) if error is not None else \
+            value if isinstance(value, str) else None
+        if reason is None:
+            run.frames, run.wall_s, run.steps = value
+        elif run.reference:
+            raise StabilityError(f"the reference run ({run.label}) failed: {reason}")
+        else:
+            run.status = "failed: " + reason
+        say(f"run {i + 1}/{n_runs} {run.label}: "
+            + (f"{run.spheres:,} spheres, {run.steps:,} steps in {run.wall_s:.1f} s"
+               if run.ok else run.status))
+
+
 def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
-               progress=None) -> ReportResult:
+               progress=None, farm=None) -> ReportResult:
     """Bake every combination of ``sweep`` for the scene, measure, write DIR's files.
 
     progress : callable(str) for one line per run (the CLI prints them).
+    farm : an open dempipe.farm.Farm (`--workers`/`--scheduler`): the runs' bakes are
+        its tasks, run side by side (models are built here, measured here).
     Raises ReportError for unusable settings, SceneError etc. for the scene, and
     StabilityError when the reference run itself fails.
     """
@@ -301,7 +337,7 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
     keys[1:] = sorted(keys[1:], key=lambda x: (x[0], -x[1], x[2]))
 
     _warm_voxelizer()
-    runs, shapes, built = [], {}, {}
+    runs, shapes, built, farmed = [], {}, {}, []
     for i, (r, f, k) in enumerate(keys):
         run = Run(r, f, k, reference=(i == 0))
         runs.append(run)
@@ -322,6 +358,10 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
             run.diameter, run.dt, run.spheres = model.diameter, model.dt, model.n_spheres
             run.memory_bytes = int(memory_estimate(model)["total"])
             run.geometry = _worst_geometry([shapes[(s.name, r)] for s in model.shapes])
+            if farm is not None:       # baked by a task; said when it finishes
+                farmed.append((i, run, farm.submit(_farm_bake, model, device, sweep.threads,
+                                                   key=f"dempipe-report-{i}-{time.time_ns()}")))
+                continue
             run.frames, run.wall_s, run.steps = _bake(model, device, sweep.threads)
         except (StabilityError, BakeFailure) as exc:
             if run.reference:
@@ -330,6 +370,9 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
         say(f"run {i + 1}/{len(keys)} {run.label}: "
             + (f"{run.spheres:,} spheres, {run.steps:,} steps in {run.wall_s:.1f} s"
                if run.ok else run.status))
+
+    if farmed:
+        _gather_farmed(farm, farmed, len(keys), say)
 
     ref = runs[0]
     pile = ref.model.n_bodies >= PILE_BODIES
