@@ -79,6 +79,8 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
         raise ExportError(f"{out}: unknown extension {out.suffix!r} (use .usd, .usdc or .usda)")
     t_start = time.perf_counter()
     scene = load_scene(scene_path)
+    for msg in scene.usd.warnings if scene.usd is not None else ():
+        warn(msg)
     device_asked = device or scene.simulation.device
     dev = resolve_device(device_asked)
     if device_asked == "auto" and dev == "cpu":
@@ -153,7 +155,12 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
                          recorded.x[start:], recorded.q[start:], recorded.v[start:],
                          recorded.w[start:])
     target = out if failure is None else partial_path(out)
-    info = write_usd(target, written, model, layout=layout)
+    if scene.usd is not None:   # a USD stage in: an overlay over it out
+        from .export.overlay import write_overlay
+
+        info = write_overlay(target, written, model, scene.usd)
+    else:
+        info = write_usd(target, written, model, layout=layout)
     report.update(frames=written.n_frames, export_seconds=info.seconds,
                   wall_seconds=time.perf_counter() - t_start, output=str(target))
     if failure is not None:
