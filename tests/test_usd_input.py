@@ -343,9 +343,11 @@ def test_unusable_stages_fail_with_one_line(tmp_path):
 @pytest.mark.slow
 def test_restitution_from_the_bound_material_gives_e_squared(tmp_path):
     # One ball (one sphere: resolution 1) with a material of e = 0.8 bound for
-    # physics drops 5 cm onto a Plane; the rebound apex is e² h0. Tolerance 3 %, as
-    # the bounce tests of test_simulation.py (there at 512 steps per contact; here
-    # at the auto dt, whose error grows as e falls: 0.8 stays inside it).
+    # physics drops 5 cm onto a Plane bound to it too; the rebound apex is e² h0.
+    # Tolerance 3 %, as the bounce tests of test_simulation.py. The step is set to
+    # 1/128 of a frame at 240 fps, 66 steps per contact: the auto dt (16.5 per
+    # contact) gives -3.1 % here (measured), the dashpot's switch-on error
+    # ζ ω dt of docs/physics.md; at 66 it is ~0.7 % on e².
     e, h0, r = 0.8, 0.05, 0.02
     st = new_stage(tmp_path / "b.usda", end=120, tcps=240)
     plane = UsdGeom.Plane.Define(st, "/World/Floor")
@@ -360,7 +362,7 @@ def test_restitution_from_the_bound_material_gives_e_squared(tmp_path):
     bind_physics(plane.GetPrim(), mat)
     st.GetRootLayer().Save()
     (tmp_path / "b.toml").write_text('[usd]\nstage = "b.usda"\n[simulation]\nresolution = 1\n'
-                                     'sleeping = false\n')
+                                     f'sleeping = false\ndt = {1 / 240 / 128!r}\n')
     out = bake(tmp_path / "b.toml", tmp_path / "b_out.usdc", device="cpu",
                cache=SphereCache(tmp_path / "cache")).path
     stage = Usd.Stage.Open(str(out))
@@ -368,9 +370,11 @@ def test_restitution_from_the_bound_material_gives_e_squared(tmp_path):
     xf = UsdGeom.Xformable(stage.GetPrimAtPath("/World/Ball"))
     z = np.array([xf.ComputeLocalToWorldTransform(Usd.TimeCode(t)).ExtractTranslation()[2]
                   for t in range(121)]) - d / 2
-    hit = int(np.argmax(z < 0))
-    leave = hit + int(np.argmax(z[hit:] >= 0))
-    apex = z[leave:].max()
+    vz = [stage.GetPrimAtPath("/World/Ball").GetAttribute("physics:velocity").Get(t)[2]
+          for t in range(121)]
+    up = int(np.argmax(np.asarray(vz) > 0))          # first frame after the bounce
+    assert 0 < up < 60
+    apex = z[up:up + 60].max()                       # before the second bounce
     assert apex / h0 == pytest.approx(e * e, rel=0.03)
 
 
@@ -378,21 +382,25 @@ def test_restitution_from_the_bound_material_gives_e_squared(tmp_path):
 
 
 def test_example_stage_bakes_from_the_command_line(tmp_path):
-    """examples/usd_shot.usda over its first 6 frames, through `dempipe bake`."""
+    """examples/usd_shot.usda over its first 6 frames, through `dempipe bake` with
+    dempipe's settings on the command line, and `dempipe check` on it."""
     src = ROOT / "examples" / "usd_shot.usda"
     stage = Usd.Stage.Open(str(src))
     stage.SetEndTimeCode(stage.GetStartTimeCode() + 6)
     stage.GetRootLayer().Export(str(tmp_path / "usd_shot.usda"))
-    (tmp_path / "shot.toml").write_text(
-        '[usd]\nstage = "usd_shot.usda"\n[simulation]\nresolution = 3\n')
     env = dict(os.environ, DEMPIPE_CACHE_DIR=str(tmp_path / "cache"))
-    r = subprocess.run([sys.executable, "-m", "dempipe_cli.main", "bake", "shot.toml", "-o",
-                        "baked.usda", "--device", "cpu", "-q"], cwd=tmp_path, env=env,
-                       capture_output=True, text=True, timeout=900)
+    r = subprocess.run([sys.executable, "-m", "dempipe_cli.main", "bake", "usd_shot.usda", "-o",
+                        "baked.usda", "--device", "cpu", "-q", "--resolution", "3"],
+                       cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr
     out = Usd.Stage.Open(str(tmp_path / "baked.usda"))
     assert out.GetRootLayer().subLayerPaths[0] == "usd_shot.usda"
     assert out.GetEndTimeCode() == stage.GetStartTimeCode() + 6
+    assert "not simulated" not in r.stderr          # every prim of the example is simulated
+    ball = UsdGeom.Xformable(out.GetPrimAtPath("/World/Ball"))
+    y = [ball.ComputeLocalToWorldTransform(Usd.TimeCode(t)).ExtractTranslation()[1]
+         for t in (1, 7)]
+    assert y[1] < y[0]                              # Y-up: it falls along -Y
     r = subprocess.run([sys.executable, "-m", "dempipe_cli.main", "check", "usd_shot.usda"],
                        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
     assert r.returncode in (0, 1) and "Traceback" not in r.stderr, r.stderr
