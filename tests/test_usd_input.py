@@ -404,3 +404,107 @@ def test_example_stage_bakes_from_the_command_line(tmp_path):
     r = subprocess.run([sys.executable, "-m", "dempipe_cli.main", "check", "usd_shot.usda"],
                        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
     assert r.returncode in (0, 1) and "Traceback" not in r.stderr, r.stderr
+
+
+# ------------------------------------------------------------ overlay geometry only
+
+
+def test_overlay_composes_to_the_simulated_pose_under_any_parents(tmp_path):
+    """Frames with known poses (no simulation) written as an overlay: each body's
+    corners, composed by USD through the overlay's ops and the body's parents, land
+    where dempipe's pose puts them (R(q) corner + x). Covers an uneven parent scale
+    (the matrix op), a reset transform stack, an animated parent, and an instancer
+    using orientationsf."""
+    from dempipe.build import build_model
+    from dempipe.export.overlay import OP_MATRIX, write_overlay
+    from dempipe.frames import Frames
+    from dempipe.model import quat_to_matrix
+
+    st = new_stage(tmp_path / "p.usda", mpu=0.01, end=2)
+    squash = UsdGeom.Xform.Define(st, "/World/Squash")
+    squash.AddRotateXOp().Set(30.0)
+    squash.AddScaleOp().Set(Gf.Vec3f(1, 2, 3))
+    a = UsdGeom.Cube.Define(st, "/World/Squash/A")
+    a.CreateSizeAttr(4)
+    a.AddTranslateOp().Set(Gf.Vec3d(0, 0, 10))
+    body(a.GetPrim())
+    b = UsdGeom.Cube.Define(st, "/World/Squash/B")
+    b.CreateSizeAttr(4)
+    b.AddTranslateOp().Set(Gf.Vec3d(20, 0, 10))
+    b.SetResetXformStack(True)
+    body(b.GetPrim())
+    mover = UsdGeom.Xform.Define(st, "/World/Mover")
+    op = mover.AddTranslateOp()
+    for t in range(3):
+        op.Set(Gf.Vec3d(5 * t, 0, 0), t)
+    c = UsdGeom.Cube.Define(st, "/World/Mover/C")
+    c.CreateSizeAttr(4)
+    c.AddTranslateOp().Set(Gf.Vec3d(-20, 0, 10))
+    c.AddScaleOp().Set(Gf.Vec3f(1, 1, 2))
+    body(c.GetPrim())
+    pi = UsdGeom.PointInstancer.Define(st, "/World/Inst")
+    pi.AddTranslateOp().Set(Gf.Vec3d(0, 30, 0))
+    proto = UsdGeom.Cube.Define(st, "/World/Inst/Protos/P")
+    proto.CreateSizeAttr(4)
+    proto.AddTranslateOp().Set(Gf.Vec3d(1, 2, 3))          # the prototype's own transform
+    proto.AddRotateZOp().Set(15.0)
+    body(proto.GetPrim())
+    pi.CreatePrototypesRel().SetTargets([proto.GetPath()])
+    pi.CreateProtoIndicesAttr([0, 0])
+    pi.CreatePositionsAttr([Gf.Vec3f(0, 0, 10), Gf.Vec3f(10, 0, 10)])
+    pi.CreateOrientationsfAttr([Gf.Quatf(1, 0, 0, 0)] * 2)
+    pi.CreateScalesAttr([Gf.Vec3f(1, 1, 1), Gf.Vec3f(2, 2, 2)])
+    st.GetRootLayer().Save()
+
+    scene = load_usd_scene(tmp_path / "p.usda", SimulationSettings(resolution=2))
+    model = build_model(scene)
+    n = model.n_bodies
+    assert n == 5
+    # frame 0: the initial pose; frames 1, 2: moved and turned by known amounts
+    x = np.repeat(np.asarray(model.initial_x)[None, :n], 3, axis=0)
+    q = np.repeat(np.asarray(model.initial_q)[None, :n], 3, axis=0)
+    turn = np.array([math.cos(0.4), 0.3, -0.5, 0.8])
+    turn /= np.linalg.norm(turn)
+    for f in (1, 2):
+        x[f] += [0.01 * f, -0.02, 0.03 * f]
+        for k in range(n):
+            w1, v1 = turn[0], turn[1:]
+            w2, v2 = q[f - 1, k, 0], q[f - 1, k, 1:]
+            q[f, k] = [w1 * w2 - v1 @ v2, *(w1 * v2 + w2 * v1 + np.cross(v1, v2))]
+    frames = Frames(np.arange(3), np.arange(3) / 24.0, x, q, np.zeros((3, n, 3)),
+                    np.zeros((3, n, 3)))
+    out = tmp_path / "out" / "p_baked.usdc"
+    write_overlay(out, frames, model, scene.usd)
+
+    stage = Usd.Stage.Open(str(out))
+    ops = stage.GetPrimAtPath("/World/Squash/A").GetAttribute("xformOpOrder").Get()
+    assert list(ops) == [OP_MATRIX]                                # uneven parent scale
+    ops = stage.GetPrimAtPath("/World/Squash/B").GetAttribute("xformOpOrder").Get()
+    assert list(ops)[0] == "!resetXformStack!"
+    corners = np.array([[sx, sy, sz] for sx in (-2, 2) for sy in (-2, 2) for sz in (-2, 2)],
+                       dtype=float)
+    inst = UsdGeom.PointInstancer(stage.GetPrimAtPath("/World/Inst"))
+    for f in range(3):
+        tc = Usd.TimeCode(f)
+        cache = UsdGeom.XformCache(tc)
+        worlds = [_np4(cache.GetLocalToWorldTransform(stage.GetPrimAtPath(p)))
+                  for p in ("/World/Squash/A", "/World/Squash/B", "/World/Mover/C")]
+        W_inst = _np4(cache.GetLocalToWorldTransform(inst.GetPrim()))
+        worlds += [_np4(m) @ W_inst for m in inst.ComputeInstanceTransformsAtTime(tc, tc)]
+        for k, W in enumerate(_by_prim(scene, worlds)):
+            got = (np.c_[corners, np.ones(8)] @ W)[:, :3] * 0.01
+            S = np.asarray(scene.usd.bodies[k].stretch)
+            com = np.asarray(model.shapes[model.body_shape[k]].com)
+            want = (corners @ S * 0.01 - com) @ quat_to_matrix(q[f, k]).T + x[f, k]
+            assert got == pytest.approx(want, abs=1e-6), (f, scene.usd.bodies[k])
+
+
+def _np4(m):
+    return np.array(m, dtype=np.float64).reshape(4, 4)
+
+
+def _by_prim(scene, worlds):
+    """The world matrices (A, B, C, instance 0, instance 1) in the Model's body order."""
+    key = {("/World/Squash/A", -1): 0, ("/World/Squash/B", -1): 1, ("/World/Mover/C", -1): 2,
+           ("/World/Inst", 0): 3, ("/World/Inst", 1): 4}
+    return [worlds[key[(b.prim, b.instance)]] for b in scene.usd.bodies]
