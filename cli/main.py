@@ -24,6 +24,7 @@ COMMANDS = {
     "bake": ("dempipe_cli.bake_cmd", "bake"),
     "check": ("dempipe_cli.check_cmd", "check"),
     "report": ("dempipe_cli.report_cmd", "report"),
+    "scene": ("dempipe_cli.scene_cmd", "scene"),
 }
 
 HELP = {
@@ -32,6 +33,7 @@ HELP = {
     "bake": "Simulate a scene and write the animation to USD.",
     "check": "Predict stability problems of a scene without simulating.",
     "report": "Measure error against run time for a scene's settings.",
+    "scene": "Convert a TOML scene to a UsdPhysics stage (scene export).",
 }
 
 

@@ -1,7 +1,7 @@
 """Writes examples/usd_shot.usda: a shot as a DCC exports it with UsdPhysics.
 
     python examples/make_usd_shot.py          # then:
-    dempipe bake examples/usd_shot.usda -o usd_shot_baked.usda
+    dempipe bake examples/usd_shot.usda -o usd_shot_baked.usda --resolution 6
 
 Y-up, centimetres (as Maya and Houdini scenes often are): a floor, a rubber ball
 thrown sideways, a tumbling crate (a Mesh with a physics material), a dumbbell (an
@@ -56,7 +56,7 @@ def main(path=OUT):
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, UsdGeom.LinearUnits.centimeters)
     stage.SetStartTimeCode(1)
-    stage.SetEndTimeCode(48)
+    stage.SetEndTimeCode(36)
     stage.SetTimeCodesPerSecond(24)
     world = UsdGeom.Xform.Define(stage, "/World")
     stage.SetDefaultPrim(world.GetPrim())
@@ -72,13 +72,13 @@ def main(path=OUT):
     bind(floor.GetPrim(), wood)
 
     ball = UsdGeom.Sphere.Define(stage, "/World/Ball")
-    ball.CreateRadiusAttr(6)
-    ball.AddTranslateOp().Set(Gf.Vec3d(-40, 30, 0))
+    ball.CreateRadiusAttr(4)
+    ball.AddTranslateOp().Set(Gf.Vec3d(-40, 12, 0))
     body(ball.GetPrim(), velocity=(80, 0, 0))
     bind(ball.GetPrim(), rubber)
 
-    crate = crate_mesh(stage, "/World/Crate", 8)
-    crate.AddTranslateOp().Set(Gf.Vec3d(20, 40, 0))
+    crate = crate_mesh(stage, "/World/Crate", 4)
+    crate.AddTranslateOp().Set(Gf.Vec3d(20, 14, 0))
     crate.AddRotateXYZOp().Set(Gf.Vec3f(30, 0, 20))
     body(crate.GetPrim(), angular=(0, 0, 90))
     bind(crate.GetPrim(), wood)
@@ -86,18 +86,18 @@ def main(path=OUT):
     rig = UsdGeom.Xform.Define(stage, "/World/Rig")
     rig.AddTranslateOp().Set(Gf.Vec3d(0, 0, 40))
     rig.AddRotateYOp().Set(45)
-    rig.AddScaleOp().Set(Gf.Vec3f(1.5, 1.5, 1.5))
+    rig.AddScaleOp().Set(Gf.Vec3f(1.25, 1.25, 1.25))
     dumbbell = UsdGeom.Xform.Define(stage, "/World/Rig/Dumbbell")
-    dumbbell.AddTranslateOp().Set(Gf.Vec3d(0, 15, 0))
+    dumbbell.AddTranslateOp().Set(Gf.Vec3d(0, 8, 0))
     UsdPhysics.RigidBodyAPI.Apply(dumbbell.GetPrim())
-    for i, x in enumerate((-8, 8)):
+    for i, x in enumerate((-5, 5)):
         end = UsdGeom.Cube.Define(stage, f"/World/Rig/Dumbbell/End{i}")
-        end.CreateSizeAttr(6)
+        end.CreateSizeAttr(4)
         end.AddTranslateOp().Set(Gf.Vec3d(x, 0, 0))
         UsdPhysics.CollisionAPI.Apply(end.GetPrim())
     bar = UsdGeom.Cylinder.Define(stage, "/World/Rig/Dumbbell/Bar")
-    bar.CreateRadiusAttr(1.5)
-    bar.CreateHeightAttr(12)
+    bar.CreateRadiusAttr(1)
+    bar.CreateHeightAttr(8)
     bar.CreateAxisAttr("X")
     UsdPhysics.CollisionAPI.Apply(bar.GetPrim())
 
@@ -108,7 +108,7 @@ def main(path=OUT):
     bind(proto.GetPrim(), wood)
     blocks.CreatePrototypesRel().SetTargets([proto.GetPath()])
     blocks.CreateProtoIndicesAttr([0, 0, 0])
-    blocks.CreatePositionsAttr([Gf.Vec3f(-30, 4, -40), Gf.Vec3f(-30, 12.5, -40),
+    blocks.CreatePositionsAttr([Gf.Vec3f(-30, 4.2, -40), Gf.Vec3f(-30, 12.6, -40),
                                 Gf.Vec3f(-29, 21, -40)])
     blocks.CreateOrientationsAttr([Gf.Quath(1, 0, 0, 0)] * 3)
     stage.GetRootLayer().Save()
