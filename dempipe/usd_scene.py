@@ -321,7 +321,8 @@ class _Reader:
         body_prims, static_colliders = [], []
         unsupported = {"joints": [], "articulations": [], "filtered pairs": [],
                        "collision groups": [], "deformables": [],
-                       "disabled bodies (their shapes are static colliders)": []}
+                       "disabled bodies (their shapes are static colliders)": [],
+                       "bodies inside native instances (make them not instanceable)": []}
         it = iter(Usd.PrimRange(self.stage.GetPseudoRoot()))
         for prim in it:
             ps = str(prim.GetPath())
@@ -330,6 +331,14 @@ class _Reader:
                 continue
             if prim.IsA(UsdGeom.PointInstancer):
                 self.read_instancer(prim)
+                it.PruneChildren()
+                continue
+            if prim.IsInstance():
+                # an instance proxy cannot be overridden by the overlay
+                if any(p.HasAPI(UsdPhysics.RigidBodyAPI)
+                       for p in Usd.PrimRange(prim, Usd.TraverseInstanceProxies())):
+                    unsupported["bodies inside native instances (make them not "
+                                "instanceable)"].append(ps)
                 it.PruneChildren()
                 continue
             schemas = [str(s) for s in prim.GetAppliedSchemas()]

@@ -309,9 +309,20 @@ def test_mass_api_inertia_and_centre_of_mass_reach_the_model(tmp_path):
     api.CreateCenterOfMassAttr(Gf.Vec3f(0.01, 0, 0))
     api.CreateDiagonalInertiaAttr(Gf.Vec3f(0.01, 0.02, 0.03))
     api.CreatePrincipalAxesAttr(Gf.Quatf(math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)))
+    UsdPhysics.RigidBodyAPI(c.GetPrim()).CreateStartsAsleepAttr(True)
+    # a body inside a native instance cannot be overridden: named, not dropped silently
+    proto = UsdGeom.Xform.Define(st, "/Proto")
+    pc = UsdGeom.Cube.Define(st, "/Proto/Body")
+    body(pc.GetPrim())
+    inst = UsdGeom.Xform.Define(st, "/World/Inst")
+    inst.GetPrim().GetReferences().AddInternalReference(proto.GetPath())
+    inst.GetPrim().SetInstanceable(True)
     st.GetRootLayer().Save()
     scene = load_usd_scene(tmp_path / "m.usda", SimulationSettings(resolution=3))
+    assert any("native instances" in w and "/World/Inst" in w for w in scene.usd.warnings)
     model = build_model(scene)
+    assert model.n_bodies == 2                     # /Proto/Body itself is a body too
+    assert model.initial_state().body_rest[0] == model.sleep_steps > 0     # startsAsleep
     assert model.body_mass[0] == pytest.approx(2.0)
     # principal axes turned 90° about z: x and y swap
     inv = model.body_inv_inertia[0]
