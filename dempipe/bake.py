@@ -188,7 +188,8 @@ def with_simulation(scene, simulation: dict | None):
     known = {f.name for f in fields(scene.simulation)}
     for k in simulation:
         if k not in known:
-            raise SceneError(f"unknown simulation setting {k!r} (known: {', '.join(sorted(known))})")
+            raise SceneError(f"unknown simulation setting {k!r} "
+                             f"(known: {', '.join(sorted(known))})")
     changes = dict(simulation)
     if changes.get("resolution") is not None:
         changes.setdefault("sphere_diameter", None)

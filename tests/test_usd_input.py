@@ -614,3 +614,37 @@ def test_scene_export_round_trip(tmp_path):
     assert len(mb.static_meshes) == 1
     assert np.asarray(mb.static_meshes[0].vertices).min(axis=0) == pytest.approx(
         np.asarray(ma.static_meshes[0].vertices).min(axis=0), abs=1e-6)
+
+
+def test_overlay_leaves_out_redundant_samples(tmp_path):
+    """A body that stops keeps only the ends of its still run; an attribute that
+    never changes gets a default value and no time samples."""
+    from dempipe.build import build_model
+    from dempipe.export.overlay import OPS_TRS, write_overlay
+    from dempipe.frames import Frames
+
+    st = new_stage(tmp_path / "r.usda", end=4)
+    c = UsdGeom.Cube.Define(st, "/World/Box")
+    c.CreateSizeAttr(0.1)
+    c.AddTranslateOp().Set(Gf.Vec3d(0, 0, 1))
+    body(c.GetPrim())
+    st.GetRootLayer().Save()
+    scene = load_usd_scene(tmp_path / "r.usda", SimulationSettings(resolution=2))
+    model = build_model(scene)
+    x = np.repeat(np.asarray(model.initial_x)[None, :1], 5, axis=0)
+    x[1:, 0, 2] -= 0.1
+    x[2:, 0, 2] -= 0.1                        # moves until frame 2, then still
+    q = np.repeat(np.asarray(model.initial_q)[None, :1], 5, axis=0)
+    frames = Frames(np.arange(5), np.arange(5) / 24.0, x, q, np.zeros((5, 1, 3)),
+                    np.zeros((5, 1, 3)))
+    out = tmp_path / "r_baked.usda"
+    write_overlay(out, frames, model, scene.usd)
+    stage = Usd.Stage.Open(str(out))
+    prim = stage.GetPrimAtPath("/World/Box")
+    assert prim.GetAttribute(OPS_TRS[0]).GetTimeSamples() == [0, 1, 2, 4]
+    assert prim.GetAttribute(OPS_TRS[1]).GetTimeSamples() == []
+    assert prim.GetAttribute(OPS_TRS[1]).Get() == Gf.Quatd(1, 0, 0, 0)
+    xf = UsdGeom.Xformable(prim)
+    for t in range(5):
+        z = xf.ComputeLocalToWorldTransform(Usd.TimeCode(t)).ExtractTranslation()[2]
+        assert z == pytest.approx(x[t, 0, 2], abs=1e-12)

@@ -23,7 +23,8 @@ Per body prim (see docs/usd-input.md, "The overlay"):
 Bodies that are instances of a ``PointInstancer`` are written back into the
 instancer's own ``positions``, ``orientations`` (or ``orientationsf`` when the
 input uses it), ``velocities`` and ``angularVelocities``; instances that are not
-simulated keep their input values.
+simulated keep their input values. Redundant samples are left out (an attribute
+constant over the frames gets a default only; runs of equal samples keep their ends).
 
 :class:`OverlayWriter` takes frames in chunks (``add``) and writes once (``save``),
 so a streamed bake can feed it as frames arrive; :func:`write_overlay` is the
@@ -271,12 +272,40 @@ class OverlayWriter:
                          Vt.Vec3fArray.FromNumpy(ang.astype(np.float32)))
 
     # -- save --------------------------------------------------------------------
+    def _thin(self) -> None:
+        """Leave out redundant samples, as export/usd.py does: an attribute equal at
+        every frame gets a default value only; inside a run of equal samples only its
+        ends are kept (linear interpolation between equal values is exact). A body
+        asleep writes nothing while it sleeps."""
+        layer = self.layer
+        paths = []
+        layer.Traverse(layer.pseudoRoot.path,
+                       lambda p: paths.append(p) if p.IsPropertyPath() else None)
+        with Sdf.ChangeBlock():
+            for path in paths:
+                times = layer.ListTimeSamplesForPath(path)
+                if len(times) < 2:
+                    continue
+                values = [layer.QueryTimeSample(path, t) for t in times]
+                if all(v == values[0] for v in values[1:]):
+                    spec = layer.GetAttributeAtPath(path)
+                    for t in times:
+                        layer.EraseTimeSample(path, t)
+                    spec.default = values[0]
+                    self.n_samples -= len(times)
+                    continue
+                for k in range(1, len(times) - 1):
+                    if values[k] == values[k - 1] and values[k] == values[k + 1]:
+                        layer.EraseTimeSample(path, times[k])
+                        self.n_samples -= 1
+
     def save(self) -> ExportInfo:
         """Write the layer atomically; returns ExportInfo."""
         t0 = time.perf_counter()
         if self.first is not None:
             self.layer.startTimeCode = self.first
             self.layer.endTimeCode = self.last
+        self._thin()
         _save_atomically(self.layer, self.path)
         return ExportInfo(path=self.path, seconds=time.perf_counter() - t0,
                           n_time_samples=self.n_samples, bytes=self.path.stat().st_size)
