@@ -210,8 +210,8 @@ class Model:
         nb = self.body_mass.shape[0]
         x = np.array(self.initial_x, dtype=np.float64)
         q = np.array(self.initial_q, dtype=np.float64)
-        P = self.body_mass[:, None] * self.initial_v
-        P[self.n_bodies:] = 0.0
+        P = np.zeros((nb, 3))      # static pseudo-bodies (infinite mass) carry none
+        P[:self.n_bodies] = self.body_mass[:self.n_bodies, None] * self.initial_v[:self.n_bodies]
         L = np.zeros((nb, 3))
         for b in range(self.n_bodies):
             L[b] = _world_inertia(q[b], self.body_inv_inertia[b]) @ self.initial_w[b]
