@@ -55,11 +55,17 @@ class Progress:
 @click.option("--force", is_flag=True,
               help="Bake even a scene that `dempipe check` refuses: deep frame-0 overlaps, "
                    "a dt above the critical step, tunnelling speeds.")
+@click.option("--resolution", type=click.IntRange(min=1), default=None,
+              help="Spheres across the smallest shape (replaces the scene's; for a bare "
+                   "USD stage, dempipe's own setting).")
+@click.option("--sphere-diameter", type=click.FloatRange(min=0, min_open=True), default=None,
+              metavar="M", help="Sphere diameter in metres (instead of --resolution).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
-def bake(scene, output, device, layout, frames, threads, report_path, cache_dir, force, quiet,
-         debug):
-    """Simulate SCENE (a .toml scene file) and write its animation to OUTPUT."""
+def bake(scene, output, device, layout, frames, threads, report_path, cache_dir, force,
+         resolution, sphere_diameter, quiet, debug):
+    """Simulate SCENE (a .toml scene file, or a UsdPhysics stage .usd/.usda/.usdc) and
+    write its animation to OUTPUT (for a stage: an overlay layer over it)."""
     from dempipe.bake import bake as run_bake, write_report
     from dempipe.cache import SphereCache
     from dempipe.errors import DempipeError
@@ -71,7 +77,9 @@ def bake(scene, output, device, layout, frames, threads, report_path, cache_dir,
     try:
         result = run_bake(scene, output, device=device, layout=layout, frames=frames,
                           threads=threads, cache=cache, progress=Progress(quiet), warn=warn,
-                          force=force)
+                          force=force, simulation={k: v for k, v in (
+                              ("resolution", resolution), ("sphere_diameter", sphere_diameter))
+                              if v is not None})
     except DempipeError as exc:
         partial = getattr(exc, "result", None)
         if partial is not None and report_path:

@@ -26,6 +26,7 @@ COMMANDS = {
     "report": ("dempipe_cli.report_cmd", "report"),
     "preview": ("dempipe_cli.preview_cmd", "preview"),
     "wedge": ("dempipe_cli.wedge_cmd", "wedge"),
+    "scene": ("dempipe_cli.scene_cmd", "scene"),
 }
 
 HELP = {
@@ -36,6 +37,7 @@ HELP = {
     "report": "Measure error against run time for a scene's settings.",
     "preview": "Render a still or a movie of a bake (needs dempipe[preview]).",
     "wedge": "Bake variants of a scene (seeds, any key) as tasks on Dask.",
+    "scene": "Convert a TOML scene to a UsdPhysics stage (scene export).",
 }
 
 

@@ -36,6 +36,9 @@ _LAZY = {
     "Simulator": "simulator",
     "Frames": "frames",
     "write_usd": "export.usd",
+    "load_usd_scene": "usd_scene",
+    "write_overlay": "export.overlay",
+    "write_physics_stage": "export.physics_stage",
 }
 
 

@@ -57,7 +57,8 @@ def parse_frame_range(text: str | None, n_frames: int, first: int) -> tuple[int,
 
 def bake(scene_path, out_path, *, device: str | None = None, layout: str = "instancer",
          frames: str | None = None, threads: int | None = None, cache=None,
-         progress=None, warn=None, force: bool = False) -> BakeResult:
+         progress=None, warn=None, force: bool = False,
+         simulation: dict | None = None) -> BakeResult:
     """Bake ``scene_path`` to the USD file ``out_path``; returns a BakeResult.
 
     device : 'cpu' | 'cuda' | 'auto' (default: the scene's simulation.device)
@@ -65,6 +66,9 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
     frames : 'START:END' frame numbers to write (the simulation always starts at 0)
     progress : callable(frame_index, n_frames, stats) for a progress display
     warn : callable(str) for one-line warnings (default: warnings.warn)
+    simulation : settings replacing the scene's ``[simulation]`` ones (the
+        SimulationSettings fields, e.g. ``{"resolution": 4}``); how a bare USD stage
+        gets dempipe's own settings from the command line
     """
     import warnings
 
@@ -78,7 +82,9 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
     if out.suffix not in (".usd", ".usdc", ".usda"):
         raise ExportError(f"{out}: unknown extension {out.suffix!r} (use .usd, .usdc or .usda)")
     t_start = time.perf_counter()
-    scene = load_scene(scene_path)
+    scene = with_simulation(load_scene(scene_path), simulation)
+    for msg in scene.usd.warnings if scene.usd is not None else ():
+        warn(msg)
     device_asked = device or scene.simulation.device
     dev = resolve_device(device_asked)
     if device_asked == "auto" and dev == "cpu":
@@ -153,7 +159,12 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
                          recorded.x[start:], recorded.q[start:], recorded.v[start:],
                          recorded.w[start:])
     target = out if failure is None else partial_path(out)
-    info = write_usd(target, written, model, layout=layout)
+    if scene.usd is not None:   # a USD stage in: an overlay over it out
+        from .export.overlay import write_overlay
+
+        info = write_overlay(target, written, model, scene.usd)
+    else:
+        info = write_usd(target, written, model, layout=layout)
     report.update(frames=written.n_frames, export_seconds=info.seconds,
                   wall_seconds=time.perf_counter() - t_start, output=str(target))
     if failure is not None:
@@ -165,6 +176,26 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
         exc.result = BakeResult(target, report, partial=True)
         raise exc
     return BakeResult(target, report)
+
+
+def with_simulation(scene, simulation: dict | None):
+    """``scene`` with ``simulation``'s keys replacing its SimulationSettings'; a
+    resolution clears a sphere_diameter and the other way round."""
+    from dataclasses import fields, replace
+
+    if not simulation:
+        return scene
+    known = {f.name for f in fields(scene.simulation)}
+    for k in simulation:
+        if k not in known:
+            raise SceneError(f"unknown simulation setting {k!r} "
+                             f"(known: {', '.join(sorted(known))})")
+    changes = dict(simulation)
+    if changes.get("resolution") is not None:
+        changes.setdefault("sphere_diameter", None)
+    if changes.get("sphere_diameter") is not None:
+        changes.setdefault("resolution", None)
+    return replace(scene, simulation=replace(scene.simulation, **changes))
 
 
 class BakeInterrupted(DempipeError):

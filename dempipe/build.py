@@ -41,16 +41,33 @@ class Overrides:
 def _shape_mesh(spec, where: str):
     from .shapes import build_shape, load_mesh
 
+    if spec.mesh is not None:
+        return spec.mesh.copy()
     if spec.builtin is not None:
         return build_shape(spec.builtin, **dict(spec.params))
     return load_mesh(spec.mesh_path, scale=spec.scale)
+
+
+def with_center_of_mass(ss, com):
+    """``ss`` with its centre of mass moved to ``com`` (mesh coordinates [m]): sphere
+    centres re-expressed about it and the inertia per unit density moved there by
+    the parallel-axis theorem (a MassAPI centerOfMass given without an inertia)."""
+    com = np.asarray(com, dtype=np.float64)
+    d = com - np.asarray(ss.com)
+    inertia = np.asarray(ss.inertia) + ss.volume * (float(d @ d) * np.eye(3) - np.outer(d, d))
+    return replace(ss, centers=np.asarray(ss.centers) - d, com=com, inertia=inertia,
+                   key=f"{ss.key}:com{com.tolist()}")
 
 
 def _collider_mesh(c, where: str):
     """A mesh collider's mesh moved into the world: scale, rotate, translate."""
     from .shapes import build_shape, load_mesh
 
-    if c.builtin is not None:
+    if c.mesh is not None:
+        mesh = c.mesh.copy()
+        if c.scale != 1.0:
+            mesh.apply_scale(c.scale)
+    elif c.builtin is not None:
         mesh = build_shape(c.builtin, **dict(c.params))
         if c.scale != 1.0:
             mesh.apply_scale(c.scale)
@@ -107,11 +124,18 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
     for n in names:
         ss, info = build_sphere_set_with_info(meshes[n], d, name=n, cache=cache)
         hits.append((n, info.cache, info.seconds, ss.count))
+        if scene.shapes[n].center_of_mass is not None:
+            ss = with_center_of_mass(ss, scene.shapes[n].center_of_mass)
         shape_index[n] = b.add_shape(n, meshes[n], ss)
-    for placement in expand_bodies(scene):
+    for g, placement in zip(scene.bodies, expand_bodies(scene)):
+        n_g = len(placement.positions)
         b.add_bodies(placement.name, [shape_index[n] for n in placement.body_shapes()],
                      material_index[placement.material], placement.positions,
-                     placement.rotations, placement.velocities, placement.angular_velocities)
+                     placement.rotations, placement.velocities, placement.angular_velocities,
+                     masses=None if g.mass is None else np.full(n_g, float(g.mass)),
+                     inertias=(None if g.inertia is None
+                               else np.broadcast_to(np.asarray(g.inertia, float), (n_g, 3, 3))),
+                     asleep=np.full(n_g, bool(g.starts_asleep)))
     up = out.up_index
     for c in scene.colliders:
         kind = type(c).__name__

@@ -183,6 +183,8 @@ class Model:
     sleep_linear: float = 0.0
     sleep_angular: float = 0.0
     contact_layers: int = 0
+    initial_asleep: np.ndarray = None
+    """(n_bodies,) bool, bodies that start asleep (None: none)."""
 
     @property
     def n_spheres(self) -> int:
@@ -208,13 +210,15 @@ class Model:
         nb = self.body_mass.shape[0]
         x = np.array(self.initial_x, dtype=np.float64)
         q = np.array(self.initial_q, dtype=np.float64)
-        P = self.body_mass[:, None] * self.initial_v
-        P[self.n_bodies:] = 0.0
+        P = np.zeros((nb, 3))      # static pseudo-bodies (infinite mass) carry none
+        P[:self.n_bodies] = self.body_mass[:self.n_bodies, None] * self.initial_v[:self.n_bodies]
         L = np.zeros((nb, 3))
         for b in range(self.n_bodies):
             L[b] = _world_inertia(q[b], self.body_inv_inertia[b]) @ self.initial_w[b]
         state = State(body_x=x, body_q=q, body_P=P, body_L=L)
         state.ensure_rest(nb)
+        if self.initial_asleep is not None and self.sleep_steps > 0:
+            state.body_rest[:self.n_bodies][self.initial_asleep] = self.sleep_steps
         if self.features.friction:
             state.ensure_contacts(self.n_spheres)
         return state
@@ -348,13 +352,18 @@ class ModelBuilder:
         return len(self._shapes) - 1
 
     def add_bodies(self, group: str, shape, material: int, positions, rotations=None,
-                   velocities=None, angular_velocities=None) -> None:
+                   velocities=None, angular_velocities=None, *, masses=None, inertias=None,
+                   asleep=None) -> None:
         """Add a group of bodies.
 
         shape : a shape index for all, or one per body (a mixed group)
         positions : (n, 3) where each body's *mesh origin* goes [m] (as a DCC places it)
         rotations : (n, 4) unit quaternions (w, x, y, z); identity if None
         velocities, angular_velocities : (n, 3) [m/s], [rad/s], world frame
+        masses : (n,) [kg] given masses, or None: material density × shape volume
+        inertias : (n, 3, 3) [kg m²] given inertias about the centre of mass in the
+            body frame, or None: the shape's, scaled to the mass
+        asleep : (n,) bool, bodies that start asleep (None: all awake)
         """
         p = np.atleast_2d(np.asarray(positions, dtype=np.float64))
         n = p.shape[0]
@@ -366,8 +375,11 @@ class ModelBuilder:
         w = np.zeros((n, 3)) if angular_velocities is None else np.broadcast_to(
             np.asarray(angular_velocities, dtype=np.float64), (n, 3))
         shapes = np.broadcast_to(np.asarray(shape, dtype=np.int64), (n,)).copy()
-        self._groups.append(dict(name=group, shapes=shapes, material=material, p=p, q=q,
-                                 v=np.array(v), w=np.array(w)))
+        self._groups.append(dict(
+            name=group, shapes=shapes, material=material, p=p, q=q, v=np.array(v),
+            w=np.array(w), asleep=np.zeros(n, bool) if asleep is None else np.array(asleep, bool),
+            masses=None if masses is None else np.array(masses, dtype=np.float64).reshape(n),
+            inertias=None if inertias is None else np.array(inertias, np.float64).reshape(n, 3, 3)))
 
     def add_plane(self, point, normal, material: int = 0) -> None:
         n = np.asarray(normal, dtype=np.float64)
@@ -468,6 +480,28 @@ class ModelBuilder:
             rho = self._materials[dyn_mat[b]].density
             mass[b] = rho * s.sphere_set.volume
             inv_inertia[b] = shape_inv[body_shape[b]] / rho
+        # given masses and inertias (UsdPhysics MassAPI): a given mass alone scales the
+        # shape's inertia (its density becomes mass / volume)
+        b0 = 0
+        given_inertia = {}      # body -> inertia per unit mass, for its rotational mode
+        for g in groups:
+            n = g["p"].shape[0]
+            for k in range(n):
+                b = b0 + k
+                if g["masses"] is not None:
+                    m_b = float(g["masses"][k])
+                    if not (m_b > 0 and math.isfinite(m_b)):
+                        raise SceneError(f"{g['name']}: mass must be positive, got {m_b!r}")
+                    inv_inertia[b] *= mass[b] / m_b
+                    mass[b] = m_b
+                if g["inertias"] is not None:
+                    inv = np.linalg.inv(g["inertias"][k])
+                    inv_inertia[b] = [inv[0, 0], inv[1, 1], inv[2, 2], inv[0, 1], inv[0, 2],
+                                      inv[1, 2]]
+                    given_inertia[b] = g["inertias"][k] / mass[b]
+            b0 += n
+        asleep0 = (np.concatenate([g["asleep"] for g in groups]) if groups
+                   else np.zeros(0, bool))
 
         # static pseudo-bodies
         static_meshes = []
@@ -517,6 +551,9 @@ class ModelBuilder:
         # corner-contact effective mass m / (1 + m (r×n)ᵀ I⁻¹ (r×n)): a falling body
         # first touches with one outer sphere; a flat landing shares the load
         body_rot = np.array([shape_rot[s] for s in body_shape]) if n_dyn else np.zeros(0)
+        for b, i_per_m in given_inertia.items():
+            body_rot[b] = rotational_mass_factor(
+                np.asarray(self._shapes[body_shape[b]].sphere_set.centers), i_per_m)
         m_corner = mass / (1.0 + body_rot) if n_dyn else mass
         stiffness = []
         auto_notes = []
@@ -643,4 +680,5 @@ class ModelBuilder:
             initial_v=_frozen(np.concatenate([v0, np.zeros((n_static, 3))])),
             initial_w=_frozen(np.concatenate([w0, np.zeros((n_static, 3))])),
             stiffness_auto=tuple(auto_notes), contact_layers=self.contact_layers,
+            initial_asleep=_frozen(asleep0, bool) if asleep0.any() else None,
         )

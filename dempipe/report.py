@@ -177,7 +177,7 @@ class ReportResult:
 
 def _scene_resolution(scene) -> float:
     """The scene's own resolution (derived from sphere_diameter when it gives one)."""
-    from .shapes import build_shape, load_mesh
+    from .build import _shape_mesh
 
     sim = scene.simulation
     if sim.sphere_diameter is None:
@@ -185,9 +185,7 @@ def _scene_resolution(scene) -> float:
     extents = []
     for g in scene.bodies:
         for n in ([g.shape] if isinstance(g.shape, str) else g.shape):
-            spec = scene.shapes[n]
-            mesh = (build_shape(spec.builtin, **dict(spec.params)) if spec.builtin is not None
-                    else load_mesh(spec.mesh_path, scale=spec.scale))
+            mesh = _shape_mesh(scene.shapes[n], n)     # builtin, file or in memory (USD)
             extents.append(float(np.max(mesh.extents)))
     return min(extents) / sim.sphere_diameter
 

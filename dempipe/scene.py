@@ -47,6 +47,9 @@ STANDARD_GRAVITY = 9.81
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
 
+#: Scene files read as USD stages (dempipe.usd_scene) rather than TOML.
+USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
+
 _NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
@@ -165,6 +168,12 @@ class ShapeSpec:
     """Absolute path of the mesh file (resolved relative to the scene file), or None."""
     scale: float = 1.0
     """Uniform scale applied to the mesh file's coordinates [1], > 0 (mesh only)."""
+    mesh: Any = field(default=None, compare=False)
+    """An in-memory ``trimesh.Trimesh`` in the shape's own coordinates [m] (a USD
+    stage's collision geometry, dempipe.usd_scene), or None: builtin or mesh_path."""
+    center_of_mass: Vec3 | None = None
+    """Centre of mass in the shape's own coordinates [m] when given rather than
+    computed from the mesh (UsdPhysics MassAPI); None: the mesh's."""
 
 
 @dataclass(frozen=True)
@@ -200,6 +209,14 @@ class BodyGroup:
     """Initial linear velocity of every body [m/s], world frame."""
     angular_velocity: Vec3 = (0.0, 0.0, 0.0)
     """Initial angular velocity of every body [rad/s], world frame."""
+    mass: float | None = None
+    """Mass of every body [kg] when given rather than density × volume (UsdPhysics
+    MassAPI); None: the material's density times the shape's volume."""
+    inertia: tuple | None = None
+    """Inertia about the centre of mass, body frame (the shape's axes), 3 × 3 rows
+    [kg m²], when given; None: the shape's, scaled to the mass."""
+    starts_asleep: bool = False
+    """Whether the bodies start asleep (they wake when something touches them)."""
 
 
 @dataclass(frozen=True)
@@ -252,6 +269,9 @@ class MeshCollider:
     """Orientation, unit quaternion (w, x, y, z)."""
     material: str = "default"
     """Material name."""
+    mesh: Any = field(default=None, compare=False)
+    """An in-memory ``trimesh.Trimesh`` [m] (a USD stage's static collider), or None:
+    builtin or mesh_path."""
     name: str = "mesh"
     """Collider name (USD prim name)."""
 
@@ -277,6 +297,9 @@ class Scene:
     """Body groups in file order."""
     colliders: tuple[Collider, ...] = ()
     """Static colliders in file order."""
+    usd: Any = None
+    """The USD stage this scene was read from (a ``dempipe.usd_scene.UsdShot``: body
+    prims, warnings, what the overlay writes back), or None for a TOML scene."""
 
     @property
     def base_dir(self) -> Path:
@@ -475,7 +498,7 @@ def _range_text(lo, hi, lo_open, hi_open) -> str:
     return ""
 
 
-_TOP_KEYS = ("output", "simulation", "materials", "shapes", "bodies", "colliders")
+_TOP_KEYS = ("output", "simulation", "materials", "shapes", "bodies", "colliders", "usd")
 _OUTPUT_KEYS = ("fps", "duration", "up_axis", "meters_per_unit", "start_frame")
 _SIM_KEYS = ("sphere_diameter", "resolution", "gravity", "dt", "device", "seed",
              "stiffness_target_overlap", "dt_safety", "sleeping", "sleep", "contact_layers")
@@ -888,6 +911,11 @@ def _array_of_tables(ctx: _Ctx, v: Any, key: str) -> list:
 
 def _validate(ctx: _Ctx, data: dict) -> Scene:
     ctx.check_keys(data, "", _TOP_KEYS, what="section")
+    if "usd" in data:
+        # settings for a USD stage: the scene itself comes from the stage
+        from .usd_scene import load_usd_settings
+
+        return load_usd_settings(ctx, data)
     output = _parse_output(ctx, data.get("output", {}))
     simulation = _parse_simulation(ctx, data.get("simulation", {}), output.up_axis)
     materials = _parse_materials(ctx, data.get("materials", {}))
@@ -953,8 +981,13 @@ def parse_scene(text: str, path: str | Path | None = None) -> Scene:
 
 
 def load_scene(path: str | Path) -> Scene:
-    """Read, parse and validate the scene file at ``path``."""
+    """Read, parse and validate the scene file at ``path``: a TOML scene, or a USD
+    stage (.usd, .usda, .usdc, .usdz) with UsdPhysics (docs/usd-input.md)."""
     p = Path(path).expanduser()
+    if p.suffix.lower() in USD_EXTENSIONS:
+        from .usd_scene import load_usd_scene
+
+        return load_usd_scene(p)
     try:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:

@@ -725,7 +725,22 @@ def analyze_scene(path, cache=None) -> StabilityReport:
         if isinstance(user_dt, str):
             raise
         model = build_model(scene, cache=cache, overrides=Overrides(dt="auto"))
-        return analyze(model, dt=float(user_dt), dt_setting=user_dt, refused=str(exc),
-                       scene=str(path), full_model=full_sphere_model(scene, model, cache=cache))
-    return analyze(model, dt_setting=user_dt, scene=str(path),
-                   full_model=full_sphere_model(scene, model, cache=cache))
+        return _with_usd_findings(
+            analyze(model, dt=float(user_dt), dt_setting=user_dt, refused=str(exc),
+                    scene=str(path), full_model=full_sphere_model(scene, model, cache=cache)),
+            scene)
+    report = analyze(model, dt_setting=user_dt, scene=str(path),
+                     full_model=full_sphere_model(scene, model, cache=cache))
+    return _with_usd_findings(report, scene)
+
+
+def _with_usd_findings(report, scene):
+    """A USD stage's reading warnings (what is not simulated, planes taken from
+    cubes) as warning findings ahead of the stability ones."""
+    if scene.usd is None or not scene.usd.warnings:
+        return report
+    from dataclasses import replace
+
+    found = [Finding(WARNING, "usd-not-simulated" if "not simulated" in w else "usd-reading", w)
+             for w in scene.usd.warnings]
+    return replace(report, findings=found + list(report.findings))

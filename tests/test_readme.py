@@ -32,5 +32,5 @@ def test_ci_runs_both_readme_commands():
 
 def test_every_example_is_listed_in_the_readme():
     text = (ROOT / "README.md").read_text()
-    for example in (ROOT / "examples").glob("*.toml"):
+    for example in [*(ROOT / "examples").glob("*.toml"), *(ROOT / "examples").glob("*.usd*")]:
         assert f"examples/{example.name}" in text

@@ -1,0 +1,172 @@
+"""A TOML scene written as a UsdPhysics stage (`dempipe scene export`).
+
+So a TOML user can move a scene to a DCC and back: reading the written stage with
+:func:`dempipe.usd_scene.load_usd_scene` gives the same bodies (mesh-origin
+positions, orientations, velocities, masses), materials (restitution, friction,
+density), gravity, timing and plane and mesh colliders.
+
+Layout: ``/World/PhysicsScene``; ``/World/Looks/<material>`` (PhysicsMaterialAPI);
+``/World/Bodies/<group>/<group>_<i>``: one Mesh per body with translate and orient
+ops, RigidBodyAPI, CollisionAPI and its material bound for physics;
+``/World/Colliders/<name>``: a Plane gprim per plane, a Mesh per mesh collider, and
+per box collider one thin Cube per wall (a DCC sees the container; read back, the
+walls are static box meshes, not dempipe's bounded walls). What UsdPhysics cannot
+hold: a material's numeric stiffness, dempipe's simulation settings (sphere size,
+dt, sleeping), which a settings TOML gives (docs/usd-input.md). Written atomically.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdShade, Vt
+
+from ..errors import ExportError
+from .usd import EXTENSIONS, _save_atomically
+
+__all__ = ["write_physics_stage"]
+
+
+def _quat_between(a, b) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) turning unit vector a onto unit vector b."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    c = float(a @ b)
+    if c < -1 + 1e-12:                       # opposite: half a turn about any normal
+        axis = np.cross(a, [1.0, 0, 0])
+        if np.linalg.norm(axis) < 1e-6:
+            axis = np.cross(a, [0, 1.0, 0])
+        axis /= np.linalg.norm(axis)
+        return np.array([0.0, *axis])
+    q = np.array([1.0 + c, *np.cross(a, b)])
+    return q / np.linalg.norm(q)
+
+
+def _orient(xf, q):
+    xf.AddOrientOp(UsdGeom.XformOp.PrecisionDouble).Set(
+        Gf.Quatd(float(q[0]), Gf.Vec3d(*[float(v) for v in q[1:]])))
+
+
+def _mesh(stage, path, vertices, faces, mpu):
+    m = UsdGeom.Mesh.Define(stage, path)
+    pts = np.asarray(vertices, dtype=np.float64) / mpu
+    m.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts.astype(np.float32)))
+    m.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(faces)))
+    m.CreateFaceVertexIndicesAttr(Vt.IntArray(np.asarray(faces, dtype=np.int64).ravel().tolist()))
+    m.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    m.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*lo), Gf.Vec3f(*hi)]))
+    return m
+
+
+def write_physics_stage(scene, path) -> Path:
+    """Write the TOML ``scene`` (a dempipe.scene.Scene) as a UsdPhysics stage at ``path``."""
+    from ..build import _collider_mesh, _shape_mesh
+    from ..scene import expand_bodies
+
+    path = Path(path)
+    if path.suffix.lower() not in EXTENSIONS:
+        raise ExportError(f"{path}: unsupported extension {path.suffix!r} "
+                          f"(use one of {', '.join(EXTENSIONS)})")
+    if scene.usd is not None:
+        raise ExportError(f"{path}: the scene already comes from a USD stage "
+                          f"({scene.usd.stage_path.name})")
+    out = scene.output
+    mpu = float(out.meters_per_unit)
+    layer = Sdf.Layer.CreateAnonymous("scene" + path.suffix.lower())
+    stage = Usd.Stage.Open(layer)
+    UsdGeom.SetStageUpAxis(stage, out.up_axis)
+    UsdGeom.SetStageMetersPerUnit(stage, mpu)
+    UsdPhysics.SetStageKilogramsPerUnit(stage, 1.0)
+    stage.SetTimeCodesPerSecond(out.fps)
+    stage.SetFramesPerSecond(out.fps)
+    stage.SetStartTimeCode(out.start_frame)
+    stage.SetEndTimeCode(out.start_frame + out.n_frames - 1)
+    world = UsdGeom.Xform.Define(stage, "/World")
+    stage.SetDefaultPrim(world.GetPrim())
+
+    ps = UsdPhysics.Scene.Define(stage, "/World/PhysicsScene")
+    g = np.asarray(scene.simulation.gravity, dtype=np.float64)
+    gm = float(np.linalg.norm(g))
+    if gm > 0:
+        ps.CreateGravityDirectionAttr(Gf.Vec3f(*(g / gm)))
+    ps.CreateGravityMagnitudeAttr(gm / mpu)
+
+    mats = {}
+    for name, spec in scene.materials.items():
+        mat = UsdShade.Material.Define(stage, f"/World/Looks/{name}")
+        api = UsdPhysics.MaterialAPI.Apply(mat.GetPrim())
+        api.CreateRestitutionAttr(float(spec.restitution))
+        api.CreateDynamicFrictionAttr(float(spec.friction))
+        api.CreateStaticFrictionAttr(float(spec.friction))
+        api.CreateDensityAttr(float(spec.density) * mpu ** 3)       # kg per unit³
+        if spec.stiffness != "auto":
+            warnings.warn(f"materials.{name}.stiffness = {spec.stiffness:g} N/m has no "
+                          "UsdPhysics attribute; the stage leaves it to 'auto'", stacklevel=2)
+        mats[name] = mat
+
+    def bind(prim, material):
+        UsdShade.MaterialBindingAPI.Apply(prim).Bind(
+            mats[material], UsdShade.Tokens.weakerThanDescendants, "physics")
+
+    meshes = {n: _shape_mesh(s, n) for n, s in scene.shapes.items()
+              if any(n == gr.shape or (not isinstance(gr.shape, str) and n in gr.shape)
+                     for gr in scene.bodies)}
+    UsdGeom.Scope.Define(stage, "/World/Bodies")
+    for group, placement in zip(scene.bodies, expand_bodies(scene)):
+        UsdGeom.Xform.Define(stage, f"/World/Bodies/{group.name}")
+        for i, shape in enumerate(placement.body_shapes()):
+            mesh = meshes[shape]
+            m = _mesh(stage, f"/World/Bodies/{group.name}/{group.name}_{i}", mesh.vertices,
+                      mesh.faces, mpu)
+            m.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(
+                Gf.Vec3d(*(placement.positions[i] / mpu)))
+            _orient(m, placement.rotations[i])
+            prim = m.GetPrim()
+            UsdPhysics.CollisionAPI.Apply(prim)
+            rb = UsdPhysics.RigidBodyAPI.Apply(prim)
+            rb.CreateVelocityAttr(Gf.Vec3f(*(placement.velocities[i] / mpu)))
+            rb.CreateAngularVelocityAttr(Gf.Vec3f(*np.degrees(placement.angular_velocities[i])))
+            bind(prim, placement.material)
+
+    UsdGeom.Scope.Define(stage, "/World/Colliders")
+    for c in scene.colliders:
+        kind = type(c).__name__
+        p = f"/World/Colliders/{c.name}"
+        if kind == "PlaneCollider":
+            plane = UsdGeom.Plane.Define(stage, p)
+            plane.CreateAxisAttr("Z")
+            plane.CreateWidthAttr(20.0 / mpu)          # what a DCC draws; the plane is infinite
+            plane.CreateLengthAttr(20.0 / mpu)
+            plane.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(
+                Gf.Vec3d(*(np.asarray(c.point) / mpu)))
+            _orient(plane, _quat_between([0, 0, 1.0], c.normal))
+            prims = [plane.GetPrim()]
+        elif kind == "BoxCollider":
+            UsdGeom.Xform.Define(stage, p)
+            lo, hi = np.asarray(c.min, float), np.asarray(c.max, float)
+            t = c.thickness or 0.02 * float(np.max(hi - lo))
+            prims = []
+            for axis in range(3):
+                for side, sign in (("lo", -1), ("hi", 1)):
+                    if axis == out.up_index and sign > 0 and c.open_top:
+                        continue
+                    centre = 0.5 * (lo + hi)
+                    size = (hi - lo) + 2 * t
+                    centre[axis] = (lo[axis] - t / 2) if sign < 0 else (hi[axis] + t / 2)
+                    size[axis] = t
+                    wall = UsdGeom.Cube.Define(stage, f"{p}/wall_{'xyz'[axis]}_{side}")
+                    wall.CreateSizeAttr(1.0)
+                    wall.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(
+                        Gf.Vec3d(*(centre / mpu)))
+                    wall.AddScaleOp().Set(Gf.Vec3f(*(size / mpu)))
+                    prims.append(wall.GetPrim())
+        else:
+            mesh = _collider_mesh(c, p)
+            prims = [_mesh(stage, p, mesh.vertices, mesh.faces, mpu).GetPrim()]
+        for prim in prims:
+            UsdPhysics.CollisionAPI.Apply(prim)
+            bind(prim, c.material)
+    _save_atomically(layer, path)
+    return path

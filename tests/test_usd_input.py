@@ -1,0 +1,650 @@
+"""USD stages in (dempipe.usd_scene), overlay layers out (dempipe.export.overlay).
+
+Stages are authored with pxr alone, as a DCC exporter would. Bakes are short and at
+low resolution; the checks are closed forms on the composed overlay.
+"""
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pxr")
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdShade, UsdValidation  # noqa: E402
+
+from dempipe.bake import bake  # noqa: E402
+from dempipe.cache import SphereCache  # noqa: E402
+from dempipe.errors import SceneError  # noqa: E402
+from dempipe.scene import SimulationSettings, load_scene  # noqa: E402
+from dempipe.usd_scene import load_usd_scene  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+G = 9.81
+
+
+def new_stage(path, up="Z", mpu=1.0, start=0, end=12, tcps=24, scene=True):
+    st = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(st, up)
+    UsdGeom.SetStageMetersPerUnit(st, mpu)
+    st.SetStartTimeCode(start)
+    st.SetEndTimeCode(end)
+    st.SetTimeCodesPerSecond(tcps)
+    st.SetDefaultPrim(UsdGeom.Xform.Define(st, "/World").GetPrim())
+    if scene:
+        UsdPhysics.Scene.Define(st, "/World/physicsScene")
+    return st
+
+
+def body(prim, velocity=None, angular=None):
+    UsdPhysics.CollisionAPI.Apply(prim)
+    rb = UsdPhysics.RigidBodyAPI.Apply(prim)
+    if velocity is not None:
+        rb.CreateVelocityAttr(Gf.Vec3f(*velocity))
+    if angular is not None:
+        rb.CreateAngularVelocityAttr(Gf.Vec3f(*angular))
+    return rb
+
+
+def physics_material(st, path, e, mu, density=0.0):
+    mat = UsdShade.Material.Define(st, path)
+    api = UsdPhysics.MaterialAPI.Apply(mat.GetPrim())
+    api.CreateRestitutionAttr(e)
+    api.CreateDynamicFrictionAttr(mu)
+    api.CreateStaticFrictionAttr(mu)
+    if density:
+        api.CreateDensityAttr(density)
+    return mat
+
+
+def bind_physics(prim, mat):
+    api = UsdShade.MaterialBindingAPI.Apply(prim)
+    api.Bind(mat, UsdShade.Tokens.weakerThanDescendants, "physics")
+
+
+def ground(st, path="/World/Ground", half=None):
+    g = UsdGeom.Cube.Define(st, path)
+    g.CreateSizeAttr(1.0)
+    g.AddTranslateOp().Set(Gf.Vec3d(0, 0, -0.05))
+    g.AddScaleOp().Set(Gf.Vec3f(20, 20, 0.1))
+    UsdPhysics.CollisionAPI.Apply(g.GetPrim())
+    return g
+
+
+def box_mesh(st, path, half):
+    """A cube as a DCC writes it: quads, corners repeated per face."""
+    m = UsdGeom.Mesh.Define(st, path)
+    h = half
+    c = [(-h, -h, -h), (h, -h, -h), (h, h, -h), (-h, h, -h),
+         (-h, -h, h), (h, -h, h), (h, h, h), (-h, h, h)]
+    quads = [(0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)]
+    pts, idx = [], []
+    for q in quads:
+        for i in q:
+            idx.append(len(pts))
+            pts.append(c[i])
+    m.CreatePointsAttr([Gf.Vec3f(*p) for p in pts])
+    m.CreateFaceVertexCountsAttr([4] * 6)
+    m.CreateFaceVertexIndicesAttr(idx)
+    return m
+
+
+# ------------------------------------------------------------------------ the shot
+
+
+GAP = 0.03        # every body starts this far above the ground [m]
+VX = 0.2          # the cube's initial velocity [m/s]
+
+
+@pytest.fixture(scope="module")
+def shot(tmp_path_factory):
+    """A stage with a Cube, a Sphere, a Mesh, an Xform body of two child cubes under a
+    rotated and scaled parent, an instancer of two bodies, a kinematic body and a
+    joint; baked for 0.5 s at resolution 3 into an overlay."""
+    d = tmp_path_factory.mktemp("shot")
+    st = new_stage(d / "shot.usda")
+    ground(st)
+    cube = UsdGeom.Cube.Define(st, "/World/Cube")
+    cube.CreateSizeAttr(0.1)
+    cube.AddTranslateOp().Set(Gf.Vec3d(0, 0, 0.05 + GAP))
+    body(cube.GetPrim(), velocity=(VX, 0, 0))
+    sph = UsdGeom.Sphere.Define(st, "/World/Ball")
+    sph.CreateRadiusAttr(0.05)
+    sph.AddTranslateOp().Set(Gf.Vec3d(0.4, 0, 0.05 + GAP))
+    body(sph.GetPrim())
+    mesh = box_mesh(st, "/World/Crate", 0.04)
+    mesh.AddTranslateOp().Set(Gf.Vec3d(-0.4, 0, 0.04 + GAP))
+    mesh.AddRotateZOp().Set(20.0)
+    body(mesh.GetPrim())
+    # rotated and scaled parent; the body is an Xform whose shapes are its children
+    rig = UsdGeom.Xform.Define(st, "/World/Rig")
+    rig.AddTranslateOp().Set(Gf.Vec3d(0, 0.5, 0))
+    rig.AddRotateZOp().Set(30.0)
+    rig.AddScaleOp().Set(Gf.Vec3f(2, 2, 2))
+    dumbbell = UsdGeom.Xform.Define(st, "/World/Rig/Dumbbell")
+    dumbbell.AddTranslateOp().Set(Gf.Vec3d(0, 0, (0.02 + GAP) / 2))
+    UsdPhysics.RigidBodyAPI.Apply(dumbbell.GetPrim())
+    for i, x in enumerate((-0.03, 0.03)):
+        c = UsdGeom.Cube.Define(st, f"/World/Rig/Dumbbell/End{i}")
+        c.CreateSizeAttr(0.02)
+        c.AddTranslateOp().Set(Gf.Vec3d(x, 0, 0))
+        UsdPhysics.CollisionAPI.Apply(c.GetPrim())
+    # an instancer of two bodies
+    pi = UsdGeom.PointInstancer.Define(st, "/World/Crates")
+    proto = UsdGeom.Cube.Define(st, "/World/Crates/Protos/Crate")
+    proto.CreateSizeAttr(0.06)
+    body(proto.GetPrim())
+    pi.CreatePrototypesRel().SetTargets([proto.GetPath()])
+    pi.CreateProtoIndicesAttr([0, 0])
+    pi.CreatePositionsAttr([Gf.Vec3f(0.0, -0.4, 0.03 + GAP), Gf.Vec3f(0.3, -0.4, 0.03 + GAP)])
+    pi.CreateOrientationsAttr([Gf.Quath(1, 0, 0, 0), Gf.Quath(1, 0, 0, 0)])
+    # not simulated: a kinematic body (held static) and a joint
+    kin = UsdGeom.Cube.Define(st, "/World/Pusher")
+    kin.CreateSizeAttr(0.05)
+    kin.AddTranslateOp().Set(Gf.Vec3d(0.8, 0.8, 0.025))
+    body(kin.GetPrim()).CreateKinematicEnabledAttr(True)
+    weld = UsdPhysics.FixedJoint.Define(st, "/World/Weld")
+    weld.CreateBody0Rel().SetTargets(["/World/Cube"])
+    weld.CreateBody1Rel().SetTargets(["/World/Ball"])
+    st.GetRootLayer().Save()
+    warnings = []
+    settings = d / "shot.toml"
+    settings.write_text('[usd]\nstage = "shot.usda"\n[simulation]\nresolution = 3\n')
+    result = bake(settings, d / "out" / "shot_baked.usda", device="cpu",
+                  warn=warnings.append, cache=SphereCache(d / "cache"))
+    return dict(dir=d, stage=d / "shot.usda", out=result.path, warnings=warnings,
+                scene=load_scene(settings), result=result)
+
+
+def test_not_simulated_prims_are_named_in_one_warning(shot):
+    lines = [w for w in shot["warnings"] if "not simulated" in w]
+    assert len(lines) == 1
+    assert "/World/Pusher" in lines[0] and "held static" in lines[0]
+    assert "/World/Weld" in lines[0]
+    assert any("ground plane" in w and "/World/Ground" in w for w in shot["warnings"])
+
+
+def test_overlay_holds_no_geometry_and_sublayers_the_input(shot):
+    layer = Sdf.Layer.FindOrOpen(str(shot["out"]))
+    assert list(layer.subLayerPaths) == ["../shot.usda"]
+    allowed = {"xformOpOrder", "xformOp:translate:dempipe", "xformOp:orient:dempipe",
+               "xformOp:scale:dempipe", "xformOp:transform:dempipe", "physics:velocity",
+               "physics:angularVelocity", "positions", "orientations", "velocities",
+               "angularVelocities"}
+    seen = []
+
+    def walk(spec):
+        for child in spec.nameChildren:
+            assert child.specifier == Sdf.SpecifierOver and not child.typeName
+            assert not child.referenceList.GetAddedOrExplicitItems()
+            for a in child.attributes:
+                assert a.name in allowed, a.name
+                seen.append(a.name)
+            walk(child)
+
+    walk(layer.pseudoRoot)
+    assert "positions" in seen and "xformOp:orient:dempipe" in seen
+
+
+def test_composed_overlay_validates(shot):
+    stage = Usd.Stage.Open(str(shot["out"]))
+    assert stage.GetPrimAtPath("/World/Crate").GetTypeName() == "Mesh"   # from the input
+    ctx = UsdValidation.ValidationContext(
+        UsdValidation.ValidationRegistry().GetOrLoadAllValidators())
+    errors = [e.GetMessage() for e in ctx.Validate(stage)
+              if e.GetType() == UsdValidation.ValidationErrorType.Error]
+    assert errors == []
+
+
+def _bottom(stage, path, t):
+    """Lowest world z of the prim's geometry at time code t (composed stage)."""
+    cache = UsdGeom.BBoxCache(Usd.TimeCode(t), [UsdGeom.Tokens.default_])
+    return cache.ComputeWorldBound(stage.GetPrimAtPath(path)).ComputeAlignedRange().GetMin()[2]
+
+
+def test_bodies_come_to_rest_on_the_ground(shot):
+    # Every body falls GAP onto the plane and rests on it: the lowest point of its
+    # composed geometry is at z = 0. Tolerance a quarter diameter: the lattice's
+    # spheres reach the faces of a box exactly, a tessellated round body's lowest
+    # sphere sits up to d/4 inside its surface, plus the contact overlap (~1-2 % d).
+    stage = Usd.Stage.Open(str(shot["out"]))
+    d = shot["result"].report["diameter"]
+    end = stage.GetEndTimeCode()
+    for path in ("/World/Cube", "/World/Ball", "/World/Crate", "/World/Rig/Dumbbell"):
+        assert _bottom(stage, path, 0) == pytest.approx(GAP, abs=1e-6), path
+        assert abs(_bottom(stage, path, end)) < 0.25 * d, path
+    # the instancer's bodies: positions written back in the instancer's arrays
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/World/Crates"))
+    pos = np.array(pi.GetPositionsAttr().Get(end))
+    assert pos[:, 2] == pytest.approx([0.03, 0.03], abs=0.25 * d)
+    q = np.array([[x.GetReal(), *x.GetImaginary()] for x in pi.GetOrientationsAttr().Get(end)])
+    assert np.linalg.norm(q, axis=1) == pytest.approx([1, 1], abs=2e-3)   # half floats
+
+
+def test_initial_velocity_is_used_before_contact(shot):
+    # Ballistic flight until the fall of GAP ends at t = sqrt(2 GAP / g) = 0.078 s:
+    # frame 1 (t = 1/24 s) has x = v t exactly (no force acts along x) and
+    # z = z0 - g t²/2 to the integrator's O(g t dt).
+    stage = Usd.Stage.Open(str(shot["out"]))
+    t = 1.0 / 24.0
+    xf = UsdGeom.Xformable(stage.GetPrimAtPath("/World/Cube"))
+    p = xf.ComputeLocalToWorldTransform(Usd.TimeCode(1)).ExtractTranslation()
+    assert p[0] == pytest.approx(VX * t, abs=1e-6)
+    assert p[2] == pytest.approx(0.05 + GAP - 0.5 * G * t * t, abs=1e-3)
+    v = stage.GetPrimAtPath("/World/Cube").GetAttribute("physics:velocity").Get(1)
+    assert v[0] == pytest.approx(VX, rel=1e-6)
+
+
+def test_scaled_parent_keeps_the_body_scale(shot):
+    # The dumbbell's parent scales by 2 and turns 30°: the composed world transforms
+    # of its two ends stay 0.12 m apart (±0.03, doubled) and scaled by 2 at every frame.
+    stage = Usd.Stage.Open(str(shot["out"]))
+    for t in range(int(stage.GetEndTimeCode()) + 1):
+        cache = UsdGeom.XformCache(Usd.TimeCode(t))
+        m = [cache.GetLocalToWorldTransform(stage.GetPrimAtPath(f"/World/Rig/Dumbbell/End{i}"))
+             for i in (0, 1)]
+        gap = m[1].ExtractTranslation() - m[0].ExtractTranslation()
+        assert gap.GetLength() == pytest.approx(0.12, abs=1e-9)
+        rows = np.array([list(m[0].GetRow3(i)) for i in range(3)])
+        assert rows @ rows.T == pytest.approx(4 * np.eye(3), abs=1e-9)
+    # its mass: two 4 cm cubes (scaled by 2) of water
+    scene = shot["scene"]
+    g = [b for b in scene.bodies if b.name == "Dumbbell"][0]
+    assert g.mass == pytest.approx(2 * 0.04 ** 3 * 1000, rel=1e-6)
+
+
+# ------------------------------------------------------------------ reading only
+
+
+def test_y_up_centimetres_materials_and_mass(tmp_path):
+    """What the reader takes from a Y-up stage in centimetres (no simulation)."""
+    st = new_stage(tmp_path / "cm.usda", up="Y", mpu=0.01, start=1, end=25)
+    rubber = physics_material(st, "/World/Looks/Rubber", 0.8, 0.3, density=0.002)  # kg/cm³
+    plain = physics_material(st, "/World/Looks/Plain", 0.1, 0.9)
+    ball = UsdGeom.Sphere.Define(st, "/World/Ball")
+    ball.CreateRadiusAttr(5.0)
+    ball.AddTranslateOp().Set(Gf.Vec3d(10, 20, 0))
+    body(ball.GetPrim(), velocity=(100, 0, 0), angular=(0, 90, 0))
+    UsdShade.MaterialBindingAPI.Apply(ball.GetPrim()).Bind(plain)        # all purposes
+    bind_physics(ball.GetPrim(), rubber)                                 # wins
+    heavy = UsdGeom.Cube.Define(st, "/World/Heavy")
+    heavy.CreateSizeAttr(10.0)
+    heavy.AddTranslateOp().Set(Gf.Vec3d(-30, 20, 0))
+    body(heavy.GetPrim())
+    mapi = UsdPhysics.MassAPI.Apply(heavy.GetPrim())
+    mapi.CreateMassAttr(3.0)
+    mapi.CreateDensityAttr(5.0)                 # mass wins over density
+    UsdPhysics.RigidBodyAPI(heavy.GetPrim()).CreateStartsAsleepAttr(True)
+    st.GetRootLayer().Save()
+
+    scene = load_usd_scene(tmp_path / "cm.usda")
+    assert scene.output.up_axis == "Y" and scene.output.meters_per_unit == 0.01
+    assert scene.output.start_frame == 1 and scene.output.n_frames == 25
+    assert scene.simulation.gravity == pytest.approx((0, -G, 0))
+    ball_g, heavy_g = scene.bodies
+    assert ball_g.position == pytest.approx((0.1, 0.2, 0.0))
+    assert ball_g.velocity == pytest.approx((1.0, 0, 0))
+    assert ball_g.angular_velocity == pytest.approx((0, math.pi / 2, 0))
+    m = scene.materials[ball_g.material]
+    assert (m.restitution, m.friction) == pytest.approx((0.8, 0.3))
+    assert m.density == pytest.approx(2000.0)
+    # the tessellated sphere's volume is within 1 % of 4/3 π r³
+    assert ball_g.mass == pytest.approx(2000 * 4 / 3 * math.pi * 0.05 ** 3, rel=0.01)
+    assert heavy_g.mass == pytest.approx(3.0) and heavy_g.starts_asleep
+
+
+def test_mass_api_inertia_and_centre_of_mass_reach_the_model(tmp_path):
+    from dempipe.build import build_model
+
+    st = new_stage(tmp_path / "m.usda")
+    c = UsdGeom.Cube.Define(st, "/World/Box")
+    c.CreateSizeAttr(0.1)
+    c.AddTranslateOp().Set(Gf.Vec3d(0, 0, 1))
+    body(c.GetPrim())
+    api = UsdPhysics.MassAPI.Apply(c.GetPrim())
+    api.CreateMassAttr(2.0)
+    api.CreateCenterOfMassAttr(Gf.Vec3f(0.01, 0, 0))
+    api.CreateDiagonalInertiaAttr(Gf.Vec3f(0.01, 0.02, 0.03))
+    api.CreatePrincipalAxesAttr(Gf.Quatf(math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)))
+    UsdPhysics.RigidBodyAPI(c.GetPrim()).CreateStartsAsleepAttr(True)
+    # a body inside a native instance cannot be overridden: named, not dropped silently
+    proto = UsdGeom.Xform.Define(st, "/Proto")
+    pc = UsdGeom.Cube.Define(st, "/Proto/Body")
+    body(pc.GetPrim())
+    inst = UsdGeom.Xform.Define(st, "/World/Inst")
+    inst.GetPrim().GetReferences().AddInternalReference(proto.GetPath())
+    inst.GetPrim().SetInstanceable(True)
+    st.GetRootLayer().Save()
+    scene = load_usd_scene(tmp_path / "m.usda", SimulationSettings(resolution=3))
+    assert any("native instances" in w and "/World/Inst" in w for w in scene.usd.warnings)
+    model = build_model(scene)
+    assert model.n_bodies == 2                     # /Proto/Body itself is a body too
+    assert model.initial_state().body_rest[0] == model.sleep_steps > 0     # startsAsleep
+    assert model.body_mass[0] == pytest.approx(2.0)
+    # principal axes turned 90° about z: x and y swap
+    inv = model.body_inv_inertia[0]
+    assert (1 / inv[0], 1 / inv[1], 1 / inv[2]) == pytest.approx((0.02, 0.01, 0.03), rel=1e-6)
+    assert model.shapes[0].com == pytest.approx((0.01, 0, 0))
+    assert model.initial_x[0] == pytest.approx((0.01, 0, 1))
+
+
+def test_unusable_stages_fail_with_one_line(tmp_path):
+    st = new_stage(tmp_path / "empty.usda")
+    st.GetRootLayer().Save()
+    with pytest.raises(SceneError, match="empty.usda: no rigid bodies"):
+        load_scene(tmp_path / "empty.usda")
+    bad = tmp_path / "bad.usda"
+    bad.write_text("#usda 1.0\ndef Xform (\n")
+    with pytest.raises(SceneError, match="bad.usda: cannot open the USD stage"):
+        load_scene(bad)
+    (tmp_path / "s.toml").write_text('[usd]\nstage = "nope.usda"\n')
+    with pytest.raises(SceneError, match="s.toml: usd.stage: stage not found"):
+        load_scene(tmp_path / "s.toml")
+    (tmp_path / "t.toml").write_text('[usd]\nstage = "empty.usda"\n[[bodies]]\n')
+    with pytest.raises(SceneError, match="t.toml: bodies: not used with"):
+        load_scene(tmp_path / "t.toml")
+
+
+# ------------------------------------------------------------------ bounce
+
+
+@pytest.mark.slow
+def test_restitution_from_the_bound_material_gives_e_squared(tmp_path):
+    # One ball (one sphere: resolution 1) with a material of e = 0.8 bound for
+    # physics drops 5 cm onto a Plane bound to it too; the rebound apex is e² h0.
+    # Tolerance 3 %, as the bounce tests of test_simulation.py. The step is set to
+    # 1/128 of a frame at 240 fps, 66 steps per contact: the auto dt (16.5 per
+    # contact) gives -3.1 % here (measured), the dashpot's switch-on error
+    # ζ ω dt of docs/physics.md; at 66 it is ~0.7 % on e².
+    e, h0, r = 0.8, 0.05, 0.02
+    st = new_stage(tmp_path / "b.usda", end=120, tcps=240)
+    plane = UsdGeom.Plane.Define(st, "/World/Floor")
+    plane.CreateAxisAttr("Z")
+    UsdPhysics.CollisionAPI.Apply(plane.GetPrim())
+    mat = physics_material(st, "/World/Bouncy", e, 0.0)
+    ball = UsdGeom.Sphere.Define(st, "/World/Ball")
+    ball.CreateRadiusAttr(r)
+    ball.AddTranslateOp().Set(Gf.Vec3d(0, 0, r + h0))
+    body(ball.GetPrim())
+    bind_physics(ball.GetPrim(), mat)
+    bind_physics(plane.GetPrim(), mat)
+    st.GetRootLayer().Save()
+    (tmp_path / "b.toml").write_text('[usd]\nstage = "b.usda"\n[simulation]\nresolution = 1\n'
+                                     f'sleeping = false\ndt = {1 / 240 / 128!r}\n')
+    out = bake(tmp_path / "b.toml", tmp_path / "b_out.usdc", device="cpu",
+               cache=SphereCache(tmp_path / "cache")).path
+    stage = Usd.Stage.Open(str(out))
+    d = 2 * r
+    xf = UsdGeom.Xformable(stage.GetPrimAtPath("/World/Ball"))
+    z = np.array([xf.ComputeLocalToWorldTransform(Usd.TimeCode(t)).ExtractTranslation()[2]
+                  for t in range(121)]) - d / 2
+    vz = [stage.GetPrimAtPath("/World/Ball").GetAttribute("physics:velocity").Get(t)[2]
+          for t in range(121)]
+    up = int(np.argmax(np.asarray(vz) > 0))          # first frame after the bounce
+    assert 0 < up < 60
+    apex = z[up:up + 60].max()                       # before the second bounce
+    assert apex / h0 == pytest.approx(e * e, rel=0.03)
+
+
+# ------------------------------------------------------------------ CLI and example
+
+
+def test_example_stage_bakes_from_the_command_line(tmp_path):
+    """examples/usd_shot.usda over its first 6 frames, through `dempipe bake` with
+    dempipe's settings on the command line, and `dempipe check` on it."""
+    src = ROOT / "examples" / "usd_shot.usda"
+    stage = Usd.Stage.Open(str(src))
+    stage.SetEndTimeCode(stage.GetStartTimeCode() + 6)
+    stage.GetRootLayer().Export(str(tmp_path / "usd_shot.usda"))
+    env = dict(os.environ, DEMPIPE_CACHE_DIR=str(tmp_path / "cache"))
+    r = subprocess.run([sys.executable, "-m", "dempipe_cli.main", "bake", "usd_shot.usda", "-o",
+                        "baked.usda", "--device", "cpu", "-q", "--resolution", "3"],
+                       cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr
+    out = Usd.Stage.Open(str(tmp_path / "baked.usda"))
+    assert out.GetRootLayer().subLayerPaths[0] == "usd_shot.usda"
+    assert out.GetEndTimeCode() == stage.GetStartTimeCode() + 6
+    assert "not simulated" not in r.stderr          # every prim of the example is simulated
+    ball = UsdGeom.Xformable(out.GetPrimAtPath("/World/Ball"))
+    y = [ball.ComputeLocalToWorldTransform(Usd.TimeCode(t)).ExtractTranslation()[1]
+         for t in (1, 7)]
+    assert y[1] < y[0]                              # Y-up: it falls along -Y
+    r = subprocess.run([sys.executable, "-m", "dempipe_cli.main", "check", "usd_shot.usda"],
+                       cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
+    assert r.returncode in (0, 1) and "Traceback" not in r.stderr, r.stderr
+
+
+# ------------------------------------------------------------ overlay geometry only
+
+
+def test_overlay_composes_to_the_simulated_pose_under_any_parents(tmp_path):
+    """Frames with known poses (no simulation) written as an overlay: each body's
+    corners, composed by USD through the overlay's ops and the body's parents, land
+    where dempipe's pose puts them (R(q) corner + x). Covers an uneven parent scale
+    (the matrix op), a reset transform stack, an animated parent, and an instancer
+    using orientationsf."""
+    from dempipe.build import build_model
+    from dempipe.export.overlay import OP_MATRIX, write_overlay
+    from dempipe.frames import Frames
+    from dempipe.model import quat_to_matrix
+
+    st = new_stage(tmp_path / "p.usda", mpu=0.01, end=2)
+    squash = UsdGeom.Xform.Define(st, "/World/Squash")
+    squash.AddRotateXOp().Set(30.0)
+    squash.AddScaleOp().Set(Gf.Vec3f(1, 2, 3))
+    a = UsdGeom.Cube.Define(st, "/World/Squash/A")
+    a.CreateSizeAttr(4)
+    a.AddTranslateOp().Set(Gf.Vec3d(0, 0, 10))
+    body(a.GetPrim())
+    b = UsdGeom.Cube.Define(st, "/World/Squash/B")
+    b.CreateSizeAttr(4)
+    b.AddTranslateOp().Set(Gf.Vec3d(20, 0, 10))
+    b.SetResetXformStack(True)
+    body(b.GetPrim())
+    mover = UsdGeom.Xform.Define(st, "/World/Mover")
+    op = mover.AddTranslateOp()
+    for t in range(3):
+        op.Set(Gf.Vec3d(5 * t, 0, 0), t)
+    c = UsdGeom.Cube.Define(st, "/World/Mover/C")
+    c.CreateSizeAttr(4)
+    c.AddTranslateOp().Set(Gf.Vec3d(-20, 0, 10))
+    c.AddScaleOp().Set(Gf.Vec3f(1, 1, 2))
+    body(c.GetPrim())
+    pi = UsdGeom.PointInstancer.Define(st, "/World/Inst")
+    pi.AddTranslateOp().Set(Gf.Vec3d(0, 30, 0))
+    proto = UsdGeom.Cube.Define(st, "/World/Inst/Protos/P")
+    proto.CreateSizeAttr(4)
+    proto.AddTranslateOp().Set(Gf.Vec3d(1, 2, 3))          # the prototype's own transform
+    proto.AddRotateZOp().Set(15.0)
+    body(proto.GetPrim())
+    pi.CreatePrototypesRel().SetTargets([proto.GetPath()])
+    pi.CreateProtoIndicesAttr([0, 0])
+    pi.CreatePositionsAttr([Gf.Vec3f(0, 0, 10), Gf.Vec3f(10, 0, 10)])
+    pi.CreateOrientationsfAttr([Gf.Quatf(1, 0, 0, 0)] * 2)
+    pi.CreateScalesAttr([Gf.Vec3f(1, 1, 1), Gf.Vec3f(2, 2, 2)])
+    st.GetRootLayer().Save()
+
+    scene = load_usd_scene(tmp_path / "p.usda", SimulationSettings(resolution=2))
+    model = build_model(scene)
+    n = model.n_bodies
+    assert n == 5
+    # frame 0: the initial pose; frames 1, 2: moved and turned by known amounts
+    x = np.repeat(np.asarray(model.initial_x)[None, :n], 3, axis=0)
+    q = np.repeat(np.asarray(model.initial_q)[None, :n], 3, axis=0)
+    turn = np.array([math.cos(0.4), 0.3, -0.5, 0.8])
+    turn /= np.linalg.norm(turn)
+    for f in (1, 2):
+        x[f] += [0.01 * f, -0.02, 0.03 * f]
+        for k in range(n):
+            w1, v1 = turn[0], turn[1:]
+            w2, v2 = q[f - 1, k, 0], q[f - 1, k, 1:]
+            q[f, k] = [w1 * w2 - v1 @ v2, *(w1 * v2 + w2 * v1 + np.cross(v1, v2))]
+    frames = Frames(np.arange(3), np.arange(3) / 24.0, x, q, np.zeros((3, n, 3)),
+                    np.zeros((3, n, 3)))
+    out = tmp_path / "out" / "p_baked.usdc"
+    write_overlay(out, frames, model, scene.usd)
+
+    stage = Usd.Stage.Open(str(out))
+    ops = stage.GetPrimAtPath("/World/Squash/A").GetAttribute("xformOpOrder").Get()
+    assert list(ops) == [OP_MATRIX]                                # uneven parent scale
+    ops = stage.GetPrimAtPath("/World/Squash/B").GetAttribute("xformOpOrder").Get()
+    assert list(ops)[0] == "!resetXformStack!"
+    corners = np.array([[sx, sy, sz] for sx in (-2, 2) for sy in (-2, 2) for sz in (-2, 2)],
+                       dtype=float)
+    inst = UsdGeom.PointInstancer(stage.GetPrimAtPath("/World/Inst"))
+    for f in range(3):
+        tc = Usd.TimeCode(f)
+        cache = UsdGeom.XformCache(tc)
+        worlds = [_np4(cache.GetLocalToWorldTransform(stage.GetPrimAtPath(p)))
+                  for p in ("/World/Squash/A", "/World/Squash/B", "/World/Mover/C")]
+        W_inst = _np4(cache.GetLocalToWorldTransform(inst.GetPrim()))
+        worlds += [_np4(m) @ W_inst for m in inst.ComputeInstanceTransformsAtTime(tc, tc)]
+        for k, W in enumerate(_by_prim(scene, worlds)):
+            got = (np.c_[corners, np.ones(8)] @ W)[:, :3] * 0.01
+            S = np.asarray(scene.usd.bodies[k].stretch)
+            com = np.asarray(model.shapes[model.body_shape[k]].com)
+            want = (corners @ S * 0.01 - com) @ quat_to_matrix(q[f, k]).T + x[f, k]
+            assert got == pytest.approx(want, abs=1e-6), (f, scene.usd.bodies[k])
+
+
+def _np4(m):
+    return np.array(m, dtype=np.float64).reshape(4, 4)
+
+
+def _by_prim(scene, worlds):
+    """The world matrices (A, B, C, instance 0, instance 1) in the Model's body order."""
+    key = {("/World/Squash/A", -1): 0, ("/World/Squash/B", -1): 1, ("/World/Mover/C", -1): 2,
+           ("/World/Inst", 0): 3, ("/World/Inst", 1): 4}
+    return [worlds[key[(b.prim, b.instance)]] for b in scene.usd.bodies]
+
+
+# ------------------------------------------------------------------ scene export
+
+
+ROUND_TRIP = """
+[output]
+fps = 30
+duration = 0.5
+start_frame = 10
+meters_per_unit = 0.01
+
+[simulation]
+resolution = 3
+gravity = [0.0, 0.0, -5.0]
+
+[materials.rubber]
+density = 1100
+restitution = 0.8
+friction = 0.7
+
+[shapes.box]
+builtin = "box"
+size = [0.04, 0.05, 0.06]
+
+[shapes.ball]
+builtin = "sphere"
+diameter = 0.05
+
+[[bodies]]
+name = "boxes"
+shape = "box"
+material = "rubber"
+layout = "grid"
+origin = [0.0, 0.0, 0.1]
+dims = [2, 1, 1]
+spacing = 0.1
+rotation = [0.9, 0.1, 0.3, 0.2]
+velocity = [0.5, 0.0, 0.0]
+angular_velocity = [0.0, 1.0, 2.0]
+
+[[bodies]]
+name = "ball"
+shape = "ball"
+position = [0.3, 0.2, 0.05]
+
+[[colliders]]
+type = "plane"
+normal = [0.0, 0.1, 1.0]
+point = [0.0, 0.0, -0.01]
+material = "rubber"
+
+[[colliders]]
+type = "mesh"
+name = "bump"
+builtin = "box"
+size = [0.1, 0.1, 0.02]
+position = [0.5, 0.5, 0.0]
+"""
+
+
+def test_scene_export_round_trip(tmp_path):
+    """A TOML scene exported as a UsdPhysics stage (`dempipe scene export`) and read
+    back gives the same bodies, materials, gravity, timing and colliders."""
+    from dempipe.build import build_model
+
+    (tmp_path / "s.toml").write_text(ROUND_TRIP)
+    r = subprocess.run([sys.executable, "-m", "dempipe_cli.main", "scene", "export", "s.toml",
+                        "-o", "s.usda"], cwd=tmp_path, capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr
+    a = load_scene(tmp_path / "s.toml")
+    b = load_scene(tmp_path / "s.usda")
+    assert b.usd.warnings == ()
+    assert (b.output.fps, b.output.start_frame, b.output.n_frames, b.output.meters_per_unit) \
+        == (30, 10, a.output.n_frames, 0.01)
+    assert b.simulation.gravity == pytest.approx((0, 0, -5.0))
+    rubber = [m for m in b.materials.values() if m.restitution == pytest.approx(0.8)][0]
+    assert (rubber.density, rubber.friction) == pytest.approx((1100, 0.7), rel=1e-6)
+    ma = build_model(a)
+    mb = build_model(b)
+    assert mb.n_bodies == ma.n_bodies == 3
+    # exact meshes and float32 points: positions and masses to float32 precision
+    assert np.asarray(mb.initial_x)[:3] == pytest.approx(np.asarray(ma.initial_x)[:3], abs=1e-6)
+    qa, qb = np.asarray(ma.initial_q)[:3], np.asarray(mb.initial_q)[:3]
+    assert np.abs(np.sum(qa * qb, axis=1)) == pytest.approx(1.0, abs=1e-6)
+    assert np.asarray(mb.initial_v) == pytest.approx(np.asarray(ma.initial_v), abs=1e-6)
+    assert np.asarray(mb.initial_w) == pytest.approx(np.asarray(ma.initial_w), abs=1e-6)
+    assert np.asarray(mb.body_mass)[:3] == pytest.approx(np.asarray(ma.body_mass)[:3], rel=1e-5)
+    assert np.asarray(mb.plane_normal) == pytest.approx(np.asarray(ma.plane_normal), abs=1e-6)
+    assert float(mb.plane_normal[0] @ (mb.plane_point[0] - ma.plane_point[0])) \
+        == pytest.approx(0, abs=1e-7)
+    assert len(mb.static_meshes) == 1
+    assert np.asarray(mb.static_meshes[0].vertices).min(axis=0) == pytest.approx(
+        np.asarray(ma.static_meshes[0].vertices).min(axis=0), abs=1e-6)
+
+
+def test_overlay_leaves_out_redundant_samples(tmp_path):
+    """A body that stops keeps only the ends of its still run; an attribute that
+    never changes gets a default value and no time samples."""
+    from dempipe.build import build_model
+    from dempipe.export.overlay import OPS_TRS, write_overlay
+    from dempipe.frames import Frames
+
+    st = new_stage(tmp_path / "r.usda", end=4)
+    c = UsdGeom.Cube.Define(st, "/World/Box")
+    c.CreateSizeAttr(0.1)
+    c.AddTranslateOp().Set(Gf.Vec3d(0, 0, 1))
+    body(c.GetPrim())
+    st.GetRootLayer().Save()
+    scene = load_usd_scene(tmp_path / "r.usda", SimulationSettings(resolution=2))
+    model = build_model(scene)
+    x = np.repeat(np.asarray(model.initial_x)[None, :1], 5, axis=0)
+    x[1:, 0, 2] -= 0.1
+    x[2:, 0, 2] -= 0.1                        # moves until frame 2, then still
+    q = np.repeat(np.asarray(model.initial_q)[None, :1], 5, axis=0)
+    frames = Frames(np.arange(5), np.arange(5) / 24.0, x, q, np.zeros((5, 1, 3)),
+                    np.zeros((5, 1, 3)))
+    out = tmp_path / "r_baked.usda"
+    write_overlay(out, frames, model, scene.usd)
+    stage = Usd.Stage.Open(str(out))
+    prim = stage.GetPrimAtPath("/World/Box")
+    assert prim.GetAttribute(OPS_TRS[0]).GetTimeSamples() == [0, 1, 2, 4]
+    assert prim.GetAttribute(OPS_TRS[1]).GetTimeSamples() == []
+    assert prim.GetAttribute(OPS_TRS[1]).Get() == Gf.Quatd(1, 0, 0, 0)
+    xf = UsdGeom.Xformable(prim)
+    for t in range(5):
+        z = xf.ComputeLocalToWorldTransform(Usd.TimeCode(t)).ExtractTranslation()[2]
+        assert z == pytest.approx(x[t, 0, 2], abs=1e-12)
