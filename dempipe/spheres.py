@@ -94,7 +94,8 @@ class SphereSet:
     """A rigid body's equal-sphere approximation and its mass properties.
 
     centers: (N, 3) float64, sphere centres in the BODY frame (mesh axes, origin at the
-        centre of mass) [m]; lattice order (x fastest, then y, then z). Read-only.
+        centre of mass) [m]; lattice order (x fastest, then y, then z), or for a
+        surface set (note "surface") shell, thin parts, interior. Read-only.
     diameter: the one sphere diameter [m].
     volume: body volume [m^3] (of the exact mesh when it is watertight).
     com: (3,) centre of mass in mesh coordinates [m]. Read-only.
@@ -104,7 +105,8 @@ class SphereSet:
     key: the cache key (mesh, diameter, options, builder version).
     notes: conditions met while building, re-reported on a cache hit:
         "not_watertight" (mass properties from the cells) and/or "tiny" (the shape
-        is smaller than one sphere and got one sphere at its centre of mass).
+        is smaller than one sphere and got one sphere at its centre of mass) and/or
+        "surface" (built in surface mode: BuildOptions.mode).
     """
 
     centers: np.ndarray
@@ -517,8 +519,10 @@ def build_sphere_set(mesh, diameter, *, name=None, cache=None,
                      options: BuildOptions = DEFAULT_OPTIONS) -> SphereSet:
     """Approximate ``mesh`` (a trimesh.Trimesh in metres) by spheres of ``diameter`` [m].
 
-    Lattice of pitch ``diameter`` centred on the mesh's bounding box; a cell is kept
-    when its centre is inside by the generalized winding number. Mass properties from
+    ``options.mode`` "lattice": a lattice of pitch ``diameter`` centred on the mesh's
+    bounding box; a cell is kept when its centre is inside by the generalized winding
+    number. "surface": centres on the surface's inward offset at d/2 and the lattice
+    cells deeper than d (dempipe.surface_spheres, docs/spheres.md "Surface mode"). Mass properties from
     the exact mesh when it is watertight (after merging vertices and fixing normals),
     otherwise from the cells, with a warning. A shape smaller than one sphere gets one
     sphere at its centre of mass, with a warning. ``cache``: a :class:`~dempipe.cache.SphereCache`

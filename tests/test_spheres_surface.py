@@ -74,6 +74,27 @@ def test_cli_counts_an_stl_box(tmp_path, monkeypatch):
     assert json.loads(result.stdout)[0]["count"] == 24
 
 
+def test_cli_shows_both_modes_with_their_errors(tmp_path, monkeypatch):
+    from click.testing import CliRunner
+
+    from dempipe_cli.main import app
+
+    monkeypatch.setenv("DEMPIPE_CACHE_DIR", str(tmp_path / "cache"))
+    args = ["spheres", "sphere", "--resolution", "6", "--mode", "both"]
+    result = CliRunner().invoke(app, args + ["--json"], catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    rows = {r["mode"]: r for r in json.loads(result.stdout)}
+    assert set(rows) == {"lattice", "surface"}
+    lat, sur = rows["lattice"], rows["surface"]
+    assert sur["count"] > lat["count"] and sur["bump"] < lat["bump"]
+    assert 0 < sur["hausdorff"] <= lat["hausdorff"] and sur["build_seconds"] >= 0
+    text = CliRunner().invoke(app, args, catch_exceptions=False).stdout.splitlines()
+    assert len(text) == 2 and all("Hausdorff" in t and "bump" in t for t in text)
+    assert "(surface)" in text[1] and "cache hit" in text[1]
+    bad = CliRunner().invoke(app, args + ["-o", str(tmp_path / "x.npz")])
+    assert bad.exit_code != 0 and "{mode}" in bad.output
+
+
 # ------------------------------------------------------------------ surface sets
 
 
@@ -115,6 +136,15 @@ def test_surface_sets_are_deterministic_and_cached_under_their_own_key(tmp_path)
     # the lattice keys are those of before the mode existed (caches stay valid)
     assert BuildOptions().key_text() == repr([("winding_threshold", "0.5")])
     assert BuildOptions(mode="surface", spacing=0.2).key_text() != SURFACE.key_text()
+    import numba
+
+    threads = numba.get_num_threads()
+    try:                                   # the kernels' result is the thread count's own
+        numba.set_num_threads(1)
+        one = build_sphere_set(mesh, d, options=SURFACE)
+    finally:
+        numba.set_num_threads(threads)
+    assert one.centers.tobytes() == a.centers.tobytes()
     cache = SphereCache(tmp_path)
     build_sphere_set(mesh, d, options=SURFACE, cache=cache)
     hit = build_sphere_set(mesh, d, options=SURFACE, cache=cache)
@@ -233,3 +263,50 @@ def test_scene_key_errors(tmp_path, sim, shape, where):
     msg = str(exc.value)
     assert where in msg and "s.toml" in msg
     assert "surface" in msg or "lattice" in msg
+
+
+# ------------------------------------------------------------------ report sweep
+
+
+REPORT_SCENE = """
+[output]
+fps = 24
+duration = 0.1
+[simulation]
+resolution = 4
+[shapes.ball]
+builtin = "sphere"
+[[bodies]]
+name = "balls"
+shape = "ball"
+layout = "grid"
+origin = [0.0, 0.0, 0.03]
+dims = [2, 1, 1]
+spacing = 0.06
+velocity = [0.2, 0.0, 0.0]
+[[colliders]]
+type = "plane"
+"""
+
+
+def test_report_sweeps_the_mode(tmp_path):
+    import csv
+
+    from dempipe.report import ReportError, Sweep, run_report
+
+    scene = tmp_path / "balls.toml"
+    scene.write_text(REPORT_SCENE)
+    sweep = Sweep(resolutions=(4,), dt_factors=(1.0,), stiffness_factors=(1.0,), duration=0.1,
+                  plots=False, sphere_modes=("lattice", "surface"))
+    result = run_report(scene, tmp_path / "out", sweep, cache=SphereCache(tmp_path / "c"))
+    assert result.reference.mode == "surface"
+    with open(tmp_path / "out" / "report.csv", newline="") as f:
+        table = {r["sphere_mode"]: r for r in csv.DictReader(f)}
+    assert set(table) == {"lattice", "surface"}
+    lat, sur = table["lattice"], table["surface"]
+    assert int(sur["spheres"]) > int(lat["spheres"])
+    assert float(sur["envelope_bump_d"]) < float(lat["envelope_bump_d"])
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "## Sphere-set modes" in md and "r4 dt×1 k×1 lattice" in md
+    with pytest.raises(ReportError, match="--spheres"):
+        run_report(scene, tmp_path / "o2", Sweep(plots=False, sphere_modes=("voxel",)))
