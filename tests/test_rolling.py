@@ -133,6 +133,15 @@ def test_box_rests_flat_and_slides(tmp_path):
     assert fr.x[-1, 0, 2] == pytest.approx(0.025, abs=0.02 * model.diameter)
 
 
+@pytest.mark.slow
+def test_ball_and_cylinder_within_two_percent_at_sixteen_across(tmp_path):
+    d = 0.1 / 16
+    model, fr = bake(tmp_path, BALL, 0.0501, d=d)
+    assert acceleration(fr) == pytest.approx(5.0 / 7.0 * G * math.sin(THETA), rel=0.02)
+    model, fr = bake(tmp_path, CYLINDER, 0.0501, d=d, rotation=ON_SIDE)
+    assert acceleration(fr) == pytest.approx(2.0 / 3.0 * G * math.sin(THETA), rel=0.02)
+
+
 PILE = """
 [output]
 fps = 24
