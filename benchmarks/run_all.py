@@ -37,6 +37,7 @@ BENCHMARKS = {
     "vs_bullet": (["--n", "256", "--duration", "1"], ["--n", "256,1024,4096"]),
     "two_bakes": ([], []),
     "sphere_table": (["--resolutions", "8", "--repeat", "1"], []),
+    "sphere_modes": (["--resolutions", "8", "--shapes", "sphere", "box"], []),
 }
 
 
