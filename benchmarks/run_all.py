@@ -38,6 +38,7 @@ BENCHMARKS = {
     "two_bakes": ([], []),
     "sphere_table": (["--resolutions", "8", "--repeat", "1"], []),
     "wedge": (["--quick"], []),
+    "sphere_modes": (["--resolutions", "8", "--shapes", "sphere", "box"], []),
 }
 
 

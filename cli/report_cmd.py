@@ -40,12 +40,15 @@ import click
               help="Bake the runs on a running Dask scheduler's workers (docs/farm.md).")
 @click.option("--cache-dir", type=click.Path(file_okay=False), default=None,
               help="Sphere-set cache folder (default: $DEMPIPE_CACHE_DIR or the user cache).")
+@click.option("--spheres", "sphere_modes", default=None, metavar="LIST",
+              help="Sphere-set modes to sweep, e.g. lattice,surface (the reference takes "
+                   "the last). Default: the scene's own, no mode axis.")
 @click.option("--no-plots", is_flag=True, help="Skip the PNG plots (no matplotlib needed).")
 @click.option("--quiet", "-q", is_flag=True, help="No line per run.")
 @click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
 def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, horizon,
            tolerance, bodies, device, threads, workers, scheduler, cache_dir, no_plots, quiet,
-           debug):
+           debug, sphere_modes):
     """Bake SCENE at every combination of resolution, dt and stiffness factors; write
     the error of each run against its run time to OUTPUT (report.md, report.csv, PNGs).
 
@@ -64,7 +67,9 @@ def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, 
         dt_factors=parse_values(dt_factors, "--dt-factors"),
         stiffness_factors=parse_values(stiffness_factors, "--stiffness-factors"),
         duration=duration, horizon=horizon, tolerance=tolerance, bodies=bodies, device=device,
-        threads=threads, plots=not no_plots)
+        threads=threads, plots=not no_plots,
+        sphere_modes=tuple(m.strip() for m in sphere_modes.split(",") if m.strip())
+        if sphere_modes else None)
     cache = SphereCache(cache_dir, strict=True) if cache_dir else None
     say = (lambda line: None) if quiet else (lambda line: click.echo(line, err=True))
     if workers is None and scheduler is None:

@@ -58,7 +58,14 @@ def _list_shapes() -> None:
               help="Cache folder (default: $DEMPIPE_CACHE_DIR or the user cache folder).")
 @click.option("--no-cache", is_flag=True, help="Neither read nor write the cache.")
 @click.option("--list-shapes", is_flag=True, help="List the built-in shapes and exit.")
-def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_cache, list_shapes):
+@click.option("--mode", "modes", type=click.Choice(["lattice", "surface", "both"]),
+              default=None, help="Sphere-set mode: lattice (solid voxelization), surface "
+                                 "(centres on the surface's inward offset, round bodies roll) "
+                                 "or both, one line each. Default: the library's default mode.")
+@click.option("--errors/--no-errors", default=True, show_default=True,
+              help="Measure the Hausdorff distance and bump height of the spheres' envelope.")
+def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_cache, list_shapes,
+            modes, errors):
     """Approximate meshes or built-in shapes by spheres of one diameter.
 
     MESH_OR_SHAPE is a mesh file (OBJ, STL, PLY, OFF, GLB/GLTF) or the name of a
@@ -67,7 +74,10 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
     them are surface spheres, within one lattice layer of the surface: the ones a
     scene's default contact_layers = 1 keeps for contacts), the volume
     error (N d^3 against the mesh volume), the inertia error (relative Frobenius),
-    the build time and whether the cache had it.
+    the build time and whether the cache had it, and (--errors) the Hausdorff
+    distance between the mesh and the spheres' envelope and the bump height (the
+    dips between neighbouring spheres beyond the rounding any sphere of that
+    diameter has), both in metres and in diameters.
     """
     if list_shapes:
         _list_shapes()
@@ -88,49 +98,72 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
         if len(inputs) > 1 and "{name}" not in output:
             raise click.UsageError("with several inputs, -o must contain {name} "
                                    "(e.g. -o spheres_{name}.npz)")
+        if modes == "both" and "{mode}" not in output:
+            raise click.UsageError("with --mode both, -o must contain {mode} "
+                                   "(e.g. -o {name}_{mode}.npz)")
 
     from dempipe.cache import SphereCache
-    from dempipe.spheres import (build_sphere_set_with_info, diameter_for_resolution,
-                                 save_sphere_set, surface_mask)
+    from dempipe.spheres import (DEFAULT_MODE, BuildOptions, build_sphere_set_with_info,
+                                 diameter_for_resolution, mesh_for_errors, save_sphere_set,
+                                 surface_mask)
+    from dempipe.surface_spheres import envelope_errors
 
     cache = None
     if not no_cache:
         # A folder the user named must work (CacheError); the default one may be
         # unwritable, in which case the cache warns once and is skipped.
         cache = SphereCache(cache_dir, strict=cache_dir is not None)
+    mode_list = ["lattice", "surface"] if modes == "both" else [modes or DEFAULT_MODE]
 
     results = []
     for arg in inputs:
         name, mesh = _resolve_input(arg, scale)
         d = diameter if diameter is not None else diameter_for_resolution(mesh, resolution)
-        sphere_set, info = build_sphere_set_with_info(mesh, d, name=name, cache=cache)
-        row = {
-            "name": name,
-            "input": arg,
-            "count": sphere_set.count,
-            "surface_count": int(surface_mask(sphere_set.centers, sphere_set.diameter, 1).sum()),
-            "diameter": sphere_set.diameter,
-            "volume": sphere_set.volume,
-            "volume_error_percent": 100.0 * sphere_set.sphere_volume_error,
-            "inertia_error_percent": 100.0 * sphere_set.inertia_error,
-            "build_seconds": info.seconds,
-            "cache": info.cache,
-            "mesh_sha256": sphere_set.mesh_sha256,
-            "output": None,
-        }
-        if output is not None:
-            out = _output_path(output, name)
-            save_sphere_set(out, sphere_set, mesh=mesh, name=name)
-            row["output"] = out
-        results.append(row)
-        if not as_json:
-            line = (f"{name}: {row['count']} spheres of d={row['diameter']:.6g} m "
-                    f"({row['surface_count']} on the surface), "
-                    f"volume error {row['volume_error_percent']:+.2f}%, "
-                    f"inertia error {row['inertia_error_percent']:.2f}%, "
-                    f"{row['build_seconds']:.2f} s, cache {row['cache']}")
-            if row["output"]:
-                line += f" -> {row['output']}"
-            click.echo(line)
+        for mode in mode_list:
+            sphere_set, info = build_sphere_set_with_info(mesh, d, name=name, cache=cache,
+                                                          options=BuildOptions(mode=mode))
+            row = {
+                "name": name,
+                "input": arg,
+                "mode": mode,
+                "count": sphere_set.count,
+                "surface_count": int(surface_mask(sphere_set.centers, sphere_set.diameter, 1).sum()),
+                "diameter": sphere_set.diameter,
+                "volume": sphere_set.volume,
+                "volume_error_percent": 100.0 * sphere_set.sphere_volume_error,
+                "inertia_error_percent": 100.0 * sphere_set.inertia_error,
+                "hausdorff": None,
+                "bump": None,
+                "build_seconds": info.seconds,
+                "cache": info.cache,
+                "mesh_sha256": sphere_set.mesh_sha256,
+                "output": None,
+            }
+            if errors:
+                e = envelope_errors(mesh_for_errors(mesh), sphere_set.centers + sphere_set.com,
+                                    sphere_set.diameter)
+                row["hausdorff"], row["bump"] = e.hausdorff, e.bump
+            if output is not None:
+                out = _output_path(output, name).replace("{mode}", mode)
+                save_sphere_set(out, sphere_set, mesh=mesh, name=name)
+                row["output"] = out
+            results.append(row)
+            if not as_json:
+                click.echo(_line(row))
     if as_json:
         click.echo(json.dumps(results, indent=2))
+
+
+def _line(row) -> str:
+    d = row["diameter"]
+    line = (f"{row['name']}: {row['count']} spheres ({row['mode']}) of d={d:.6g} m "
+            f"({row['surface_count']} on the surface), ")
+    if row["hausdorff"] is not None:
+        line += (f"Hausdorff {row['hausdorff']:.3g} m ({row['hausdorff'] / d:.2f} d), "
+                 f"bump {row['bump']:.3g} m ({row['bump'] / d:.3f} d), ")
+    line += (f"volume error {row['volume_error_percent']:+.2f}%, "
+             f"inertia error {row['inertia_error_percent']:.2f}%, "
+             f"{row['build_seconds']:.2f} s, cache {row['cache']}")
+    if row["output"]:
+        line += f" -> {row['output']}"
+    return line

@@ -25,7 +25,8 @@ class Overrides:
     diameter [m] or resolution (spheres across the smallest shape's longest extent);
     stiffness_factor multiplies every material's stiffness (auto included);
     dt [s] or dt_factor (times the auto step); duration [s]; sleeping on/off;
-    contact_layers (0: every sphere takes part in contacts).
+    contact_layers (0: every sphere takes part in contacts); spheres: the sphere-set
+    mode of every shape and mesh collider ("lattice" or "surface").
     """
 
     diameter: float | None = None
@@ -36,6 +37,7 @@ class Overrides:
     duration: float | None = None
     sleeping: bool | None = None
     contact_layers: int | None = None
+    spheres: str | None = None
 
 
 def _shape_mesh(spec, where: str):
@@ -80,6 +82,20 @@ def _collider_mesh(c, where: str):
     return mesh
 
 
+def sphere_options(scene, shape: str | None = None, overrides: Overrides | None = None):
+    """The sphere builder's options for a shape of the scene (None: a mesh collider):
+    the override's mode, else the shape's ``spheres``, else the scene's, else
+    spheres.DEFAULT_MODE."""
+    from .spheres import DEFAULT_MODE, BuildOptions
+
+    mode = overrides.spheres if overrides is not None else None
+    if mode is None and shape is not None:
+        mode = scene.shapes[shape].spheres
+    if mode is None:
+        mode = getattr(scene.simulation, "spheres", None) or DEFAULT_MODE
+    return BuildOptions(mode=mode)
+
+
 def build_model(scene, *, cache=None, overrides: Overrides | None = None,
                 force: bool = False) -> Model:
     """The Model of a loaded Scene (see scene.load_scene).
@@ -122,7 +138,8 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
         material_index[name] = b.add_material(m)
     shape_index = {}
     for n in names:
-        ss, info = build_sphere_set_with_info(meshes[n], d, name=n, cache=cache)
+        ss, info = build_sphere_set_with_info(meshes[n], d, name=n, cache=cache,
+                                              options=sphere_options(scene, n, o))
         hits.append((n, info.cache, info.seconds, ss.count))
         if scene.shapes[n].center_of_mass is not None:
             ss = with_center_of_mass(ss, scene.shapes[n].center_of_mass)
@@ -146,7 +163,8 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
             b.add_box(c.min, c.max, c.open_top, mi, c.thickness, up=up)
         else:
             mesh = _collider_mesh(c, f"{src}: colliders.{c.name}")
-            ss, info = build_sphere_set_with_info(mesh, d, name=c.name, cache=cache)
+            ss, info = build_sphere_set_with_info(mesh, d, name=c.name, cache=cache,
+                                                  options=sphere_options(scene, None, o))
             hits.append((c.name, info.cache, info.seconds, ss.count))
             b.add_static_mesh(c.name, mesh, ss, mi)
     build_seconds = time.perf_counter() - t0

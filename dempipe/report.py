@@ -86,6 +86,8 @@ class Sweep:
         default: HORIZON_AFTER_CONTACT after the reference's median first contact
     tolerance : the error a recommended setting may have
     bodies : bake only the first N bodies of the scene (group order)
+    sphere_modes : sphere-set modes to sweep ("lattice", "surface"); None: the scene's
+        own (no mode axis). The reference takes the last one given.
     """
 
     resolutions: tuple | None = None
@@ -98,6 +100,7 @@ class Sweep:
     device: str | None = None
     threads: int | None = None
     plots: bool = True
+    sphere_modes: tuple | None = None
 
 
 @dataclass
@@ -125,6 +128,8 @@ class Run:
     frames: object = None
     model: object = None
     pile: object = None
+    mode: str | None = None          # sphere-set mode of the sweep's mode axis (None: none)
+    envelope: dict = field(default_factory=dict)   # worst shape: hausdorff_d, bump_d
 
     @property
     def model_frames(self) -> int:
@@ -133,7 +138,8 @@ class Run:
 
     @property
     def label(self) -> str:
-        return f"r{self.resolution} dt×{self.dt_factor:g} k×{self.stiffness_factor:g}"
+        mode = f" {self.mode}" if self.mode else ""
+        return f"r{self.resolution} dt×{self.dt_factor:g} k×{self.stiffness_factor:g}{mode}"
 
     @property
     def ok(self) -> bool:
@@ -201,15 +207,46 @@ def _first_bodies(scene, n: int):
     return replace(scene, bodies=tuple(groups))
 
 
-def _overrides(scene, res: int, dt_factor: float, k_factor: float, duration: float):
+def _overrides(scene, res: int, dt_factor: float, k_factor: float, duration: float,
+               mode: str | None = None):
     from .build import Overrides
 
     dt = scene.simulation.dt
     if isinstance(dt, str):      # auto: more steps per contact
         return Overrides(resolution=res, dt_factor=dt_factor, stiffness_factor=k_factor,
-                         duration=duration)
+                         duration=duration, spheres=mode)
     return Overrides(resolution=res, dt=float(dt) * dt_factor, stiffness_factor=k_factor,
-                     duration=duration)
+                     duration=duration, spheres=mode)
+
+
+def _sphere_modes(sweep) -> tuple:
+    """The mode axis: (None,) without one, else the modes in the order given."""
+    if not sweep.sphere_modes:
+        return (None,)
+    from .spheres import MODES
+
+    for m in sweep.sphere_modes:
+        if m not in MODES:
+            raise ReportError(f"--spheres: unknown mode {m!r} (use {', '.join(MODES)})")
+    return tuple(dict.fromkeys(sweep.sphere_modes))
+
+
+def _envelope(model) -> dict:
+    """The worst shape's envelope errors (surface_spheres.envelope_errors) in diameters."""
+    import trimesh
+
+    from .spheres import mesh_for_errors
+    from .surface_spheres import envelope_errors
+
+    worst = dict(hausdorff_d=0.0, bump_d=0.0)
+    for s in model.shapes:
+        mesh = trimesh.Trimesh(vertices=np.asarray(s.vertices) + s.sphere_set.com,
+                               faces=np.asarray(s.faces), process=False)
+        e = envelope_errors(mesh_for_errors(mesh), s.sphere_set.centers + s.sphere_set.com,
+                            model.diameter)
+        worst["hausdorff_d"] = max(worst["hausdorff_d"], e.hausdorff / model.diameter)
+        worst["bump_d"] = max(worst["bump_d"], e.bump / model.diameter)
+    return worst
 
 
 def _dominant_material(model):
@@ -328,34 +365,43 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
     resolutions = tuple(sorted(int(r) for r in resolutions))
     dts = tuple(sorted(sweep.dt_factors, reverse=True))
     ks = tuple(sorted(sweep.stiffness_factors))
-    ref_key = (resolutions[-1], dts[-1], 1.0)
-    keys = [ref_key] + [(r, f, k) for r in resolutions for f in dts for k in ks
-                        if (r, f, k) != ref_key]
+    modes = _sphere_modes(sweep)
+    ref_key = (resolutions[-1], dts[-1], 1.0, modes[-1])
+    keys = [ref_key] + [(r, f, k, m) for r in resolutions for f in dts for k in ks
+                        for m in modes if (r, f, k, m) != ref_key]
     # cheapest first after the reference: a user watching sees results soon
-    keys[1:] = sorted(keys[1:], key=lambda x: (x[0], -x[1], x[2]))
+    keys[1:] = sorted(keys[1:], key=lambda x: (x[0], -x[1], x[2], modes.index(x[3])))
 
     _warm_voxelizer()
     runs, shapes, built, farmed = [], {}, {}, []
-    for i, (r, f, k) in enumerate(keys):
-        run = Run(r, f, k, reference=(i == 0))
+    envelopes = {}
+    for i, (r, f, k, mode) in enumerate(keys):
+        run = Run(r, f, k, reference=(i == 0), mode=mode)
         runs.append(run)
         try:
-            if r not in built:            # sphere sets once per resolution: cold, cached
+            if (r, mode) not in built:    # sphere sets once per resolution: cold, cached
                 first = build_model(scene, cache=cache,
-                                    overrides=_overrides(scene, r, 1.0, 1.0, duration))
+                                    overrides=_overrides(scene, r, 1.0, 1.0, duration, mode))
                 again = build_model(scene, cache=cache,
-                                    overrides=_overrides(scene, r, 1.0, 1.0, duration))
-                built[r] = (_cold_build_seconds(first),
-                            again.build_info.get("sphere_build_seconds", math.nan))
-                for s in first.shapes:
-                    shapes[(s.name, r)] = acc.shape_geometry_error(s.sphere_set, s.vertices,
-                                                                   s.faces)
-            model = build_model(scene, cache=cache, overrides=_overrides(scene, r, f, k, duration))
+                                    overrides=_overrides(scene, r, 1.0, 1.0, duration, mode))
+                built[(r, mode)] = (_cold_build_seconds(first),
+                                    again.build_info.get("sphere_build_seconds", math.nan))
+                if mode is not None:
+                    envelopes[(r, mode)] = _envelope(first)
+                if mode in (None, modes[0]):
+                    # the lattice-based measures (contact surface of lattice neighbours)
+                    for s in first.shapes:
+                        shapes[(s.name, r)] = acc.shape_geometry_error(s.sphere_set,
+                                                                       s.vertices, s.faces)
+            model = build_model(scene, cache=cache,
+                                overrides=_overrides(scene, r, f, k, duration, mode))
             run.model = model
-            run.sphere_build_cold_s, run.sphere_build_cached_s = built[r]
+            run.envelope = envelopes.get((r, mode), {})
+            run.sphere_build_cold_s, run.sphere_build_cached_s = built[(r, mode)]
             run.diameter, run.dt, run.spheres = model.diameter, model.dt, model.n_spheres
             run.memory_bytes = int(memory_estimate(model)["total"])
-            run.geometry = _worst_geometry([shapes[(s.name, r)] for s in model.shapes])
+            run.geometry = _worst_geometry([shapes[(s.name, r)] for s in model.shapes]) \
+                if mode in (None, modes[0]) else {}
             if farm is not None:       # baked by a task; said when it finishes
                 farmed.append((i, run, farm.submit(_farm_bake, model, device, sweep.threads,
                                                    key=f"dempipe-report-{i}-{time.time_ns()}")))
@@ -511,7 +557,8 @@ CSV_COLUMNS = (
     "memory_mib", "sphere_build_cold_s", "sphere_build_cached_s",
     "volume_err", "inertia_err", "hausdorff", "position_h", "orientation_h_deg",
     "position_end", "orientation_end_deg", "pile_height", "pile_com", "pile_spread",
-    "settle_s", "at_rest", "bounce", "rolling", "spin_L", "spin_energy", "error", "pareto")
+    "settle_s", "at_rest", "bounce", "rolling", "spin_L", "spin_energy", "error", "pareto",
+    "sphere_mode", "envelope_hausdorff_d", "envelope_bump_d")
 
 
 def csv_row(u: Run) -> dict:
@@ -529,7 +576,9 @@ def csv_row(u: Run) -> dict:
                                             "orientation_end_deg", "pile_height", "pile_com",
                                             "pile_spread", "settle_s", "at_rest")},
         **{k: ph.get(k, math.nan) for k in ("bounce", "rolling", "spin_L", "spin_energy")},
-        error=u.error, pareto=int(u.pareto))
+        error=u.error, pareto=int(u.pareto), sphere_mode=u.mode or "",
+        envelope_hausdorff_d=u.envelope.get("hausdorff_d", math.nan),
+        envelope_bump_d=u.envelope.get("bump_d", math.nan))
 
 
 def write_csv(runs) -> str:
@@ -603,7 +652,7 @@ def format_markdown(r: ReportResult) -> str:
         L.append(f"| {name} | {u.spheres:,} | {_num(u.dt)} | {u.steps:,} | "
                  f"{_num(u.wall_s, '.1f')} | {_num(u.s_per_step, '.2e')} | "
                  f"{_num(u.s_per_sim_s, '.1f')} | {_num(u.memory_bytes / 2 ** 20, '.1f')} | "
-                 f"{_pct(u.geometry['hausdorff'])} | {_num(u.motion['position_h'])} | "
+                 f"{_pct(u.geometry.get('hausdorff', math.nan))} | {_num(u.motion['position_h'])} | "
                  f"{_num(u.motion['orientation_h_deg'], '.1f')} | {_pct(u.physics['bounce'])} | "
                  f"{_num(u.error)} | {'●' if u.pareto else ''} |")
     L.append("")
@@ -658,6 +707,21 @@ def format_markdown(r: ReportResult) -> str:
              f"{acc.SPHERE_DIRECTIONS} directions per sphere), either way, in shape sizes. "
              "Build times are for all shapes of the scene at that resolution (cold: no cache).")
     L.append("")
+    if any(u.mode for u in r.runs):
+        L.append("## Sphere-set modes")
+        L.append("")
+        L.append("| run | spheres | Hausdorff [d] | bump [d] | error | wall [s] |")
+        L.append("|---|---:|---:|---:|---:|---:|")
+        for u in ok:
+            e = u.envelope
+            L.append(f"| {u.label} | {u.spheres:,} | {_num(e.get('hausdorff_d', math.nan))} | "
+                     f"{_num(e.get('bump_d', math.nan))} | {_pct(u.error)} | "
+                     f"{_num(u.wall_s, '.1f')} |")
+        L.append("")
+        L.append("Hausdorff and bump: the worst shape's spheres' envelope against its mesh "
+                 "(docs/spheres.md, \"Surface mode\"), in sphere diameters. The geometry "
+                 "table above is the first mode's.")
+        L.append("")
     L.append("## Physics: closed forms against dt")
     L.append("")
     L.append("| run | dt factor | bounce: mean abs. error of e² | rolling 5/7 v0 | |L| drift | "

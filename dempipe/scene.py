@@ -128,6 +128,9 @@ class SimulationSettings:
     """Spheres within this many lattice layers of each body's surface take part in
     contacts [integer ≥ 0]; 0 (or "all" in the file) keeps every sphere. Mass and
     inertia do not depend on it (docs/spheres.md, "Surface spheres")."""
+    spheres: str | None = None
+    """Sphere-set mode of every shape that names none: "lattice" or "surface"
+    (docs/spheres.md); None: the library's default (spheres.DEFAULT_MODE)."""
 
 
 @dataclass(frozen=True)
@@ -174,6 +177,8 @@ class ShapeSpec:
     center_of_mass: Vec3 | None = None
     """Centre of mass in the shape's own coordinates [m] when given rather than
     computed from the mesh (UsdPhysics MassAPI); None: the mesh's."""
+    spheres: str | None = None
+    """This shape's sphere-set mode, "lattice" or "surface"; None: the scene's."""
 
 
 @dataclass(frozen=True)
@@ -501,7 +506,11 @@ def _range_text(lo, hi, lo_open, hi_open) -> str:
 _TOP_KEYS = ("output", "simulation", "materials", "shapes", "bodies", "colliders", "usd")
 _OUTPUT_KEYS = ("fps", "duration", "up_axis", "meters_per_unit", "start_frame")
 _SIM_KEYS = ("sphere_diameter", "resolution", "gravity", "dt", "device", "seed",
-             "stiffness_target_overlap", "dt_safety", "sleeping", "sleep", "contact_layers")
+             "stiffness_target_overlap", "dt_safety", "sleeping", "sleep", "contact_layers",
+             "spheres")
+#: The values of the ``spheres`` key (spheres.MODES, kept here so that parsing a scene
+#: does not import the sphere builder).
+_SPHERE_MODES = ("lattice", "surface")
 _SLEEP_KEYS = ("linear_speed", "angular_speed", "time")
 _MATERIAL_KEYS = ("density", "restitution", "friction", "stiffness")
 _BODY_COMMON = ("name", "shape", "material", "count", "layout", "rotation", "velocity",
@@ -602,6 +611,8 @@ def _parse_simulation(ctx: _Ctx, d: Any, up_axis: str) -> SimulationSettings:
                 raise ctx.error("simulation.contact_layers", f"{n} is out of range",
                                 f'expected {what}; 0 or "all" keeps every sphere')
             kw["contact_layers"] = n
+    if "spheres" in d:
+        kw["spheres"] = ctx.string(d["spheres"], "simulation.spheres", _SPHERE_MODES)
     if "sleep" in d:
         s = ctx.table(d["sleep"], "simulation.sleep")
         ctx.check_keys(s, "simulation.sleep", _SLEEP_KEYS)
@@ -692,6 +703,10 @@ def _parse_shapes(ctx: _Ctx, d: Any, registry) -> dict[str, ShapeSpec]:
         key = f"shapes.{name}"
         ctx.usd_name(name, key)
         s = ctx.table(s, key)
+        mode = None
+        if "spheres" in s:
+            mode = ctx.string(s["spheres"], f"{key}.spheres", _SPHERE_MODES)
+            s = {k: v for k, v in s.items() if k != "spheres"}
         has_b, has_m = "builtin" in s, "mesh" in s
         if has_b and has_m:
             raise ctx.error(key, "both builtin and mesh are given", "give only one of them")
@@ -706,7 +721,8 @@ def _parse_shapes(ctx: _Ctx, d: Any, registry) -> dict[str, ShapeSpec]:
             if "scale" in s:
                 scale = ctx.number(s["scale"], f"{key}.scale", lo=0.0, lo_open=True)
             path = ctx.mesh_file(s["mesh"], f"{key}.mesh")
-            out[name] = ShapeSpec(name=name, builtin=None, params={}, mesh_path=path, scale=scale)
+            out[name] = ShapeSpec(name=name, builtin=None, params={}, mesh_path=path, scale=scale,
+                                  spheres=mode)
         else:
             builtin = ctx.string(s["builtin"], f"{key}.builtin")
             params = {k: v for k, v in s.items() if k != "builtin"}
@@ -716,7 +732,7 @@ def _parse_shapes(ctx: _Ctx, d: Any, registry) -> dict[str, ShapeSpec]:
                                 "set the built-in shape's size parameters instead")
             params = _check_builtin(ctx, key, builtin, params, registry)
             out[name] = ShapeSpec(name=name, builtin=builtin, params=params, mesh_path=None,
-                                  scale=1.0)
+                                  scale=1.0, spheres=mode)
     return out
 
 

@@ -21,14 +21,26 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from .errors import MeshError, ShapeError
+from .surface_spheres import DEFAULT_SPACING
+
+#: The sphere-set modes: "lattice" (solid voxelization, Harada et al.) and "surface"
+#: (centres on the inward offset of the surface, so round bodies roll).
+MODES = ("lattice", "surface")
+#: The mode a scene gets when it names none (docs/spheres.md, "Surface mode": why).
+DEFAULT_MODE = "lattice"
 
 #: Bumped whenever the builder's output for the same input could change; part of
 #: the cache key, so old cache entries become misses.
-BUILDER_VERSION = 1
+BUILDER_VERSION = 2
 
 # Lattice tolerance: an extent within 1e-9 diameters of a whole number of cells does
-# not get an extra cell (a sphere mesh of exactly one diameter is one sphere).
+# not get an extra cell (a sphere mesh of exactly one diameter is one sphere). Meshes
+# read from float32 formats get a tolerance of their own precision (cell_tolerance).
 _CELL_TOL = 1e-9
+# Rounding steps of one float32 coordinate: each end of an extent is rounded once
+# (half an ulp), the float64 subtraction and division add nothing comparable; 4 ulps
+# of the largest coordinate leaves a margin of 8 over that.
+_F32_ULPS = 4.0
 # A mesh whose smallest bounding-box extent is below this fraction of its largest is flat.
 _FLAT_TOL = 1e-9
 
@@ -39,17 +51,33 @@ class BuildOptions:
 
     winding_threshold: a lattice cell is kept when ``|winding number|`` at its centre
         exceeds this (0.5: the generalized winding number's natural inside test).
+    mode: "lattice" (solid voxelization: the cells inside the mesh) or "surface"
+        (centres on the inward offset of the surface at d/2, dempipe.surface_spheres).
+    spacing: surface mode only: spacing of the shell's centres as a fraction of the
+        diameter, in [0.05, 1].
     """
 
     winding_threshold: float = 0.5
+    mode: str = DEFAULT_MODE
+    spacing: float = DEFAULT_SPACING
 
     def __post_init__(self):
         t = self.winding_threshold
         if not (isinstance(t, (int, float)) and 0.0 < float(t) < 1.0):
             raise ShapeError(f"winding_threshold must be between 0 and 1, got {t!r}")
+        if self.mode not in MODES:
+            raise ShapeError(f"sphere mode must be one of {', '.join(MODES)}, got {self.mode!r}")
+        h = self.spacing
+        if isinstance(h, bool) or not isinstance(h, (int, float)) or not 0.05 <= float(h) <= 1.0:
+            raise ShapeError(f"surface spacing must be a fraction of the diameter in "
+                             f"[0.05, 1], got {h!r}")
 
     def key_text(self) -> str:
-        return repr(sorted((k, repr(v)) for k, v in asdict(self).items()))
+        items = asdict(self)
+        if self.mode == "lattice":
+            # the lattice ignores the surface options: its keys stay those of before
+            items = {k: v for k, v in items.items() if k not in ("mode", "spacing")}
+        return repr(sorted((k, repr(v)) for k, v in items.items()))
 
 
 DEFAULT_OPTIONS = BuildOptions()
@@ -66,7 +94,8 @@ class SphereSet:
     """A rigid body's equal-sphere approximation and its mass properties.
 
     centers: (N, 3) float64, sphere centres in the BODY frame (mesh axes, origin at the
-        centre of mass) [m]; lattice order (x fastest, then y, then z). Read-only.
+        centre of mass) [m]; lattice order (x fastest, then y, then z), or for a
+        surface set (note "surface") shell, thin parts, interior. Read-only.
     diameter: the one sphere diameter [m].
     volume: body volume [m^3] (of the exact mesh when it is watertight).
     com: (3,) centre of mass in mesh coordinates [m]. Read-only.
@@ -76,7 +105,8 @@ class SphereSet:
     key: the cache key (mesh, diameter, options, builder version).
     notes: conditions met while building, re-reported on a cache hit:
         "not_watertight" (mass properties from the cells) and/or "tiny" (the shape
-        is smaller than one sphere and got one sphere at its centre of mass).
+        is smaller than one sphere and got one sphere at its centre of mass) and/or
+        "surface" (built in surface mode: BuildOptions.mode).
     """
 
     centers: np.ndarray
@@ -246,10 +276,30 @@ def diameter_for_resolution(mesh, resolution) -> float:
     return float(extents.max() / r)
 
 
-def lattice_centers(lo, hi, diameter) -> np.ndarray:
+def cell_tolerance(vertices, diameter) -> float:
+    """How far [cells] an extent may exceed a whole number of cells and still count as
+    that number, for a mesh of these ``vertices``: the mesh's own precision.
+
+    Vertices that are all float32 numbers (STL, PLY, GLB and most DCC exports store
+    float32) can be off by half a float32 ulp at each end of an extent: an STL box of
+    0.4 m has the extent 0.40000001. The tolerance is then _F32_ULPS float32 ulps of the
+    largest coordinate, in cells (4 x 1.19e-7 x 0.2 m / 0.1 m = 9.5e-7 cells for that
+    box); float64 vertices keep 1e-9 cells. Either way far below any physical length.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    if v.size == 0:
+        return _CELL_TOL
+    if not np.array_equal(v.astype(np.float32).astype(np.float64), v):
+        return _CELL_TOL
+    ulp = float(np.finfo(np.float32).eps) * float(np.abs(v).max())
+    return max(_CELL_TOL, _F32_ULPS * ulp / float(diameter))
+
+
+def lattice_centers(lo, hi, diameter, tol: float = _CELL_TOL) -> np.ndarray:
     """Cell centres of the lattice of pitch ``diameter`` centred on the box [lo, hi].
 
-    Cells per axis: max(1, ceil(extent / d - 1e-9)), symmetric about the box centre.
+    Cells per axis: max(1, ceil(extent / d - tol)), symmetric about the box centre;
+    ``tol`` [cells] is the mesh's precision (:func:`cell_tolerance`), 1e-9 by default.
     Order: x fastest, then y, then z. Returns (N, 3) float64.
     """
     lo = np.asarray(lo, dtype=np.float64)
@@ -257,7 +307,7 @@ def lattice_centers(lo, hi, diameter) -> np.ndarray:
     center = 0.5 * (lo + hi)
     axes = []
     for k in range(3):
-        n = max(1, int(math.ceil((hi[k] - lo[k]) / diameter - _CELL_TOL)))
+        n = max(1, int(math.ceil((hi[k] - lo[k]) / diameter - tol)))
         axes.append(center[k] + (np.arange(n, dtype=np.float64) - 0.5 * (n - 1)) * diameter)
     z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
     return np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
@@ -356,6 +406,14 @@ def _repaired(vertices, faces):
     return m
 
 
+def mesh_for_errors(mesh, name=None):
+    """The repaired copy of ``mesh`` the builder works on (merged vertices, no
+    degenerate faces, outward normals), for measuring a set against it
+    (surface_spheres.envelope_errors)."""
+    vertices, faces = _mesh_arrays(mesh, name)
+    return _repaired(vertices, faces)
+
+
 def inside_mask(mesh, points, threshold: float = 0.5) -> np.ndarray:
     """Boolean inside test of ``points`` (N, 3) against ``mesh`` by the generalized
     winding number: inside where ``|w| > threshold``."""
@@ -378,7 +436,7 @@ def _build(vertices, faces, diameter, name, options, digest, key) -> SphereSet:
     notes = []
     watertight = bool(mesh.is_watertight)
     lo, hi = mesh.bounds
-    cells = lattice_centers(lo, hi, diameter)
+    cells = lattice_centers(lo, hi, diameter, cell_tolerance(vertices, diameter))
     inside = inside_mask(mesh, cells, options.winding_threshold)
     kept = cells[inside]
 
@@ -404,6 +462,14 @@ def _build(vertices, faces, diameter, name, options, digest, key) -> SphereSet:
                                 "a body needs a closed surface")
             volume, com, inertia = _cells_mass_properties(fine, fine_d)
 
+    if options.mode == "surface":
+        from .surface_spheres import surface_centers
+
+        sc = surface_centers(mesh, diameter, options.spacing,
+                             inside=lambda p: inside_mask(mesh, p, options.winding_threshold),
+                             lattice=kept)
+        kept = sc.centers
+        notes.append("surface")
     if len(kept) == 0:
         notes.append("tiny")
         centers = np.zeros((1, 3))
@@ -453,8 +519,10 @@ def build_sphere_set(mesh, diameter, *, name=None, cache=None,
                      options: BuildOptions = DEFAULT_OPTIONS) -> SphereSet:
     """Approximate ``mesh`` (a trimesh.Trimesh in metres) by spheres of ``diameter`` [m].
 
-    Lattice of pitch ``diameter`` centred on the mesh's bounding box; a cell is kept
-    when its centre is inside by the generalized winding number. Mass properties from
+    ``options.mode`` "lattice": a lattice of pitch ``diameter`` centred on the mesh's
+    bounding box; a cell is kept when its centre is inside by the generalized winding
+    number. "surface": centres on the surface's inward offset at d/2 and the lattice
+    cells deeper than d (dempipe.surface_spheres, docs/spheres.md "Surface mode"). Mass properties from
     the exact mesh when it is watertight (after merging vertices and fixing normals),
     otherwise from the cells, with a warning. A shape smaller than one sphere gets one
     sphere at its centre of mass, with a warning. ``cache``: a :class:`~dempipe.cache.SphereCache`
