@@ -38,10 +38,13 @@ import click
                    "$DEMPIPE_CACHE_DIR or user cache).")
 @click.option("--force", is_flag=True,
               help="Bake variants that `dempipe check` refuses (see `dempipe bake --force`).")
+@click.option("--contact-sheet", is_flag=True,
+              help="Also draw OUTPUT/contact_sheet.png: every finished variant's last frame "
+                   "(needs dempipe[preview]; docs/preview.md).")
 @click.option("--quiet", "-q", is_flag=True, help="No line per variant.")
 @click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
 def wedge(scene, output, seeds, vary, workers, threads, scheduler, device, layout, fmt,
-          cache_dir, force, quiet, debug):
+          cache_dir, force, contact_sheet, quiet, debug):
     """Bake variants of SCENE, each a task on Dask, into OUTPUT.
 
     Every combination of --seeds and the --vary values is one variant: its scene
@@ -52,6 +55,12 @@ def wedge(scene, output, seeds, vary, workers, threads, scheduler, device, layou
     Needs Dask: pip install "dempipe[farm]". Farms: docs/farm.md.
     """
     from dempipe.wedge import WedgeFailed, wedge as run_wedge
+    from dempipe.wedge import contact_sheet as draw_sheet
+
+    if contact_sheet:       # before any bake: a missing extra is said at once
+        from dempipe.preview import require
+
+        require()
 
     def say(line):
         if not quiet:
@@ -64,6 +73,8 @@ def wedge(scene, output, seeds, vary, workers, threads, scheduler, device, layou
                        scheduler=scheduler, threads=threads, device=device, layout=layout,
                        suffix=f".{fmt}", force=force, cache_dir=cache_dir, progress=say,
                        warn=warn)
+    if contact_sheet and result.ok:
+        say(f"contact sheet: {draw_sheet(result)}")
     failed = result.failed
     if failed:
         first = failed[0]

@@ -302,6 +302,23 @@ class WedgeResult:
         return [v for v in self.variants if v.skipped]
 
 
+def contact_sheet(result: WedgeResult, out_png=None, **kw) -> Path:
+    """A PNG grid of every finished variant's last frame, labelled with its name and
+    values (``dempipe.preview.contact_sheet``; needs ``dempipe[preview]``).
+
+    out_png : default ``wedge.csv``'s folder / contact_sheet.png.
+    """
+    from .preview import contact_sheet as sheet
+
+    done = [v for v in result.variants if v.ok and v.output]
+    if not done:
+        raise WedgeError("contact sheet: no variant finished")
+    out = Path(out_png) if out_png is not None else result.csv.parent / "contact_sheet.png"
+    labels = [" ".join([v.name] + [f"{k.rsplit('.', 1)[-1]}={val}" for k, val in v.values.items()])
+              for v in done]
+    return sheet([v.output for v in done], out, labels=labels, **kw)
+
+
 def _absolute_meshes(data: dict, base: Path) -> None:
     """Relative mesh paths -> absolute (the variant's file lives elsewhere)."""
     def fix(d):

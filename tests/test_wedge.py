@@ -467,3 +467,30 @@ def test_report_on_the_farm_measures_what_it_measures_alone(farm, shared, tmp_pa
         assert (a.label, a.status, a.steps, a.spheres) == (b.label, b.status, b.steps, b.spheres)
         np.testing.assert_array_equal(a.frames.x, b.frames.x)       # the same bake
         assert a.error == b.error or (np.isnan(a.error) and np.isnan(b.error))
+
+
+def test_a_contact_sheet_shows_each_finished_variant(farm, shared, tmp_path):
+    from PIL import Image
+
+    from dempipe.preview import Preview
+    from dempipe.wedge import contact_sheet
+
+    root, cache = shared
+    r = wedge(write_scene(tmp_path), tmp_path / "w", seeds=2, farm=farm, device="cpu",
+              cache_dir=cache)
+    path = contact_sheet(r, tile=(320, 180))
+    assert path == tmp_path / "w" / "contact_sheet.png"
+    sheet = np.asarray(Image.open(path).convert("RGB"), dtype=np.float64)
+    assert sheet.shape == (180, 640, 3)               # two tiles side by side
+    for k, v in enumerate(r.variants):
+        tile = sheet[:, 320 * k:320 * (k + 1)]
+        assert tile.std() > 5.0                          # something drawn, not a flat fill
+        # the tile is that variant's last frame: compare it with a still of the same bake
+        # away from the label strip at the top
+        pv = Preview(v.output, size=(320, 180))
+        try:
+            still = np.asarray(pv.image(), dtype=np.float64)[..., :3]
+        finally:
+            pv.renderer.release()
+        # same picture but for the white tile border and the MSAA of a still
+        assert np.abs(tile[40:-4, 4:-4] - still[40:-4, 4:-4]).mean() < 8.0
