@@ -6,15 +6,21 @@
 Two steps, each in its own process (numba reads ``NUMBA_ENABLE_CUDASIM`` once, at
 its first import of ``numba.cuda``):
 
-1. **Record** (CUDA simulator): small scenes, one per feature set the kernels
-   can be compiled for, are stepped (and probed) by ``CudaBackend``; every kernel
-   launch is recorded with the numba types of its arguments. So the signatures
-   are the ones the backend really launches, never a hand-written copy.
+1. **Record** (CUDA simulator): small scenes covering every feature switch
+   (friction, walls, sleeping, one-sphere bodies, static mesh colliders) are
+   stepped, probed and grown by ``CudaBackend`` running its general kernels;
+   every kernel launch is recorded with the numba types of its arguments. So
+   the signatures are the ones the backend really launches, never a
+   hand-written copy.
 2. **Compile** (numba-cuda, no simulator): each recorded (kernel, signature) is
    compiled to PTX for compute capability ``--cc`` (9.0: H100/H200) by
    ``numba.cuda.compile_ptx`` with NVVM, then assembled by ``ptxas -arch=sm_XX
    -v``, whose report gives the registers, the stack frame (local memory) and
-   the spill stores/loads of each kernel.
+   the spill stores/loads of each kernel. The kernels specialized to the scene
+   (``kernels.cuda.SPECIALIZED``) are compiled for every one of the 16 feature
+   sets a scene can need (``kernels.cuda.kernels(flags)``), with the general
+   kernel's signature (the same arrays). The jobs are shared among up to
+   ``os.cpu_count()`` processes.
 
 Needs: ``numba-cuda`` with NVVM and NVRTC (``pip install -e '.[test]'`` brings
 ``cuda-toolkit[nvvm,nvrtc]==13.0.*``) and ``ptxas`` (CUDA toolkit; on PATH or in
@@ -136,7 +142,9 @@ def record(steps: int = 3) -> dict:
         setattr(kc, n, Recorder(n, originals[n]))
     try:
         for _, model, features in _scenes():
-            backend = kc.CudaBackend(model, features=features)
+            # the general kernels (the module's, which this records); their
+            # signatures are the variants' too (compile_jobs)
+            backend = kc.CudaBackend(model, features=features, specialize=False)
             state = model.initial_state()
             backend.probe(state)
             backend.take_max_overlap()
@@ -227,25 +235,36 @@ def compile_kernel(pyfunc, types, cc, ptxas: str, workdir: str) -> dict:
     return row
 
 
-def _variant(types) -> str:
-    """A short name for a signature: its scalar/array kinds, for the table."""
-    return ", ".join(str(t) for t in types)
+def jobs(records: dict) -> list[tuple]:
+    """(kernel, flags or None, signature index) of every kernel variant to compile:
+    each recorded kernel as launched, and each SPECIALIZED one for every feature set."""
+    import itertools
+
+    from dempipe.kernels import cuda as kc
+    out = []
+    for name, sigs in records.items():
+        for i in range(len(sigs)):
+            if name in kc.SPECIALIZED:
+                out += [(name, flags, i) for flags in itertools.product((False, True), repeat=4)]
+            else:
+                out.append((name, None, i))
+    return out
 
 
-def compile_all(records: dict, cc=(9, 0)) -> list[dict]:
-    """One row per recorded (kernel, signature): its ptxas resources."""
+def compile_jobs(records: dict, todo: list, cc=(9, 0)) -> list[dict]:
+    """One row per job (see ``jobs``): its ptxas resources."""
     from dempipe.kernels import cuda as kc
     ptxas = ptxas_path()
     if ptxas is None:
         raise RuntimeError("ptxas not found (install the CUDA toolkit, or put it on PATH)")
     rows = []
     with tempfile.TemporaryDirectory() as work:
-        for name, sigs in records.items():
-            pyfunc = getattr(kc, name).py_func
-            for i, types in enumerate(sigs):
-                row = compile_kernel(pyfunc, tuple(types), cc, ptxas, work)
-                row.update(kernel=name, variant=i, signature=_variant(types))
-                rows.append(row)
+        for name, flags, i in todo:
+            kernel = getattr(kc, name) if flags is None else getattr(kc.kernels(flags), name)
+            row = compile_kernel(kernel.py_func, tuple(records[name][i]), cc, ptxas, work)
+            row.update(kernel=name, variant=kc.variant_tag(flags) if flags else "",
+                       signature=", ".join(str(t) for t in records[name][i]))
+            rows.append(row)
     return rows
 
 
@@ -283,7 +302,9 @@ def _cache_dir() -> Path:
     return default_cache_dir() / "cuda_compile"
 
 
-def _child(mode: str, arg: str, cc) -> None:
+def _child(mode: str, arg: str, cc, wait: bool = True):
+    """Run this script's ``mode`` step in a fresh process (started; waited for and
+    checked unless ``wait`` is False: then the Popen, see _check)."""
     env = dict(os.environ)
     env.pop("NUMBA_ENABLE_CUDASIM", None)
     if mode == "record":
@@ -292,9 +313,14 @@ def _child(mode: str, arg: str, cc) -> None:
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
     cmd = [sys.executable, str(Path(__file__).resolve()), f"--{mode}", arg,
            "--cc", f"{cc[0]}.{cc[1]}"]
-    r = subprocess.run(cmd, env=env, capture_output=True, text=True)
-    if r.returncode != 0:
-        raise RuntimeError(f"{mode} step failed:\n{r.stdout[-3000:]}\n{r.stderr[-6000:]}")
+    p = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return _check(mode, p) if wait else p
+
+
+def _check(mode, p) -> None:
+    out, err = p.communicate()
+    if p.returncode != 0:
+        raise RuntimeError(f"{mode} step failed:\n{out[-3000:]}\n{err[-6000:]}")
 
 
 def run(cc=(9, 0), use_cache: bool = True) -> dict:
@@ -313,8 +339,12 @@ def run(cc=(9, 0), use_cache: bool = True) -> dict:
         rec, out = os.path.join(work, "records.pkl"), os.path.join(work, "rows.json")
         _child("record", rec, cc)
         t1 = time.perf_counter()
-        _child("compile", rec + os.pathsep + out, cc)
-        rows = json.loads(Path(out).read_text())
+        n = max(1, min(os.cpu_count() or 1, 8))
+        procs = [_child("compile", os.pathsep.join([rec, f"{out}.{i}", str(i), str(n)]), cc,
+                        wait=False) for i in range(n)]
+        for p in procs:
+            _check("compile", p)
+        rows = [r for i in range(n) for r in json.loads(Path(f"{out}.{i}").read_text())]
     t2 = time.perf_counter()
     result = dict(rows=rows, versions=_versions(ptxas), cc=list(cc),
                   record_s=round(t1 - t0, 1), compile_s=round(t2 - t1, 1), cached=False)
@@ -345,6 +375,17 @@ def table(result: dict) -> str:
                      f"{span([r['stack'] for r in rs])} | "
                      f"{span([r['spill_stores'] for r in rs])} | "
                      f"{span([r['spill_loads'] for r in rs])} |")
+    tags = sorted({r["variant"] for r in result["rows"] if r["variant"]})
+    special = sorted({r["kernel"] for r in result["rows"] if r["variant"]})
+    if tags:
+        lines += ["", "The kernels specialized to the scene, per feature set (F friction, "
+                  "R rotation, S sleeping, W walls; 1 compiled in): registers / stack frame [B].",
+                  "", "| variant | " + " | ".join(f"`{k}`" for k in special) + " |",
+                  "|---|" + "---:|" * len(special)]
+        cell = {(r["kernel"], r["variant"]): r for r in result["rows"]}
+        for t in tags:
+            lines.append(f"| {t} | " + " | ".join(
+                f"{cell[k, t]['registers']} / {cell[k, t]['stack']}" for k in special) + " |")
     return "\n".join(lines)
 
 
@@ -372,10 +413,10 @@ def main(argv=None) -> int:
             pickle.dump(record(), f)
         return 0
     if args.compile:
-        rec, out = args.compile.split(os.pathsep)
+        rec, out, i, n = args.compile.split(os.pathsep)
         with open(rec, "rb") as f:
             records = pickle.load(f)
-        rows = compile_all(records, cc)
+        rows = compile_jobs(records, jobs(records)[int(i)::int(n)], cc)
         Path(out).write_text(json.dumps(rows))
         return 0
     result = run(cc, use_cache=not args.no_cache)

@@ -38,6 +38,7 @@ def compiled():
 
 
 def _kernels_defined() -> set[str]:
+    """The module's kernels (the general ones; the variants are compiled from them)."""
     src = (ROOT / "dempipe" / "kernels" / "cuda.py").read_text()
     return set(re.findall(r"^def (k_\w+)\(", src, flags=re.M))
 
@@ -49,6 +50,16 @@ def test_every_kernel_compiles_and_assembles(compiled):
     assert defined <= names, f"kernels never launched by the recorded scenes: {defined - names}"
     for r in compiled["rows"]:
         assert 0 < r["registers"] <= MAX_REGISTERS, r
+
+
+def test_every_feature_set_is_compiled(compiled):
+    # the kernels specialized to the scene: one variant per feature set (2^4)
+    variants: dict[str, set] = {}
+    for r in compiled["rows"]:
+        if r["variant"]:
+            variants.setdefault(r["kernel"], set()).add(r["variant"])
+    assert set(variants) == {"k_pair_forces", "k_sphere_forces", "k_bodies"}
+    assert all(len(v) == 16 for v in variants.values()), variants
 
 
 def test_no_kernel_spills(compiled):

@@ -14,7 +14,7 @@ import hashlib
 import os
 import types
 
-from .. import physics
+from .. import laws, physics
 
 #: physics.py functions in dependency order (callees before callers).
 FORMULAS = (
@@ -24,7 +24,7 @@ FORMULAS = (
     "sym_mat_vec",
     "angular_velocity",
     "sphere_kinematics",
-    "damping_coefficient",
+    "static_body",
     "contact_force",
     "sphere_pair_force",
     "sphere_wall_force",
@@ -50,15 +50,17 @@ def compile_chain(module, names, jit, given: dict) -> types.SimpleNamespace:
     return types.SimpleNamespace(**compiled)
 
 
-def compile_walk(jit, cell_coord, cell_key, cell_hash, grid_slots: bool):
+def compile_walk(jit, formulas, cell_coord, cell_key, cell_hash, grid_slots: bool):
     """neighbours.neighbour_list compiled with ``jit``, calling the target's own
-    (already compiled) grid cell functions; ``grid_slots``: the grid holds slots
+    (already compiled) grid cell functions and ``formulas.static_body``;
+    ``grid_slots``: the grid holds slots
     through grid_slot (the CPU's body-ordered slots) rather than being the slots."""
     from . import neighbours
 
     return compile_chain(neighbours, ("neighbour_list",), jit,
                          dict(cell_coord=cell_coord, cell_key=cell_key,
-                              cell_hash=cell_hash, GRID_SLOTS=grid_slots)).neighbour_list
+                              cell_hash=cell_hash, GRID_SLOTS=grid_slots,
+                              static_body=formulas.static_body)).neighbour_list
 
 
 def compile_slot_store(jit):
@@ -79,7 +81,8 @@ def compile_pairing(jit, formulas) -> types.SimpleNamespace:
                                     "pair_slots",
                                     "pair_mirror", "walls_to_front", "wall_column",
                                     "rows_to_pairs", "pairs_to_rows"), jit,
-                         dict(history_recall=formulas.history_recall))
+                         dict(history_recall=formulas.history_recall,
+                              static_body=formulas.static_body))
 
 
 def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNamespace:
@@ -92,15 +95,21 @@ def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNam
 
     given = dict(history_recall=formulas.history_recall, history_store=formulas.history_store,
                  entry_range=pairing.entry_range,
+                 contact_coefficients=formulas.contact_coefficients,
+                 static_body=formulas.static_body,
                  sphere_pair_force=formulas.sphere_pair_force,
                  sphere_wall_force=formulas.sphere_wall_force)
     given.update(constants)
     return compile_chain(contacts, ("pair_forces", "sphere_forces"), jit, given)
 
 
-def compile_formulas(jit) -> types.SimpleNamespace:
-    """Return a namespace of every formula compiled with ``jit`` (a decorator)."""
-    return compile_chain(physics, FORMULAS, jit, {})
+def compile_formulas(jit, law: str = laws.DEFAULT) -> types.SimpleNamespace:
+    """Return a namespace of every formula compiled with ``jit`` (a decorator): the
+    contact law's kernel functions (``laws.law(law).KERNEL``: contact_coefficients,
+    normal_force), then physics.py's, which call them."""
+    lw = laws.law(law)
+    given = vars(compile_chain(lw, lw.KERNEL, jit, {}))
+    return compile_chain(physics, FORMULAS, jit, given)
 
 
 def specialize(functions, jits: dict, constants: dict, tag: str) -> types.SimpleNamespace:
@@ -145,6 +154,7 @@ def invalidate_stale_cache(module_file: str) -> None:
     """
     here = os.path.dirname(os.path.abspath(module_file))
     sources = [physics.__file__, __file__, module_file,
+               *sorted(glob.glob(os.path.join(os.path.dirname(laws.__file__), "*.py"))),
                os.path.join(os.path.dirname(__file__), "neighbours.py"),
                os.path.join(os.path.dirname(__file__), "contacts.py")]
     digest = hashlib.sha256(b"".join(open(f, "rb").read() for f in sources)).hexdigest()[:16]

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import inspect
 import math
+import types
 
 import numpy as np
 from numba import cuda, int64
@@ -42,6 +43,8 @@ from ..state import CONTACT_SLOTS
 from .compile import (compile_contacts, compile_formulas, compile_pairing, compile_slot_store,
                       compile_walk)
 from .contacts import PAIR_COLS, WALL_SLACK
+from .layout import (BUCKETS_PER_SPHERE, CUDA_LAYOUT, FLAGS, GENERAL, fit_grid,  # noqa: F401
+                     grid_table, kernel_flags, scene_features, static_extent)
 from .neighbours import NEIGHBOURS, SKIN, cell_size
 
 
@@ -110,61 +113,6 @@ CTL_IDLE_STEPS = 8
 CTL_SIZE = 10
 
 
-#: Most buckets per sphere the grid may use (as kernels/cpu.py).
-BUCKETS_PER_SPHERE = 8
-
-
-def grid_table(n_spheres: int, extent_cells=None) -> np.ndarray:
-    """Table layout (bx, by, mask_x, mask_y, mask_z, n_buckets) for the grid.
-
-    The same function as ``kernels.cpu.grid_table`` (repeated so that this
-    module does not import the CPU kernels; tests/test_cuda.py checks the two
-    agree). The budget is 2^k >= BUCKETS_PER_SPHERE × spheres buckets; within
-    it each axis gets the bits that cover the occupied extent (cells per axis).
-    """
-    # At least 2 bits (4 buckets) per axis: with 1, a row's cells cx-1 and cx+1
-    # share a bucket and its spheres would be visited twice (contact counted twice).
-    k = 6
-    while (1 << k) < BUCKETS_PER_SPHERE * max(n_spheres, 1):
-        k += 1
-    if extent_cells is None:
-        bx = (k + 2) // 3
-        by = (k - bx + 1) // 2
-        bits = [bx, by, k - bx - by]
-    else:
-        bits = [max(2, int(np.ceil(np.log2(max(e, 1.0) + 3.0)))) for e in extent_cells]
-        while sum(bits) > k:
-            i = int(np.argmax(bits))
-            bits[i] -= 1
-    bx, by, bz = bits
-    return np.array([bx, by, (1 << bx) - 1, (1 << by) - 1, (1 << bz) - 1, 1 << (bx + by + bz)],
-                    dtype=np.int64)
-
-
-def static_extent(model):
-    """(lo, hi) of the static pseudo-bodies' spheres grown by a diameter, or None."""
-    if not model.n_static:
-        return None
-    first = model.body_sphere_start[model.n_bodies]
-    pts = model.sphere_offset[first:] + model.initial_x[model.sphere_body[first:]]
-    return pts.min(axis=0) - model.diameter, pts.max(axis=0) + model.diameter
-
-
-def fit_grid(model, body_x, static_box) -> np.ndarray:
-    """The grid fitted to where the bodies are (``CpuBackend.fit_grid``, same arithmetic)."""
-    m = model
-    nb = m.body_mass.shape[0]
-    if nb == 0:
-        return grid_table(m.n_spheres)
-    r = m.body_radius
-    lo = (body_x[: m.n_bodies] - r[: m.n_bodies, None]).min(axis=0) if m.n_bodies else None
-    hi = (body_x[: m.n_bodies] + r[: m.n_bodies, None]).max(axis=0) if m.n_bodies else None
-    if static_box is not None:
-        lo = static_box[0] if lo is None else np.minimum(lo, static_box[0])
-        hi = static_box[1] if hi is None else np.maximum(hi, static_box[1])
-    return grid_table(m.n_spheres, (hi - lo) / cell_size(m.diameter) + 2.0)
-
-
 @cuda.jit(device=True)
 def cell_coord(x, inv_cell):
     # int64(floor(v)) + offset, clamped, as on the CPU. NaN and |v| >= 2^63 give
@@ -195,7 +143,7 @@ def cell_hash(cx, cy, cz, grid):
     return ((cz & grid[4]) << (grid[0] + grid[1])) | ((cy & grid[3]) << grid[0]) | (cx & grid[2])
 
 
-neighbour_list = compile_walk(_device_jit(), cell_coord, cell_key, cell_hash, False)
+neighbour_list = compile_walk(_device_jit(), F, cell_coord, cell_key, cell_hash, False)
 slot_store = compile_slot_store(_device_jit())
 P = compile_pairing(_device_jit(), F)
 wall_reach = P.wall_reach
@@ -203,12 +151,16 @@ pair_slots = P.pair_slots
 pair_mirror = P.pair_mirror
 rows_to_pairs = P.rows_to_pairs
 pairs_to_rows = P.pairs_to_rows
-# The general kernel: every feature compiled in, each checked at run time (friction,
-# sleep_steps > 0, the wall masks); the histories in sphere order.
-C = compile_contacts(_device_jit(), F, P,
-                     dict(FRICTION=True, ROTATION=True, SLEEPING=True, WALLS=True,
-                          HIST_BY_SLOT=False, PAIR_ROWS=False, WALL_ROWS=False,
-                          LIST_ROWS=False, sqrt=math.sqrt))
+#: Feature flags the contact and body kernels are compiled for (``kernels(flags)``),
+#: as kernels/cpu.py's: a feature that is off is a constant-false branch, its code
+#: removed by NVVM. The module's own kernels are the general ones (all on, each
+#: feature also checked at run time: friction, sleep_steps > 0, the wall masks).
+FRICTION = True
+ROTATION = True
+SLEEPING = True
+WALLS = True
+C = compile_contacts(_device_jit(), F, P, dict(FRICTION=True, ROTATION=True, SLEEPING=True,
+                                             WALLS=True, sqrt=math.sqrt, **CUDA_LAYOUT))
 pair_forces = C.pair_forces
 sphere_forces = C.sphere_forces
 
@@ -579,7 +531,7 @@ def k_bodies(n_bodies, dt, gravity, body_sphere_start, sphere_f, sphere_t, spher
             ctl[CTL_IDLE_STEPS] += 1
     if b >= n_bodies or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
-    if sleep_steps > 0 and body_rest[b] >= sleep_steps:
+    if SLEEPING and sleep_steps > 0 and body_rest[b] >= sleep_steps:
         if body_wake[b] != 0:
             body_rest[b] = 1
             body_wake[b] = 0
@@ -625,7 +577,7 @@ def k_bodies(n_bodies, dt, gravity, body_sphere_start, sphere_f, sphere_t, spher
     body_L[b, 0] = LX
     body_L[b, 1] = LY
     body_L[b, 2] = LZ
-    if sleep_steps > 0:
+    if SLEEPING and sleep_steps > 0:
         im = body_inv_mass[b]
         wx, wy, wz = angular_velocity(qw, qx, qy, qz, body_inv_inertia[b, 0],
                                       body_inv_inertia[b, 1], body_inv_inertia[b, 2],
@@ -685,6 +637,43 @@ def k_fill(values, v):
 # ---------------------------------------------------------------------------
 # Host side
 # ---------------------------------------------------------------------------
+
+#: The kernels compiled per feature set (FLAGS); the others read no flag.
+SPECIALIZED = ("k_pair_forces", "k_sphere_forces", "k_bodies")
+_VARIANTS: dict = {}
+
+
+def variant_tag(flags) -> str:
+    """'F1R0S0W1': the flags (FLAGS' order) of a variant, as in its kernels' names."""
+    return "".join(f"{n[0].upper()}{int(f)}" for n, f in zip(FLAGS, flags))
+
+
+def kernels(flags) -> types.SimpleNamespace:
+    """The SPECIALIZED kernels compiled for ``flags`` (friction, rotation, sleeping,
+    walls), created on first use (numba-cuda compiles each at its first launch):
+    contacts.pair_forces / sphere_forces compiled with those flags as constants,
+    and the kernels re-created with globals that hold them (compile.specialize's
+    rebinding, for cuda.jit). ``GENERAL`` gives the module's own kernels."""
+    flags = tuple(bool(f) for f in flags)
+    if flags == GENERAL:
+        return types.SimpleNamespace(**{n: globals()[n] for n in SPECIALIZED})
+    if flags not in _VARIANTS:
+        consts = {n.upper(): f for n, f in zip(FLAGS, flags)}
+        c = compile_contacts(_device_jit(), F, P, dict(consts, sqrt=math.sqrt, **CUDA_LAYOUT))
+        glb = dict(globals())
+        glb.update(consts)
+        glb.update(pair_forces=c.pair_forces, sphere_forces=c.sphere_forces)
+        out = {}
+        for name in SPECIALIZED:
+            py = globals()[name].py_func
+            fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__,
+                                    py.__closure__)
+            fn.__qualname__ = f"{name}__{variant_tag(flags)}"
+            fn.__doc__ = py.__doc__
+            out[name] = cuda.jit(fn)
+        _VARIANTS[flags] = types.SimpleNamespace(**out)
+    return _VARIANTS[flags]
+
 
 def _blocks(n: int, threads: int) -> int:
     return max(1, (int(n) + threads - 1) // threads)
@@ -825,11 +814,13 @@ class CudaBackend:
     name = "cuda"
 
     def __init__(self, model, features=None, specialize: bool = True):
-        # The CUDA kernels are not specialized (yet): one general kernel with
-        # runtime checks. ``features`` may switch friction on (histories kept).
+        # As CpuBackend: the contact and body kernels compiled for the features the
+        # scene uses (``kernels(flags)``), or with specialize=False the general ones.
         self.model = model
-        self.features = model.features if features is None else features
+        self.features = scene_features(model, features)
         self.specialize = specialize
+        self.flags = kernel_flags(self.features) if specialize else GENERAL
+        self.k = kernels(self.flags)
         layout = scratch_layout(model, self.features.friction)
         ctx = cuda.current_context()
         free, total = ctx.get_memory_info()
@@ -994,7 +985,7 @@ class CudaBackend:
     def _contacts(self, parity: int = 0, partner=None, spring=None, wake=None):
         m, d = self.model, self.d
         blocks = _blocks(m.n_spheres, CONTACT_THREADS)
-        k_pair_forces[blocks, CONTACT_THREADS](
+        self.k.k_pair_forces[blocks, CONTACT_THREADS](
             m.diameter, d["nbr"], d["nbr_n"], d["pidx"], d["sorted_idx"],
             d["sorted_x"], d["sorted_v"], d["sorted_body"], d["body_w"],
             d["body_inv_mass"], d["body_material"], d["pair_k"], d["pair_zeta"], d["pair_mu"],
@@ -1004,7 +995,7 @@ class CudaBackend:
             m.sleep_steps, d["body_rest"], d["body_wake"] if wake is None else wake,
             d["wall_normal"], d["wall_offset"], d["wall_lo"], d["wall_hi"], d["wall_depth"],
             d["wall_material"], d["wall_mask"], d["pair_f"], d["wall_f"], d["ctl"])
-        k_sphere_forces[_blocks(m.n_spheres, THREADS), THREADS](
+        self.k.k_sphere_forces[_blocks(m.n_spheres, THREADS), THREADS](
             m.diameter, d["nbr"], d["nbr_n"], d["pidx"], d["sorted_idx"], d["sorted_x"],
             d["sorted_body"], d["body_inv_mass"], m.sleep_steps, d["body_rest"],
             d["wall_mask"], d["pair_f"], d["wall_f"], d["sphere_f"], d["sphere_t"],
@@ -1012,7 +1003,7 @@ class CudaBackend:
 
     def _bodies(self):
         m, d = self.model, self.d
-        k_bodies[_blocks(m.n_bodies, THREADS), THREADS](
+        self.k.k_bodies[_blocks(m.n_bodies, THREADS), THREADS](
             m.n_bodies, m.dt, d["gravity"], d["body_sphere_start"], d["sphere_f"], d["sphere_t"],
             d["sphere_r"], d["body_mass"], d["body_inv_mass"], d["body_inv_inertia"],
             d["body_x"], d["body_q"], d["body_P"], d["body_L"],
@@ -1103,8 +1094,9 @@ class CudaBackend:
         self.d["pair_f"] = cuda.to_device(np.zeros((ns * cap, PAIR_COLS)))
 
     # -- CpuBackend interface ----------------------------------------------------
-    def step(self, state, n_steps: int) -> None:
+    def step(self, state, n_steps: int, control=None) -> None:
         """Advance ``state`` by ``n_steps`` steps; its host arrays are updated at the end.
+        ``control``: as ``CpuBackend.step`` (the controlled poses uploaded first).
 
         The steps are launched back to back; the control array is read once at
         the end. If a neighbour list overflowed, the State stopped changing at
@@ -1112,6 +1104,10 @@ class CudaBackend:
         the remaining steps launched again from there. Nothing is copied aside.
         """
         self._ensure_resident(state)
+        if control is not None and not control.empty:
+            control.apply(state)
+            for name in ("body_x", "body_q"):
+                self.d[name].copy_to_device(np.ascontiguousarray(getattr(state, name)))
         self.fit(state)
         left = int(n_steps)
         stepped = False
