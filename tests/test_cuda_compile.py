@@ -38,8 +38,9 @@ def compiled():
 
 
 def _kernels_defined() -> set[str]:
-    """The module's kernels (the general ones; the variants are compiled from them)."""
-    src = (ROOT / "dempipe" / "kernels" / "cuda.py").read_text()
+    """The CUDA target's kernels (kernels/cuda*.py; the general ones: the variants
+    are compiled from them)."""
+    src = "".join(p.read_text() for p in (ROOT / "dempipe" / "kernels").glob("cuda*.py"))
     return set(re.findall(r"^def (k_\w+)\(", src, flags=re.M))
 
 

@@ -112,8 +112,13 @@ def compile_formulas(jit, law: str = laws.DEFAULT) -> types.SimpleNamespace:
     return compile_chain(physics, FORMULAS, jit, given)
 
 
-def specialize(functions, jits: dict, constants: dict, tag: str) -> types.SimpleNamespace:
+def specialize(functions, jits: dict, constants: dict, tag: str,
+               module_globals: dict | None = None) -> types.SimpleNamespace:
     """Compile one variant of the plain functions ``functions`` (callees first).
+
+    ``module_globals``: the globals they all run with (default: the first one's
+    module's), so that functions written in other modules (contacts.py) see the
+    driver module's compiled callees and constants.
 
     Each function is re-created with globals in which ``constants`` (e.g.
     ``FRICTION = False``) and the variant's own compiled callees replace the
@@ -131,7 +136,7 @@ def specialize(functions, jits: dict, constants: dict, tag: str) -> types.Simple
     typing and multiplies signatures in one index instead.
     """
     first = next(iter(functions))
-    glb = dict(first.__globals__)
+    glb = dict(first.__globals__ if module_globals is None else module_globals)
     glb.update(constants)
     out: dict[str, object] = {}
     for py in functions:
@@ -153,10 +158,11 @@ def invalidate_stale_cache(module_file: str) -> None:
     module's entries when it differs.
     """
     here = os.path.dirname(os.path.abspath(module_file))
-    sources = [physics.__file__, __file__, module_file,
+    # every source a kernel may inline or link: the formulas, the laws, and all of
+    # kernels/ (a driver links the stages it calls, wherever they are written)
+    sources = [physics.__file__,
                *sorted(glob.glob(os.path.join(os.path.dirname(laws.__file__), "*.py"))),
-               os.path.join(os.path.dirname(__file__), "neighbours.py"),
-               os.path.join(os.path.dirname(__file__), "contacts.py")]
+               *sorted(glob.glob(os.path.join(os.path.dirname(__file__), "*.py")))]
     digest = hashlib.sha256(b"".join(open(f, "rb").read() for f in sources)).hexdigest()[:16]
     stem = os.path.splitext(os.path.basename(module_file))[0]
     folders = [os.path.join(here, "__pycache__")]
