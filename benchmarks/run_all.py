@@ -9,7 +9,9 @@ ratios against a baseline measured in the same run; this runner only starts them
 fresh interpreters (so one's compiled kernels or threads do not colour the next)
 and stops with a non-zero status if any of them failed. vs_bullet needs pybullet
 (``pip install 'dempipe[bench]'``); without it that row says so and is skipped.
-gpu_bench.py is left out: it needs a CUDA GPU (run it alone where there is one).
+gpu_bench.py is left out: it needs a CUDA GPU (run it alone where there is one);
+cuda_compile_table.py too: it times nothing (tests/test_cuda_compile.py runs it); and
+ab_trees.py, which compares two source trees.
 """
 
 from __future__ import annotations

@@ -17,12 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .errors import DempipeError, ExportError, SceneError, StabilityError
-
-#: Frame-0 overlaps beyond this fraction of the diameter refuse the bake: the
-#: first step would fling the bodies apart (the same limit the guard uses).
-REFUSE_OVERLAP = 0.5
-#: Beyond this fraction a frame-0 overlap is reported as a warning.
-WARN_OVERLAP = 0.05
+from .stability import REFUSE_OVERLAP, WARN_OVERLAP  # frame-0 overlap limits, defined there
 
 
 @dataclass

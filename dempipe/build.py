@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from . import laws
 from . import materials as mat
 from .errors import SceneError
 from .model import Model, ModelBuilder, quat_to_matrix
@@ -176,8 +177,8 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
     target = sim.stiffness_target_overlap or 0.02
     steps_per_contact = mat.STEPS_PER_CONTACT / o.dt_factor   # dt_factor 0.5: twice the steps
     if o.stiffness_factor != 1.0:
-        # auto stiffness scales through the target overlap: k ∝ 1/δ² for impacts
-        target = target / o.stiffness_factor ** 0.5
+        # auto stiffness scales through the target overlap (the law says how)
+        target = laws.law().overlap_for_stiffness_factor(target, o.stiffness_factor)
     model = b.finalize(fps=fps, n_frames=n_frames, first_frame=out.start_frame, dt=dt,
                        target_overlap=target, steps_per_contact=steps_per_contact,
                        up_axis=out.up_axis, meters_per_unit=out.meters_per_unit,

@@ -1,20 +1,16 @@
 """Materials and contact parameters: where stability lives.
 
-A user thinks in restitution, not in dashpot constants. For the linear
-spring-dashpot contact of two masses with effective mass m_eff, stiffness k and
-dashpot η, the normal motion during contact is a damped oscillator with
-
-    ω0 = √(k/m_eff),   ζ = η / (2√(k m_eff)),   ωd = ω0 √(1-ζ²)
-    e  = exp(-ζπ/√(1-ζ²))          (coefficient of restitution)
-    tc = π / ωd                     (contact duration)
-
-so ζ = -ln e / √(π² + ln² e) gives exactly the asked restitution, and
-η = 2ζ√(k m_eff) is evaluated per contact from the two bodies' masses.
-
-Explicit (symplectic Euler) integration of that oscillator is stable for
-ω0 dt < 2(√(1+ζ²) - ζ); dempipe stays far below it, because accuracy of the
-bounce (and of piles with many simultaneous contacts, whose stiffness adds up)
-needs ~16 steps per contact, not ~1.
+A user thinks in restitution, not in dashpot constants. The contact law
+(``laws.law(name)``, laws/linear.py for the linear spring-dashpot) turns the
+asked restitution into a damping ratio, the asked overlap into a stiffness,
+and gives each contact's frequency and critical step; this module holds what
+does not depend on the law: the materials, how two of them mix, the table of
+pair constants and the choice of dt (explicit symplectic Euler integration
+stays far below the critical step, because accuracy of the bounce, and of
+piles with many simultaneous contacts whose stiffness adds up, needs ~16 steps
+per contact, not ~1). The functions below named for a derived quantity
+(damping_ratio, contact_time, critical_dt, auto_stiffness, ...) are the linear
+law's, kept here under the names callers know.
 """
 
 from __future__ import annotations
@@ -25,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import StabilityError
+from .laws import linear as _law
 
 #: Steps per contact duration that dt="auto" aims for. The bounce-height test
 #: (e² within 3%) needs ≥ ~10; piles with several contacts per body add stiffness,
@@ -67,37 +64,12 @@ class Material:
 DEFAULT_MATERIAL = Material("default")
 
 
-def damping_ratio(restitution: float) -> float:
-    """ζ from e for the linear spring-dashpot: ζ = -ln e / √(π² + ln² e).
-
-    e = 0 would need ζ = 1 and an infinitely long tail; we cap ζ at 1 (critical
-    damping), which returns almost nothing: the rebound is below 1e-3 of the impact.
-    """
-    if restitution <= 0.0:
-        return 1.0
-    if restitution >= 1.0:
-        return 0.0
-    ln_e = math.log(restitution)
-    return -ln_e / math.sqrt(math.pi**2 + ln_e**2)
-
-
-def restitution_from_damping(zeta: float) -> float:
-    """Inverse of :func:`damping_ratio` (for tests and reports)."""
-    if zeta >= 1.0:
-        return 0.0
-    return math.exp(-zeta * math.pi / math.sqrt(1.0 - zeta * zeta))
-
-
-def contact_time(k: float, m_eff: float, zeta: float) -> float:
-    """Duration of one spring-dashpot contact, tc = π/ωd [s]."""
-    omega0 = math.sqrt(k / m_eff)
-    return math.pi / (omega0 * math.sqrt(max(1.0 - zeta * zeta, 1e-6)))
-
-
-def critical_dt(k: float, m_eff: float, zeta: float) -> float:
-    """Largest stable step of symplectic Euler for the damped oscillator [s]."""
-    omega0 = math.sqrt(k / m_eff)
-    return 2.0 * (math.sqrt(1.0 + zeta * zeta) - zeta) / omega0
+damping_ratio = _law.damping_ratio
+restitution_from_damping = _law.restitution
+contact_time = _law.contact_time
+critical_dt = _law.critical_dt
+damped_critical_step = _law.critical_step
+auto_stiffness = _law.stiffness_for_overlap
 
 
 def mix(a: Material, b: Material) -> tuple[float | None, float, float]:
@@ -112,24 +84,6 @@ def mix(a: Material, b: Material) -> tuple[float | None, float, float]:
     else:
         k = 2.0 * a.stiffness * b.stiffness / (a.stiffness + b.stiffness)
     return k, math.sqrt(a.restitution * b.restitution), math.sqrt(a.friction * b.friction)
-
-
-def auto_stiffness(mass: float, impact_speed: float, weight_accel: float, diameter: float,
-                   target_overlap: float) -> float:
-    """Stiffness that keeps the largest overlap near ``target_overlap × diameter``.
-
-    Two loads set the overlap of a contact between a body of ``mass`` and a
-    static wall (the worst case: the partner does not give way):
-      impact:  an undamped spring stops the body within δ = v √(m/k)
-               → k ≥ m v² / δ²
-      weight:  one sphere carrying the body's whole weight sinks δ = m g / k
-               → k ≥ m g / δ
-    Damping only shortens the overlap, so both bounds are conservative.
-    """
-    delta = target_overlap * diameter
-    k_impact = mass * impact_speed**2 / delta**2
-    k_weight = mass * weight_accel / delta
-    return max(k_impact, k_weight)
 
 
 @dataclass(frozen=True)
@@ -150,8 +104,9 @@ class PairTable:
     ks_ratio: float = TANGENTIAL_SPRING_RATIO
 
 
-def pair_table(materials: list[Material], stiffness: list[float]) -> PairTable:
-    """Build the pair table from materials and their resolved stiffness (auto applied)."""
+def pair_table(materials: list[Material], stiffness: list[float], law=_law) -> PairTable:
+    """Build the pair table from materials and their resolved stiffness (auto applied);
+    ``law``: the contact law module whose damping ratio gives each pair's restitution."""
     m = len(materials)
     k = np.zeros((m, m))
     zeta = np.zeros((m, m))
@@ -161,7 +116,7 @@ def pair_table(materials: list[Material], stiffness: list[float]) -> PairTable:
             ka, kb = stiffness[i], stiffness[j]
             k[i, j] = 2.0 * ka * kb / (ka + kb)
             _, e, f = mix(a, b)
-            zeta[i, j] = damping_ratio(e)
+            zeta[i, j] = law.damping_ratio(e)
             mu[i, j] = f
     return PairTable(k, zeta, mu)
 
@@ -180,12 +135,6 @@ AUTO_TRAVEL = 0.25
 FLAT_FACE_SAFETY = 0.5
 
 
-def damped_critical_step(omega: float, zeta: float) -> float:
-    """Largest stable step of symplectic Euler on a damped oscillator [s]:
-    ω dt < 2(√(1+ζ²) − ζ), which shrinks like 1/(ζ ω) when ζ is large."""
-    return 2.0 * (math.sqrt(1.0 + zeta * zeta) - zeta) / omega
-
-
 def flat_face_critical_step(n: int, k: float, m: float, zeta: float) -> float:
     """Critical step of a body of mass m landing flat on n spheres at once [s].
 
@@ -194,7 +143,8 @@ def flat_face_critical_step(n: int, k: float, m: float, zeta: float) -> float:
     n η: ω_n = √n ω, ζ_n = √n ζ. A wide flat face (a tile: n = 64) makes ζ_n
     large and its critical step far shorter than a corner contact's.
     """
-    return damped_critical_step(math.sqrt(n * k / m), math.sqrt(n) * zeta)
+    kn, zn = _law.parallel(n, k, zeta)
+    return _law.critical_step(_law.omega(kn, m), zn)
 
 
 def auto_dt(omega_max: float, fps: float, steps_per_contact: float = STEPS_PER_CONTACT,
@@ -228,7 +178,7 @@ def check_dt(dt: float, omega_max: float, zeta_min: float, where: str) -> None:
     """Refuse a user dt above the critical step of the stiffest contact."""
     if omega_max <= 0.0:
         return
-    limit = 2.0 * (math.sqrt(1.0 + zeta_min**2) - zeta_min) / omega_max
+    limit = _law.critical_step(omega_max, zeta_min)
     if dt >= limit:
         raise StabilityError(
             f"{where}: dt = {dt:.3g} s is above the critical step {limit:.3g} s of the "

@@ -16,6 +16,7 @@ from dataclasses import replace, dataclass, field
 
 import numpy as np
 
+from . import laws
 from . import materials as mat
 from typing import TYPE_CHECKING
 
@@ -185,10 +186,18 @@ class Model:
     contact_layers: int = 0
     initial_asleep: np.ndarray = None
     """(n_bodies,) bool, bodies that start asleep (None: none)."""
+    contact_law: str = laws.DEFAULT
 
     @property
     def n_spheres(self) -> int:
         return int(self.sphere_body.shape[0])
+
+    @property
+    def body_static(self) -> np.ndarray:
+        """(B,) bool: the bodies the body stage leaves alone (static mesh colliders;
+        kinematic bodies, moved by Control, will be too). Their 1/m is 0, an infinite
+        mass to every contact: the kernels ask physics.static_body, the same test."""
+        return np.asarray(self.body_inv_mass) == 0.0
 
     @property
     def n_walls(self) -> int:
@@ -425,14 +434,17 @@ class ModelBuilder:
                  steps_per_contact: float = mat.STEPS_PER_CONTACT,
                  up_axis: str = "Z", meters_per_unit: float = 1.0,
                  where: str = "simulation.dt", force: bool = False,
-                 sleep: tuple | None = None) -> Model:
+                 sleep: tuple | None = None, contact_law: str = laws.DEFAULT) -> Model:
         """Derive contact constants, dt and features; freeze everything into a Model.
 
         A user dt at or above the critical step of the stiffest contact raises
         StabilityError, unless ``force`` (the bake's --force: the user takes the risk).
         sleep : None (off) or (linear [m/s] | None, angular [rad/s] | None,
                 time [s] | None); None entries take the defaults of ``sleep_defaults``.
+        contact_law : the registered law (``laws.LAWS``) every contact follows.
         """
+        law_name = contact_law
+        law = laws.law(law_name)
         d = self.diameter
         groups = self._groups
         # bodies
@@ -530,7 +542,8 @@ class ModelBuilder:
         body_radius = np.array([np.linalg.norm(self._shapes[s].sphere_set.centers, axis=1).max()
                                 + 0.5 * d for s in body_shape]) if n_dyn else np.zeros(0)
 
-        # materials: auto stiffness from impact speed and weight (materials.auto_stiffness)
+        # materials: auto stiffness from impact speed and weight (the law's
+        # stiffness_for_overlap)
         g = float(np.linalg.norm(self.gravity))
         up = -self.gravity / g if g > 0 else np.array([0.0, 0.0, 1.0])
         heights = x0 @ up if n_dyn else np.zeros(1)
@@ -561,7 +574,8 @@ class ModelBuilder:
         for mi, m in enumerate(self._materials):
             used = dyn_mat == mi
             if m.stiffness is None and used.any():
-                k = mat.auto_stiffness(float(m_corner[used].max()), v_imp, g, d, target_overlap)
+                k = law.stiffness_for_overlap(float(m_corner[used].max()), v_imp, g, d,
+                                              target_overlap)
                 k_auto_all = max(k_auto_all, k)
                 stiffness.append(k)
                 auto_notes.append((m.name, k))
@@ -570,13 +584,11 @@ class ModelBuilder:
         # materials used only by colliders (or unused) take the stiffest auto value
         fallback = k_auto_all or max([s for s in stiffness if s] or [1e4])
         stiffness = [s if s is not None else fallback for s in stiffness]
-        table = mat.pair_table(self._materials, stiffness)
+        table = mat.pair_table(self._materials, stiffness, law)
 
         # stiffest mode: ω = √(k / m_eff) over every body, translation and rotation
         # (effective mass m / (1 + m (r×n)ᵀ I⁻¹ (r×n))), halved for body-body contacts
-        omega_max = 0.0
-        zeta_min = 1.0
-        zeta_max = 0.0
+        contacts = []       # (k, m_eff, ζ) of each kind of contact (laws.stiffest)
         wall_mats = {w[5] for w in self._walls} | {s[3] for s in self._static}
         present = set(np.unique(dyn_mat).tolist()) | wall_mats
         has_contacts = n_dyn > 1 or bool(self._walls) or bool(self._static)
@@ -592,9 +604,8 @@ class ModelBuilder:
                 for mj in partners:
                     k = table.k[mi, mj]
                     half = 0.5 if (n_dyn > 1 and mj in dyn_present) else 1.0
-                    omega_max = max(omega_max, math.sqrt(k / (m_eff * half)))
-                    zeta_min = min(zeta_min, table.zeta[mi, mj])
-                    zeta_max = max(zeta_max, table.zeta[mi, mj])
+                    contacts.append((k, m_eff * half, table.zeta[mi, mj]))
+        omega_max, zeta_min, zeta_max = laws.stiffest(contacts, law_name)
         # flat landings (n spheres of a face at once) and free spin bound dt further
         dt_max = math.inf
         if has_contacts:
@@ -681,4 +692,5 @@ class ModelBuilder:
             initial_w=_frozen(np.concatenate([w0, np.zeros((n_static, 3))])),
             stiffness_auto=tuple(auto_notes), contact_layers=self.contact_layers,
             initial_asleep=_frozen(asleep0, bool) if asleep0.any() else None,
+            contact_law=law_name,
         )

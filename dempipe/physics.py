@@ -13,6 +13,10 @@ passed as three scalars because that is what both targets compile best.
 
 from math import cos, sin, sqrt
 
+# The contact law's normal force (laws/linear.py); compile_formulas replaces it by
+# the scene's law compiled for the target. Plain-Python callers get the linear one.
+from .laws.linear import normal_force
+
 
 # ---------------------------------------------------------------------------
 # Quaternions and rotation (eq. 7-10, 19)
@@ -106,19 +110,17 @@ def sphere_kinematics(X, Y, Z, qw, qx, qy, qz, VX, VY, VZ, WX, WY, WZ, ox, oy, o
     )
 
 
+def static_body(inv_mass):
+    """Whether a body takes no part in the body stage: a collider (static mesh) or,
+    later, a kinematic body moved by Control. Its 1/m is 0: an infinite mass to
+    every contact. The one test of "static" every kernel uses (Model.body_static
+    on the host)."""
+    return inv_mass == 0.0
+
+
 # ---------------------------------------------------------------------------
 # Stage 4: contact force between two spheres, or a sphere and a wall (eq. 11-14)
 # ---------------------------------------------------------------------------
-
-def damping_coefficient(zeta, k, inv_mass_a, inv_mass_b):
-    """Normal dashpot η = 2ζ√(k m_eff), m_eff = 1/(1/m_a + 1/m_b) [N s/m].
-
-    The effective mass is that of the two *bodies* (a static collider has
-    1/m = 0), so a one-sphere body bounces with exactly the restitution the
-    damping ratio ζ was derived from; see docs/physics.md.
-    """
-    return 2.0 * zeta * sqrt(k / (inv_mass_a + inv_mass_b))
-
 
 def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, sz, dt):
     """Force on sphere i from one contact (eq. 11-14), with a Coulomb cap and a
@@ -133,7 +135,8 @@ def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, s
     the last step (0 for a new contact); dt : the step [s].
     Returns (fx, fy, fz, sx, sy, sz): the force [N] and the new stretch.
 
-    Normal: spring -k δ n (eq. 11) plus a dashpot on the *normal* relative
+    Normal: the contact law's normal_force, for the linear law spring -k δ n
+    (eq. 11) plus a dashpot on the *normal* relative
     velocity only, η (u·n) n — the paper's eq. 12 damps the full relative
     velocity, which would also act as friction on frictionless materials.
     Tangential: the paper's viscous kt u_t (eq. 13) plus a spring ks s, where
@@ -151,7 +154,7 @@ def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, s
     momentum and both sides' histories stay exact opposites.
     """
     un = ux * nx + uy * ny + uz * nz
-    fn = -k * overlap + eta * un          # along n; negative pushes i away
+    fn = normal_force(k, eta, overlap, un)   # along n; negative pushes i away (the law's)
     fx = fn * nx
     fy = fn * ny
     fz = fn * nz

@@ -22,6 +22,7 @@ import numpy as np
 
 from .errors import DeviceError, StabilityError
 from .frames import Frames
+from .laws import law
 
 #: An overlap beyond this fraction of the diameter means the contact model has
 #: failed (bodies are passing through each other): stop rather than bake garbage.
@@ -158,12 +159,12 @@ class Simulator:
         mass = m.body_mass[:nb]
         kin0 = e0 + float(mass @ (state.body_x[:nb] @ m.gravity))
         scale = kin0 + g * float(mass @ (h - low + m.diameter))
-        # elastic energy of frame-0 overlaps: at most ½ k δ² per overlapping sphere
+        # elastic energy of frame-0 overlaps: at most the stiffest pair's per sphere
         elastic = 0.0
         if m.n_spheres:
             self.backend.probe(state)
-            ov = np.asarray(self.backend.sphere_overlap)
-            elastic = 0.5 * float(np.max(m.pair_k)) * float(ov @ ov)
+            elastic = law(m.contact_law).elastic_energy(np.max(m.pair_k),
+                                                        self.backend.sphere_overlap)
         return e0, MAX_ENERGY_GAIN * scale + elastic + 1e-300
 
     def advance(self, state, n_frames: int | None = None, progress=None) -> Frames:

@@ -28,15 +28,17 @@ from pathlib import Path
 
 import numpy as np
 
+from . import laws
 from . import materials as mat
 from .errors import StabilityError
-from .kernels.contacts import CONTACT_CHUNK, LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE
-from .kernels.neighbours import NEIGHBOURS
+from .kernels.layout import cpu_scratch, layout_bytes
 from .state import CONTACT_SLOTS
 from .model import Model, quat_to_matrix, rotational_mass_factor
 
-#: Frame-0 overlap limits as fractions of the diameter; the same as bake.py's
-#: (bake refuses above REFUSE_OVERLAP unless --force, warns above WARN_OVERLAP).
+#: Frame-0 overlap limits as fractions of the diameter, for `check` and the bake
+#: (bake.py imports them): above REFUSE_OVERLAP the first step would fling the
+#: bodies apart (the same limit the guard uses), refused unless --force; above
+#: WARN_OVERLAP a warning.
 REFUSE_OVERLAP = 0.5
 WARN_OVERLAP = 0.05
 #: Distance the fastest closing pair travels in one step, as a fraction of the
@@ -242,24 +244,11 @@ def shape_rotational_factors(model: Model) -> np.ndarray:
     return np.array(out, dtype=np.float64)
 
 
-#: kernels.cpu.BUCKETS_PER_SPHERE, restated so that `check` need not import numba
-#: (tests/test_stability.py compares the estimate with a real CpuBackend).
-BUCKETS_PER_SPHERE = 8
-
-
-def grid_buckets(n_spheres: int) -> int:
-    """Bucket budget of the CPU backend's grid (kernels.cpu.grid_table): 2^k ≥ 8 n, k ≥ 6."""
-    k = 6
-    while (1 << k) < BUCKETS_PER_SPHERE * max(n_spheres, 1):
-        k += 1
-    return 1 << k
-
-
 def memory_estimate(model: Model) -> dict:
     """Bytes of the Model's arrays, the CPU backend's scratch, one State and the Frames.
 
-    Computed from sizes (nothing is allocated); the scratch mirrors
-    ``CpuBackend.__init__`` in kernels/cpu.py.
+    Computed from sizes (nothing is allocated); the scratch is the sum of
+    ``kernels.layout.cpu_scratch``, the layout ``CpuBackend`` allocates from.
     """
     seen = set()
     model_bytes = 0
@@ -283,40 +272,11 @@ def memory_estimate(model: Model) -> dict:
         add(b.hi)
     nb = int(model.body_mass.shape[0])
     ns = model.n_spheres
-    table = grid_buckets(ns)
     f8, i8, i4 = 8, 8, 4
-    scratch = (6 * i8                                  # grid
-               + 2 * nb * 3 * f8                       # body_v, body_w
-               + 3 * ns * 3 * f8                       # sphere_x, sphere_v, sphere_r
-               + 2 * ns * i8                           # sphere_key, sphere_hash
-               + (table + 1) * i8 + table * i8         # bucket_start, bucket_fill
-               + 2 * ns * i4 + nb * i8                 # sorted_idx, slot_of, body_key
-               + 4 * f8                                # skin_ctl (adaptive skin)
-               + 2 * ns * 3 * f8                       # sorted_x, sorted_v
-               + ns * i4                               # sorted_body
-               + ns * 3 * f8 + ns * i8 + 3 * ns * i4   # grid_x, grid_key, grid_idx, grid_slot,
-                                                       # grid_body (the CPU's grid)
-               + ns * 3 * f8                           # built_x (neighbour lists)
-               + ns * NEIGHBOURS * i4 + ns * i4        # nbr, nbr_n (to start with)
-               + ns * NEIGHBOURS * i4 + (ns + 1) * i8  # pidx, pair_start (contacts.py)
-               + max(PAIRS_PER_SPHERE * ns, 1) * (PAIR_COLS * f8 + i4)   # pair_f, pair_t
-                                                       # (to start with)
-               + (ns + 1) * i8                         # wall_start (packed wall rows)
-               + (ns + 1) * i8 + max(LIST_PER_SPHERE * ns, 1) * 2 * i4   # list_start,
-                                                       # list_e (packed lists)
-               + (max(ns // 8, 1) if model.features.friction else 1) * 4 * f8  # wall_s
-               + ns * i8 + ns * 7 * f8                 # wall_mask, wall_f
-               + 2 * ns * 3 * f8                       # sphere_f, sphere_t
-               + ns * f8                               # sphere_overlap
-               + (2 * 3 * f8 if model.n_static else 0)  # static_lo, static_hi
-               + i4 + 3 * f8                           # the frictionless dummy history
-               + 2 * nb * i4                           # body_wake, body_still (sleeping)
-               + 2 * (-(-max(ns, 1) // CONTACT_CHUNK)) * 2 * i8 + 2 * i8)  # chunks, spans,
-                                                       # span_ctl (the contact passes' work)
+    scratch = layout_bytes(cpu_scratch(model, model.features.friction))
     state = nb * (3 + 4 + 3 + 3) * f8 + nb * i4        # x, q, P, L; body_rest
     if model.features.friction:   # contact histories (static friction), see State
         state += ns * CONTACT_SLOTS * (i4 + 3 * f8)
-        scratch += ns * CONTACT_SLOTS * (i4 + 3 * f8)   # the same in sorted-slot order
     frames = model.n_frames * (i8 + f8 + model.n_bodies * (3 + 4 + 3 + 3) * f8)
     return dict(model=int(model_bytes), cpu_scratch=int(scratch), state=int(state),
                 frames=int(frames), total=int(model_bytes + scratch + state + frames))
@@ -388,31 +348,31 @@ def pair_stability(model: Model, factors: np.ndarray | None = None,
                 if prev is not None:
                     mt, mr = min(mt, prev[0]), min(mr, prev[1])
                 pairs[key] = (mt, mr)
+    law = laws.law(model.contact_law)
     out = []
-    omega_max, zeta_min = 0.0, 1.0
+    contacts = []
     for (kind, a, b), (mt, mr) in sorted(pairs.items(), key=lambda kv: (kv[0][1], kv[0][2],
                                                                       kv[0][0])):
         k = float(model.pair_k[a, b])
         z = float(model.pair_zeta[a, b])
-        omega_max = max(omega_max, math.sqrt(k / mr))
-        zeta_min = min(zeta_min, z)
-        crit_r = mat.critical_dt(k, mr, z)
+        contacts.append((k, mr, z))
+        crit_r = law.critical_dt(k, mr, z)
         out.append(PairStability(
             materials=(names[a], names[b]), kind=kind, k=k, zeta=z,
-            restitution=mat.restitution_from_damping(z), friction=float(model.pair_mu[a, b]),
+            restitution=law.restitution(z), friction=float(model.pair_mu[a, b]),
             mass_translational=mt, mass_rotational=mr,
-            contact_time_translational=mat.contact_time(k, mt, z),
-            contact_time_rotational=mat.contact_time(k, mr, z),
-            critical_dt_translational=mat.critical_dt(k, mt, z),
+            contact_time_translational=law.contact_time(k, mt, z),
+            contact_time_rotational=law.contact_time(k, mr, z),
+            critical_dt_translational=law.critical_dt(k, mt, z),
             critical_dt_rotational=crit_r, dt_ratio=dt / crit_r))
+    omega_max, zeta_min, _ = laws.stiffest(contacts, model.contact_law)
     return out, omega_max, zeta_min
 
 
-def critical_step(omega_max: float, zeta_min: float) -> float:
-    """The step materials.check_dt refuses at: 2(√(1+ζ_min²) - ζ_min)/ω_max [s]."""
-    if omega_max <= 0.0:
-        return math.inf
-    return 2.0 * (math.sqrt(1.0 + zeta_min**2) - zeta_min) / omega_max
+def critical_step(omega_max: float, zeta_min: float, law_name: str = laws.DEFAULT) -> float:
+    """The step materials.check_dt refuses at (the law's critical step of the
+    stiffest contact with the least damping) [s]; inf when nothing touches."""
+    return laws.law(law_name).critical_step(omega_max, zeta_min)
 
 
 def sphere_positions(model: Model, state=None) -> np.ndarray:
@@ -438,7 +398,7 @@ def sphere_overlaps(model: Model, state=None) -> np.ndarray:
         return ov
     X = sphere_positions(model, state)
     body = np.asarray(model.sphere_body)
-    dynamic = np.asarray(model.body_inv_mass)[body] > 0.0
+    dynamic = ~model.body_static[body]
     cell = np.floor(X / d).astype(np.int64)
     cell -= cell.min(axis=0)
     span = cell.max(axis=0) + 3                      # room for the -1..+1 neighbours
@@ -586,7 +546,7 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
     factors = shape_rotational_factors(model)
     step = float(model.dt if dt is None else dt)
     pairs, omega_max, zeta_min = pair_stability(model, factors, step)
-    crit = critical_step(omega_max, zeta_min)
+    crit = critical_step(omega_max, zeta_min, model.contact_law)
     ratio = step / crit if math.isfinite(crit) else 0.0
     fastest, closing, impact = expected_speeds(model)
     travel = closing * step / d

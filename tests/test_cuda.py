@@ -193,8 +193,12 @@ def _sim_main() -> dict:
         d = cuda.to_device(a)
         kcu.device_scan(d, sizes, sums)
         scan_ok.append(bool(np.array_equal(d.copy_to_host(), np.cumsum(a))))
-    saved = (kcu.SCAN_B, kcu.SCAN_ITEMS, kcu.SCAN_CHUNK)
-    kcu.SCAN_B, kcu.SCAN_ITEMS, kcu.SCAN_CHUNK = 2, 2, 4
+    # the host side (kernels/cuda.py) and the scan kernels (kernels/cuda_grid.py) both
+    import dempipe.kernels.cuda_grid as kgrid
+    names = ("SCAN_B", "SCAN_ITEMS", "SCAN_CHUNK")
+    saved = [(m, n, getattr(m, n)) for m in (kcu, kgrid) for n in names if hasattr(m, n)]
+    for m, n, _ in saved:
+        setattr(m, n, {"SCAN_B": 2, "SCAN_ITEMS": 2, "SCAN_CHUNK": 4}[n])
     try:
         a = rng.integers(0, 5, 150).astype(np.int64)
         sizes, sums = kcu.scan_buffers(150)
@@ -203,7 +207,8 @@ def _sim_main() -> dict:
         scan_ok.append(bool(np.array_equal(d.copy_to_host(), np.cumsum(a))))
         out["scan_levels_small_chunk"] = len(sizes) - 1
     finally:
-        kcu.SCAN_B, kcu.SCAN_ITEMS, kcu.SCAN_CHUNK = saved
+        for m, n, v in saved:
+            setattr(m, n, v)
     out["scan_ok"] = scan_ok
 
     # memory estimate and its error

@@ -14,7 +14,7 @@ import hashlib
 import os
 import types
 
-from .. import physics
+from .. import laws, physics
 
 #: physics.py functions in dependency order (callees before callers).
 FORMULAS = (
@@ -24,7 +24,7 @@ FORMULAS = (
     "sym_mat_vec",
     "angular_velocity",
     "sphere_kinematics",
-    "damping_coefficient",
+    "static_body",
     "contact_force",
     "sphere_pair_force",
     "sphere_wall_force",
@@ -50,15 +50,17 @@ def compile_chain(module, names, jit, given: dict) -> types.SimpleNamespace:
     return types.SimpleNamespace(**compiled)
 
 
-def compile_walk(jit, cell_coord, cell_key, cell_hash, grid_slots: bool):
+def compile_walk(jit, formulas, cell_coord, cell_key, cell_hash, grid_slots: bool):
     """neighbours.neighbour_list compiled with ``jit``, calling the target's own
-    (already compiled) grid cell functions; ``grid_slots``: the grid holds slots
+    (already compiled) grid cell functions and ``formulas.static_body``;
+    ``grid_slots``: the grid holds slots
     through grid_slot (the CPU's body-ordered slots) rather than being the slots."""
     from . import neighbours
 
     return compile_chain(neighbours, ("neighbour_list",), jit,
                          dict(cell_coord=cell_coord, cell_key=cell_key,
-                              cell_hash=cell_hash, GRID_SLOTS=grid_slots)).neighbour_list
+                              cell_hash=cell_hash, GRID_SLOTS=grid_slots,
+                              static_body=formulas.static_body)).neighbour_list
 
 
 def compile_slot_store(jit):
@@ -79,7 +81,8 @@ def compile_pairing(jit, formulas) -> types.SimpleNamespace:
                                     "pair_slots",
                                     "pair_mirror", "walls_to_front", "wall_column",
                                     "rows_to_pairs", "pairs_to_rows"), jit,
-                         dict(history_recall=formulas.history_recall))
+                         dict(history_recall=formulas.history_recall,
+                              static_body=formulas.static_body))
 
 
 def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNamespace:
@@ -92,19 +95,30 @@ def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNam
 
     given = dict(history_recall=formulas.history_recall, history_store=formulas.history_store,
                  entry_range=pairing.entry_range,
+                 contact_coefficients=formulas.contact_coefficients,
+                 static_body=formulas.static_body,
                  sphere_pair_force=formulas.sphere_pair_force,
                  sphere_wall_force=formulas.sphere_wall_force)
     given.update(constants)
     return compile_chain(contacts, ("pair_forces", "sphere_forces"), jit, given)
 
 
-def compile_formulas(jit) -> types.SimpleNamespace:
-    """Return a namespace of every formula compiled with ``jit`` (a decorator)."""
-    return compile_chain(physics, FORMULAS, jit, {})
+def compile_formulas(jit, law: str = laws.DEFAULT) -> types.SimpleNamespace:
+    """Return a namespace of every formula compiled with ``jit`` (a decorator): the
+    contact law's kernel functions (``laws.law(law).KERNEL``: contact_coefficients,
+    normal_force), then physics.py's, which call them."""
+    lw = laws.law(law)
+    given = vars(compile_chain(lw, lw.KERNEL, jit, {}))
+    return compile_chain(physics, FORMULAS, jit, given)
 
 
-def specialize(functions, jits: dict, constants: dict, tag: str) -> types.SimpleNamespace:
+def specialize(functions, jits: dict, constants: dict, tag: str,
+               module_globals: dict | None = None) -> types.SimpleNamespace:
     """Compile one variant of the plain functions ``functions`` (callees first).
+
+    ``module_globals``: the globals they all run with (default: the first one's
+    module's), so that functions written in other modules (contacts.py) see the
+    driver module's compiled callees and constants.
 
     Each function is re-created with globals in which ``constants`` (e.g.
     ``FRICTION = False``) and the variant's own compiled callees replace the
@@ -122,7 +136,7 @@ def specialize(functions, jits: dict, constants: dict, tag: str) -> types.Simple
     typing and multiplies signatures in one index instead.
     """
     first = next(iter(functions))
-    glb = dict(first.__globals__)
+    glb = dict(first.__globals__ if module_globals is None else module_globals)
     glb.update(constants)
     out: dict[str, object] = {}
     for py in functions:
@@ -144,9 +158,11 @@ def invalidate_stale_cache(module_file: str) -> None:
     module's entries when it differs.
     """
     here = os.path.dirname(os.path.abspath(module_file))
-    sources = [physics.__file__, __file__, module_file,
-               os.path.join(os.path.dirname(__file__), "neighbours.py"),
-               os.path.join(os.path.dirname(__file__), "contacts.py")]
+    # every source a kernel may inline or link: the formulas, the laws, and all of
+    # kernels/ (a driver links the stages it calls, wherever they are written)
+    sources = [physics.__file__,
+               *sorted(glob.glob(os.path.join(os.path.dirname(laws.__file__), "*.py"))),
+               *sorted(glob.glob(os.path.join(os.path.dirname(__file__), "*.py")))]
     digest = hashlib.sha256(b"".join(open(f, "rb").read() for f in sources)).hexdigest()[:16]
     stem = os.path.splitext(os.path.basename(module_file))[0]
     folders = [os.path.join(here, "__pycache__")]

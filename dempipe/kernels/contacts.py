@@ -141,7 +141,7 @@ def entry_range(packed, starts, nbr_n, s):
 
 def owns(s, t, sorted_idx, sorted_body, body_inv_mass):
     """Whether slot s computes its contact with slot t (s has a list: dynamic)."""
-    return body_inv_mass[sorted_body[t]] == 0.0 or sorted_idx[s] < sorted_idx[t]
+    return static_body(body_inv_mass[sorted_body[t]]) or sorted_idx[s] < sorted_idx[t]  # noqa: F821
 
 
 def pair_count(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass):
@@ -355,7 +355,7 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
     for s in range(s0, s1):
         bi = sorted_body[s]
         imi = body_inv_mass[bi]
-        if imi == 0.0:
+        if static_body(imi):  # noqa: F821
             continue
         n_wall_on = -1                      # walls the row remembers (-1: count them)
         h = s if HIST_BY_SLOT else sorted_idx[s]  # noqa: F821 (the target's: compile_contacts)
@@ -388,7 +388,7 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
             bj = sorted_body[t]
             imj = body_inv_mass[bj]
             if SLEEPING and sleep_steps > 0:  # noqa: F821
-                if asleep_i and (imj == 0.0 or body_rest[bj] >= sleep_steps):
+                if asleep_i and (static_body(imj) or body_rest[bj] >= sleep_steps):  # noqa: F821
                     if FRICTION and friction and pair_f[p, 9] != 0.0:  # noqa: F821
                         kept += 1
                     continue                # neither feels it: both keep their state
@@ -404,12 +404,11 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                 # a moving body touches a sleeper (the same value from any thread)
                 if body_rest[bi] == 0 and body_rest[bj] >= sleep_steps:
                     body_wake[bj] = 1
-                if imj != 0.0 and body_rest[bj] == 0 and asleep_i:
+                if not static_body(imj) and body_rest[bj] == 0 and asleep_i:  # noqa: F821
                     body_wake[bi] = 1
             mj = body_material[bj]
-            k = pair_k[mi, mj]
-            root = sqrt(k / (imi + imj))  # noqa: F821
-            eta = 2.0 * pair_zeta[mi, mj] * root
+            k, eta, kt, ks = contact_coefficients(  # noqa: F821 (the law's)
+                pair_k[mi, mj], pair_zeta[mi, mj], imi + imj, kt_ratio, ks_ratio)
             dist = sqrt(dist2)  # noqa: F821
             if FRICTION and friction and pair_f[p, 9] != 0.0:  # noqa: F821 (touching last step)
                 mu = pair_mu[mi, mj]
@@ -437,7 +436,7 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                 rx, ry, rz, dist, diameter,
                 sorted_v[t, 0] - vxi, sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi,
                 wsx, wsy, wsz,
-                k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
+                k, eta, kt, ks, mu, sx, sy, sz, dt)
             if FRICTION and friction:  # noqa: F821
                 pair_f[p, 6] = sx
                 pair_f[p, 7] = sy
@@ -495,9 +494,8 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                             hist_spring[h, col, 2] = 0.0
                     continue
                 mj = wall_material[w]
-                k = pair_k[mi, mj]
-                root = sqrt(k / imi)  # noqa: F821
-                eta = 2.0 * pair_zeta[mi, mj] * root
+                k, eta, kt, ks = contact_coefficients(  # noqa: F821 (the law's; a wall adds
+                    pair_k[mi, mj], pair_zeta[mi, mj], imi, kt_ratio, ks_ratio)  # no 1/m)
                 if FRICTION and friction:  # noqa: F821
                     mu = pair_mu[mi, mj]
                     code = n_spheres + w + 1
@@ -526,7 +524,7 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                     sz = 0.0
                 (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(  # noqa: F821
                     -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
-                    k, eta, kt_ratio * root, ks_ratio * k, mu, sx, sy, sz, dt)
+                    k, eta, kt, ks, mu, sx, sy, sz, dt)
                 if FRICTION and friction:  # noqa: F821
                     if walls == -1:
                         history_store(hist_partner, hist_spring, h, slot, code,  # noqa: F821
@@ -610,8 +608,8 @@ def sphere_forces(s0, s1, diameter, nbr, nbr_n, pidx, list_start, list_e, sorted
     for s in range(s0, s1):
         i = sorted_idx[s]
         bi = sorted_body[s]
-        if body_inv_mass[bi] == 0.0 or (SLEEPING and sleep_steps > 0  # noqa: F821
-                                         and body_rest[bi] >= sleep_steps):
+        if static_body(body_inv_mass[bi]) or (SLEEPING and sleep_steps > 0  # noqa: F821
+                                              and body_rest[bi] >= sleep_steps):
             # static, or asleep: feels nothing (but is found by its moving neighbours)
             sphere_f[i, 0] = 0.0
             sphere_f[i, 1] = 0.0

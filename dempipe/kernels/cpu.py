@@ -24,6 +24,9 @@ from ..state import CONTACT_SLOTS
 # UNPAIRED: read by contacts.sphere_forces, which is compiled with this module's globals
 from .contacts import (CONTACT_CHUNK, LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE,  # noqa: F401
                        UNPAIRED, WALL_SLACK)
+from .layout import (BUCKETS_PER_SPHERE, CPU_LAYOUT, FLAGS, GENERAL,  # noqa: F401
+                     chunk_spans, cpu_scratch, fit_grid, grid_table, kernel_flags,
+                     scene_features, static_extent)
 from .neighbours import NEIGHBOURS, SKIN, SKIN_MAX, SKIN_SHRINK_ABOVE, cell_size
 
 invalidate_stale_cache(__file__)
@@ -38,6 +41,8 @@ body_step = F.body_step
 history_recall = F.history_recall
 history_store = F.history_store
 rest_steps = F.rest_steps
+contact_coefficients = F.contact_coefficients
+static_body = F.static_body
 sqrt = np.sqrt
 P = compile_pairing(numba.njit(inline="always", cache=False), F)
 entry_range = P.entry_range
@@ -48,14 +53,11 @@ pair_slots = P.pair_slots
 pair_mirror = P.pair_mirror
 rows_to_pairs = P.rows_to_pairs
 pairs_to_rows = P.pairs_to_rows
-#: contacts.py: the history rows are in sorted-slot order within a call.
-HIST_BY_SLOT = True
-#: contacts.py: the first pass walks each slot's packed rows (pair_start, pair_t).
-PAIR_ROWS = True
-#: contacts.py: while stepping, the walls' stretches live in packed rows (wall_s).
-WALL_ROWS = True
-#: contacts.py: the second pass walks each slot's packed list entries (list_e).
-LIST_ROWS = True
+# contacts.py's data layout on this target (layout.CPU_LAYOUT says what each means)
+HIST_BY_SLOT = CPU_LAYOUT["HIST_BY_SLOT"]
+PAIR_ROWS = CPU_LAYOUT["PAIR_ROWS"]
+WALL_ROWS = CPU_LAYOUT["WALL_ROWS"]
+LIST_ROWS = CPU_LAYOUT["LIST_ROWS"]
 # Cell coordinates are packed into one int64 key, 21 bits per axis, so the world
 # spans ±2^20 cells per axis (cells of (1 + SKIN) d: ±12 km at 1 cm spheres,
 # ±1.2 km at 1 mm; stability.FAR_CELLS counts in diameters, conservatively). Beyond that
@@ -120,7 +122,7 @@ def morton_key(cx, cy, cz):
 slot_store = compile_slot_store(numba.njit(inline="always", cache=False))
 adapt_skin = compile_chain(neighbours, ("adapt_skin",), numba.njit(inline="always", cache=False),
                            {}).adapt_skin
-neighbour_list = compile_walk(numba.njit(inline="always", cache=False), cell_coord, cell_key,
+neighbour_list = compile_walk(numba.njit(inline="always", cache=False), F, cell_coord, cell_key,
                               cell_hash, True)
 
 
@@ -142,48 +144,12 @@ neighbour_list = compile_walk(numba.njit(inline="always", cache=False), cell_coo
 # runs it, and the variants without friction never read or write sphere_t.
 # ---------------------------------------------------------------------------
 
-#: Feature flags the stage drivers are compiled for, in ``kernels()``'s order.
-FLAGS = ("friction", "rotation", "sleeping", "walls")
+# Feature flags the stage drivers are compiled for: layout.FLAGS, in ``kernels()``'s order.
 FRICTION = True
 ROTATION = True
 SLEEPING = True
 WALLS = True
 
-#: The general kernel: every feature compiled in.
-GENERAL = (True, True, True, True)
-
-
-#: Most buckets per sphere the grid may use: 8 × 8 bytes = 64 bytes per sphere.
-BUCKETS_PER_SPHERE = 8
-
-
-def grid_table(n_spheres: int, extent_cells=None) -> np.ndarray:
-    """Table layout (bx, by, mask_x, mask_y, mask_z, n_buckets) for the grid.
-
-    The budget is 2^k >= BUCKETS_PER_SPHERE × spheres buckets, so memory follows
-    the spheres whatever the scene's size. Within it, each axis gets the bits
-    that cover the occupied extent (``extent_cells``, cells per axis): a compact
-    pile then gets a dense grid and no two occupied cells share a bucket. When the
-    extent needs more bits than the budget, the widest axes give bits up and far
-    cells alias (still correct, only slower).
-    """
-    # At least 2 bits (4 buckets) per axis: with 1, a row's cells cx-1 and cx+1
-    # share a bucket and its spheres would be visited twice (contact counted twice).
-    k = 6
-    while (1 << k) < BUCKETS_PER_SPHERE * max(n_spheres, 1):
-        k += 1
-    if extent_cells is None:
-        bx = (k + 2) // 3
-        by = (k - bx + 1) // 2
-        bits = [bx, by, k - bx - by]
-    else:
-        bits = [max(2, int(np.ceil(np.log2(max(e, 1.0) + 3.0)))) for e in extent_cells]
-        while sum(bits) > k:
-            i = int(np.argmax(bits))
-            bits[i] -= 1
-    bx, by, bz = bits
-    return np.array([bx, by, (1 << bx) - 1, (1 << by) - 1, (1 << bz) - 1, 1 << (bx + by + bz)],
-                    dtype=np.int64)
 
 
 def stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
@@ -507,13 +473,6 @@ def stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
         pairs_to_rows(s, s, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f)
 
 
-def chunk_spans(n_slots: int) -> np.ndarray:
-    """(n_chunks, 2) int64: the first and one past the last slot of each chunk of
-    CONTACT_CHUNK sorted slots (the contact passes' work when every slot has some)."""
-    lo = np.arange(0, max(n_slots, 1), CONTACT_CHUNK, dtype=np.int64)
-    return np.stack([lo, np.minimum(lo + CONTACT_CHUNK, n_slots)], axis=1)
-
-
 #: A sleeping pile's contact passes run over only the chunks with work left in
 #: them (stage_active) once at least this share of the bodies is quiet; below it
 #: finding the chunks would cost about what it saves.
@@ -533,7 +492,7 @@ def body_quiet(b, body_inv_mass, body_rest, body_still, sleep_steps):
     """Whether body b will do nothing in the contact passes of the next step: a
     static collider, or a body asleep that also slept through the step just done
     (body_still), so that its pass-1 and pass-2 results are those already stored."""
-    return body_inv_mass[b] == 0.0 or (body_rest[b] >= sleep_steps and body_still[b] != 0)
+    return static_body(body_inv_mass[b]) or (body_rest[b] >= sleep_steps and body_still[b] != 0)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -559,7 +518,7 @@ def stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still, 
         hi = -1
         for s in range(chunks[c, 0], chunks[c, 1]):
             bi = sorted_body[s]
-            if body_inv_mass[bi] == 0.0:
+            if static_body(body_inv_mass[bi]):
                 continue
             visit = not body_quiet(bi, body_inv_mass, body_rest, body_still, sleep_steps)
             e = 0
@@ -979,293 +938,9 @@ def kernels(flags) -> "types.SimpleNamespace":
     if flags not in _VARIANTS:
         tag = "".join(f"{n[0].upper()}{int(f)}" for n, f in zip(FLAGS, flags))
         _VARIANTS[flags] = specialize(
-            _STAGES, _JITS, {n.upper(): f for n, f in zip(FLAGS, flags)}, tag)
+            _STAGES, _JITS, {n.upper(): f for n, f in zip(FLAGS, flags)}, tag, globals())
     return _VARIANTS[flags]
 
 
-def scene_features(model, features=None):
-    """The Features to run ``model`` with: ``features`` (default the model's).
-
-    An override may switch features on (to run a scene through a kernel that
-    carries code it does not need, as tests and benchmarks do), never off.
-    One-sphere bodies whose sphere is off their centre of mass turn under
-    contact forces, so they need rotation whatever the features say.
-    """
-    from dataclasses import fields, replace
-
-    mf = model.features
-    if features is None:
-        features = mf
-    for f in fields(mf):
-        if getattr(mf, f.name) and not getattr(features, f.name):
-            raise ValueError(f"features.{f.name}: the scene uses it; an override may only "
-                             f"switch features on")
-    if not features.rotation and np.any(model.sphere_offset != 0.0):
-        features = replace(features, rotation=True)
-    return features
-
-
-def kernel_flags(features) -> tuple:
-    """Flags (see FLAGS) of the specialized kernel for ``features``."""
-    return (bool(features.friction), bool(features.rotation), bool(features.sleeping),
-            bool(features.walls))
-
-
-class CpuBackend:
-    """Owns the scratch arrays of one Model and advances States with ``run_steps``.
-
-    features : run as if the scene used these (default: the model's; see
-      scene_features). specialize : compile out the features not used (default);
-      False runs the general kernel, every feature compiled in.
-    """
-
-    name = "cpu"
-
-    def __init__(self, model, features=None, specialize: bool = True):
-        self.model = model
-        #: Steps skipped because every body slept (counted as done, not computed).
-        self.steps_skipped = 0
-        self.features = scene_features(model, features)
-        self.flags = kernel_flags(self.features) if specialize else GENERAL
-        self.k = kernels(self.flags)
-        nb = model.body_mass.shape[0]
-        ns = model.n_spheres
-        self.grid = grid_table(ns)
-        table = int(grid_table(ns)[5])           # the budget: the most a grid may use
-        self.body_v = np.zeros((nb, 3))
-        self.body_w = np.zeros((nb, 3))
-        self.sphere_x = np.zeros((ns, 3))
-        self.sphere_v = np.zeros((ns, 3))
-        self.sphere_r = np.zeros((ns, 3))
-        self.sphere_key = np.zeros(ns, dtype=np.int64)
-        self.sphere_hash = np.zeros(ns, dtype=np.int64)
-        self.bucket_start = np.zeros(table + 1, dtype=np.int64)
-        self.bucket_fill = np.zeros(table, dtype=np.int64)
-        self.body_key = np.zeros(nb, dtype=np.int64)     # each body's bucket (the slots' order)
-        # the grid (stage_grid_sort): each position's sphere, slot, position, cell, body
-        self.grid_idx = np.zeros(ns, dtype=np.int32)
-        self.grid_slot = np.zeros(ns, dtype=np.int32)
-        self.grid_x = np.zeros((ns, 3))
-        self.grid_key = np.zeros(ns, dtype=np.int64)
-        self.grid_body = np.zeros(ns, dtype=np.int32)
-        self.sorted_idx = np.zeros(ns, dtype=np.int32)
-        self.slot_of = np.zeros(ns, dtype=np.int32)
-        # the lists' skin [d] (neighbours.adapt_skin), steps since the last rebuild, the
-        # largest skin allowed (SKIN: a fixed skin), rebuilds so far
-        self.skin_ctl = np.array([SKIN, 0.0, SKIN_MAX, 0.0])
-        self.sorted_x = np.zeros((ns, 3))
-        self.sorted_v = np.zeros((ns, 3))
-        self.sorted_body = np.zeros(ns, dtype=np.int32)
-        self.built_x = np.zeros((ns, 3))
-        self.nbr = np.zeros((ns, NEIGHBOURS), dtype=np.int32)
-        self.nbr_n = np.zeros(ns, dtype=np.int32)
-        # each contact computed once (contacts.py): pair indices, rows of pair forces
-        self.pidx = np.zeros((ns, NEIGHBOURS), dtype=np.int32)
-        self.pair_start = np.zeros(ns + 1, dtype=np.int64)
-        self.pair_f = np.zeros((max(PAIRS_PER_SPHERE * ns, 1), PAIR_COLS))
-        self.pair_t = np.zeros(self.pair_f.shape[0], dtype=np.int32)   # each row's partner
-        # the lists packed for the second pass (contacts.py LIST_ROWS): (partner, pair index)
-        self.list_start = np.zeros(ns + 1, dtype=np.int64)
-        self.list_e = np.zeros((max(LIST_PER_SPHERE * ns, 1), 2), dtype=np.int32)
-        self.wall_mask = np.zeros(ns, dtype=np.int64)    # walls within reach (contacts.py)
-        # with friction, the walls' stretches while stepping (contacts.py WALL_ROWS):
-        # an eighth of the spheres to start with (a pile in a box: 15 % touch a wall;
-        # grown when a rebuild finds more)
-        self.wall_start = np.zeros(ns + 1, dtype=np.int64)
-        self.wall_s = np.zeros((max(ns // 8, 1) if self.features.friction else 1, 4))
-        self.wall_f = np.zeros((ns, 7))                  # each slot's walls: force, torque, overlap
-        self.sphere_f = np.zeros((ns, 3))
-        self.sphere_t = np.zeros((ns, 3))
-        self.sphere_overlap = np.zeros(ns)
-        self.body_wake = np.zeros(nb, dtype=np.int32)
-        # static mesh colliders never move: stage 1 keeps their spheres from the rebuild
-        self.body_still = np.zeros(nb, dtype=np.int32)
-        self.body_still[model.n_bodies:] = 1
-        # the contact passes' work: every chunk of slots, or a sleeping pile's (stage_active)
-        self.chunks = chunk_spans(ns)
-        self.spans = np.zeros_like(self.chunks)
-        #: Steps whose contact passes ran over the spans alone, and the spans' searches.
-        self.span_ctl = np.zeros(2, dtype=np.int64)
-        #: Share of quiet bodies from which the contact passes skip the quiet chunks
-        #: (stage_active); above 1, never (the same State: benchmarks/sleeping_pile.py).
-        self.quiet_share = QUIET_SHARE
-        self._no_partner = np.zeros((1, 1), dtype=np.int32)
-        self._no_spring = np.zeros((1, 1, 3))
-        if self.features.friction:   # the histories in sorted-slot order, within a call
-            self.hist_partner = np.zeros((ns, CONTACT_SLOTS), dtype=np.int32)
-            self.hist_spring = np.zeros((ns, CONTACT_SLOTS, 3))
-        else:
-            self.hist_partner, self.hist_spring = self._no_partner, self._no_spring
-        if model.n_static:
-            first = model.body_sphere_start[model.n_bodies]
-            pts = model.sphere_offset[first:] + model.initial_x[model.sphere_body[first:]]
-            self.static_lo = pts.min(axis=0) - model.diameter
-            self.static_hi = pts.max(axis=0) + model.diameter
-
-    def fit_grid(self, state) -> None:
-        """Fit the grid's bits to where the bodies are now (once per call of step).
-
-        The extent is the bodies' bounding box grown by their radii (and the static
-        spheres' box), plus two cells; bodies that leave it during the call still
-        collide correctly, only through aliased buckets.
-        """
-        m = self.model
-        nb = m.body_mass.shape[0]
-        if nb == 0:
-            return
-        x = state.body_x
-        r = np.concatenate([m.body_radius, np.zeros(nb - m.n_bodies)]) if m.n_static else \
-            m.body_radius
-        if m.n_static:   # static meshes: their spheres' own extent
-            lo_s = self.static_lo
-            hi_s = self.static_hi
-        lo = (x[: m.n_bodies] - r[: m.n_bodies, None]).min(axis=0) if m.n_bodies else None
-        hi = (x[: m.n_bodies] + r[: m.n_bodies, None]).max(axis=0) if m.n_bodies else None
-        if m.n_static:
-            lo = lo_s if lo is None else np.minimum(lo, lo_s)
-            hi = hi_s if hi is None else np.maximum(hi, hi_s)
-        self.grid = grid_table(m.n_spheres, (hi - lo) / cell_size(m.diameter) + 2.0)
-
-    def step(self, state, n_steps: int) -> None:
-        """Advance ``state`` in place by ``n_steps`` steps (and its step count and time)."""
-        m = self.model
-        self.fit_grid(state)
-        partner, spring = self.contacts(state)
-        left = int(n_steps)
-        while left > 0:
-            done, computed = self.k.run_steps(
-                left, int(state.step), m.dt, m.diameter, m.n_bodies, m.gravity, self.grid,
-                m.sphere_body, m.sphere_offset, m.body_sphere_start, m.body_mass,
-                m.body_inv_mass, m.body_inv_inertia, m.body_material, m.pair_k, m.pair_zeta,
-                m.pair_mu, m.kt_ratio, m.ks_ratio, self.features.friction, partner, spring,
-                self.hist_partner, self.hist_spring, m.sleep_steps, m.sleep_linear, m.sleep_angular, self.rest(state),
-                self.body_wake, self.body_still, m.wall_normal, m.wall_offset, m.wall_lo,
-                m.wall_hi,
-                m.wall_depth, m.wall_material, state.body_x, state.body_q, state.body_P,
-                state.body_L, self.body_v, self.body_w, self.sphere_x, self.sphere_v,
-                self.sphere_r, self.sphere_key, self.sphere_hash, self.bucket_start,
-                self.bucket_fill, self.body_key, self.grid_slot, self.sorted_idx, self.slot_of,
-                self.sorted_x, self.sorted_v, self.sorted_body, self.grid_idx, self.grid_x,
-                self.grid_key, self.grid_body, self.built_x, self.nbr, self.nbr_n,
-                self._pidx(), self.pair_start, self.pair_t, self.pair_f, self.list_start,
-                self.list_e, self.wall_mask, self.wall_start, self.wall_s,
-                self.wall_f, self.sphere_f, self.sphere_t, self.sphere_overlap, self.skin_ctl,
-                self.chunks, self.spans, self.span_ctl, float(self.quiet_share))
-            state.step += int(done)
-            state.time = state.step * m.dt
-            left -= int(done)
-            self.steps_skipped += int(done) - int(computed)
-            if left > 0:
-                self.grow_neighbours()
-
-    def grow_neighbours(self) -> None:
-        """Room for the longest neighbour list the last rebuild found (nbr_n), doubled
-        at least: a pile that grows denser rarely needs a second growth; or, when
-        the lists fitted, for the pairs it found (pair_start[-1]), 1.5 times."""
-        cap = self.nbr.shape[1]
-        need = int(self.nbr_n.max())
-        if need > cap:
-            while cap < need:
-                cap *= 2
-            self.nbr = np.zeros((self.model.n_spheres, cap), dtype=np.int32)
-            return
-        entries = int(self.list_start[-1])
-        if entries > self.list_e.shape[0]:
-            self.list_e = np.zeros((entries + entries // 2, 2), dtype=np.int32)
-        walls = int(self.wall_start[-1])
-        if walls > self.wall_s.shape[0]:
-            self.wall_s = np.zeros((walls + walls // 2, 4))
-        pairs = int(self.pair_start[-1])
-        if pairs > self.pair_f.shape[0]:
-            self.pair_f = np.zeros((pairs + pairs // 2, PAIR_COLS))
-            self.pair_t = np.zeros(self.pair_f.shape[0], dtype=np.int32)
-
-    def _pidx(self):
-        """The pair indices, shaped as the lists (which grow, or a test replaces)."""
-        if self.pidx.shape != self.nbr.shape:
-            self.pidx = np.zeros(self.nbr.shape, dtype=np.int32)
-        return self.pidx
-
-    def rest(self, state):
-        """The State's rest counts (sleeping), allocated on first use."""
-        state.ensure_rest(self.model.body_mass.shape[0])
-        return state.body_rest
-
-    def contacts(self, state):
-        """The State's contact histories, allocated on first use when friction is on
-        (a 1-slot dummy otherwise: frictionless kernels never touch them)."""
-        if not self.features.friction:
-            return self._no_partner, self._no_spring
-        state.ensure_contacts(self.model.n_spheres)
-        return state.contact_partner, state.contact_spring
-
-    def probe(self, state) -> None:
-        """Stages 1-4 without moving anything: fills sphere_f, sphere_overlap.
-
-        Reads the contact histories but does not change the State's."""
-        m = self.model
-        self.fit_grid(state)
-        self.k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
-                                     m.body_inv_mass, m.body_inv_inertia, self.body_v,
-                                     self.body_w)
-        self.k.stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q,
-                             self.body_v, self.body_w, 1.0 / cell_size(m.diameter), self.grid,
-                             self.sphere_x, self.sphere_v, self.sphere_r, self.sphere_key,
-                             self.sphere_hash)
-        stage_grid_sort(self.sphere_hash, state.body_x, 1.0 / cell_size(m.diameter), self.grid,
-                        m.body_sphere_start, self.bucket_start, self.bucket_fill, self.body_key,
-                        self.sorted_idx, self.slot_of, self.grid_idx, self.grid_slot)
-        stage_grid_gather(self.sorted_idx, self.grid_idx, self.sphere_x, self.sphere_v,
-                          self.sphere_key, m.sphere_body, self.sorted_x, self.sorted_v,
-                          self.sorted_body, self.grid_x, self.grid_key, self.grid_body)
-        while (stage_neighbours(m.diameter, SKIN, self.grid, self.bucket_start, self.grid_idx,
-                                self.grid_x, self.grid_key, self.grid_body, self.grid_slot,
-                                self.sorted_idx, self.sorted_x, self.sorted_body,
-                                m.body_inv_mass, self.built_x, self.nbr, self.nbr_n) > 0
-               or stage_pairs(self.nbr, self.nbr_n, self.sorted_idx, self.sorted_body,
-                              m.body_inv_mass, self.pair_start, self._pidx(), self.pair_t,
-                              self.pair_f.shape[0], self.list_start, self.list_e) > 0
-               or stage_wall_reach(m.diameter, SKIN, self.sorted_x, m.wall_normal,
-                                   m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth,
-                                   self.wall_mask, self.wall_start,
-                                   self.hist_partner.shape[1] if self.features.friction else 0,
-                                   self.wall_s.shape[0]) > 0):
-            self.grow_neighbours()
-        self.sphere_overlap[:] = 0.0
-        partner, spring = self.contacts(state)
-        # copies in sorted-slot order, as the contact stage reads them
-        slots = self.sorted_idx if self.features.friction else np.zeros(1, dtype=np.int32)
-        partner, spring = partner[slots], spring[slots]
-        if self.features.friction:
-            stage_rows_to_pairs(self.nbr, self.nbr_n, self.pidx, self.sorted_idx,
-                                self.sorted_body, m.body_inv_mass, self.wall_mask, partner,
-                                spring, self.pair_f, self.wall_start, self.wall_s)
-        self.k.stage_contacts(m.diameter, self.nbr, self.nbr_n, self.pidx, self.pair_start,
-                              self.pair_t, self.sorted_idx, self.sorted_x,
-                              self.sorted_v, self.sorted_body, self.body_w, m.body_inv_mass,
-                              m.body_material, m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio,
-                              m.ks_ratio, self.features.friction, m.dt, state.step & 1,
-                              partner, spring, m.sleep_steps, self.rest(state),
-                              self.body_wake.copy(), m.wall_normal, m.wall_offset, m.wall_lo,
-                              m.wall_hi, m.wall_depth, m.wall_material, self.wall_mask,
-                              self.pair_f, self.wall_f, self.wall_start, self.wall_s,
-                              self.chunks, self.chunks.shape[0])
-        self.k.stage_sums(m.diameter, self.nbr, self.nbr_n, self.pidx, self.list_start,
-                          self.list_e, self.sorted_idx,
-                          self.sorted_x, self.sorted_body, m.body_inv_mass, m.sleep_steps,
-                          self.rest(state), self.wall_mask, self.pair_f, self.wall_f,
-                          self.sphere_f, self.sphere_t, self.sphere_overlap, self.chunks,
-                          self.chunks.shape[0])
-
-    def velocities(self, state):
-        """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""
-        m = self.model
-        self.k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
-                              m.body_inv_mass, m.body_inv_inertia, self.body_v, self.body_w)
-        return self.body_v[: m.n_bodies].copy(), self.body_w[: m.n_bodies].copy()
-
-    def take_max_overlap(self) -> float:
-        """Largest overlap since the last call [m], then reset."""
-        v = float(self.sphere_overlap.max()) if self.sphere_overlap.size else 0.0
-        self.sphere_overlap[:] = 0.0
-        return v
+# The backend (host side) lives beside: kernels/cpu_backend.py.
+from .cpu_backend import CpuBackend  # noqa: E402,F401  (the name callers import from here)

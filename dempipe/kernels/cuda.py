@@ -1,11 +1,14 @@
-"""CUDA target: the paper's eight stages as numba.cuda kernels.
+"""CUDA target: the paper's eight stages as numba.cuda kernels, and their backend.
 
 Imported only when the CUDA device is used (``simulator.make_backend``); it
 imports nothing from ``kernels/cpu.py`` (that would compile the CPU kernels),
 only the shared constants of ``kernels/neighbours.py``. The formulas come from
-physics.py, compiled as device functions; every kernel mirrors its CPU stage
-line for line, with the loop header ``cuda.grid(1)`` instead of ``prange``.
-See docs/cuda.md.
+physics.py, compiled as device functions (cuda_device.py); the kernels live by
+stage (cuda_grid.py: stages 1-3; cuda_contacts.py: stage 4; cuda_bodies.py:
+stages 5-8 and sleep), each mirroring its CPU stage, with the loop header
+``cuda.grid(1)`` instead of ``prange``. This module holds the host side: the
+specialized variants (``kernels``), the layout and memory checks, and
+``CudaBackend``. See docs/cuda.md.
 
 Neighbour lists (kernels/neighbours.py): the grid, the sort and the 27-cell
 search run only at a rebuild, as on the CPU; a small device control array
@@ -30,661 +33,76 @@ host State is updated once per ``step`` call (once per output frame).
 
 from __future__ import annotations
 
-import inspect
 import math
+import types
 
 import numpy as np
-from numba import cuda, int64
-from numba.core import config
+from numba import cuda
 
 from ..errors import DeviceError
 from ..state import CONTACT_SLOTS
-from .compile import (compile_contacts, compile_formulas, compile_pairing, compile_slot_store,
-                      compile_walk)
+from .compile import compile_contacts
 from .contacts import PAIR_COLS, WALL_SLACK
+from .layout import (BUCKETS_PER_SPHERE, CUDA_LAYOUT, FLAGS, GENERAL, fit_grid,  # noqa: F401
+                     grid_table, kernel_flags, scene_features, static_extent)
 from .neighbours import NEIGHBOURS, SKIN, cell_size
-
-
-def _device_jit():
-    """Device-function decorator that inlines: numba-cuda's ``forceinline``
-    (NVVM ``alwaysinline``), or the built-in target's ``inline``."""
-    try:
-        params = inspect.signature(cuda.jit).parameters
-    except (TypeError, ValueError):
-        params = {}
-    if "forceinline" in params:
-        return cuda.jit(device=True, forceinline=True)
-    return cuda.jit(device=True, inline=True)
-
-
-F = compile_formulas(_device_jit())
-angular_velocity = F.angular_velocity
-sphere_kinematics = F.sphere_kinematics
-sphere_pair_force = F.sphere_pair_force
-sphere_wall_force = F.sphere_wall_force
-body_step = F.body_step
-history_recall = F.history_recall
-history_store = F.history_store
-rest_steps = F.rest_steps
-
-SIMULATOR = bool(config.ENABLE_CUDASIM)
-#: Threads per block. The simulator runs each CUDA thread as a Python thread,
-#: so it gets small blocks; the algorithm does not depend on the block size.
-THREADS = 32 if SIMULATOR else 256
-CONTACT_THREADS = 32 if SIMULATOR else 128      # register-heavy: smaller blocks
-SCAN_B = 8 if SIMULATOR else 256                # threads per block of the prefix sum
-SCAN_ITEMS = 32 if SIMULATOR else 8            # elements per thread of the prefix sum
-SCAN_CHUNK = SCAN_B * SCAN_ITEMS                # elements per block of the prefix sum
-#: Kernels over the bucket table loop with a grid stride over at most this many blocks.
-TABLE_BLOCKS = 1 if SIMULATOR else 4096
-
-# Same packing as kernels/cpu.py: 21 bits per axis.
-_CELL_BITS = 21
-_CELL_OFF = 1 << (_CELL_BITS - 1)
-_CELL_MAX = (1 << _CELL_BITS) - 1
-_INT64_LIMIT = 9.2e18
-
-# The control array ``ctl`` (int32, CTL_SIZE words on the device): how the steps
-# of one ``step`` call decide, on the device, whether to rebuild the neighbour
-# lists, and what the host reads back once at the end of the call.
-#: 1: rebuild at this step (set for the first step of a call by k_begin_call).
-CTL_FORCE = 0
-#: Spheres that moved SKIN/2 d or more since the last build (k_spheres_sorted).
-CTL_MOVED = 1
-#: Lists that did not fit into nbr in this call (k_neighbours): 0 = all fitted.
-CTL_OVER = 2
-#: Longest list found by an overflowing build in this call (integer atomic max).
-CTL_MAXN = 3
-#: Rebuilds done in this call (counted by k_bodies' thread 0 as it closes a step).
-CTL_REBUILDS = 4
-#: Steps done in this call (k_bodies' thread 0; not counted once CTL_OVER is set:
-#: from the overflowing step on, nothing of the State changes).
-CTL_DONE = 5
-#: Bodies awake after the last body stage (k_bodies, integer atomic adds; reset by
-#: k_idle_check at the start of each step, 1 after k_begin_call).
-CTL_AWAKE = 6
-#: 1: every body sleeps, so the rest of the call's steps are no-ops (set by
-#: k_idle_check; the CPU target skips them the same way). Counted in CTL_IDLE_STEPS.
-CTL_IDLE = 7
-CTL_IDLE_STEPS = 8
-CTL_SIZE = 10
-
-
-#: Most buckets per sphere the grid may use (as kernels/cpu.py).
-BUCKETS_PER_SPHERE = 8
-
-
-def grid_table(n_spheres: int, extent_cells=None) -> np.ndarray:
-    """Table layout (bx, by, mask_x, mask_y, mask_z, n_buckets) for the grid.
-
-    The same function as ``kernels.cpu.grid_table`` (repeated so that this
-    module does not import the CPU kernels; tests/test_cuda.py checks the two
-    agree). The budget is 2^k >= BUCKETS_PER_SPHERE × spheres buckets; within
-    it each axis gets the bits that cover the occupied extent (cells per axis).
-    """
-    # At least 2 bits (4 buckets) per axis: with 1, a row's cells cx-1 and cx+1
-    # share a bucket and its spheres would be visited twice (contact counted twice).
-    k = 6
-    while (1 << k) < BUCKETS_PER_SPHERE * max(n_spheres, 1):
-        k += 1
-    if extent_cells is None:
-        bx = (k + 2) // 3
-        by = (k - bx + 1) // 2
-        bits = [bx, by, k - bx - by]
-    else:
-        bits = [max(2, int(np.ceil(np.log2(max(e, 1.0) + 3.0)))) for e in extent_cells]
-        while sum(bits) > k:
-            i = int(np.argmax(bits))
-            bits[i] -= 1
-    bx, by, bz = bits
-    return np.array([bx, by, (1 << bx) - 1, (1 << by) - 1, (1 << bz) - 1, 1 << (bx + by + bz)],
-                    dtype=np.int64)
-
-
-def static_extent(model):
-    """(lo, hi) of the static pseudo-bodies' spheres grown by a diameter, or None."""
-    if not model.n_static:
-        return None
-    first = model.body_sphere_start[model.n_bodies]
-    pts = model.sphere_offset[first:] + model.initial_x[model.sphere_body[first:]]
-    return pts.min(axis=0) - model.diameter, pts.max(axis=0) + model.diameter
-
-
-def fit_grid(model, body_x, static_box) -> np.ndarray:
-    """The grid fitted to where the bodies are (``CpuBackend.fit_grid``, same arithmetic)."""
-    m = model
-    nb = m.body_mass.shape[0]
-    if nb == 0:
-        return grid_table(m.n_spheres)
-    r = m.body_radius
-    lo = (body_x[: m.n_bodies] - r[: m.n_bodies, None]).min(axis=0) if m.n_bodies else None
-    hi = (body_x[: m.n_bodies] + r[: m.n_bodies, None]).max(axis=0) if m.n_bodies else None
-    if static_box is not None:
-        lo = static_box[0] if lo is None else np.minimum(lo, static_box[0])
-        hi = static_box[1] if hi is None else np.maximum(hi, static_box[1])
-    return grid_table(m.n_spheres, (hi - lo) / cell_size(m.diameter) + 2.0)
-
-
-@cuda.jit(device=True)
-def cell_coord(x, inv_cell):
-    # int64(floor(v)) + offset, clamped, as on the CPU. NaN and |v| >= 2^63 give
-    # cell 1 there (x86 float->int conversion yields INT64_MIN); do the same
-    # without ever converting them (the simulator's math.floor(nan) raises).
-    # Clamped to [1, _CELL_MAX - 1] as on the CPU (see kernels/cpu.py).
-    v = x * inv_cell
-    if v >= -_CELL_OFF and v < _CELL_OFF:
-        c = int64(math.floor(v)) + _CELL_OFF
-        if c < 1:
-            return int64(1)
-        if c > _CELL_MAX - 1:
-            return int64(_CELL_MAX - 1)
-        return c
-    if v >= _CELL_OFF and v < _INT64_LIMIT:
-        return int64(_CELL_MAX - 1)
-    return int64(1)
-
-
-@cuda.jit(device=True)
-def cell_key(cx, cy, cz):
-    return (cx << 42) | (cy << 21) | cz
-
-
-@cuda.jit(device=True)
-def cell_hash(cx, cy, cz, grid):
-    """Bucket of a cell in the wrapped 2^bx × 2^by × 2^bz table (see kernels/cpu.py)."""
-    return ((cz & grid[4]) << (grid[0] + grid[1])) | ((cy & grid[3]) << grid[0]) | (cx & grid[2])
-
-
-neighbour_list = compile_walk(_device_jit(), cell_coord, cell_key, cell_hash, False)
-slot_store = compile_slot_store(_device_jit())
-P = compile_pairing(_device_jit(), F)
-wall_reach = P.wall_reach
-pair_slots = P.pair_slots
-pair_mirror = P.pair_mirror
-rows_to_pairs = P.rows_to_pairs
-pairs_to_rows = P.pairs_to_rows
-# The general kernel: every feature compiled in, each checked at run time (friction,
-# sleep_steps > 0, the wall masks); the histories in sphere order.
-C = compile_contacts(_device_jit(), F, P,
-                     dict(FRICTION=True, ROTATION=True, SLEEPING=True, WALLS=True,
-                          HIST_BY_SLOT=False, PAIR_ROWS=False, WALL_ROWS=False,
-                          LIST_ROWS=False, sqrt=math.sqrt))
-pair_forces = C.pair_forces
-sphere_forces = C.sphere_forces
-
-
-@cuda.jit(device=True)
-def rebuilding(ctl):
-    """Whether this step rebuilds the neighbour lists: the first step of a call
-    (CTL_FORCE), or some sphere moved SKIN/2 d since the last build (CTL_MOVED).
-    Read by every rebuild kernel; written only by k_begin_call,
-    k_spheres_sorted (before any of them runs) and k_bodies (after)."""
-    return ctl[CTL_FORCE] != 0 or ctl[CTL_MOVED] != 0
-
-
-# ---------------------------------------------------------------------------
-# Stage kernels (mirrors of kernels/cpu.py)
-# ---------------------------------------------------------------------------
-
-@cuda.jit
-def k_begin_call(ctl):
-    """Once per ``step`` call (and per probe): rebuild at the first step, and no
-    spheres moved, no overflow, no rebuilds yet."""
-    if cuda.grid(1) == 0:
-        for j in range(ctl.shape[0]):
-            ctl[j] = 0
-        ctl[CTL_FORCE] = 1
-        ctl[CTL_AWAKE] = 1
-
-
-@cuda.jit
-def k_idle_check(ctl, sleep_steps):
-    """First launch of a step (one thread): with sleeping on and no body awake after
-    the last step's body stage, nothing can move any more, so this and the call's
-    remaining steps are no-ops (CTL_IDLE); then reset the awake count for this step."""
-    if cuda.grid(1) == 0:
-        if sleep_steps > 0 and ctl[CTL_AWAKE] == 0:
-            ctl[CTL_IDLE] = 1
-        ctl[CTL_AWAKE] = 0
-
-
-@cuda.jit
-def k_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
-                      body_v, body_w):
-    """V = P/M and W = I(t)⁻¹ L (eq. 5-6) for each dynamic body."""
-    b = cuda.grid(1)
-    if b >= n_bodies:
-        return
-    im = body_inv_mass[b]
-    body_v[b, 0] = body_P[b, 0] * im
-    body_v[b, 1] = body_P[b, 1] * im
-    body_v[b, 2] = body_P[b, 2] * im
-    wx, wy, wz = angular_velocity(
-        body_q[b, 0], body_q[b, 1], body_q[b, 2], body_q[b, 3],
-        body_inv_inertia[b, 0], body_inv_inertia[b, 1], body_inv_inertia[b, 2],
-        body_inv_inertia[b, 3], body_inv_inertia[b, 4], body_inv_inertia[b, 5],
-        body_L[b, 0], body_L[b, 1], body_L[b, 2])
-    body_w[b, 0] = wx
-    body_w[b, 1] = wy
-    body_w[b, 2] = wz
-
-
-@cuda.jit
-def k_spheres_sorted(sorted_idx, sphere_body, sphere_offset, body_x, body_q, body_v, body_w,
-                     built_x, rebuild_at2, sorted_x, sorted_v, sphere_r, ctl):
-    """Stage 1 (eq. 19-21) between rebuilds: straight into the sorted slots of the
-    last rebuild (kernels.cpu.stage_spheres_sorted). Counts the spheres that moved
-    sqrt(rebuild_at2) [m] or more since (integer atomic add into ctl[CTL_MOVED]):
-    then this step rebuilds. Returns at once when the step rebuilds anyway
-    (CTL_FORCE: the first step of a call), as the CPU skips it then."""
-    s = cuda.grid(1)
-    if s >= sorted_idx.shape[0] or ctl[CTL_FORCE] != 0 or ctl[CTL_IDLE] != 0:
-        return
-    i = sorted_idx[s]
-    b = sphere_body[i]
-    x, y, z, vx, vy, vz, rx, ry, rz = sphere_kinematics(
-        body_x[b, 0], body_x[b, 1], body_x[b, 2],
-        body_q[b, 0], body_q[b, 1], body_q[b, 2], body_q[b, 3],
-        body_v[b, 0], body_v[b, 1], body_v[b, 2], body_w[b, 0], body_w[b, 1], body_w[b, 2],
-        sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2])
-    if slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r, built_x,
-                  rebuild_at2):
-        cuda.atomic.add(ctl, CTL_MOVED, 1)       # integer: order-independent
-
-
-@cuda.jit
-def k_zero_buckets(bucket_start, bucket_fill, ctl):
-    if not rebuilding(ctl):
-        return
-    start = cuda.grid(1)
-    stride = cuda.gridsize(1)
-    for h in range(start, bucket_start.shape[0], stride):
-        bucket_start[h] = 0
-    for h in range(start, bucket_fill.shape[0], stride):
-        bucket_fill[h] = 0
-
-
-@cuda.jit
-def k_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_cell, grid,
-              sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash, bucket_start, ctl):
-    """Stage 1 (eq. 19-21) in sphere order at a rebuild, each sphere's grid cell,
-    and the bucket counts."""
-    i = cuda.grid(1)
-    if i >= sphere_body.shape[0] or not rebuilding(ctl):
-        return
-    b = sphere_body[i]
-    x, y, z, vx, vy, vz, rx, ry, rz = sphere_kinematics(
-        body_x[b, 0], body_x[b, 1], body_x[b, 2],
-        body_q[b, 0], body_q[b, 1], body_q[b, 2], body_q[b, 3],
-        body_v[b, 0], body_v[b, 1], body_v[b, 2], body_w[b, 0], body_w[b, 1], body_w[b, 2],
-        sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2])
-    sphere_x[i, 0] = x
-    sphere_x[i, 1] = y
-    sphere_x[i, 2] = z
-    sphere_v[i, 0] = vx
-    sphere_v[i, 1] = vy
-    sphere_v[i, 2] = vz
-    sphere_r[i, 0] = rx
-    sphere_r[i, 1] = ry
-    sphere_r[i, 2] = rz
-    cx = cell_coord(x, inv_cell)
-    cy = cell_coord(y, inv_cell)
-    cz = cell_coord(z, inv_cell)
-    sphere_key[i] = cell_key(cx, cy, cz)
-    h = cell_hash(cx, cy, cz, grid)
-    sphere_hash[i] = h
-    cuda.atomic.add(bucket_start, h + 1, 1)      # integer: order-independent
-
-
-@cuda.jit
-def k_scan_blocks(data, block_sums, ctl):
-    """Inclusive prefix sum of each SCAN_CHUNK-element chunk of ``data`` in place;
-    each chunk's total goes to block_sums. Each thread scans SCAN_ITEMS
-    consecutive elements serially, the block scans the threads' totals
-    (Hillis-Steele in shared memory), then each thread adds its offset.
-    The whole grid returns (before any barrier) when ``ctl`` says no rebuild."""
-    if not rebuilding(ctl):
-        return
-    tmp = cuda.shared.array(SCAN_B, int64)
-    tid = cuda.threadIdx.x
-    n = data.shape[0]
-    first = cuda.blockIdx.x * SCAN_CHUNK + tid * SCAN_ITEMS
-    total = int64(0)
-    for j in range(first, min(first + SCAN_ITEMS, n)):
-        total += data[j]
-        data[j] = total
-    tmp[tid] = total
-    cuda.syncthreads()
-    off = 1
-    while off < SCAN_B:
-        add = int64(0)
-        if tid >= off:
-            add = tmp[tid - off]
-        cuda.syncthreads()
-        tmp[tid] += add
-        cuda.syncthreads()
-        off *= 2
-    before = tmp[tid] - total
-    for j in range(first, min(first + SCAN_ITEMS, n)):
-        data[j] += before
-    if tid == SCAN_B - 1:
-        block_sums[cuda.blockIdx.x] = tmp[tid]
-
-
-@cuda.jit
-def k_scan_add(data, block_sums, ctl):
-    """Second pass of the multi-level scan: add the scanned totals of the chunks before."""
-    if not rebuilding(ctl):
-        return
-    start = cuda.grid(1)
-    stride = cuda.gridsize(1)
-    for i in range(start + SCAN_CHUNK, data.shape[0], stride):
-        data[i] += block_sums[i // SCAN_CHUNK - 1]
-
-
-@cuda.jit
-def k_scatter(sphere_hash, bucket_start, bucket_fill, sorted_idx, ctl):
-    """Stage 2: each sphere claims a slot of its bucket (integer atomic add)."""
-    i = cuda.grid(1)
-    if i >= sphere_hash.shape[0] or not rebuilding(ctl):
-        return
-    h = sphere_hash[i]
-    slot = bucket_start[h] + cuda.atomic.add(bucket_fill, h, 1)
-    sorted_idx[slot] = i
-
-
-@cuda.jit
-def k_bucket_sort(bucket_start, sorted_idx, ctl):
-    """Sort each bucket's slots by sphere index (insertion sort: buckets hold 1-few
-    spheres), making the order that of the CPU's stable counting sort."""
-    if not rebuilding(ctl):
-        return
-    start = cuda.grid(1)
-    stride = cuda.gridsize(1)
-    for h in range(start, bucket_start.shape[0] - 1, stride):
-        t0 = bucket_start[h]
-        t1 = bucket_start[h + 1]
-        for a in range(t0 + 1, t1):
-            v = sorted_idx[a]
-            c = a - 1
-            while c >= t0 and sorted_idx[c] > v:
-                sorted_idx[c + 1] = sorted_idx[c]
-                c -= 1
-            sorted_idx[c + 1] = v
-
-
-@cuda.jit
-def k_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
-             sorted_x, sorted_v, sorted_key, sorted_body, ctl):
-    """Copy sphere data into sorted order, so neighbours are read from contiguous memory."""
-    s = cuda.grid(1)
-    if s >= sorted_idx.shape[0] or not rebuilding(ctl):
-        return
-    i = sorted_idx[s]
-    sorted_x[s, 0] = sphere_x[i, 0]
-    sorted_x[s, 1] = sphere_x[i, 1]
-    sorted_x[s, 2] = sphere_x[i, 2]
-    sorted_v[s, 0] = sphere_v[i, 0]
-    sorted_v[s, 1] = sphere_v[i, 1]
-    sorted_v[s, 2] = sphere_v[i, 2]
-    sorted_key[s] = sphere_key[i]
-    sorted_body[s] = sphere_body[i]
-
-
-@cuda.jit
-def k_neighbours(cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x, sorted_key,
-                 sorted_body, body_inv_mass, built_x, nbr, nbr_n, ctl):
-    """Stages 2-3 at a rebuild: each sorted slot's neighbour list, from the grid
-    just sorted (kernels.cpu.sphere_neighbours, one thread per slot).
-
-    nbr[s, :nbr_n[s]] are the slots of the spheres of other bodies closer than
-    sqrt(cutoff2) [m], found over the 27 cells in the CPU's order and inserted
-    in the order of their sphere index; static spheres get none. built_x[s] is
-    the slot's position at the build. A list longer than nbr.shape[1] keeps its
-    true count in nbr_n and stores what fits; the overflow is counted in
-    ctl[CTL_OVER] and its length maxed into ctl[CTL_MAXN] (integer atomics),
-    for the host to grow nbr and carry on from this step.
-    """
-    s = cuda.grid(1)
-    if s >= sorted_idx.shape[0] or not rebuilding(ctl):
-        return
-    cap = nbr.shape[1]
-    # the slots are sorted by bucket: they are the grid, and a grid position is a
-    # slot (grid_slot, the tenth argument, is not read; the CPU's slots are in
-    # body order instead)
-    n = neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x,
-                       sorted_key, sorted_body, sorted_idx, sorted_idx, sorted_x, sorted_body,
-                       body_inv_mass, built_x, nbr, nbr_n)
-    if n > cap:
-        cuda.atomic.add(ctl, CTL_OVER, 1)        # integer atomics: order-independent
-        cuda.atomic.max(ctl, CTL_MAXN, n)
-
-
-@cuda.jit
-def k_save_pairs(at_end, friction, nbr, nbr_n, pidx, sorted_idx, contact_partner,
-                 contact_spring, pair_f, ctl):
-    """With friction: the touching pairs' stretches back into their owners' history
-    rows (contacts.pairs_to_rows), while
-    the lists they were read from still stand: at a rebuild that is not a
-    call's first step (before the re-sort), and (``at_end``, launched by the
-    host) after a call's last step."""
-    s = cuda.grid(1)
-    if s >= sorted_idx.shape[0] or not friction:
-        return
-    if not at_end and (ctl[CTL_FORCE] != 0 or ctl[CTL_MOVED] == 0 or ctl[CTL_OVER] != 0):
-        return
-    pairs_to_rows(s, sorted_idx[s], nbr, nbr_n, pidx, sorted_idx, contact_partner,
-                  contact_spring, pair_f)
-
-
-@cuda.jit
-def k_pair_slots(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx, ctl):
-    """Rebuild: the pair index of each list entry a slot owns: row s * cap + k of
-    pair_f for its k-th (no scan: every list entry has a row)."""
-    s = cuda.grid(1)
-    if s >= sorted_idx.shape[0] or not rebuilding(ctl) or ctl[CTL_OVER] != 0:
-        return
-    pair_slots(s, s * nbr.shape[1], nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
-
-
-@cuda.jit
-def k_pair_mirror(radius, margin, nbr, nbr_n, sorted_idx, sorted_x, sorted_body,
-                  body_inv_mass, wall_normal, wall_offset, wall_lo, wall_hi, wall_depth,
-                  wall_mask, pidx, ctl):
-    """Rebuild, after k_pair_slots: the entries the partner owns
-    (contacts.pair_mirror) and the walls in reach (contacts.wall_reach)."""
-    s = cuda.grid(1)
-    if s >= sorted_idx.shape[0] or not rebuilding(ctl) or ctl[CTL_OVER] != 0:
-        return
-    pair_mirror(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
-    wall_reach(s, radius, margin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
-               wall_depth, wall_mask)
-
-
-@cuda.jit
-def k_load_pairs(friction, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
-                 wall_mask, contact_partner, contact_spring, pair_f, ctl):
-    """Rebuild, with friction, after k_pair_mirror: the owned pairs' stretches from the
-    history rows into pair_f; the rows keep the walls in reach (contacts.rows_to_pairs)."""
-    s = cuda.grid(1)
-    n = sorted_idx.shape[0]
-    if s >= n or not friction or not rebuilding(ctl) or ctl[CTL_OVER] != 0:
-        return
-    rows_to_pairs(s, sorted_idx[s], n, nbr, nbr_n, pidx, sorted_idx, sorted_body,
-                  body_inv_mass, wall_mask, contact_partner, contact_spring, pair_f)
-
-
-@cuda.jit
-def k_pair_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
-                  sorted_body, body_w, body_inv_mass, body_material,
-                  pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
-                  contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
-                  wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                  wall_mask, pair_f, wall_f, ctl):
-    """Stages 3-4, first pass (contacts.pair_forces, one thread per sorted slot): each
-    contact computed once, by its owner, and each sphere's walls. After an overflow
-    in this call (ctl[CTL_OVER]) or once every body sleeps it returns at once."""
-    s = cuda.grid(1)
-    if s >= sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
-        return
-    # pair_start, pair_t, wall_start, wall_s: the CPU's packed rows, unread here
-    # (PAIR_ROWS, WALL_ROWS are off); stand-ins of the same array kinds, so the
-    # kernel types either way
-    pair_forces(s, s + 1, diameter, nbr, nbr_n, pidx, nbr_n, nbr_n, nbr_n, pair_f, sorted_idx,
-                sorted_x, sorted_v,
-                sorted_body, body_w, body_inv_mass, body_material,
-                pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
-                contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
-                wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                wall_mask, pair_f, wall_f)
-
-
-@cuda.jit
-def k_sphere_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body,
-                    body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
-                    sphere_f, sphere_t, sphere_overlap, ctl):
-    """Stage 4, second pass (contacts.sphere_forces): each sphere's sum over its list
-    in its partners' index order, then its walls; the CPU's order and sums."""
-    s = cuda.grid(1)
-    if s >= sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
-        return
-    # list_start, list_e: the CPU's packed lists, unread here (LIST_ROWS is off)
-    sphere_forces(s, s + 1, diameter, nbr, nbr_n, pidx, nbr_n, nbr, sorted_idx, sorted_x,
-                  sorted_body, body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
-                  sphere_f, sphere_t, sphere_overlap)
-
-
-@cuda.jit
-def k_bodies(n_bodies, dt, gravity, body_sphere_start, sphere_f, sphere_t, sphere_r,
-             body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
-             sleep_steps, v_sleep, w_sleep, body_rest, body_wake, ctl):
-    """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10);
-    sleeping as kernels.cpu.body_update.
-
-    Thread 0 also closes the step's rebuild decision: counts a rebuild if there
-    was one and clears CTL_FORCE and CTL_MOVED for the next step (no kernel of
-    this launch reads them), and counts the step done (CTL_DONE) unless a list
-    overflowed in this call (CTL_OVER): from then on the bodies are left as they
-    are, and the host carries on from the overflowing step with longer lists.
-    """
-    b = cuda.grid(1)
-    if b == 0:
-        if rebuilding(ctl):
-            ctl[CTL_REBUILDS] += 1
-        ctl[CTL_FORCE] = 0
-        ctl[CTL_MOVED] = 0
-        if ctl[CTL_OVER] == 0:
-            ctl[CTL_DONE] += 1
-        if ctl[CTL_IDLE] != 0:
-            ctl[CTL_IDLE_STEPS] += 1
-    if b >= n_bodies or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
-        return
-    if sleep_steps > 0 and body_rest[b] >= sleep_steps:
-        if body_wake[b] != 0:
-            body_rest[b] = 1
-            body_wake[b] = 0
-            cuda.atomic.add(ctl, CTL_AWAKE, 1)   # integrates from the next step
-        return
-    m = body_mass[b]
-    FX = m * gravity[0]
-    FY = m * gravity[1]
-    FZ = m * gravity[2]
-    TX = 0.0
-    TY = 0.0
-    TZ = 0.0
-    for i in range(body_sphere_start[b], body_sphere_start[b + 1]):
-        fx = sphere_f[i, 0]
-        fy = sphere_f[i, 1]
-        fz = sphere_f[i, 2]
-        rx = sphere_r[i, 0]
-        ry = sphere_r[i, 1]
-        rz = sphere_r[i, 2]
-        FX += fx
-        FY += fy
-        FZ += fz
-        TX += (ry * fz - rz * fy) + sphere_t[i, 0]
-        TY += (rz * fx - rx * fz) + sphere_t[i, 1]
-        TZ += (rx * fy - ry * fx) + sphere_t[i, 2]
-    (X, Y, Z, qw, qx, qy, qz, PX, PY, PZ, LX, LY, LZ) = body_step(
-        body_x[b, 0], body_x[b, 1], body_x[b, 2],
-        body_q[b, 0], body_q[b, 1], body_q[b, 2], body_q[b, 3],
-        body_P[b, 0], body_P[b, 1], body_P[b, 2], body_L[b, 0], body_L[b, 1], body_L[b, 2],
-        FX, FY, FZ, TX, TY, TZ, body_inv_mass[b],
-        body_inv_inertia[b, 0], body_inv_inertia[b, 1], body_inv_inertia[b, 2],
-        body_inv_inertia[b, 3], body_inv_inertia[b, 4], body_inv_inertia[b, 5], dt)
-    body_x[b, 0] = X
-    body_x[b, 1] = Y
-    body_x[b, 2] = Z
-    body_q[b, 0] = qw
-    body_q[b, 1] = qx
-    body_q[b, 2] = qy
-    body_q[b, 3] = qz
-    body_P[b, 0] = PX
-    body_P[b, 1] = PY
-    body_P[b, 2] = PZ
-    body_L[b, 0] = LX
-    body_L[b, 1] = LY
-    body_L[b, 2] = LZ
-    if sleep_steps > 0:
-        im = body_inv_mass[b]
-        wx, wy, wz = angular_velocity(qw, qx, qy, qz, body_inv_inertia[b, 0],
-                                      body_inv_inertia[b, 1], body_inv_inertia[b, 2],
-                                      body_inv_inertia[b, 3], body_inv_inertia[b, 4],
-                                      body_inv_inertia[b, 5], LX, LY, LZ)
-        r = rest_steps(body_rest[b], PX * im, PY * im, PZ * im, wx, wy, wz, v_sleep, w_sleep)
-        if r >= sleep_steps:
-            body_P[b, 0] = 0.0
-            body_P[b, 1] = 0.0
-            body_P[b, 2] = 0.0
-            body_L[b, 0] = 0.0
-            body_L[b, 1] = 0.0
-            body_L[b, 2] = 0.0
-        body_rest[b] = r
-        body_wake[b] = 0
-        if r < sleep_steps:
-            cuda.atomic.add(ctl, CTL_AWAKE, 1)
-    else:
-        cuda.atomic.add(ctl, CTL_AWAKE, 1)
-
-
-@cuda.jit
-def k_take_max(values, out):
-    """out[0] = max(out[0], values[...]) and values[...] = 0 (float max: exact, commutative)."""
-    start = cuda.grid(1)
-    stride = cuda.gridsize(1)
-    m = 0.0
-    for i in range(start, values.shape[0], stride):
-        v = values[i]
-        if v > m:
-            m = v
-        values[i] = 0.0
-    if m > 0.0:
-        cuda.atomic.max(out, 0, m)
-
-
-@cuda.jit
-def k_unsort(sorted_idx, sorted_x, sphere_x):
-    """sphere_x in sphere order from the sorted slots (where the spheres were at
-    the last step's contact search; kernels.cpu.stage_unsort)."""
-    s = cuda.grid(1)
-    if s >= sorted_idx.shape[0]:
-        return
-    i = sorted_idx[s]
-    sphere_x[i, 0] = sorted_x[s, 0]
-    sphere_x[i, 1] = sorted_x[s, 1]
-    sphere_x[i, 2] = sorted_x[s, 2]
-
-
-@cuda.jit
-def k_fill(values, v):
-    i = cuda.grid(1)
-    if i < values.shape[0]:
-        values[i] = v
+# The device side, by stage (each module's docstring says what it holds); the kernels
+# are imported here by name, so that the backend's launches read them from this
+# module (benchmarks/cuda_compile_table.py records launches by these names).
+from .cuda_device import (CONTACT_THREADS, CTL_AWAKE, CTL_DONE, CTL_FORCE,  # noqa: F401
+                          CTL_IDLE, CTL_IDLE_STEPS, CTL_MAXN, CTL_MOVED, CTL_OVER, CTL_REBUILDS,
+                          CTL_SIZE, F, P, SCAN_B, SCAN_CHUNK, SCAN_ITEMS, SIMULATOR,
+                          TABLE_BLOCKS, THREADS, _device_jit)
+from .cuda_grid import (k_bucket_sort, k_gather, k_neighbours, k_scan_add,  # noqa: F401
+                        k_scan_blocks, k_scatter, k_spheres, k_spheres_sorted, k_unsort,
+                        k_zero_buckets)
+from .cuda_contacts import (k_load_pairs, k_pair_forces, k_pair_mirror,  # noqa: F401
+                            k_pair_slots, k_save_pairs, k_sphere_forces)
+from .cuda_bodies import (k_begin_call, k_bodies, k_body_velocities, k_fill,  # noqa: F401
+                          k_idle_check, k_take_max)
 
 
 # ---------------------------------------------------------------------------
 # Host side
 # ---------------------------------------------------------------------------
+
+#: The kernels compiled per feature set (FLAGS); the others read no flag.
+SPECIALIZED = ("k_pair_forces", "k_sphere_forces", "k_bodies")
+_VARIANTS: dict = {}
+
+
+def variant_tag(flags) -> str:
+    """'F1R0S0W1': the flags (FLAGS' order) of a variant, as in its kernels' names."""
+    return "".join(f"{n[0].upper()}{int(f)}" for n, f in zip(FLAGS, flags))
+
+
+def kernels(flags) -> types.SimpleNamespace:
+    """The SPECIALIZED kernels compiled for ``flags`` (friction, rotation, sleeping,
+    walls), created on first use (numba-cuda compiles each at its first launch):
+    contacts.pair_forces / sphere_forces compiled with those flags as constants,
+    and the kernels re-created with their modules' globals overlaid by them and by
+    the flags (compile.specialize's rebinding, for cuda.jit). ``GENERAL`` gives
+    the module's own kernels."""
+    flags = tuple(bool(f) for f in flags)
+    if flags == GENERAL:
+        return types.SimpleNamespace(**{n: globals()[n] for n in SPECIALIZED})
+    if flags not in _VARIANTS:
+        consts = {n.upper(): f for n, f in zip(FLAGS, flags)}
+        c = compile_contacts(_device_jit(), F, P, dict(consts, sqrt=math.sqrt, **CUDA_LAYOUT))
+        out = {}
+        for name in SPECIALIZED:
+            py = globals()[name].py_func
+            glb = dict(py.__globals__)
+            glb.update(consts)
+            glb.update(pair_forces=c.pair_forces, sphere_forces=c.sphere_forces)
+            fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__,
+                                    py.__closure__)
+            fn.__qualname__ = f"{name}__{variant_tag(flags)}"
+            fn.__doc__ = py.__doc__
+            out[name] = cuda.jit(fn)
+        _VARIANTS[flags] = types.SimpleNamespace(**out)
+    return _VARIANTS[flags]
+
 
 def _blocks(n: int, threads: int) -> int:
     return max(1, (int(n) + threads - 1) // threads)
@@ -825,11 +243,13 @@ class CudaBackend:
     name = "cuda"
 
     def __init__(self, model, features=None, specialize: bool = True):
-        # The CUDA kernels are not specialized (yet): one general kernel with
-        # runtime checks. ``features`` may switch friction on (histories kept).
+        # As CpuBackend: the contact and body kernels compiled for the features the
+        # scene uses (``kernels(flags)``), or with specialize=False the general ones.
         self.model = model
-        self.features = model.features if features is None else features
+        self.features = scene_features(model, features)
         self.specialize = specialize
+        self.flags = kernel_flags(self.features) if specialize else GENERAL
+        self.k = kernels(self.flags)
         layout = scratch_layout(model, self.features.friction)
         ctx = cuda.current_context()
         free, total = ctx.get_memory_info()
@@ -994,7 +414,7 @@ class CudaBackend:
     def _contacts(self, parity: int = 0, partner=None, spring=None, wake=None):
         m, d = self.model, self.d
         blocks = _blocks(m.n_spheres, CONTACT_THREADS)
-        k_pair_forces[blocks, CONTACT_THREADS](
+        self.k.k_pair_forces[blocks, CONTACT_THREADS](
             m.diameter, d["nbr"], d["nbr_n"], d["pidx"], d["sorted_idx"],
             d["sorted_x"], d["sorted_v"], d["sorted_body"], d["body_w"],
             d["body_inv_mass"], d["body_material"], d["pair_k"], d["pair_zeta"], d["pair_mu"],
@@ -1004,7 +424,7 @@ class CudaBackend:
             m.sleep_steps, d["body_rest"], d["body_wake"] if wake is None else wake,
             d["wall_normal"], d["wall_offset"], d["wall_lo"], d["wall_hi"], d["wall_depth"],
             d["wall_material"], d["wall_mask"], d["pair_f"], d["wall_f"], d["ctl"])
-        k_sphere_forces[_blocks(m.n_spheres, THREADS), THREADS](
+        self.k.k_sphere_forces[_blocks(m.n_spheres, THREADS), THREADS](
             m.diameter, d["nbr"], d["nbr_n"], d["pidx"], d["sorted_idx"], d["sorted_x"],
             d["sorted_body"], d["body_inv_mass"], m.sleep_steps, d["body_rest"],
             d["wall_mask"], d["pair_f"], d["wall_f"], d["sphere_f"], d["sphere_t"],
@@ -1012,7 +432,7 @@ class CudaBackend:
 
     def _bodies(self):
         m, d = self.model, self.d
-        k_bodies[_blocks(m.n_bodies, THREADS), THREADS](
+        self.k.k_bodies[_blocks(m.n_bodies, THREADS), THREADS](
             m.n_bodies, m.dt, d["gravity"], d["body_sphere_start"], d["sphere_f"], d["sphere_t"],
             d["sphere_r"], d["body_mass"], d["body_inv_mass"], d["body_inv_inertia"],
             d["body_x"], d["body_q"], d["body_P"], d["body_L"],
@@ -1103,8 +523,9 @@ class CudaBackend:
         self.d["pair_f"] = cuda.to_device(np.zeros((ns * cap, PAIR_COLS)))
 
     # -- CpuBackend interface ----------------------------------------------------
-    def step(self, state, n_steps: int) -> None:
+    def step(self, state, n_steps: int, control=None) -> None:
         """Advance ``state`` by ``n_steps`` steps; its host arrays are updated at the end.
+        ``control``: as ``CpuBackend.step`` (the controlled poses uploaded first).
 
         The steps are launched back to back; the control array is read once at
         the end. If a neighbour list overflowed, the State stopped changing at
@@ -1112,6 +533,10 @@ class CudaBackend:
         the remaining steps launched again from there. Nothing is copied aside.
         """
         self._ensure_resident(state)
+        if control is not None and not control.empty:
+            control.apply(state)
+            for name in ("body_x", "body_q"):
+                self.d[name].copy_to_device(np.ascontiguousarray(getattr(state, name)))
         self.fit(state)
         left = int(n_steps)
         stepped = False

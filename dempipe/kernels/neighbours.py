@@ -126,7 +126,7 @@ def neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x, g
     built_x[s, 2] = zi
     bi = sorted_body[s]
     n = 0
-    if body_inv_mass[bi] == 0.0:
+    if static_body(body_inv_mass[bi]):  # noqa: F821 (the target's, see compile_walk)
         nbr_n[s] = 0
         return 0
     cx0 = cell_coord(xi, inv_cell)  # noqa: F821 (the target's, see compile_walk)

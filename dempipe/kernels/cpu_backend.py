@@ -1,0 +1,202 @@
+"""The CPU backend: owns a Model's scratch arrays (``layout.cpu_scratch``, by name)
+and advances States with the stage drivers of kernels/cpu.py (``run_steps``),
+compiled for the scene's features (``kernels(flags)``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .cpu import (GENERAL, PAIR_COLS, QUIET_SHARE, SKIN, SKIN_MAX, cell_size, chunk_spans,
+                  cpu_scratch, fit_grid, grid_table, kernel_flags, kernels, scene_features,
+                  stage_grid_gather, stage_grid_sort, stage_neighbours, stage_pairs,
+                  stage_rows_to_pairs, stage_wall_reach, static_extent)
+
+
+class CpuBackend:
+    """Owns the scratch arrays of one Model and advances States with ``run_steps``.
+
+    features : run as if the scene used these (default: the model's; see
+      scene_features). specialize : compile out the features not used (default);
+      False runs the general kernel, every feature compiled in.
+    """
+
+    name = "cpu"
+
+    def __init__(self, model, features=None, specialize: bool = True):
+        self.model = model
+        #: Steps skipped because every body slept (counted as done, not computed).
+        self.steps_skipped = 0
+        self.features = scene_features(model, features)
+        self.flags = kernel_flags(self.features) if specialize else GENERAL
+        self.k = kernels(self.flags)
+        # every array, by name (layout.cpu_scratch: what memory_estimate counts and a
+        # checkpoint walks), zeroed; then the ones that start otherwise
+        for name, (shape, dtype) in cpu_scratch(model, self.features.friction).items():
+            setattr(self, name, np.zeros(shape, dtype=dtype))
+        self.grid = grid_table(model.n_spheres)
+        self.skin_ctl[:] = (SKIN, 0.0, SKIN_MAX, 0.0)
+        self.body_still[model.n_bodies:] = 1     # static colliders never move
+        self.chunks[:] = chunk_spans(model.n_spheres)
+        #: Share of quiet bodies from which the contact passes skip the quiet chunks
+        #: (stage_active); above 1, never (the same State: benchmarks/sleeping_pile.py).
+        self.quiet_share = QUIET_SHARE
+        if not self.features.friction:   # the histories in sorted-slot order, within a call
+            self.hist_partner, self.hist_spring = self._no_partner, self._no_spring
+        self.static_box = static_extent(model)
+        if self.static_box is not None:
+            self.static_lo[:], self.static_hi[:] = self.static_box
+
+    def fit_grid(self, state) -> None:
+        """Fit the grid's bits to where the bodies are now (once per call of step,
+        ``layout.fit_grid``)."""
+        if self.model.body_mass.shape[0]:
+            self.grid = fit_grid(self.model, state.body_x, self.static_box)
+
+    def step(self, state, n_steps: int, control=None) -> None:
+        """Advance ``state`` in place by ``n_steps`` steps (and its step count and time).
+        ``control`` (dempipe.control.Control): the controlled bodies' poses, put into
+        the State before the first step (whose rebuild places their spheres)."""
+        m = self.model
+        if control is not None:
+            control.apply(state)
+        self.fit_grid(state)
+        partner, spring = self.contacts(state)
+        left = int(n_steps)
+        while left > 0:
+            done, computed = self.k.run_steps(
+                left, int(state.step), m.dt, m.diameter, m.n_bodies, m.gravity, self.grid,
+                m.sphere_body, m.sphere_offset, m.body_sphere_start, m.body_mass,
+                m.body_inv_mass, m.body_inv_inertia, m.body_material, m.pair_k, m.pair_zeta,
+                m.pair_mu, m.kt_ratio, m.ks_ratio, self.features.friction, partner, spring,
+                self.hist_partner, self.hist_spring, m.sleep_steps, m.sleep_linear, m.sleep_angular, self.rest(state),
+                self.body_wake, self.body_still, m.wall_normal, m.wall_offset, m.wall_lo,
+                m.wall_hi,
+                m.wall_depth, m.wall_material, state.body_x, state.body_q, state.body_P,
+                state.body_L, self.body_v, self.body_w, self.sphere_x, self.sphere_v,
+                self.sphere_r, self.sphere_key, self.sphere_hash, self.bucket_start,
+                self.bucket_fill, self.body_key, self.grid_slot, self.sorted_idx, self.slot_of,
+                self.sorted_x, self.sorted_v, self.sorted_body, self.grid_idx, self.grid_x,
+                self.grid_key, self.grid_body, self.built_x, self.nbr, self.nbr_n,
+                self._pidx(), self.pair_start, self.pair_t, self.pair_f, self.list_start,
+                self.list_e, self.wall_mask, self.wall_start, self.wall_s,
+                self.wall_f, self.sphere_f, self.sphere_t, self.sphere_overlap, self.skin_ctl,
+                self.chunks, self.spans, self.span_ctl, float(self.quiet_share))
+            state.step += int(done)
+            state.time = state.step * m.dt
+            left -= int(done)
+            self.steps_skipped += int(done) - int(computed)
+            if left > 0:
+                self.grow_neighbours()
+
+    def grow_neighbours(self) -> None:
+        """Room for the longest neighbour list the last rebuild found (nbr_n), doubled
+        at least: a pile that grows denser rarely needs a second growth; or, when
+        the lists fitted, for the pairs it found (pair_start[-1]), 1.5 times."""
+        cap = self.nbr.shape[1]
+        need = int(self.nbr_n.max())
+        if need > cap:
+            while cap < need:
+                cap *= 2
+            self.nbr = np.zeros((self.model.n_spheres, cap), dtype=np.int32)
+            return
+        entries = int(self.list_start[-1])
+        if entries > self.list_e.shape[0]:
+            self.list_e = np.zeros((entries + entries // 2, 2), dtype=np.int32)
+        walls = int(self.wall_start[-1])
+        if walls > self.wall_s.shape[0]:
+            self.wall_s = np.zeros((walls + walls // 2, 4))
+        pairs = int(self.pair_start[-1])
+        if pairs > self.pair_f.shape[0]:
+            self.pair_f = np.zeros((pairs + pairs // 2, PAIR_COLS))
+            self.pair_t = np.zeros(self.pair_f.shape[0], dtype=np.int32)
+
+    def _pidx(self):
+        """The pair indices, shaped as the lists (which grow, or a test replaces)."""
+        if self.pidx.shape != self.nbr.shape:
+            self.pidx = np.zeros(self.nbr.shape, dtype=np.int32)
+        return self.pidx
+
+    def rest(self, state):
+        """The State's rest counts (sleeping), allocated on first use."""
+        state.ensure_rest(self.model.body_mass.shape[0])
+        return state.body_rest
+
+    def contacts(self, state):
+        """The State's contact histories, allocated on first use when friction is on
+        (a 1-slot dummy otherwise: frictionless kernels never touch them)."""
+        if not self.features.friction:
+            return self._no_partner, self._no_spring
+        state.ensure_contacts(self.model.n_spheres)
+        return state.contact_partner, state.contact_spring
+
+    def probe(self, state) -> None:
+        """Stages 1-4 without moving anything: fills sphere_f, sphere_overlap.
+
+        Reads the contact histories but does not change the State's."""
+        m = self.model
+        self.fit_grid(state)
+        self.k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
+                                     m.body_inv_mass, m.body_inv_inertia, self.body_v,
+                                     self.body_w)
+        self.k.stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q,
+                             self.body_v, self.body_w, 1.0 / cell_size(m.diameter), self.grid,
+                             self.sphere_x, self.sphere_v, self.sphere_r, self.sphere_key,
+                             self.sphere_hash)
+        stage_grid_sort(self.sphere_hash, state.body_x, 1.0 / cell_size(m.diameter), self.grid,
+                        m.body_sphere_start, self.bucket_start, self.bucket_fill, self.body_key,
+                        self.sorted_idx, self.slot_of, self.grid_idx, self.grid_slot)
+        stage_grid_gather(self.sorted_idx, self.grid_idx, self.sphere_x, self.sphere_v,
+                          self.sphere_key, m.sphere_body, self.sorted_x, self.sorted_v,
+                          self.sorted_body, self.grid_x, self.grid_key, self.grid_body)
+        while (stage_neighbours(m.diameter, SKIN, self.grid, self.bucket_start, self.grid_idx,
+                                self.grid_x, self.grid_key, self.grid_body, self.grid_slot,
+                                self.sorted_idx, self.sorted_x, self.sorted_body,
+                                m.body_inv_mass, self.built_x, self.nbr, self.nbr_n) > 0
+               or stage_pairs(self.nbr, self.nbr_n, self.sorted_idx, self.sorted_body,
+                              m.body_inv_mass, self.pair_start, self._pidx(), self.pair_t,
+                              self.pair_f.shape[0], self.list_start, self.list_e) > 0
+               or stage_wall_reach(m.diameter, SKIN, self.sorted_x, m.wall_normal,
+                                   m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth,
+                                   self.wall_mask, self.wall_start,
+                                   self.hist_partner.shape[1] if self.features.friction else 0,
+                                   self.wall_s.shape[0]) > 0):
+            self.grow_neighbours()
+        self.sphere_overlap[:] = 0.0
+        partner, spring = self.contacts(state)
+        # copies in sorted-slot order, as the contact stage reads them
+        slots = self.sorted_idx if self.features.friction else np.zeros(1, dtype=np.int32)
+        partner, spring = partner[slots], spring[slots]
+        if self.features.friction:
+            stage_rows_to_pairs(self.nbr, self.nbr_n, self.pidx, self.sorted_idx,
+                                self.sorted_body, m.body_inv_mass, self.wall_mask, partner,
+                                spring, self.pair_f, self.wall_start, self.wall_s)
+        self.k.stage_contacts(m.diameter, self.nbr, self.nbr_n, self.pidx, self.pair_start,
+                              self.pair_t, self.sorted_idx, self.sorted_x,
+                              self.sorted_v, self.sorted_body, self.body_w, m.body_inv_mass,
+                              m.body_material, m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio,
+                              m.ks_ratio, self.features.friction, m.dt, state.step & 1,
+                              partner, spring, m.sleep_steps, self.rest(state),
+                              self.body_wake.copy(), m.wall_normal, m.wall_offset, m.wall_lo,
+                              m.wall_hi, m.wall_depth, m.wall_material, self.wall_mask,
+                              self.pair_f, self.wall_f, self.wall_start, self.wall_s,
+                              self.chunks, self.chunks.shape[0])
+        self.k.stage_sums(m.diameter, self.nbr, self.nbr_n, self.pidx, self.list_start,
+                          self.list_e, self.sorted_idx,
+                          self.sorted_x, self.sorted_body, m.body_inv_mass, m.sleep_steps,
+                          self.rest(state), self.wall_mask, self.pair_f, self.wall_f,
+                          self.sphere_f, self.sphere_t, self.sphere_overlap, self.chunks,
+                          self.chunks.shape[0])
+
+    def velocities(self, state):
+        """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""
+        m = self.model
+        self.k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
+                              m.body_inv_mass, m.body_inv_inertia, self.body_v, self.body_w)
+        return self.body_v[: m.n_bodies].copy(), self.body_w[: m.n_bodies].copy()
+
+    def take_max_overlap(self) -> float:
+        """Largest overlap since the last call [m], then reset."""
+        v = float(self.sphere_overlap.max()) if self.sphere_overlap.size else 0.0
+        self.sphere_overlap[:] = 0.0
+        return v

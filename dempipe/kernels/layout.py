@@ -1,0 +1,215 @@
+"""Host-side layout of the kernels' data, for both targets; imports no numba.
+
+What the backends allocate and how the grid is sized, in one place, so that
+what is allocated and what is estimated (``stability.memory_estimate``, `dempipe
+check`) cannot drift apart:
+
+* ``grid_table`` / ``fit_grid``: the wrapped grid's bits (kernels/neighbours.py);
+* ``cpu_scratch``: every array ``kernels.cpu.CpuBackend`` allocates, by name
+  (the CPU's persistent arrays: a checkpoint or a memory estimate walks this);
+* ``layout_bytes``: the bytes of such a layout.
+
+The CUDA backend's layout (``kernels.cuda.scratch_layout``) uses grid_table from
+here; its scan buffers depend on the device's block sizes, so it stays there.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..state import CONTACT_SLOTS
+from .contacts import CONTACT_CHUNK, LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE
+from .neighbours import NEIGHBOURS, cell_size
+
+#: Most buckets per sphere the grid may use: its table has 2^k >= this × spheres
+#: buckets (memory follows the spheres, never the bounding box).
+BUCKETS_PER_SPHERE = 8
+
+
+def grid_table(n_spheres: int, extent_cells=None) -> np.ndarray:
+    """Table layout (bx, by, mask_x, mask_y, mask_z, n_buckets) for the grid.
+
+    The budget is 2^k >= BUCKETS_PER_SPHERE × spheres buckets, so memory follows
+    the spheres whatever the scene's size. Within it, each axis gets the bits
+    that cover the occupied extent (``extent_cells``, cells per axis): a compact
+    pile then gets a dense grid and no two occupied cells share a bucket. When the
+    extent needs more bits than the budget, the widest axes give bits up and far
+    cells alias (still correct, only slower).
+    """
+    # At least 2 bits (4 buckets) per axis: with 1, a row's cells cx-1 and cx+1
+    # share a bucket and its spheres would be visited twice (contact counted twice).
+    k = 6
+    while (1 << k) < BUCKETS_PER_SPHERE * max(n_spheres, 1):
+        k += 1
+    if extent_cells is None:
+        bx = (k + 2) // 3
+        by = (k - bx + 1) // 2
+        bits = [bx, by, k - bx - by]
+    else:
+        bits = [max(2, int(np.ceil(np.log2(max(e, 1.0) + 3.0)))) for e in extent_cells]
+        while sum(bits) > k:
+            i = int(np.argmax(bits))
+            bits[i] -= 1
+    bx, by, bz = bits
+    return np.array([bx, by, (1 << bx) - 1, (1 << by) - 1, (1 << bz) - 1, 1 << (bx + by + bz)],
+                    dtype=np.int64)
+
+
+def grid_buckets(n_spheres: int) -> int:
+    """The grid's bucket budget (the most any fitted grid uses)."""
+    return int(grid_table(n_spheres)[5])
+
+
+def static_extent(model):
+    """(lo, hi) of the static pseudo-bodies' spheres grown by a diameter [m], or None."""
+    if not model.n_static:
+        return None
+    first = model.body_sphere_start[model.n_bodies]
+    pts = model.sphere_offset[first:] + model.initial_x[model.sphere_body[first:]]
+    return pts.min(axis=0) - model.diameter, pts.max(axis=0) + model.diameter
+
+
+def fit_grid(model, body_x, static_box) -> np.ndarray:
+    """The grid fitted to where the bodies are (once per ``step`` call, both targets).
+
+    The extent is the dynamic bodies' bounding box grown by their radii (and the
+    static spheres' box, ``static_extent``), plus two cells; bodies that leave it
+    during the call still collide correctly, only through aliased buckets.
+    """
+    m = model
+    if m.body_mass.shape[0] == 0:
+        return grid_table(m.n_spheres)
+    r = m.body_radius
+    lo = (body_x[: m.n_bodies] - r[: m.n_bodies, None]).min(axis=0) if m.n_bodies else None
+    hi = (body_x[: m.n_bodies] + r[: m.n_bodies, None]).max(axis=0) if m.n_bodies else None
+    if static_box is not None:
+        lo = static_box[0] if lo is None else np.minimum(lo, static_box[0])
+        hi = static_box[1] if hi is None else np.maximum(hi, static_box[1])
+    return grid_table(m.n_spheres, (hi - lo) / cell_size(m.diameter) + 2.0)
+
+
+def chunk_spans(n_slots: int) -> np.ndarray:
+    """(n_chunks, 2) int64: the first and one past the last slot of each chunk of
+    CONTACT_CHUNK sorted slots (the contact passes' work when every slot has some)."""
+    lo = np.arange(0, max(n_slots, 1), CONTACT_CHUNK, dtype=np.int64)
+    return np.stack([lo, np.minimum(lo + CONTACT_CHUNK, n_slots)], axis=1)
+
+
+def cpu_scratch(model, friction: bool) -> dict:
+    """name -> (shape, dtype) of every array ``CpuBackend`` allocates (its
+    attributes of the same names), the growable ones at their initial sizes
+    (the neighbour lists, packed rows and wall rows grow when a rebuild needs
+    more). ``friction``: the backend keeps contact histories."""
+    nb = int(model.body_mass.shape[0])
+    ns = model.n_spheres
+    table = grid_buckets(ns)
+    f8, i8, i4 = np.float64, np.int64, np.int32
+    n_chunks = int(chunk_spans(ns).shape[0])
+    lay = {
+        "grid": ((6,), i8),
+        "body_v": ((nb, 3), f8), "body_w": ((nb, 3), f8),
+        "sphere_x": ((ns, 3), f8), "sphere_v": ((ns, 3), f8), "sphere_r": ((ns, 3), f8),
+        "sphere_key": ((ns,), i8), "sphere_hash": ((ns,), i8),
+        "bucket_start": ((table + 1,), i8), "bucket_fill": ((table,), i8),
+        "body_key": ((nb,), i8),                 # each body's bucket (the slots' order)
+        # the grid (stage_grid_sort): each position's sphere, slot, position, cell, body
+        "grid_idx": ((ns,), i4), "grid_slot": ((ns,), i4), "grid_x": ((ns, 3), f8),
+        "grid_key": ((ns,), i8), "grid_body": ((ns,), i4),
+        "sorted_idx": ((ns,), i4), "slot_of": ((ns,), i4),
+        # the lists' skin [d] (neighbours.adapt_skin), steps since the last rebuild,
+        # the largest skin allowed, rebuilds so far
+        "skin_ctl": ((4,), f8),
+        "sorted_x": ((ns, 3), f8), "sorted_v": ((ns, 3), f8), "sorted_body": ((ns,), i4),
+        "built_x": ((ns, 3), f8), "nbr": ((ns, NEIGHBOURS), i4), "nbr_n": ((ns,), i4),
+        # each contact computed once (contacts.py): pair indices, rows of pair forces
+        "pidx": ((ns, NEIGHBOURS), i4), "pair_start": ((ns + 1,), i8),
+        "pair_f": ((max(PAIRS_PER_SPHERE * ns, 1), PAIR_COLS), f8),
+        "pair_t": ((max(PAIRS_PER_SPHERE * ns, 1),), i4),     # each row's partner
+        # the lists packed for the second pass (contacts.py LIST_ROWS)
+        "list_start": ((ns + 1,), i8), "list_e": ((max(LIST_PER_SPHERE * ns, 1), 2), i4),
+        "wall_mask": ((ns,), i8),                # walls within reach (contacts.py)
+        # with friction, the walls' stretches while stepping (contacts.py WALL_ROWS):
+        # an eighth of the spheres to start with (a pile in a box: 15 % touch a wall)
+        "wall_start": ((ns + 1,), i8),
+        "wall_s": (((max(ns // 8, 1) if friction else 1), 4), f8),
+        "wall_f": ((ns, 7), f8),                 # each slot's walls: force, torque, overlap
+        "sphere_f": ((ns, 3), f8), "sphere_t": ((ns, 3), f8), "sphere_overlap": ((ns,), f8),
+        "body_wake": ((nb,), i4),
+        "body_still": ((nb,), i4),               # static colliders: stage 1 keeps them
+        # the contact passes' work: every chunk of slots, or a sleeping pile's
+        "chunks": ((n_chunks, 2), i8), "spans": ((n_chunks, 2), i8),
+        "span_ctl": ((2,), i8),
+        # the frictionless stand-in histories, and with friction the histories in
+        # sorted-slot order within a call
+        "_no_partner": ((1, 1), i4), "_no_spring": ((1, 1, 3), f8),
+    }
+    if friction:
+        lay["hist_partner"] = ((ns, CONTACT_SLOTS), i4)
+        lay["hist_spring"] = ((ns, CONTACT_SLOTS, 3), f8)
+    if model.n_static:
+        lay["static_lo"] = ((3,), f8)
+        lay["static_hi"] = ((3,), f8)
+    return lay
+
+
+def layout_bytes(layout: dict) -> int:
+    """Bytes of the arrays of a layout (name -> (shape, dtype))."""
+    return int(sum(int(np.prod(shape)) * np.dtype(dt).itemsize for shape, dt in layout.values()))
+
+
+# ---------------------------------------------------------------------------
+# What the kernels are compiled for: features and each target's data layout
+# ---------------------------------------------------------------------------
+
+#: Feature flags the specialized kernels are compiled for, in this order (both
+#: targets: kernels.cpu.kernels, kernels.cuda.kernels).
+FLAGS = ("friction", "rotation", "sleeping", "walls")
+
+#: The general kernel: every feature compiled in (each also checked at run time).
+GENERAL = (True, True, True, True)
+
+#: Where the two targets lay contacts.py's data out differently, and why. Each is a
+#: constant of the contact passes (compile time), the rest of the code is shared.
+#:
+#: HIST_BY_SLOT: the contact-history rows are in sorted-slot order within a call
+#:   (the CPU re-sorts them at each rebuild: its passes then read them in slot
+#:   order); CUDA keeps them in sphere order (its threads read any row anyway).
+#: PAIR_ROWS: the first pass walks each slot's own pairs as a run of packed rows
+#:   (pair_start, pair_t) instead of its list: 128 bytes a sphere less to read on a
+#:   CPU core's cache; CUDA walks the list (one thread per slot, no scan needed).
+#: WALL_ROWS: the walls' stretches in packed rows (wall_s) while stepping, so the
+#:   few spheres near a wall read consecutive memory (CPU); CUDA keeps them in the
+#:   history row.
+#: LIST_ROWS: the second pass walks packed (partner, pair) entries (list_e), 8 bytes
+#:   an entry instead of two 64-byte rows a sphere (CPU); CUDA walks the list.
+#: The same pairs in the same order either way: the targets stay bit-identical.
+CPU_LAYOUT = dict(HIST_BY_SLOT=True, PAIR_ROWS=True, WALL_ROWS=True, LIST_ROWS=True)
+CUDA_LAYOUT = dict(HIST_BY_SLOT=False, PAIR_ROWS=False, WALL_ROWS=False, LIST_ROWS=False)
+
+
+def scene_features(model, features=None):
+    """The Features to run ``model`` with: ``features`` (default the model's).
+
+    An override may switch features on (to run a scene through a kernel that
+    carries code it does not need, as tests and benchmarks do), never off.
+    One-sphere bodies whose sphere is off their centre of mass turn under
+    contact forces, so they need rotation whatever the features say.
+    """
+    from dataclasses import fields, replace
+
+    mf = model.features
+    if features is None:
+        features = mf
+    for f in fields(mf):
+        if getattr(mf, f.name) and not getattr(features, f.name):
+            raise ValueError(f"features.{f.name}: the scene uses it; an override may only "
+                             f"switch features on")
+    if not features.rotation and np.any(model.sphere_offset != 0.0):
+        features = replace(features, rotation=True)
+    return features
+
+
+def kernel_flags(features) -> tuple:
+    """Flags (FLAGS) of the specialized kernels for ``features``."""
+    return (bool(features.friction), bool(features.rotation), bool(features.sleeping),
+            bool(features.walls))
