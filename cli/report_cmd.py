@@ -59,6 +59,9 @@ def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, 
         stiffness_factors=parse_values(stiffness_factors, "--stiffness-factors"),
         duration=duration, horizon=horizon, tolerance=tolerance, bodies=bodies, device=device,
         threads=threads, plots=not no_plots)
+    from dempipe.bake import check_writable
+
+    check_writable(output, "report folder")     # before any bake, not after all of them
     cache = SphereCache(cache_dir, strict=True) if cache_dir else None
     say = (lambda line: None) if quiet else (lambda line: click.echo(line, err=True))
     result = run_report(scene, output, sweep, cache=cache, progress=say)

@@ -208,8 +208,10 @@ class Model:
         nb = self.body_mass.shape[0]
         x = np.array(self.initial_x, dtype=np.float64)
         q = np.array(self.initial_q, dtype=np.float64)
-        P = self.body_mass[:, None] * self.initial_v
-        P[self.n_bodies:] = 0.0
+        # static pseudo-bodies (infinite mass) have no momentum: inf * 0 is not computed
+        P = np.zeros((nb, 3))
+        n = self.n_bodies
+        P[:n] = self.body_mass[:n, None] * self.initial_v[:n]
         L = np.zeros((nb, 3))
         for b in range(self.n_bodies):
             L[b] = _world_inertia(q[b], self.body_inv_inertia[b]) @ self.initial_w[b]
