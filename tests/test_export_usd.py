@@ -178,7 +178,7 @@ def xforms_vertices(stage, model, frames, f):
     out = []
     for b in range(model.n_bodies):
         prim = stage.GetPrimAtPath(body_prim_path(model, b))
-        mesh = prim.GetChild("mesh")
+        mesh = prim.GetChild(model.shapes[model.body_shape[b]].name)
         pts = np.array(UsdGeom.Mesh(mesh).GetPointsAttr().Get(), dtype=np.float64)
         out.append(_apply(cache.GetLocalToWorldTransform(mesh), pts))
     return out
@@ -303,11 +303,12 @@ def test_xforms_layout_matches_instancer(tmp_path):
         assert [op.GetOpName() for op in ops] == ["xformOp:translate", "xformOp:orient"]
         assert ops[0].GetPrecision() == UsdGeom.XformOp.PrecisionDouble
         assert ops[1].GetPrecision() == UsdGeom.XformOp.PrecisionFloat
-        assert prim.GetChild("mesh").GetTypeName() == "Mesh"
+        assert prim.GetChild(model.shapes[model.body_shape[b]].name).GetTypeName() == "Mesh"
     proto = xf.GetPrimAtPath("/World/Prototypes/cone")
     assert proto.GetSpecifier() == Sdf.SpecifierClass and proto.IsAbstract()
-    # Prototypes are not part of the default traversal (not drawn, not imported).
-    assert not any(p.GetPath().HasPrefix("/World/Prototypes/cone") for p in xf.Traverse())
+    # Prototypes, and the Scope holding them, are not part of the default traversal
+    # (not drawn, not imported: no stray empty object in a DCC).
+    assert not any(p.GetPath().HasPrefix("/World/Prototypes") for p in xf.Traverse())
 
     for f in range(N_FRAMES):
         a = instancer_vertices(inst, model, frames, f)
@@ -560,3 +561,91 @@ def test_timing_printed(tmp_path):
         info = write_usd(tmp_path / f"{layout}.usdc", frames, model, layout=layout)
         print(f"\n{layout}: {n_bodies} bodies x {n_frames} frames -> {info.bytes / 1e6:.1f} MB "
               f"in {time.perf_counter() - t0:.3f} s ({info.n_time_samples} time samples)")
+
+
+# ------------------------------------------------------- what a DCC shows (issue 20)
+
+
+def _meshes(stage):
+    """Every Mesh a DCC imports or draws: instance proxies included, abstract prototypes not."""
+    return [p for p in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
+            if p.GetTypeName() == "Mesh"]
+
+
+@pytest.mark.parametrize("layout", ["instancer", "xforms"])
+def test_every_mesh_has_a_bound_preview_surface_of_its_colour(tmp_path, layout):
+    from pxr import UsdShade
+
+    model, frames = make_model(), make_frames()
+    stage = Usd.Stage.Open(str(write_usd(tmp_path / "a.usda", frames, model, layout=layout).path))
+    meshes = _meshes(stage)
+    # 3 prototypes (instancer) or 7 bodies (xforms), plus 2 planes, a box and a static mesh
+    assert len(meshes) == (3 if layout == "instancer" else 7) + 4
+    colours = set()
+    for prim in meshes:
+        material, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
+        assert material, f"{prim.GetPath()} has no bound material"
+        shader = material.ComputeSurfaceSource()[0]
+        assert shader and shader.GetIdAttr().Get() == "UsdPreviewSurface"
+        diffuse = np.array(shader.GetInput("diffuseColor").Get())
+        display = np.array(UsdGeom.Mesh(prim).GetDisplayColorAttr().Get()[0])
+        np.testing.assert_allclose(diffuse, display, atol=1e-7)
+        colours.add(tuple(np.round(diffuse, 4)))
+    assert len(colours) == 4          # a colour per shape, one for the colliders
+
+
+@pytest.mark.parametrize("layout", ["instancer", "xforms"])
+def test_meshes_are_named_after_their_shapes(tmp_path, layout):
+    model, frames = make_model(), make_frames()
+    stage = Usd.Stage.Open(str(write_usd(tmp_path / "a.usdc", frames, model, layout=layout).path))
+    shape_names = {s.name for s in model.shapes}
+    for prim in _meshes(stage):
+        assert prim.GetName().lower() not in ("mesh", "geo", "geometry", "shape")
+        if prim.GetPath().HasPrefix("/World/Bodies"):
+            assert prim.GetName() in shape_names
+    if layout == "xforms":     # the bodies keep their own names on their Xforms
+        for b in range(model.n_bodies):
+            prim = stage.GetPrimAtPath(body_prim_path(model, b))
+            assert prim.GetChild(model.shapes[model.body_shape[b]].name).IsValid()
+
+
+def test_normals_are_faceted_on_a_box_and_smooth_on_a_ball(tmp_path):
+    model, frames = make_model(), make_frames()
+    stage = Usd.Stage.Open(str(write_usd(tmp_path / "a.usdc", frames, model).path))
+    for name in ("brick", "ball"):
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/Bodies/Prototypes/{name}"))
+        assert mesh.GetNormalsInterpolation() == UsdGeom.Tokens.faceVarying
+        normals = np.array(mesh.GetNormalsAttr().Get(), dtype=np.float64)
+        pts = np.array(mesh.GetPointsAttr().Get(), dtype=np.float64)
+        idx = np.array(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+        assert normals.shape == (idx.size, 3)
+        np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-6)
+        tri = pts[idx]
+        face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        face_n /= np.linalg.norm(face_n, axis=1, keepdims=True)
+        corner_face_n = np.repeat(face_n, 3, axis=0)
+        if name == "brick":    # every corner carries its own face's normal: flat shading
+            np.testing.assert_allclose(normals, corner_face_n, atol=1e-6)
+        else:                  # smooth: radial to 1.5 degrees (a subdivision-2 icosphere's
+            # vertex normal is the mean of 5-6 faces ~ 8 degrees apart, all within the crease)
+            radial = pts[idx.reshape(-1)] / np.linalg.norm(pts[idx.reshape(-1)], axis=1, keepdims=True)
+            assert np.degrees(np.arccos(np.clip((normals * radial).sum(1), -1, 1))).max() < 1.5
+            assert not np.allclose(normals, corner_face_n, atol=1e-3)
+        # outward: the normals point away from the body's centre of mass
+        assert ((normals * pts[idx.reshape(-1)]).sum(1) > 0).all()
+
+
+def test_corner_normals_crease_at_the_angle():
+    from dempipe.export.usd import corner_normals
+
+    # Two triangles folded along the x axis by 20 degrees: one smooth normal at the shared
+    # edge; folded by 60 degrees: each keeps its own.
+    def fold(deg):
+        a = np.radians(deg)
+        v = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -np.cos(a), np.sin(a)]], float)
+        return v, np.array([[0, 1, 2], [1, 0, 3]])
+    for deg, smooth in ((20.0, True), (60.0, False)):
+        v, f = fold(deg)
+        n = corner_normals(v, f)
+        shared0, shared1 = n[0], n[4]     # vertex 0 in face 0 and in face 1
+        assert np.allclose(shared0, shared1) == smooth

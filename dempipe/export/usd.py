@@ -137,11 +137,12 @@ def write_usd(path, frames, model, *, layout: str = "instancer", overwrite: bool
     with Sdf.ChangeBlock():
         _author_metadata(layer, frames, model, layout)
         world = Sdf.PrimSpec(layer.pseudoRoot, "World", _DEF, "Xform")
+        materials, collider_material = _shape_materials(world, model)
         if layout == "instancer":
-            n_samples = _author_instancer(layer, world, frames, model, sparse)
+            n_samples = _author_instancer(layer, world, frames, model, sparse, materials)
         else:
-            n_samples = _author_xforms(layer, world, frames, model, sparse)
-        _author_colliders(layer, world, frames, model)
+            n_samples = _author_xforms(layer, world, frames, model, sparse, materials)
+        _author_colliders(layer, world, frames, model, collider_material)
 
     _save_atomically(layer, path)
     return ExportInfo(
@@ -279,8 +280,13 @@ def _quat_xyzw(q_wxyz: np.ndarray, dtype) -> np.ndarray:
     return np.ascontiguousarray(q[..., [1, 2, 3, 0]], dtype=dtype)
 
 
-def _author_mesh(prim, vertices, faces, color) -> None:
-    """Points, topology, extent, displayColor of a polygon mesh prim."""
+def _author_mesh(prim, vertices, faces, color, material=None) -> None:
+    """Points, topology, extent, normals, displayColor and material of a polygon mesh prim.
+
+    ``material``: the path of a ``UsdShade.Material`` to bind (``material:binding``),
+    so that DCC tools show ``color`` by default: most ignore ``displayColor`` unless a
+    material reads it (Blender, Maya, Omniverse), and usdview draws the material too.
+    """
     pts = np.ascontiguousarray(vertices, dtype=np.float32)
     faces = np.asarray(faces, dtype=np.int32)
     _attr(prim, "points", _T.Point3fArray, Vt.Vec3fArray.FromNumpy(pts))
@@ -295,9 +301,94 @@ def _author_mesh(prim, vertices, faces, color) -> None:
         ext = np.zeros((2, 3), np.float32)
     _attr(prim, "extent", _T.Float3Array, Vt.Vec3fArray.FromNumpy(ext))
     _attr(prim, "subdivisionScheme", _T.Token, "none", uniform=True)
+    if len(faces):
+        normals = _attr(prim, "normals", _T.Normal3fArray, Vt.Vec3fArray.FromNumpy(
+            np.ascontiguousarray(corner_normals(vertices, faces), dtype=np.float32)))
+        normals.SetInfo("interpolation", "faceVarying")
     col = _attr(prim, "primvars:displayColor", _T.Color3fArray,
                 Vt.Vec3fArray([Gf.Vec3f(*map(float, color))]))
     col.SetInfo("interpolation", "constant")
+    if material is not None:
+        prim.SetInfo("apiSchemas", Sdf.TokenListOp.CreateExplicit(["MaterialBindingAPI"]))
+        rel = Sdf.RelationshipSpec(prim, "material:binding", custom=False)
+        rel.targetPathList.explicitItems = [material]
+
+
+#: Faces meeting at a smaller angle than this share their normals at a corner
+#: (smooth shading); at a larger one the edge stays sharp. Blender's default
+#: "auto smooth" angle: a box stays faceted, a revolved chess piece is smooth
+#: between its 11.25-degree segments and sharp at the rim of its base.
+CREASE_ANGLE_DEG = 30.0
+
+
+def corner_normals(vertices, faces, crease_deg: float = CREASE_ANGLE_DEG) -> np.ndarray:
+    """Face-varying normals (F * K, 3) of a polygon mesh (K corners a face).
+
+    At each corner, the area-weighted mean of the normals of the faces that share
+    its vertex and lie within ``crease_deg`` of the corner's own face: faceted
+    where faces meet at a sharp angle, smooth across shallow ones (what Houdini's
+    cusp angle and Blender's auto smooth do). Without authored normals every DCC
+    smooths the whole mesh, so a box looks like a pillow. Deterministic (sums in a
+    fixed order).
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    k = f.shape[1]
+    # Polygon normal by Newell's method (area-weighted; exact for triangles).
+    p = v[f]
+    q = np.roll(p, -1, axis=1)
+    fn = np.stack([((p[..., 1] - q[..., 1]) * (p[..., 2] + q[..., 2])).sum(1),
+                   ((p[..., 2] - q[..., 2]) * (p[..., 0] + q[..., 0])).sum(1),
+                   ((p[..., 0] - q[..., 0]) * (p[..., 1] + q[..., 1])).sum(1)], axis=1)
+    length = np.linalg.norm(fn, axis=1, keepdims=True)
+    unit = fn / np.where(length > 0, length, 1.0)
+    corner_v = f.reshape(-1)
+    corner_f = np.repeat(np.arange(len(f)), k)
+    # Every (corner, face at the corner's vertex) pair, grouped by vertex.
+    order = np.argsort(corner_v, kind="stable")
+    count = np.bincount(corner_v, minlength=len(v))
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    n_at = count[corner_v[order]]                      # faces at each sorted corner's vertex
+    i = np.repeat(np.arange(len(order)), n_at)         # sorted corner of each pair
+    first = start[corner_v[order]]
+    run = np.repeat(np.cumsum(n_at) - n_at, n_at)
+    j = first[i] + (np.arange(len(i)) - run)           # sorted corner giving the face
+    c, g = order[i], corner_f[order[j]]
+    near = (unit[g] * unit[corner_f[c]]).sum(1) >= np.cos(np.radians(crease_deg)) - 1e-9
+    c, g = c[near], g[near]
+    out = np.stack([np.bincount(c, weights=fn[g, a], minlength=len(corner_v))
+                    for a in range(3)], axis=1)
+    norm = np.linalg.norm(out, axis=1, keepdims=True)
+    flat = unit[corner_f]
+    return np.where(norm > 0, out / np.where(norm > 0, norm, 1.0), flat)
+
+
+def _author_material(looks, name, color):
+    """A ``UsdPreviewSurface`` material of diffuse ``color`` under ``looks``; its path.
+
+    Every renderer and DCC importer reads UsdPreviewSurface; the diffuse colour
+    also reads as the object's colour in viewports. Authored with Sdf like the rest.
+    """
+    mat = Sdf.PrimSpec(looks, name, _DEF, "Material")
+    shader = Sdf.PrimSpec(mat, "PreviewSurface", _DEF, "Shader")
+    _attr(shader, "info:id", _T.Token, "UsdPreviewSurface", uniform=True)
+    _attr(shader, "inputs:diffuseColor", _T.Color3f, Gf.Vec3f(*map(float, color)))
+    _attr(shader, "inputs:roughness", _T.Float, 0.6)
+    _attr(shader, "inputs:metallic", _T.Float, 0.0)
+    out = _attr(shader, "outputs:surface", _T.Token)
+    surface = _attr(mat, "outputs:surface", _T.Token)
+    surface.connectionPathList.explicitItems = [out.path]
+    return mat.path
+
+
+def _shape_materials(world, model):
+    """One material per shape (its palette colour), and one for the colliders:
+    ``(shape material paths, collider material path)`` under ``/World/Looks``."""
+    looks = Sdf.PrimSpec(world, "Looks", _DEF, "Scope")
+    names = _unique_names([f"{s.name}_mat" for s in model.shapes] + ["collider_mat"])
+    paths = [_author_material(looks, n, _PALETTE[i % len(_PALETTE)])
+             for i, n in enumerate(names[:-1])]
+    return paths, _author_material(looks, names[-1], _COLLIDER_COLOR)
 
 
 def _shape_points(model, mpu):
@@ -308,7 +399,7 @@ def _shape_points(model, mpu):
 # -------------------------------------------------------------------- instancer
 
 
-def _author_instancer(layer, world, frames, model, sparse) -> int:
+def _author_instancer(layer, world, frames, model, sparse, materials) -> int:
     mpu = float(model.meters_per_unit)
     bodies = Sdf.PrimSpec(world, "Bodies", _DEF, "PointInstancer")
     protos = Sdf.PrimSpec(bodies, "Prototypes", _DEF, "Scope")
@@ -317,7 +408,7 @@ def _author_instancer(layer, world, frames, model, sparse) -> int:
     proto_paths = []
     for i, (shape, name, pts) in enumerate(zip(model.shapes, shape_names, points)):
         mesh = Sdf.PrimSpec(protos, name, _DEF, "Mesh")
-        _author_mesh(mesh, pts, shape.faces, _PALETTE[i % len(_PALETTE)])
+        _author_mesh(mesh, pts, shape.faces, _PALETTE[i % len(_PALETTE)], materials[i])
         proto_paths.append(mesh.path)
     rel = Sdf.RelationshipSpec(bodies, "prototypes", custom=False)
     rel.targetPathList.explicitItems = proto_paths
@@ -401,19 +492,21 @@ def _write_array_samples(layer, attr_path, times, values, to_vt, keep) -> int:
 # ----------------------------------------------------------------------- xforms
 
 
-def _author_xforms(layer, world, frames, model, sparse) -> int:
+def _author_xforms(layer, world, frames, model, sparse, materials) -> int:
     mpu = float(model.meters_per_unit)
-    # Prototypes: one class Xform per shape holding a Mesh child. Classes are
-    # abstract (not drawn, not imported as objects); each body references its
-    # shape's class and is instanceable, so the mesh is stored and drawn once.
-    protos = Sdf.PrimSpec(world, "Prototypes", _DEF, "Scope")
+    # Prototypes: one class Xform per shape holding a Mesh child named after the
+    # shape. Classes are abstract (not drawn, not imported as objects), and so is
+    # the Scope that holds them, so no empty object appears in a DCC; each body
+    # references its shape's class and is instanceable, so the mesh is stored and
+    # drawn once, and a DCC lists each body's mesh under its shape's name.
+    protos = Sdf.PrimSpec(world, "Prototypes", _CLASS, "Scope")
     shape_names = _unique_names(s.name for s in model.shapes)
     points = _shape_points(model, mpu)
     proto_paths = []
     for i, (shape, name, pts) in enumerate(zip(model.shapes, shape_names, points)):
         cls = Sdf.PrimSpec(protos, name, _CLASS, "Xform")
-        mesh = Sdf.PrimSpec(cls, "mesh", _DEF, "Mesh")
-        _author_mesh(mesh, pts, shape.faces, _PALETTE[i % len(_PALETTE)])
+        mesh = Sdf.PrimSpec(cls, name, _DEF, "Mesh")
+        _author_mesh(mesh, pts, shape.faces, _PALETTE[i % len(_PALETTE)], materials[i])
         proto_paths.append(cls.path)
 
     bodies = Sdf.PrimSpec(world, "Bodies", _DEF, "Xform")
@@ -541,7 +634,7 @@ def _box_walls(box, up: int):
     return np.concatenate(verts), np.concatenate(faces)
 
 
-def _author_colliders(layer, world, frames, model) -> None:
+def _author_colliders(layer, world, frames, model, material) -> None:
     mpu = float(model.meters_per_unit)
     up = {"Y": 1, "Z": 2}[str(model.up_axis).upper()]
     plane_point = np.asarray(getattr(model, "plane_point", np.zeros((0, 3)))).reshape(-1, 3)
@@ -555,17 +648,17 @@ def _author_colliders(layer, world, frames, model) -> None:
     quad = np.array([[0, 1, 2, 3]], dtype=np.int32)
     for i, (p, nrm) in enumerate(zip(plane_point, plane_normal)):
         prim = Sdf.PrimSpec(col, f"plane_{i}", _DEF, "Mesh")
-        _author_mesh(prim, _plane_quad(p, nrm, positions) / mpu, quad, _COLLIDER_COLOR)
+        _author_mesh(prim, _plane_quad(p, nrm, positions) / mpu, quad, _COLLIDER_COLOR, material)
     for i, box in enumerate(boxes):
         prim = Sdf.PrimSpec(col, f"box_{i}", _DEF, "Mesh")
         verts, faces = _box_walls(box, up)
-        _author_mesh(prim, verts / mpu, faces, _COLLIDER_COLOR)
+        _author_mesh(prim, verts / mpu, faces, _COLLIDER_COLOR, material)
     reserved = {f"plane_{i}" for i in range(len(plane_point))} | {f"box_{i}" for i in range(len(boxes))}
     names = _unique_names(list(reserved) + [m.name for m in statics])[len(reserved):]
     for name, mesh in zip(names, statics):
         prim = Sdf.PrimSpec(col, name, _DEF, "Mesh")
         _author_mesh(prim, np.asarray(mesh.vertices, dtype=np.float64) / mpu, mesh.faces,
-                     _COLLIDER_COLOR)
+                     _COLLIDER_COLOR, material)
 
 
 # ------------------------------------------------------------------ atomic save
