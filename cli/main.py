@@ -7,6 +7,12 @@ become one line on stderr and a non-zero exit; tracebacks only with ``--debug``.
 
 from __future__ import annotations
 
+# First of all, before click and the library load: the stop handlers
+# (dempipe.interrupt), so that a signal during start-up stops cleanly too.
+from dempipe import interrupt as _interrupt  # noqa: I001  (cheap: no numpy, no pxr)
+
+_interrupt.install()
+
 import logging
 import sys
 import warnings

@@ -152,7 +152,9 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
     start, end = parse_frame_range(frames, model.n_frames, model.first_frame)
 
     src = Path(scene_path).name
-    from .stability import ERROR, expected_speeds, soft_contact, tunnelling
+    from .stability import ERROR, check_run_time, expected_speeds, soft_contact, tunnelling
+
+    check_run_time(model, src, scene)
 
     closing = expected_speeds(model)[1]
     for risk in (tunnelling(model, model.dt, closing,
