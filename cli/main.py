@@ -12,6 +12,7 @@ from __future__ import annotations
 from dempipe import interrupt as _interrupt  # noqa: I001  (cheap: no numpy, no pxr)
 
 _interrupt.install()
+_interrupt.hold()       # until main() can catch the stop: recorded, raised there
 
 import logging
 import sys
@@ -94,6 +95,8 @@ def main(argv=None):
     interrupt.install()
     debug = "--debug" in (argv if argv is not None else sys.argv[1:])
     try:
+        interrupt.release()
+        interrupt.check()           # a stop during the imports above
         app.main(args=argv, prog_name="dempipe", standalone_mode=False)
         interrupt.check()           # a stop swallowed by a library: still a stop
     except interrupt.StopRequested as exc:

@@ -249,12 +249,12 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
         checkpoint_seconds=store.checkpoint_seconds_spent,
     )
     kept = store.frames_kept()
-    if kept <= start:
-        store.remove() if not isinstance(failure, KeyboardInterrupt) else None
-        if failure is not None and not isinstance(failure, KeyboardInterrupt):
-            raise failure
-        if failure is not None:
+    if kept <= start:                  # nothing to write
+        if isinstance(failure, KeyboardInterrupt):
             raise _interrupted(failure, scene_path, out, store, None, 0, report)
+        store.remove()
+        if failure is not None:
+            raise failure
         raise StabilityError(f"{src}: no frame in {frames} was reached")
 
     from .export.chunks import write_usd_chunks

@@ -134,6 +134,26 @@ def deferred():
         _deferred -= 1
 
 
+_held = False
+
+
+def hold() -> None:
+    """Record signals without raising until :func:`release` (a program's module-level
+    start-up, where an exception would escape every handler)."""
+    global _deferred, _held
+    if not _held:
+        _held = True
+        _deferred += 1
+
+
+def release() -> None:
+    """End :func:`hold`; a stop recorded meanwhile raises at the next check()."""
+    global _deferred, _held
+    if _held:
+        _held = False
+        _deferred -= 1
+
+
 @contextlib.contextmanager
 def undeferred():
     """Within a deferred() block: a stretch where a signal raises at once again
