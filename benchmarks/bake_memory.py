@@ -40,6 +40,9 @@ sphere_diameter = 0.02
 stiffness_target_overlap = 0.05
 sleeping = true
 
+[simulation.sleep]
+time = 0.1
+
 [shapes.ball]
 builtin = "sphere"
 diameter = 0.02

@@ -37,6 +37,8 @@ BENCHMARKS = {
     "vs_bullet": (["--n", "256", "--duration", "1"], ["--n", "256,1024,4096"]),
     "two_bakes": ([], []),
     "sphere_table": (["--resolutions", "8", "--repeat", "1"], []),
+    "bake_memory": (["--balls", "400", "--durations", "1", "10", "--overhead", "--repeat", "1"],
+                    ["--overhead"]),
 }
 
 

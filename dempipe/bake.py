@@ -200,8 +200,8 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
     def after_frame(k, st):
         if checkpoints and store.due():
             store.checkpoint(sim, st)
-        elif not checkpoints and store.buffer.full:
-            store.keep_tail()
+        elif store.buffer.full:
+            store.keep_tail()             # frames to disk; the next checkpoint commits them
 
     failure = None
     if point is None or point.frames_done < n_frames:
@@ -245,7 +245,8 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
                       for n, c, s, k in model.build_info.get("shapes", [])],
         stiffness={n: k for n, k in model.stiffness_auto},
         export_seconds=0.0, layout=layout, completed=failure is None,
-        resumed=resuming, checkpoints=store.checkpoints,
+        resumed=resuming, resumed_from_frame=point.frames_done if point else None,
+        checkpoints=store.checkpoints,
         checkpoint_seconds=store.checkpoint_seconds_spent,
     )
     kept = store.frames_kept()
@@ -263,6 +264,10 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
     try:
         info = write_usd_chunks(target, store.frame_chunks(), model, layout=layout,
                                 start=start)
+    except KeyboardInterrupt as exc:    # a stop while writing: the frames are on disk
+        if failure is not None:
+            raise
+        raise _interrupted(exc, scene_path, out, store, None, 0, report) from None
     except ExportError as exc:
         # the frames are safe in the work folder: say so, and how to write them again
         raise ExportError(f"{exc}; the {kept} frames baked are kept in {store.dir}: free "
@@ -288,8 +293,12 @@ def _interrupted(failure, scene_path, out, store, target, written, report):
 
     signum = getattr(failure, "signum", None)
     why = f"stopped by {signal_name(signum)}" if signum else "interrupted"
-    kept = (f"{written} frames kept in {target}" if target is not None
-            else "no frame finished")
+    if target is not None:
+        kept = f"{written} frames kept in {target}"
+    elif store.frames_kept():
+        kept = f"while writing {out}; its {store.frames_kept()} frames are kept"
+    else:
+        kept = "no frame finished"
     if store.exists() and store.state_file:
         done = store.frames_done
         again = (f"; checkpoint at frame {done} in {store.dir}: resume with "

@@ -8,9 +8,11 @@ A bake to ``out.usdc`` keeps, beside it, the hidden folder ``.out.usdc.bake/``::
     state-000001.npz     the State (and the backend's persistent arrays) after frame b-1
 
 Frames are buffered in memory for one chunk at most (CHUNK_BYTES), so the memory
-of a bake does not grow with its number of frames; the USD file is assembled from
-the chunks at the end (dempipe.export.usd.write_usd_chunks) and the folder is
-removed. Each chunk is followed by a checkpoint: the full State, what the
+of a bake does not grow with its number of frames; the USD file is assembled
+from the chunks at the end (dempipe.export.chunks.write_usd_chunks) and the folder
+is removed. Once CHECKPOINT_SECONDS have passed since the last checkpoint (or
+after every chunk, when ``chunk_frames`` is given), the frames buffered go to a
+chunk and a checkpoint follows: the full State, what the
 simulator needs to go on (Simulator.run_point) and the backend's arrays that
 carry from one step call to the next (PERSISTENT). ``dempipe bake --resume``
 (``bake(..., resume=True)``) continues from the last one and, on the CPU, writes
@@ -44,7 +46,7 @@ from .frames import Frames
 #: Format of meta.json; a folder of another format is refused.
 FORMAT = 1
 #: Frames are written out once the buffered ones hold this many bytes.
-CHUNK_BYTES = 32 << 20
+CHUNK_BYTES = 8 << 20
 #: ... or once this many seconds of wall time have passed since the last checkpoint:
 #: what a SIGKILL can lose at most (besides the frame being computed).
 CHECKPOINT_SECONDS = 60.0
@@ -199,10 +201,13 @@ class BakeStore:
         self.settings = dict(settings)
         frame_bytes = 16 + n_bodies * 13 * 8
         self.chunk_frames = int(chunk_frames or max(1, CHUNK_BYTES // frame_bytes))
+        #: a checkpoint after every chunk (chunk_frames given), else once
+        #: checkpoint_seconds have passed (chunks in between hold frames only)
+        self.every_chunk = chunk_frames is not None
         self.checkpoint_seconds = float(checkpoint_seconds)
         self.buffer = FrameBuffer(n_bodies, self.chunk_frames)
         self.chunks: list = []        # [file, first frame index, frames] up to the checkpoint
-        self.tail: list = []          # chunks after it (a stop that left the State unusable)
+        self.tail: list = []          # chunks written since (committed by the next one)
         self.frames_done = 0          # frames in self.chunks
         self.state_file = None
         self.point: dict | None = None
@@ -270,9 +275,10 @@ class BakeStore:
                         v, w)
 
     def due(self) -> bool:
-        """Whether the buffered frames should go to disk with a checkpoint now."""
-        return self.buffer.full or (
-            self.buffer.n and time.monotonic() - self.last_checkpoint >= self.checkpoint_seconds)
+        """Whether a checkpoint is due now (after the frame just added)."""
+        if self.every_chunk:
+            return self.buffer.full
+        return time.monotonic() - self.last_checkpoint >= self.checkpoint_seconds
 
     def _write_chunk(self) -> list | None:
         if self.buffer.n == 0:
@@ -294,7 +300,9 @@ class BakeStore:
         t0 = time.perf_counter()
         entry = self._write_chunk()
         if entry is not None:
-            self.chunks.append(entry)
+            self.tail.append(entry)
+        self.chunks += self.tail          # committed with this checkpoint's meta.json
+        self.tail = []
         self.frames_done = sum(c[2] for c in self.chunks)
         if hasattr(sim.backend, "download"):        # CUDA: the histories live there
             sim.backend.download(state, contacts=True)
@@ -328,8 +336,9 @@ class BakeStore:
         self.checkpoint_seconds_spent += time.perf_counter() - t0
 
     def keep_tail(self) -> None:
-        """Write the buffered frames without a checkpoint (the State is not usable):
-        they go into the partial file; a resume recomputes them."""
+        """Write the buffered frames without a checkpoint (a full chunk between two
+        checkpoints, or a stop that left the State unusable): they count for the
+        file; a resume from the last checkpoint recomputes them."""
         entry = self._write_chunk()
         if entry is not None:
             self.tail.append(entry)

@@ -193,7 +193,7 @@ class Simulator:
         as ``exc.frames``.
         """
         m = self.model
-        n_frames = int(n_frames or m.n_frames)
+        n_frames = m.n_frames if n_frames is None else int(n_frames)
         frames = Frames.empty(n_frames, m.n_bodies)
 
         def record(k, frame_number, st, v, w):
@@ -205,7 +205,7 @@ class Simulator:
             exc.frames = frames.head(exc.frames_done)
             raise
         except KeyboardInterrupt as exc:
-            exc.frames = frames.head(getattr(exc, "frames_done", 0))
+            exc.frames = frames.head(getattr(self, "frames_done", 0))
             raise
         return frames
 
@@ -235,6 +235,7 @@ class Simulator:
         m = self.model
         spf = int(m.steps_per_frame)
         if resume is None:
+            self.frames_done = 0
             self.base_step = int(state.step)
             self.first_number = m.first_frame + round(state.time * m.fps)
             vw = self.backend.velocities(state)
