@@ -121,6 +121,7 @@ def main(argv=None) -> None:
         scene = write_scene(tmp, a.balls, a.durations[0])
         cache = SphereCache(tmp / "cache")
         times = {True: [], False: []}
+        inside = []
         n_ckpt = 0
         for _ in range(a.repeat):
             for ckpt in (False, True):
@@ -130,9 +131,12 @@ def main(argv=None) -> None:
                 times[ckpt].append(time.perf_counter() - t0)
                 if ckpt:
                     n_ckpt = r.report["checkpoints"]
+                    inside.append(r.report["checkpoint_seconds"])
         off, on = statistics.median(times[False]), statistics.median(times[True])
         print(f"\ncheckpoints: {n_ckpt} per bake (a chunk of 8 frames each); median of "
-              f"{a.repeat}: without {off:.2f} s, with {on:.2f} s, ratio {on / off:.3f}")
+              f"{a.repeat}: without {off:.2f} s, with {on:.2f} s, ratio {on / off:.3f}; "
+              f"time inside the checkpoints {statistics.median(inside):.2f} s "
+              f"({statistics.median(inside) / on:.1%} of the bake)")
 
 
 if __name__ == "__main__":
