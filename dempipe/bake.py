@@ -58,19 +58,20 @@ def parse_frame_range(text: str | None, n_frames: int, first: int) -> tuple[int,
 
 
 def check_writable(folder, what: str = "output folder") -> None:
-    """Create ``folder`` if missing and write (then remove) a file in it: an
-    ExportError naming the folder and the OS's reason when that fails. Called
+    """Write (then remove) a file in ``folder``, or, if it is missing, in the nearest
+    folder above it that exists: an ExportError naming the folder and the OS's reason
+    when that fails. Called
     before any work, so a bake never simulates for hours into a folder it cannot
     write (root passes the permission bits, so a real write is the only test)."""
     folder = Path(folder)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ExportError(f"{folder}: cannot create the {what} "
-                          f"({exc.strerror or exc})") from None
-    if not folder.is_dir():
-        raise ExportError(f"{folder}: the {what} is not a folder")
-    probe = folder / f".dempipe-write-test-{os.getpid()}"
+    # a missing folder is not created here (a scene error must leave nothing behind):
+    # the nearest existing folder above it must take the new one
+    where = folder
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    if not where.is_dir():
+        raise ExportError(f"{folder}: cannot create the {what} ({where} is not a folder)")
+    probe = where / f".dempipe-write-test-{os.getpid()}"
     try:
         with open(probe, "wb") as fh:
             fh.write(b"ok")
@@ -80,7 +81,10 @@ def check_writable(folder, what: str = "output folder") -> None:
             probe.unlink()
         except OSError:
             pass
-        raise ExportError(f"{folder}: the {what} is not writable "
+        if where == folder:
+            raise ExportError(f"{folder}: the {what} is not writable "
+                              f"({exc.strerror or exc})") from None
+        raise ExportError(f"{folder}: cannot create the {what} in {where} "
                           f"({exc.strerror or exc})") from None
 
 
