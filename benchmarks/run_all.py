@@ -41,6 +41,8 @@ BENCHMARKS = {
     "sphere_table": (["--resolutions", "8", "--repeat", "1"], []),
     "wedge": (["--quick"], []),
     "sphere_modes": (["--resolutions", "8", "--shapes", "sphere", "box"], []),
+    "bake_memory": (["--balls", "400", "--durations", "1", "10", "--overhead", "--repeat", "1"],
+                    ["--overhead"]),
 }
 
 

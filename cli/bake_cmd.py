@@ -36,6 +36,29 @@ class Progress:
         click.echo(end, err=True, nl=False)
 
 
+def _device_text(r) -> str:
+    if r["device"] == "cpu":
+        import numba
+
+        n = r.get("threads") or numba.get_num_threads()
+        return f"the CPU ({n} thread{'s' if n != 1 else ''})"
+    return "the CUDA GPU"
+
+
+def clamp_threads(threads, warn):
+    """--threads above what numba may use here is lowered to it, with a note."""
+    if threads is None:
+        return None
+    import numba
+
+    most = int(numba.config.NUMBA_NUM_THREADS)
+    if threads > most:
+        warn(f"--threads {threads}: only {most} available here (cores or NUMBA_NUM_THREADS); "
+             f"using {most}")
+        return most
+    return threads
+
+
 @click.command("bake")
 @click.argument("scene", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
@@ -55,6 +78,15 @@ class Progress:
 @click.option("--force", is_flag=True,
               help="Bake even a scene that `dempipe check` refuses: deep frame-0 overlaps, "
                    "a dt above the critical step, tunnelling speeds.")
+@click.option("--checkpoint-every", "checkpoint_seconds", type=click.FloatRange(min=0),
+              default=None, metavar="SECONDS",
+              help="Longest wall time between two checkpoints: what a SIGKILL or power cut "
+                   "can lose [default: 60].")
+@click.option("--chunk-frames", type=click.IntRange(min=1), default=None, hidden=True,
+              help="Frames per chunk written to disk (default: 32 MiB of frames).")
+@click.option("--resume", is_flag=True,
+              help="Go on from the checkpoint an interrupted bake to OUTPUT left (the same "
+                   "scene and settings; from frame 0 when there is none).")
 @click.option("--resolution", type=click.IntRange(min=1), default=None,
               help="Spheres across the smallest shape (replaces the scene's; for a bare "
                    "USD stage, dempipe's own setting).")
@@ -63,9 +95,14 @@ class Progress:
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
 def bake(scene, output, device, layout, frames, threads, report_path, cache_dir, force,
-         resolution, sphere_diameter, quiet, debug):
+         checkpoint_seconds, chunk_frames, resume, resolution, sphere_diameter, quiet, debug):
     """Simulate SCENE (a .toml scene file, or a UsdPhysics stage .usd/.usda/.usdc) and
-    write its animation to OUTPUT (for a stage: an overlay layer over it)."""
+    write its animation to OUTPUT (for a stage: an overlay layer over it).
+
+    Frames go to disk as they are made, with checkpoints, in a hidden folder beside
+    OUTPUT. SIGINT, SIGTERM or SIGHUP stop the bake within about a second: the
+    frames done are written to OUTPUT's .partial file and `--resume` goes on from
+    the last checkpoint (docs/faults.md)."""
     from dempipe.bake import bake as run_bake, write_report
     from dempipe.cache import SphereCache
     from dempipe.errors import DempipeError
@@ -73,11 +110,19 @@ def bake(scene, output, device, layout, frames, threads, report_path, cache_dir,
     def warn(msg):
         click.echo(f"warning: {msg}", err=True)
 
-    cache = SphereCache(cache_dir) if cache_dir else None
+    if report_path:
+        from pathlib import Path
+
+        from dempipe.bake import check_writable
+
+        check_writable(Path(report_path).parent, "report folder")
+    cache = SphereCache(cache_dir, strict=True) if cache_dir else None
+    threads = clamp_threads(threads, warn)
     try:
         result = run_bake(scene, output, device=device, layout=layout, frames=frames,
                           threads=threads, cache=cache, progress=Progress(quiet), warn=warn,
-                          force=force, simulation={k: v for k, v in (
+                          force=force, resume=resume, chunk_frames=chunk_frames,
+                          checkpoint_seconds=checkpoint_seconds, simulation={k: v for k, v in (
                               ("resolution", resolution), ("sphere_diameter", sphere_diameter))
                               if v is not None})
     except DempipeError as exc:
@@ -91,7 +136,8 @@ def bake(scene, output, device, layout, frames, threads, report_path, cache_dir,
     if not quiet:
         click.echo(
             f"wrote {result.path}: {r['bodies']} bodies, {r['frames']} frames, "
-            f"{r['steps']} steps of {r['dt']:.3g} s in {r['simulate_seconds']:.1f} s "
+            f"{r['steps']} steps of {r['dt']:.3g} s in {r['simulate_seconds']:.1f} s on "
+            f"{_device_text(r)} "
             f"({r['sphere_steps_per_second'] / 1e6:.2f} M sphere-steps/s"
             + (f"; {r['steps_skipped_asleep']} skipped, every body asleep"
                if r.get("steps_skipped_asleep") else "")

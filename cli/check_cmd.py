@@ -9,6 +9,7 @@ is not in the sphere-set cache yet.
 
 from __future__ import annotations
 
+import json
 import sys
 
 import click
@@ -25,8 +26,18 @@ def check(scene, as_json, cache_dir):
     from dempipe.cache import SphereCache
     from dempipe.stability import analyze_scene
 
-    cache = SphereCache(cache_dir) if cache_dir else None
-    report = analyze_scene(scene, cache=cache)
+    from dempipe.errors import DempipeError
+
+    try:
+        cache = SphereCache(cache_dir, strict=True) if cache_dir else None
+        report = analyze_scene(scene, cache=cache)
+    except DempipeError as exc:
+        if not as_json:
+            raise
+        # --json promises JSON on stdout, for scripts: the error too
+        click.echo(json.dumps(dict(scene=scene, ok=False, error=str(exc),
+                                   kind=type(exc).__name__), indent=2))
+        sys.exit(exc.exit_code)
     if as_json:
         click.echo(report.to_json(indent=2))
     else:

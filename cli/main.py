@@ -7,6 +7,13 @@ become one line on stderr and a non-zero exit; tracebacks only with ``--debug``.
 
 from __future__ import annotations
 
+# First of all, before click and the library load: the stop handlers
+# (dempipe.interrupt), so that a signal during start-up stops cleanly too.
+from dempipe import interrupt as _interrupt  # noqa: I001  (cheap: no numpy, no pxr)
+
+_interrupt.install()
+_interrupt.hold()       # until main() can catch the stop: recorded, raised there
+
 import logging
 import sys
 import warnings
@@ -84,13 +91,28 @@ def app(ctx, debug):
 
 
 def main(argv=None):
-    """Console entry point: run the app, turn DempipeError into one line + exit code."""
+    """Console entry point: run the app, turn DempipeError into one line + exit code.
+
+    The stop handlers (dempipe.interrupt) go in first, so that SIGINT, SIGTERM and
+    SIGHUP stop even the start-up cleanly (exit 128 + the signal's number) and a
+    bake keeps its frames and checkpoint."""
+    from dempipe import interrupt
+
+    interrupt.install()
     debug = "--debug" in (argv if argv is not None else sys.argv[1:])
     try:
+        interrupt.release()
+        interrupt.check()           # a stop during the imports above
         app.main(args=argv, prog_name="dempipe", standalone_mode=False)
+        interrupt.check()           # a stop swallowed by a library: still a stop
+    except interrupt.StopRequested as exc:
+        click.echo(f"stopped by {interrupt.signal_name(exc.signum)}", err=True)
+        sys.exit(exc.exit_code)
     except click.exceptions.Abort:
-        click.echo("Aborted.", err=True)
-        sys.exit(130)
+        stop = interrupt.requested()
+        click.echo("Aborted." if stop is None else f"stopped by {interrupt.signal_name(stop)}",
+                   err=True)
+        sys.exit(130 if stop is None else 128 + stop)
     except click.ClickException as exc:
         exc.show()
         sys.exit(exc.exit_code)

@@ -70,6 +70,9 @@ def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, 
         threads=threads, plots=not no_plots,
         sphere_modes=tuple(m.strip() for m in sphere_modes.split(",") if m.strip())
         if sphere_modes else None)
+    from dempipe.bake import check_writable
+
+    check_writable(output, "report folder")     # before any bake, not after all of them
     cache = SphereCache(cache_dir, strict=True) if cache_dir else None
     say = (lambda line: None) if quiet else (lambda line: click.echo(line, err=True))
     if workers is None and scheduler is None:

@@ -30,6 +30,17 @@ def _resolve_input(arg: str, scale: float):
                      f"(shapes: {known})")
 
 
+def _make_parent(out: str) -> None:
+    from dempipe.errors import ExportError
+
+    parent = Path(out).parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ExportError(f"{parent}: cannot create the output folder "
+                          f"({exc.strerror or exc})") from None
+
+
 def _output_path(out: str, name: str) -> str:
     return out.replace("{name}", name)
 
@@ -119,6 +130,11 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
     for arg in inputs:
         name, mesh = _resolve_input(arg, scale)
         d = diameter if diameter is not None else diameter_for_resolution(mesh, resolution)
+        from dempipe.stability import check_lattice
+
+        check_lattice(mesh, d, "--diameter" if diameter is not None else "--resolution",
+                      "Fix: " + ("raise --diameter" if diameter is not None
+                                 else "lower --resolution"), f"shape {name}")
         for mode in mode_list:
             sphere_set, info = build_sphere_set_with_info(mesh, d, name=name, cache=cache,
                                                           options=BuildOptions(mode=mode))
@@ -145,6 +161,7 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
                 row["hausdorff"], row["bump"] = e.hausdorff, e.bump
             if output is not None:
                 out = _output_path(output, name).replace("{mode}", mode)
+                _make_parent(out)       # as bake does for its output
                 save_sphere_set(out, sphere_set, mesh=mesh, name=name)
                 row["output"] = out
             results.append(row)

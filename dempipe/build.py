@@ -127,6 +127,11 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
         # "spheres across the longest extent of the smallest shape"
         d = min(diameter_for_resolution(meshes[n], res) for n in names)
 
+    # sizes checked before anything is allocated: lattices, bodies (one line naming
+    # the key that makes a scene too big for this machine)
+    from .stability import check_lattice, preflight_scene
+
+    preflight_scene(scene, meshes, d)
     t0 = time.perf_counter()
     hits = []
     layers = sim.contact_layers if o.contact_layers is None else o.contact_layers
@@ -164,6 +169,9 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
             b.add_box(c.min, c.max, c.open_top, mi, c.thickness, up=up)
         else:
             mesh = _collider_mesh(c, f"{src}: colliders.{c.name}")
+            check_lattice(mesh, d, f"{src}: colliders.{c.name}",
+                          "Fix: scale the collider down or use a plane or box collider",
+                          f"collider '{c.name}'")
             ss, info = build_sphere_set_with_info(mesh, d, name=c.name, cache=cache,
                                                   options=sphere_options(scene, None, o))
             hits.append((c.name, info.cache, info.seconds, ss.count))

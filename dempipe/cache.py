@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import os
 import sys
+import shutil
 import tempfile
 import time
 import warnings
@@ -123,6 +124,11 @@ class SphereCache:
         if self._disabled:
             return None
         path = self.path_for(key)
+        if path.is_dir():       # an entry replaced by a folder: remove it, rebuild
+            warnings.warn(f"sphere cache: entry {path} was a folder; removed and rebuilt",
+                          stacklevel=2)
+            shutil.rmtree(path, ignore_errors=True)
+            return None
         if not path.is_file():
             return None
         try:
@@ -205,8 +211,9 @@ class SphereCache:
     def _entries(self):
         if not self.root.is_dir():
             return []
+        # a folder in an entry's place counts as an entry, so `cache clear` mends it
         return sorted(p for p in self.root.glob("*.npz")
-                      if p.is_file() and not p.name.startswith(_TMP_PREFIX))
+                      if (p.is_file() or p.is_dir()) and not p.name.startswith(_TMP_PREFIX))
 
     def info(self) -> dict:
         """{"location": folder (str), "entries": count, "bytes": total size}."""
@@ -214,7 +221,7 @@ class SphereCache:
         size = 0
         for p in entries:
             try:
-                size += p.stat().st_size
+                size += p.stat().st_size if p.is_file() else 0
             except OSError:
                 pass
         return {"location": str(self.root), "entries": len(entries), "bytes": size}
@@ -225,7 +232,10 @@ class SphereCache:
         removed = 0
         for p in self._entries():
             try:
-                p.unlink()
+                if p.is_dir() and not p.is_symlink():
+                    shutil.rmtree(p)
+                else:
+                    p.unlink()
                 removed += 1
             except FileNotFoundError:
                 pass

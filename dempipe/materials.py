@@ -161,6 +161,9 @@ def auto_dt(omega_max: float, fps: float, steps_per_contact: float = STEPS_PER_C
     dt_max : a further bound [s] (flat faces, free spin), see ModelBuilder.finalize.
     Returns (dt, steps_per_frame).
     """
+    if omega_max == math.inf:
+        raise StabilityError(_STIFF_REFUSAL.format(what="infinitely stiff (the speeds or "
+                                                   "gravity overflow)"))
     if not (omega_max > 0.0 and math.isfinite(omega_max)):
         # No contact can happen (no colliders, one body): one step per 1/240 s
         # resolves free flight and tumbling well.
@@ -170,8 +173,19 @@ def auto_dt(omega_max: float, fps: float, steps_per_contact: float = STEPS_PER_C
         dt_target = tc / steps_per_contact
     dt_target = min(dt_target, dt_max)
     frame = 1.0 / fps
-    steps = max(1, math.ceil(frame / dt_target - 1e-9))
+    per_frame = frame / dt_target if dt_target > 0.0 else math.inf
+    if not per_frame < 1e15:
+        raise StabilityError(_STIFF_REFUSAL.format(
+            what=f"so stiff that a frame needs {per_frame:.3g} steps"))
+    steps = max(1, math.ceil(per_frame - 1e-9))
     return frame / steps, steps
+
+
+#: auto_dt's refusal of contacts no step can resolve (keys named for the user).
+_STIFF_REFUSAL = ("simulation.dt: the auto step finds the contacts {what}: check the "
+                  "bodies' velocity and angular_velocity, simulation.gravity and "
+                  "simulation.stiffness_target_overlap (physical values are metres per "
+                  "second, about 9.81 m/s² and 0.01-0.1)")
 
 
 def check_dt(dt: float, omega_max: float, zeta_min: float, where: str) -> None:

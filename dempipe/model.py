@@ -608,6 +608,7 @@ class ModelBuilder:
         omega_max, zeta_min, zeta_max = laws.stiffest(contacts, law_name)
         # flat landings (n spheres of a face at once) and free spin bound dt further
         dt_max = math.inf
+        flat_crit = math.inf        # the same without the safety: a user dt's limit
         if has_contacts:
             faces = [flat_face_spheres(np.asarray(sh.sphere_set.centers), d)
                      for sh in self._shapes]
@@ -620,8 +621,10 @@ class ModelBuilder:
                 m_flat = float(mass[body_group == gi].min())
                 for mj in (present if n_dyn > 1 else wall_mats):
                     half = 0.5 if (n_dyn > 1 and mj in dyn_present) else 1.0
-                    dt_max = min(dt_max, mat.FLAT_FACE_SAFETY * mat.flat_face_critical_step(
-                        n_face, table.k[mi, mj], m_flat * half, table.zeta[mi, mj]))
+                    flat = mat.flat_face_critical_step(n_face, table.k[mi, mj],
+                                                       m_flat * half, table.zeta[mi, mj])
+                    flat_crit = min(flat_crit, flat)
+                    dt_max = min(dt_max, mat.FLAT_FACE_SAFETY * flat)
         if n_dyn and np.any(w0):
             dt_max = min(dt_max, mat.MAX_SPIN_STEP / float(np.linalg.norm(w0, axis=1).max()))
         if n_dyn and float(launch.max()) > 0.0:
@@ -637,6 +640,12 @@ class ModelBuilder:
                 raise SceneError(f"{where}: dt must be positive seconds, got {dt!r}")
             if not force:
                 mat.check_dt(float(dt), omega_max, zeta_min, where)
+                if float(dt) >= flat_crit:
+                    raise StabilityError(
+                        f"{where}: dt = {dt:.3g} s is above the critical step {flat_crit:.3g} s "
+                        f"of a body resting flat on a face of its spheres (its contacts act "
+                        f"in parallel); use dt = \"auto\", a dt below {flat_crit / 2:.3g} s, "
+                        f"or softer materials")
             spf = max(1, round((1.0 / fps) / dt))
             dt_v = 1.0 / fps / spf
             if abs(dt_v - dt) > 1e-9 * dt and abs(dt_v - dt) / dt > 0.01:

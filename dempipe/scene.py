@@ -483,6 +483,9 @@ class _Ctx:
         if not p.is_absolute():
             p = self.base / p
         p = p.resolve()
+        if p.is_dir():
+            raise self.error(key, f"{p} is a folder, not a mesh file",
+                             "name the mesh file inside it")
         if not p.is_file():
             raise self.error(key, f"mesh file not found: {p}",
                              "paths are relative to the scene file's folder")

@@ -562,6 +562,8 @@ def load_mesh(path: str | os.PathLike, scale: float = 1.0) -> trimesh.Trimesh:
     if os.path.getsize(where) == 0:
         raise MeshError(f"{where}: file is empty")
 
+    if ext == ".stl":
+        _check_binary_stl(where)
     try:
         scene = _load_scene(where)
     except Exception as exc:  # trimesh raises many types for bad files
@@ -628,3 +630,27 @@ def mesh_digest(mesh: trimesh.Trimesh) -> str:
     h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
     h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
     return h.hexdigest()
+
+
+def _check_binary_stl(where: str) -> None:
+    """A binary STL whose size does not match its triangle count is damaged (cut
+    short, or not an STL): say so, rather than what trimesh's text fallback then
+    fails on (a missing text-encoding module)."""
+    size = os.path.getsize(where)
+    with open(where, "rb") as fh:
+        head = fh.read(84)
+    if size >= 84:
+        n = int.from_bytes(head[80:84], "little")
+        if size == 84 + 50 * n:
+            return                                   # a whole binary STL
+    if head.lstrip()[:5].lower() == b"solid":
+        try:
+            with open(where, "rb") as fh:
+                fh.read(4096).decode("ascii")
+            return                                   # text: trimesh reads it
+        except UnicodeDecodeError:
+            pass
+    n = int.from_bytes(head[80:84], "little") if size >= 84 else 0
+    raise MeshError(f"{where}: damaged binary STL: its header counts {n} triangles, "
+                    f"{84 + 50 * n} bytes, but the file has {size} bytes (cut short, or "
+                    f"not an STL file); export it again")

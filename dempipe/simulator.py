@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -41,12 +41,40 @@ MAX_ENERGY_GAIN = 0.10
 MAX_STEP_TRAVEL = 0.5
 
 
-class BakeFailure(StabilityError):
-    """A guard stopped the bake. ``frames`` holds every frame recorded before it."""
+#: A stepping call lasts about this long [s] (Simulator.run), so that a stop
+#: signal is seen within it; a frame whose steps take longer is split into calls.
+CALL_SECONDS = 0.2
+#: Steps of the first call of a run, before a step has been timed.
+FIRST_CALL_STEPS = 1
 
-    def __init__(self, message: str, frames: Frames):
+
+class BakeFailure(StabilityError):
+    """A guard stopped the bake. ``frames`` holds every frame recorded before it
+    (Simulator.advance; None from Simulator.run), ``frames_done`` their count."""
+
+    def __init__(self, message: str, frames: Frames | None):
         super().__init__(message)
         self.frames = frames
+        self.frames_done = 0 if frames is None else frames.n_frames
+
+
+@dataclass
+class RunPoint:
+    """Where a Simulator.run stopped, besides the State: enough to go on bit for bit.
+
+    base_step : State.step at frame index 0; first_number : frame number of index 0;
+    e0, gain : the energy guard's budget (from frame 0); frames_done : frames
+    recorded; pending_overlap : largest overlap [m] in the steps of the unfinished
+    frame; stats : RunStats so far.
+    """
+
+    base_step: int
+    first_number: int
+    e0: float
+    gain: float
+    frames_done: int
+    pending_overlap: float
+    stats: "RunStats"
 
 
 @dataclass
@@ -59,7 +87,6 @@ class RunStats:
     steps_skipped: int = 0
     wall_seconds: float = 0.0
     max_overlap: float = 0.0          # [m]
-    frame_overlap: list = field(default_factory=list)
 
     @property
     def seconds_per_step(self) -> float:
@@ -121,20 +148,10 @@ class Simulator:
         if threads:
             import numba
 
-            numba.set_num_threads(int(threads))
+            # more than numba may use here is an error there: use what there is
+            numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
         self.backend = make_backend(model, self.device, features, specialize)
         self.stats = RunStats()
-
-    def record(self, frames: Frames, k: int, state, frame_number: int, vw=None) -> None:
-        m = self.model
-        nb = m.n_bodies
-        v, w = vw if vw is not None else self.backend.velocities(state)
-        frames.frame_numbers[k] = frame_number
-        frames.times[k] = state.time
-        frames.x[k] = state.body_x[:nb]
-        frames.q[k] = state.body_q[:nb]
-        frames.v[k] = v
-        frames.w[k] = w
 
     def energy(self, state, v, w) -> float:
         """Kinetic (½ P·V + ½ L·W) plus gravitational potential energy [J] of the
@@ -171,39 +188,150 @@ class Simulator:
         """Record frame 0 (``state`` as given), then step to each further frame.
 
         progress : optional callable(frame_index, n_frames, stats) after each frame.
-        Raises BakeFailure (with the frames so far) when a guard trips;
-        KeyboardInterrupt propagates after attaching the frames as ``exc.frames``.
+        Returns every frame in memory (tests, `dempipe report`); a bake streams them
+        to disk instead (:meth:`run`). Raises BakeFailure (with the frames so far)
+        when a guard trips; KeyboardInterrupt propagates after attaching the frames
+        as ``exc.frames``.
         """
         m = self.model
         n_frames = m.n_frames if n_frames is None else int(n_frames)
         frames = Frames.empty(n_frames, m.n_bodies)
-        first = m.first_frame + round(state.time * m.fps)
-        vw = self.backend.velocities(state)
-        self.record(frames, 0, state, first, vw)
-        self._e0, self._gain = self._energy_budget(state, *vw)
-        if progress:
-            progress(0, n_frames, self.stats)
-        t0 = time.perf_counter()
-        for k in range(1, n_frames):
-            try:
-                self.backend.step(state, m.steps_per_frame)
-            except KeyboardInterrupt as exc:
-                exc.frames = frames.head(k)
-                raise
-            self.stats.steps += m.steps_per_frame
-            self.stats.steps_skipped = int(getattr(self.backend, "steps_skipped", 0))
-            self.stats.wall_seconds = time.perf_counter() - t0
-            overlap = self.backend.take_max_overlap()
-            self.stats.frame_overlap.append(overlap)
-            self.stats.max_overlap = max(self.stats.max_overlap, overlap)
-            vw = self.backend.velocities(state)
-            problem = self._check(state, overlap, k, *vw)
-            if problem:
-                raise BakeFailure(problem, frames.head(k))
-            self.record(frames, k, state, first + k, vw)
-            if progress:
-                progress(k, n_frames, self.stats)
+
+        def record(k, frame_number, st, v, w):
+            self.store(frames, k, st, frame_number, (v, w))
+
+        try:
+            self.run(state, n_frames, record, progress=progress)
+        except BakeFailure as exc:
+            exc.frames = frames.head(exc.frames_done)
+            raise
+        except KeyboardInterrupt as exc:
+            exc.frames = frames.head(getattr(self, "frames_done", 0))
+            raise
         return frames
+
+    def run(self, state, n_frames: int, record, progress=None, *, resume=None,
+            after_frame=None) -> None:
+        """Step ``state`` through frames 0 .. n_frames-1, handing each to ``record``.
+
+        record : callable(k, frame_number, state, v, w) at each frame index k (v, w:
+            the dynamic bodies' velocities, world frame).
+        after_frame : optional callable(k, state) once frame k is recorded (a bake
+            writes chunks and checkpoints there).
+        resume : None to start with frame 0 = ``state``; else a :class:`RunPoint`
+            from :meth:`run_point` of an earlier run of the same Model: ``state``
+            (restored by the caller) is where that run stopped, and recording goes
+            on from its next frame, bit for bit as if it had never stopped (CPU).
+
+        The steps of a frame are run in calls short enough (about CALL_SECONDS
+        each) that a stop signal (dempipe.interrupt) is seen between two of them:
+        it raises StopRequested with ``frames_done`` (frames recorded) after a
+        completed call, so :meth:`run_point` describes a consistent place to resume.
+        How the steps are split into calls does not change a bit of the result
+        (kernels/cpu.py, run_steps; tests/test_neighbours.py).
+        A guard that trips raises BakeFailure with ``frames_done``.
+        """
+        from . import interrupt
+
+        m = self.model
+        spf = int(m.steps_per_frame)
+        if resume is None:
+            self.frames_done = 0
+            self.base_step = int(state.step)
+            self.first_number = m.first_frame + round(state.time * m.fps)
+            vw = self.backend.velocities(state)
+            self._e0, self._gain = self._energy_budget(state, *vw)
+            self.frames_done = 0
+            self._pending_overlap = 0.0
+        else:
+            self.base_step = resume.base_step
+            self.first_number = resume.first_number
+            self._e0, self._gain = resume.e0, resume.gain
+            self.frames_done = resume.frames_done
+            self._pending_overlap = resume.pending_overlap
+            self.stats = resume.stats
+            self._skipped_before = int(resume.stats.steps_skipped)
+        t0 = time.perf_counter() - self.stats.wall_seconds
+        per_step = None          # seconds per step of the last call (None: not yet timed)
+        with interrupt.deferred():
+            if self.frames_done == 0:
+                record(0, self.first_number, state, *vw)
+                self.frames_done = 1
+                if progress:
+                    progress(0, n_frames, self.stats)
+                if after_frame:
+                    after_frame(0, state)
+            for k in range(self.frames_done, n_frames):
+                target = self.base_step + k * spf
+                while state.step < target:
+                    if interrupt.requested() is not None:
+                        self._pending_overlap = max(self._pending_overlap,
+                                                    self._peek_overlap())
+                        stop = interrupt.StopRequested(interrupt.requested())
+                        stop.frames_done = k
+                        raise stop
+                    n = target - state.step
+                    tc = time.perf_counter()
+                    if per_step is None:
+                        # the first call compiles the kernels (seconds, in Python): a
+                        # signal stops it at once; the State is then not trusted
+                        n = min(n, FIRST_CALL_STEPS)
+                        try:
+                            with interrupt.undeferred():
+                                self.backend.step(state, n)
+                        except interrupt.StopRequested as stop:
+                            stop.frames_done = None
+                            raise
+                    else:
+                        n = max(1, min(n, int(CALL_SECONDS / max(per_step, 1e-12))))
+                        self.backend.step(state, n)
+                    per_step = (time.perf_counter() - tc) / n
+                    self.stats.steps += n
+                    self.stats.steps_skipped = int(getattr(self.backend, "steps_skipped", 0)) \
+                        + self._skipped_before
+                    self.stats.wall_seconds = time.perf_counter() - t0
+                overlap = max(self.backend.take_max_overlap(), self._pending_overlap)
+                self._pending_overlap = 0.0
+                self.stats.max_overlap = max(self.stats.max_overlap, overlap)
+                vw = self.backend.velocities(state)
+                problem = self._check(state, overlap, k, *vw)
+                if problem:
+                    exc = BakeFailure(problem, None)
+                    exc.frames_done = k
+                    raise exc
+                record(k, self.first_number + k, state, *vw)
+                self.frames_done = k + 1
+                if progress:
+                    progress(k, n_frames, self.stats)
+                if after_frame:
+                    after_frame(k, state)
+
+    _skipped_before = 0
+
+    def _peek_overlap(self) -> float:
+        """Largest overlap since the last frame [m], without resetting it."""
+        ov = getattr(self.backend, "sphere_overlap", None)
+        if ov is None:
+            return 0.0
+        ov = np.asarray(ov.copy_to_host() if hasattr(ov, "copy_to_host") else ov)
+        return float(ov.max()) if ov.size else 0.0
+
+    def run_point(self) -> "RunPoint":
+        """Where :meth:`run` stands now, to resume from (with the State)."""
+        return RunPoint(base_step=self.base_step, first_number=self.first_number,
+                        e0=self._e0, gain=self._gain, frames_done=self.frames_done,
+                        pending_overlap=max(self._pending_overlap, self._peek_overlap()),
+                        stats=self.stats)
+
+    def store(self, frames: Frames, k: int, state, frame_number: int, vw) -> None:
+        """Frame ``k`` of ``frames`` from ``state`` and the velocities ``vw``."""
+        nb = self.model.n_bodies
+        frames.frame_numbers[k] = frame_number
+        frames.times[k] = state.time
+        frames.x[k] = state.body_x[:nb]
+        frames.q[k] = state.body_q[:nb]
+        frames.v[k] = vw[0]
+        frames.w[k] = vw[1]
 
     def _check(self, state, overlap: float, k: int, v=None, w=None) -> str | None:
         """Guards: non-finite state, overlap beyond half a diameter, energy growing

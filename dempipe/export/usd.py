@@ -35,6 +35,7 @@ from pxr import Gf, Sdf, Tf, Vt
 
 from .. import __version__
 from ..errors import ExportError
+from .samples import Scan, SparseTrack, as_source
 
 __all__ = ["ExportInfo", "write_usd", "LAYOUTS", "EXTENSIONS"]
 
@@ -92,7 +93,8 @@ def write_usd(path, frames, model, *, layout: str = "instancer", overwrite: bool
     path : str or Path
         Target file. Its extension picks the format (``.usd`` is binary crate).
         Missing parent folders are created.
-    frames : Frames
+    frames : Frames, or a samples.FrameSource (frames in blocks: a bake's chunks
+        on disk, samples.ChunkSource, never all in memory at once)
         ``frame_numbers`` (used as USD time codes), ``x``, ``q`` (w, x, y, z),
         ``v``, ``w`` of the model's dynamic bodies.
     model : Model
@@ -131,18 +133,19 @@ def write_usd(path, frames, model, *, layout: str = "instancer", overwrite: bool
         raise ExportError(f"unknown USD layout {layout!r} (known: {', '.join(LAYOUTS)})")
     if path.exists() and not overwrite:
         raise ExportError(f"{path}: file exists (pass overwrite=True or choose another path)")
-    _check_inputs(frames, model)
+    source = as_source(frames)
+    scan = _check_inputs(source, model)
 
     layer = Sdf.Layer.CreateAnonymous("dempipe" + ext)
     with Sdf.ChangeBlock():
-        _author_metadata(layer, frames, model, layout)
+        _author_metadata(layer, scan, model, layout)
         world = Sdf.PrimSpec(layer.pseudoRoot, "World", _DEF, "Xform")
         materials, collider_material = _shape_materials(world, model)
         if layout == "instancer":
-            n_samples = _author_instancer(layer, world, frames, model, sparse, materials)
+            n_samples = _author_instancer(layer, world, source, scan, model, sparse, materials)
         else:
-            n_samples = _author_xforms(layer, world, frames, model, sparse, materials)
-        _author_colliders(layer, world, frames, model, collider_material)
+            n_samples = _author_xforms(layer, world, source, scan, model, sparse, materials)
+        _author_colliders(layer, world, source, scan, model, collider_material)
 
     _save_atomically(layer, path)
     return ExportInfo(
@@ -156,24 +159,29 @@ def write_usd(path, frames, model, *, layout: str = "instancer", overwrite: bool
 # ----------------------------------------------------------------------- checks
 
 
-def _check_inputs(frames, model) -> None:
+def _check_inputs(source, model):
+    """Shapes, counts and model fields checked; returns the source's Scan."""
     n_bodies = int(model.n_bodies)
-    x = np.asarray(frames.x)
-    n_frames = x.shape[0] if x.ndim == 3 else -1
     expect = {"x": 3, "q": 4, "v": 3, "w": 3}
-    for name, k in expect.items():
-        a = np.asarray(getattr(frames, name))
-        if a.shape != (n_frames, n_bodies, k):
-            raise ExportError(
-                f"frames.{name} has shape {a.shape}, expected ({n_frames}, {n_bodies}, {k}) "
-                f"(the model has {n_bodies} dynamic bodies)"
-            )
-    if n_frames < 1:
+    scan = Scan()
+    for frames in source.blocks():
+        x = np.asarray(frames.x)
+        n_frames = x.shape[0] if x.ndim == 3 else -1
+        for name, k in expect.items():
+            a = np.asarray(getattr(frames, name))
+            if a.shape != (n_frames, n_bodies, k):
+                raise ExportError(
+                    f"frames.{name} has shape {a.shape}, expected ({n_frames}, {n_bodies}, "
+                    f"{k}) (the model has {n_bodies} dynamic bodies)"
+                )
+        fn = np.asarray(frames.frame_numbers)
+        if fn.shape != (n_frames,):
+            raise ExportError(f"frames.frame_numbers has shape {fn.shape}, expected "
+                              f"({n_frames},)")
+        scan.add(frames)
+    if scan.n_frames < 1:
         raise ExportError("no frames to export (bake at least one frame)")
-    fn = np.asarray(frames.frame_numbers)
-    if fn.shape != (n_frames,):
-        raise ExportError(f"frames.frame_numbers has shape {fn.shape}, expected ({n_frames},)")
-    if n_frames > 1 and not np.all(np.diff(fn) > 0):
+    if not scan.increasing:
         raise ExportError("frames.frame_numbers must be strictly increasing")
     if not (float(model.meters_per_unit) > 0):
         raise ExportError(f"meters_per_unit must be > 0 (got {model.meters_per_unit})")
@@ -185,12 +193,13 @@ def _check_inputs(frames, model) -> None:
         bs = np.asarray(model.body_shape)
         if bs.min() < 0 or bs.max() >= len(model.shapes):
             raise ExportError("model.body_shape refers to a shape that does not exist")
+    return scan
 
 
 # --------------------------------------------------------------------- metadata
 
 
-def _author_metadata(layer, frames, model, layout) -> None:
+def _author_metadata(layer, scan, model, layout) -> None:
     root = layer.pseudoRoot
     root.SetInfo("upAxis", str(model.up_axis).upper())
     root.SetInfo("metersPerUnit", float(model.meters_per_unit))
@@ -198,9 +207,8 @@ def _author_metadata(layer, frames, model, layout) -> None:
     fps = float(model.fps)
     layer.timeCodesPerSecond = fps
     layer.framesPerSecond = fps
-    fn = np.asarray(frames.frame_numbers)
-    layer.startTimeCode = float(fn[0])
-    layer.endTimeCode = float(fn[-1])
+    layer.startTimeCode = float(scan.first_number)
+    layer.endTimeCode = float(scan.last_number)
     layer.defaultPrim = "World"
     layer.documentation = (
         f"Rigid-body animation baked by dempipe {__version__} ({layout} layout)"
@@ -399,7 +407,7 @@ def _shape_points(model, mpu):
 # -------------------------------------------------------------------- instancer
 
 
-def _author_instancer(layer, world, frames, model, sparse, materials) -> int:
+def _author_instancer(layer, world, source, scan, model, sparse, materials) -> int:
     mpu = float(model.meters_per_unit)
     bodies = Sdf.PrimSpec(world, "Bodies", _DEF, "PointInstancer")
     protos = Sdf.PrimSpec(bodies, "Prototypes", _DEF, "Scope")
@@ -419,80 +427,135 @@ def _author_instancer(layer, world, frames, model, sparse, materials) -> int:
     _attr(bodies, "ids", _T.Int64Array,
           Vt.Int64Array.FromNumpy(np.arange(n_bodies, dtype=np.int64)))
 
-    times = [float(t) for t in np.asarray(frames.frame_numbers)]
-    x = _flush_tiny(np.asarray(frames.x, dtype=np.float64) / mpu)
-    pos = np.ascontiguousarray(x, dtype=np.float32)
-    ori = _quat_xyzw(frames.q, np.float16)
-    # A rate that turns or moves a body by less than float32's resolution of the
-    # scene's coordinates in one frame is float noise of a body at rest: write 0.
-    fps = float(model.fps)
-    v = np.array(frames.v, dtype=np.float64) / mpu
-    v[np.linalg.norm(v, axis=-1) < _TINY * fps * float(np.abs(x).max(initial=0.0))] = 0.0
-    w = np.array(frames.w, dtype=np.float64)
-    w[np.linalg.norm(w, axis=-1) < _TINY * fps] = 0.0
-    vel = np.ascontiguousarray(v, dtype=np.float32)
-    ang = np.ascontiguousarray(np.degrees(w), dtype=np.float32)
-
     # Conservative per-frame bound: instance centres ± the largest prototype radius.
     radius = max((float(np.linalg.norm(p, axis=1).max()) for p in points if len(p)), default=0.0)
-    if n_bodies:
-        ext = np.stack([pos.min(axis=1) - radius, pos.max(axis=1) + radius], axis=1)
-    else:
-        ext = np.zeros((len(times), 2, 3))
-    ext = np.ascontiguousarray(ext, dtype=np.float32)
-
     specs = {name: _attr(bodies, name, type_name).path for name, type_name in (
         ("positions", _T.Point3fArray), ("orientations", _T.QuathArray),
         ("velocities", _T.Vector3fArray), ("angularVelocities", _T.Vector3fArray),
         ("extent", _T.Float3Array))}
-    keep = {name: _array_keep(values, sparse) for name, values in (
-        ("positions", pos), ("orientations", ori), ("velocities", vel),
-        ("angularVelocities", ang), ("extent", ext))}
     # USD moves instances by their (angular) velocities only where those are sampled
     # at the same times as the positions (orientations); elsewhere it ignores them
     # and warns. So while positions are sampled, velocities get the same times.
-    for moving, rate in (("positions", "velocities"), ("orientations", "angularVelocities")):
-        if keep[moving] is not None:
-            keep[moving] = keep[rate] = (keep[moving] if keep[rate] is None
-                                         else keep[moving] | keep[rate])
-    n = 0
-    for name, values, to_vt in (
-        ("positions", pos, Vt.Vec3fArray.FromNumpy),
-        ("orientations", ori, Vt.QuathArray.FromNumpy),
-        ("velocities", vel, Vt.Vec3fArray.FromNumpy),
-        ("angularVelocities", ang, Vt.Vec3fArray.FromNumpy),
-        ("extent", ext, Vt.Vec3fArray.FromNumpy),
-    ):
-        n += _write_array_samples(layer, specs[name], times, values, to_vt, keep[name])
-    return n
+    writers = [
+        _ArrayPair(layer, specs["positions"], specs["velocities"], Vt.Vec3fArray.FromNumpy,
+                   Vt.Vec3fArray.FromNumpy, sparse),
+        _ArrayPair(layer, specs["orientations"], specs["angularVelocities"],
+                   Vt.QuathArray.FromNumpy, Vt.Vec3fArray.FromNumpy, sparse),
+        _ArrayPair(layer, specs["extent"], None, Vt.Vec3fArray.FromNumpy, None, sparse),
+    ]
+    fps = float(model.fps)
+    # the largest coordinate of all frames, as the whole-bake arrays had it
+    x_max = scan.max_abs_x / mpu
+    for frames in source.blocks():
+        x = _flush_tiny(np.asarray(frames.x, dtype=np.float64) / mpu)
+        pos = np.ascontiguousarray(x, dtype=np.float32)
+        ori = _quat_xyzw(frames.q, np.float16)
+        # A rate that turns or moves a body by less than float32's resolution of the
+        # scene's coordinates in one frame is float noise of a body at rest: write 0.
+        v = np.array(frames.v, dtype=np.float64) / mpu
+        v[np.linalg.norm(v, axis=-1) < _TINY * fps * x_max] = 0.0
+        w = np.array(frames.w, dtype=np.float64)
+        w[np.linalg.norm(w, axis=-1) < _TINY * fps] = 0.0
+        vel = np.ascontiguousarray(v, dtype=np.float32)
+        ang = np.ascontiguousarray(np.degrees(w), dtype=np.float32)
+        if n_bodies:
+            ext = np.stack([pos.min(axis=1) - radius, pos.max(axis=1) + radius], axis=1)
+        else:
+            ext = np.zeros((pos.shape[0], 2, 3))
+        ext = np.ascontiguousarray(ext, dtype=np.float32)
+        for f, t in enumerate(np.asarray(frames.frame_numbers)):
+            writers[0].push(float(t), pos[f], vel[f])
+            writers[1].push(float(t), ori[f], ang[f])
+            writers[2].push(float(t), ext[f], None)
+    return sum(wr.finish() for wr in writers)
 
 
-def _array_keep(values, sparse):
-    """Frames to write for a whole-array attribute: None when it gets a default
-    only (sparse and constant), else an (F,) bool mask."""
-    flat = values.reshape(values.shape[0], 1, -1)
-    if not sparse:
-        return np.ones(values.shape[0], dtype=bool)
-    if bool(_constant(flat)[0]):
-        return None
-    return _kept_samples(flat)[:, 0]
+class _ArrayPair:
+    """Samples of a whole-array attribute (``moving``) and of the rate that goes
+    with it (``rate``, or None), streamed frame by frame. Sparse: each keeps the
+    samples of _kept_samples (a default only if it never changes); while the
+    moving one is sampled, both are written at the union of their frames."""
 
+    def __init__(self, layer, moving, rate, to_vt_m, to_vt_r, sparse):
+        self.layer, self.paths, self.to_vt = layer, (moving, rate), (to_vt_m, to_vt_r)
+        self.sparse = sparse
+        self.tracks = (SparseTrack(1), SparseTrack(1) if rate is not None else None)
+        self.i = 0
+        self.t0 = self.t_prev = self.t_last = None
+        self.rate_alone = []        # (frame, time) the rate was written at, moving unsampled
+        self.written0 = [False, False]
+        self.n = 0
 
-def _write_array_samples(layer, attr_path, times, values, to_vt, keep) -> int:
-    """One whole array per kept frame (``keep``), or a default only (``keep`` None)."""
-    if keep is None:
-        layer.GetAttributeAtPath(attr_path).default = to_vt(values[0])
-        return 0
-    kept = np.flatnonzero(keep)
-    for i in kept:
-        layer.SetTimeSample(attr_path, times[i], to_vt(values[i]))
-    return len(kept)
+    def _set(self, which, t, values):
+        self.layer.SetTimeSample(self.paths[which], t, self.to_vt[which](values))
+        self.n += 1
+
+    def push(self, t, vm, vr) -> None:
+        i = self.i
+        self.i += 1
+        if self.t0 is None:
+            self.t0 = t
+        if not self.sparse:
+            self._set(0, t, vm)
+            if vr is not None:
+                self._set(1, t, vr)
+            return
+        tm, tr = self.tracks
+        fm, pm = tm.push(vm[None])
+        fr, pr = tr.push(vr[None]) if tr is not None else (fm & False, pm & False)
+        t_prev = self.t_prev
+        self.t_prev = t
+        frames_m = ([0] if fm[0] else []) + ([i - 1] if pm[0] else [])
+        frames_r = ([0] if fr[0] else []) + ([i - 1] if pr[0] else [])
+        if tr is None or not tm.moved[0]:
+            for f in frames_m:
+                self._set_frame(0, f, t_prev)
+            for f in frames_r:
+                self._set_frame(1, f, t_prev)
+                self.rate_alone.append((f, self.t0 if f == 0 else t_prev))
+            return
+        if fm[0]:       # the moving one starts to be sampled: at the rate's frames too
+            for f, tf in self.rate_alone:
+                if f == 0:
+                    continue
+                self.layer.SetTimeSample(self.paths[0], tf, self.to_vt[0](tm.first[0]))
+                self.n += 1
+            self.rate_alone = []
+        for f in sorted(set(frames_m) | set(frames_r)):
+            self._set_frame(0, f, t_prev)
+            self._set_frame(1, f, t_prev)
+
+    def _set_frame(self, which, f, t_prev) -> None:
+        track = self.tracks[which]
+        if f == 0:
+            if self.written0[which]:
+                return
+            self.written0[which] = True
+            self._set(which, self.t0, track.first[0])
+        else:
+            self._set(which, t_prev, track.prev_values[0])
+
+    def finish(self) -> int:
+        if not self.sparse:
+            return self.n
+        tm, tr = self.tracks
+        last = self.t_prev
+        for which, track in enumerate(self.tracks):
+            if track is None:
+                continue
+            moved = track.moved[0] or (which == 1 and tm.moved[0])
+            if moved:
+                self._set(which, last, track.prev[0])
+            else:
+                self.layer.GetAttributeAtPath(self.paths[which]).default = \
+                    self.to_vt[which](track.first[0])
+        return self.n
 
 
 # ----------------------------------------------------------------------- xforms
 
 
-def _author_xforms(layer, world, frames, model, sparse, materials) -> int:
+def _author_xforms(layer, world, source, scan, model, sparse, materials) -> int:
     mpu = float(model.meters_per_unit)
     # Prototypes: one class Xform per shape holding a Mesh child named after the
     # shape. Classes are abstract (not drawn, not imported as objects), and so is
@@ -513,54 +576,76 @@ def _author_xforms(layer, world, frames, model, sparse, materials) -> int:
     group_names = _unique_names(model.group_names)
     groups = [Sdf.PrimSpec(bodies, g, _DEF, "Xform") for g in group_names]
 
-    times = [float(t) for t in np.asarray(frames.frame_numbers)]
-    trans = np.ascontiguousarray(_flush_tiny(np.asarray(frames.x, dtype=np.float64) / mpu))
-    orient = _quat_xyzw(frames.q, np.float32)
-    n_frames, n_bodies = trans.shape[:2]
-    if sparse:
-        keep_t, keep_o = _kept_samples(trans), _kept_samples(orient)
-        const_t, const_o = _constant(trans), _constant(orient)
-    else:
-        keep_t = keep_o = np.ones((n_frames, n_bodies), dtype=bool)
-        const_t = const_o = np.zeros(n_bodies, dtype=bool)
-
     body_shape = np.asarray(model.body_shape)
     body_group = np.asarray(model.body_group)
     body_group_index = np.asarray(model.body_group_index)
     op_order = Vt.TokenArray(["xformOp:translate", "xformOp:orient"])
-    n = 0
+    n_bodies = int(model.n_bodies)
+    t_paths, o_paths = [], []
     for b in range(n_bodies):
         g = int(body_group[b])
         prim = Sdf.PrimSpec(groups[g], f"{group_names[g]}_{int(body_group_index[b])}", _DEF, "Xform")
         prim.referenceList.prependedItems.append(Sdf.Reference(primPath=proto_paths[int(body_shape[b])]))
         prim.instanceable = True
-        t_attr = _attr(prim, "xformOp:translate", _T.Double3)
-        o_attr = _attr(prim, "xformOp:orient", _T.Quatf)
+        t_paths.append(_attr(prim, "xformOp:translate", _T.Double3).path)
+        o_paths.append(_attr(prim, "xformOp:orient", _T.Quatf).path)
         _attr(prim, "xformOpOrder", _T.TokenArray, op_order, uniform=True)
 
-        n += _write_body_samples(layer, t_attr, times, Vt.Vec3dArray.FromNumpy(trans[:, b]),
-                                 const_t[b], keep_t[:, b])
-        n += _write_body_samples(layer, o_attr, times, Vt.QuatfArray.FromNumpy(orient[:, b]),
-                                 const_o[b], keep_o[:, b])
-    return n
+    writers = (_BodySamples(layer, t_paths, Vt.Vec3dArray.FromNumpy, sparse),
+               _BodySamples(layer, o_paths, Vt.QuatfArray.FromNumpy, sparse))
+    for frames in source.blocks():
+        trans = np.ascontiguousarray(_flush_tiny(np.asarray(frames.x, dtype=np.float64) / mpu))
+        orient = _quat_xyzw(frames.q, np.float32)
+        for f, t in enumerate(np.asarray(frames.frame_numbers)):
+            writers[0].push(float(t), trans[f])
+            writers[1].push(float(t), orient[f])
+    return sum(wr.finish() for wr in writers)
 
 
-def _write_body_samples(layer, spec, times, values, constant, keep) -> int:
-    """Samples of one body's attribute: a default only if constant, else the kept frames."""
-    if constant:
-        spec.default = values[0]
-        return 0
-    values = list(values)
-    path = spec.path
-    set_sample = layer.SetTimeSample
-    if keep.all():
-        for t, value in zip(times, values):
-            set_sample(path, t, value)
-        return len(values)
-    idx = np.flatnonzero(keep).tolist()
-    for i in idx:
-        set_sample(path, times[i], values[i])
-    return len(idx)
+class _BodySamples:
+    """Samples of one attribute per body (``paths``), streamed frame by frame: the
+    kept frames of _kept_samples per body, a default only for a body whose value
+    never changes (sparse), else every frame."""
+
+    def __init__(self, layer, paths, to_vt, sparse):
+        self.layer, self.paths, self.to_vt, self.sparse = layer, paths, to_vt, sparse
+        self.track = SparseTrack(len(paths))
+        self.t0 = self.t_prev = None
+        self.n = 0
+
+    def _write(self, t, values, mask) -> None:
+        idx = np.flatnonzero(mask)
+        if not idx.size:
+            return
+        vt = list(self.to_vt(np.ascontiguousarray(values[idx])))
+        set_sample, paths = self.layer.SetTimeSample, self.paths
+        for b, value in zip(idx.tolist(), vt):
+            set_sample(paths[b], t, value)
+        self.n += idx.size
+
+    def push(self, t, values) -> None:
+        if self.t0 is None:
+            self.t0 = t
+        if not self.sparse:
+            self._write(t, values, np.ones(len(self.paths), dtype=bool))
+            return
+        first, prev = self.track.push(values)
+        self._write(self.t0, self.track.first, first)
+        if prev.any():
+            self._write(self.t_prev, self.track.prev_values, prev)
+        self.t_prev = t
+
+    def finish(self) -> int:
+        if not self.sparse or self.track.i == 0:
+            return self.n
+        last, constant = self.track.finish()
+        self._write(self.t_prev, self.track.prev, last)
+        idx = np.flatnonzero(constant)
+        if idx.size:
+            vt = list(self.to_vt(np.ascontiguousarray(self.track.first[idx])))
+            for b, value in zip(idx.tolist(), vt):
+                self.layer.GetAttributeAtPath(self.paths[b]).default = value
+        return self.n
 
 
 # -------------------------------------------------------------------- colliders
@@ -634,7 +719,7 @@ def _box_walls(box, up: int):
     return np.concatenate(verts), np.concatenate(faces)
 
 
-def _author_colliders(layer, world, frames, model, material) -> None:
+def _author_colliders(layer, world, source, scan, model, material) -> None:
     mpu = float(model.meters_per_unit)
     up = {"Y": 1, "Z": 2}[str(model.up_axis).upper()]
     plane_point = np.asarray(getattr(model, "plane_point", np.zeros((0, 3)))).reshape(-1, 3)
@@ -644,7 +729,9 @@ def _author_colliders(layer, world, frames, model, material) -> None:
     if not (len(plane_point) or boxes or statics):
         return
     col = Sdf.PrimSpec(world, "Colliders", _DEF, "Xform")
-    positions = np.asarray(frames.x, dtype=np.float64)
+    # frame 0 and, per plane, the farthest position of all frames (samples.Scan)
+    positions = scan.plane_positions(source, list(zip(plane_point, plane_normal))) \
+        if len(plane_point) else None
     quad = np.array([[0, 1, 2, 3]], dtype=np.int32)
     for i, (p, nrm) in enumerate(zip(plane_point, plane_normal)):
         prim = Sdf.PrimSpec(col, f"plane_{i}", _DEF, "Mesh")
@@ -667,10 +754,18 @@ def _author_colliders(layer, world, frames, model, material) -> None:
 def _save_atomically(layer, path: Path) -> None:
     """Export ``layer`` to a temp file beside ``path`` (same extension, so the
     same file format), fsync it, then rename it over ``path``."""
+    from .. import interrupt
+
     tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        if not layer.Export(str(tmp)):
+        # create the file ourselves first: an unwritable folder or a full disk is
+        # then an OSError with the OS's reason, not pxr's C++ error text
+        with open(tmp, "wb"):
+            pass
+        with interrupt.temporary(tmp):
+            ok = layer.Export(str(tmp))
+        if not ok:
             raise OSError("USD could not write the layer")
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())
@@ -682,6 +777,8 @@ def _save_atomically(layer, path: Path) -> None:
             pass
         if not isinstance(exc, Exception):
             raise
+        if isinstance(exc, OSError) and exc.strerror:
+            raise ExportError(f"{path}: cannot write USD file ({exc.strerror})") from None
         text = str(exc).strip()
         cause = text.splitlines()[-1] if text else type(exc).__name__
         raise ExportError(f"{path}: cannot write USD file ({cause})") from exc
