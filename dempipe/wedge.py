@@ -17,9 +17,8 @@ It is rewritten atomically as each variant finishes.
 A variant that fails (a bad value, an unstable setting) fails its row only; the
 others bake. Run again, a wedge skips every variant whose row says ok, whose
 output exists and whose scene file is unchanged. A variant an earlier run left
-part-way (``v000.partial.usdc``) is baked again from frame 0 until
-:func:`dempipe.bake.bake` can resume one (issue 22: ``_bake_variant`` passes
-``resume=True`` as soon as bake() takes it).
+part-way (a worker killed, a stop signal: its checkpoint folder ``.v000.usdc.bake``
+is there) resumes from its last checkpoint through ``bake(..., resume=True)``.
 
 Dask is optional (``pip install "dempipe[farm]"``): see dempipe/farm.py for the
 cluster and how its workers' threads are sized, docs/farm.md for farms.
@@ -34,6 +33,7 @@ import json
 import math
 import os
 import re
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -443,17 +443,8 @@ def _tries_file(v: Variant) -> Path:
 # --------------------------------------------------------------------------- the task
 
 
-def _bake_can_resume() -> bool:
-    """Does bake() take resume= (issue 22)? Checked where the task runs."""
-    import inspect
-
-    from .bake import bake
-
-    return "resume" in inspect.signature(bake).parameters
-
-
 def _bake_variant(scene: str, output: str, tries: str, *, device=None, layout="instancer",
-                  force=False, cache_dir=None, resume=False) -> dict:
+                  force=False, cache_dir=None) -> dict:
     """The task: bake one variant's scene file on this worker; a dict, never an exception
     for the variant's own faults (a worker that dies is the scheduler's to retry)."""
     import socket
@@ -481,12 +472,22 @@ def _bake_variant(scene: str, output: str, tries: str, *, device=None, layout="i
         kwargs = dict(device=device, layout=layout, threads=threads, force=force,
                       cache=SphereCache(cache_dir) if cache_dir else None,
                       warn=warnings.append, progress=None)
-        if resume and _bake_can_resume():
-            kwargs["resume"] = True          # issue 22: carry on from the partial bake
         if not Path(scene).is_file():
             raise WedgeError(f"{scene}: not found on worker {worker}; the wedge's folder "
                              f"must be on a filesystem every worker sees (docs/farm.md)")
-        result = bake(scene, output, **kwargs)
+        from .checkpoint import CheckpointError, work_dir
+
+        if work_dir(output).exists():
+            # carry on from the checkpoint a stopped or killed bake left (an earlier run,
+            # or this task's try on a worker that died); one of another scene text (the
+            # wedge's base scene changed) is stale: bake from frame 0
+            try:
+                result = bake(scene, output, resume=True, **kwargs)
+            except CheckpointError:
+                shutil.rmtree(work_dir(output), ignore_errors=True)
+                result = bake(scene, output, **kwargs)
+        else:
+            result = bake(scene, output, **kwargs)
         out.update(status="ok", frames=result.report.get("frames"),
                    steps=result.report.get("steps"))
         partial = Path(output)
@@ -582,11 +583,11 @@ def wedge(scene_path, out_dir, *, seeds: int | None = None, vary=(),
         except SceneError as exc:
             _finish(rows[v.name], dict(status="failed: " + " ".join(str(exc).split())),
                     v, result, say, csv_path, keys)
+    from .checkpoint import work_dir
+
     for v in valid:
-        partial = v.output.with_name(f"{v.output.stem}.partial{v.output.suffix}")
-        if partial.exists() and not _bake_can_resume():
-            say(f"{v.name}: an earlier bake stopped part-way ({partial.name}); baking it again "
-                f"from frame 0 (resuming needs `dempipe bake --resume`)")
+        if work_dir(v.output).exists():
+            say(f"{v.name}: an earlier bake stopped part-way; resuming it from its checkpoint")
     if valid:
         if farm is not None:
             _run(farm, valid, rows, result, say, warn, csv_path, keys, device, layout, force,
@@ -620,11 +621,9 @@ def _run(farm, valid, rows, result, say, warn, csv_path, keys, device, layout, f
         warn(f"could not ask the workers what they were given ({type(exc).__name__})")
     futures = {}
     for v in valid:
-        partial = v.output.with_name(f"{v.output.stem}.partial{v.output.suffix}")
         fut = farm.submit(_bake_variant, str(v.scene), str(v.output), str(_tries_file(v)),
                           device=device, layout=layout, force=force,
-                          cache_dir=str(cache_dir) if cache_dir else None,
-                          resume=partial.exists(), key=f"dempipe-wedge-{v.name}-{os.getpid()}"
+                          cache_dir=str(cache_dir) if cache_dir else None, key=f"dempipe-wedge-{v.name}-{os.getpid()}"
                                                        f"-{time.time_ns()}")
         futures[fut] = v
     warned = set()

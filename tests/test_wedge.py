@@ -337,6 +337,15 @@ def test_a_killed_worker_loses_no_variant(farm, shared, tmp_path):
     assert len(retried) == 1 and retried[0]["worker"] != victim, rows
     for row in rows:
         assert samples(row["output"])[0].shape[0] == 25          # frames 0..24
+    # the retried variant (resumed from its checkpoint folder where the killed try left
+    # one) is the bake its scene file gives, bit for bit
+    from dempipe.bake import bake
+    from dempipe.cache import SphereCache
+
+    again = bake(retried[0]["scene"], tmp_path / "again.usdc", device="cpu", threads=1,
+                 cache=SphereCache(shared[1]))
+    for a, b in zip(samples(again.path), samples(retried[0]["output"])):
+        np.testing.assert_array_equal(a, b)
     farm.client.wait_for_workers(2, timeout=120)                  # the nanny restarted it
 
 
