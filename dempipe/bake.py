@@ -176,13 +176,18 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
                       chunk_frames=chunk_frames,
                       checkpoint_seconds=(CHECKPOINT_SECONDS if checkpoint_seconds is None
                                           else checkpoint_seconds))
-    resuming = bool(resume) and store.exists()
-    if resume and not resuming:
-        warn(f"no checkpoint of an earlier bake to {out} ({store.dir}): baking from frame 0")
-    if resuming:
+    resuming = False
+    if resume and store.exists():
         store.open()                       # CheckpointError if it does not fit
-    else:
-        if store.exists():
+        # a bake killed before its first checkpoint left a folder with no State in it
+        resuming = store.state_file is not None
+        if not resuming:
+            warn(f"the earlier bake to {out} stopped before its first checkpoint: baking "
+                 f"from frame 0")
+    elif resume:
+        warn(f"no checkpoint of an earlier bake to {out} ({store.dir}): baking from frame 0")
+    if not resuming:
+        if store.exists() and not resume:
             warn(f"an interrupted bake to {out} left a checkpoint ({store.dir}); starting "
                  f"again from frame 0 replaces it (use --resume to go on from it)")
         overlap, body = initial_overlap_all_spheres(scene, model, cache=cache)

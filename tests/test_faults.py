@@ -218,13 +218,15 @@ def test_stopped_bake_resumes_bit_identical(reference, tmp_path, sig):
         part = partial_path(out)                   # every finished frame is kept
         n_part = len(Sdf.Layer.FindOrOpen(str(part)).ListAllTimeSamples())
         assert n_part >= 12
-    leftovers = [q.name for q in tmp_path.rglob("*") if ".tmp" in q.name]
-    assert leftovers == []
+        # a stop removes its temporary files (a SIGKILL cannot: it may land inside an
+        # atomic write, whose temporary file the resume below removes)
+        assert [q.name for q in tmp_path.rglob("*") if ".tmp" in q.name] == []
     code, _, err = run("bake", scene, "-o", out, "--device", "cpu", "--chunk-frames", "4",
                        "--resume", "-q", cache=cache)
     assert code == 0, err
     assert_same_samples(ref, out)
     assert not work_dir(out).exists()
+    assert [q.name for q in tmp_path.rglob("*") if ".tmp" in q.name] == []
 
 
 def test_resume_refuses_other_scene_or_settings(reference, tmp_path):
@@ -364,6 +366,28 @@ def test_resume_without_checkpoint_bakes_from_zero(reference, tmp_path):
     bake(scene, out, device="cpu", cache=SphereCache(cache), resume=True, warn=notes.append)
     assert any("no checkpoint" in n for n in notes)
     assert_same_samples(ref, out)
+
+
+def test_resume_of_a_bake_killed_before_its_first_checkpoint(reference, tmp_path):
+    # The work folder exists (meta.json, no State yet): what a worker SIGKILLed in
+    # its first minute leaves. --resume bakes from frame 0, the same frames.
+    scene, ref, cache = reference
+    from dempipe.build import build_model
+    from dempipe.cache import SphereCache
+    from dempipe.checkpoint import BakeStore, model_fingerprint
+    from dempipe.scene import load_scene
+
+    out = tmp_path / "early.usda"
+    model = build_model(load_scene(scene), cache=SphereCache(cache))
+    store = BakeStore(out, model_fingerprint(model),
+                      dict(device="cpu", frames=f"0:{model.n_frames - 1}"), model.n_bodies)
+    store.create()
+    assert (work_dir(out) / "meta.json").is_file()
+    notes = []
+    bake(scene, out, device="cpu", cache=SphereCache(cache), resume=True, warn=notes.append)
+    assert any("before its first checkpoint" in n for n in notes), notes
+    assert_same_samples(ref, out)
+    assert not work_dir(out).exists()
 
 
 @pytest.mark.slow
