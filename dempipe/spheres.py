@@ -21,7 +21,12 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from .errors import MeshError, ShapeError
-from .surface_spheres import DEFAULT_SPACING
+
+#: Default spacing of the surface mode's shell centres, as a fraction of the diameter
+#: d. Chosen from the measured bump height (docs/spheres.md, "Surface mode"): at 0.3 d
+#: the envelope of a flat face or a round one dips at most ~0.03 d between neighbours.
+#: Here rather than in surface_spheres, so that `dempipe check` does not import numba.
+DEFAULT_SPACING = 0.3
 
 #: The sphere-set modes: "lattice" (solid voxelization, Harada et al.) and "surface"
 #: (centres on the inward offset of the surface, so round bodies roll).

@@ -41,10 +41,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-#: Default spacing of the shell's centres, as a fraction of the diameter d. Chosen from
-#: the measured bump height (docs/spheres.md, "Surface mode"): at 0.3 d the envelope
-#: of a flat face or a round one dips at most ~0.03 d between neighbours.
-DEFAULT_SPACING = 0.3
+from .spheres import DEFAULT_SPACING
+
 #: Projection iterations onto the offset surface (converged to 1e-12 r on smooth parts
 #: after 2-3; the rest is for candidates near concave edges).
 _PROJECT_ITERS = 8
