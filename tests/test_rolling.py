@@ -70,7 +70,12 @@ def bake(tmp_path, shape, z, *, mode="surface", rotation="[1.0, 0.0, 0.0, 0.0]",
                         dt=DT, mode=mode, e=e, mu=mu, k=k, shape=textwrap.dedent(shape), z=z,
                         rotation=rotation)
     scene = parse_scene(text, tmp_path / "incline.toml")
-    model = build_model(scene)
+    # force: model.finalize refuses a given dt above the flat-face critical step, which
+    # counts every sphere of a surface set within 0.25 d of its extreme plane as one
+    # face (a curved band, not a face: far more than touch at once). These settings
+    # roll stably (the energy guard and overlap limits still run); the bound's count
+    # for surface sets is an open item (docs/spheres.md, "Surface mode").
+    model = build_model(scene, force=True)
     frames = Simulator(model).advance(model.initial_state())
     return model, frames
 
