@@ -130,6 +130,20 @@ def _bin_boxes(lo, hi, origin, cell, dims):
     return count, items
 
 
+@numba.njit(cache=True, inline="always")
+def _cell_span(lx, ly, lz, hx, hy, hz, origin, cell, dims):
+    """Grid cells (i0, j0, k0, i1, j1, k1) of the box (l, h): the low corner's clamped
+    below at 0, the high corner's above at dims - 1, so a box outside the grid spans
+    no cell."""
+    i0 = max(0, int(math.floor((lx - origin[0]) / cell)))
+    j0 = max(0, int(math.floor((ly - origin[1]) / cell)))
+    k0 = max(0, int(math.floor((lz - origin[2]) / cell)))
+    i1 = min(dims[0] - 1, int(math.floor((hx - origin[0]) / cell)))
+    j1 = min(dims[1] - 1, int(math.floor((hy - origin[1]) / cell)))
+    k1 = min(dims[2] - 1, int(math.floor((hz - origin[2]) / cell)))
+    return i0, j0, k0, i1, j1, k1
+
+
 @numba.njit(parallel=True, cache=True)
 def _closest_kernel(points, tris, origin, cell, dims, start, items, reach, out_d, out_q):
     """Closest point of the mesh to each point among the triangles within ``reach``;
@@ -137,12 +151,8 @@ def _closest_kernel(points, tris, origin, cell, dims, start, items, reach, out_d
     n = points.shape[0]
     for p in numba.prange(n):
         px, py, pz = points[p, 0], points[p, 1], points[p, 2]
-        i0 = max(0, int(math.floor((px - reach - origin[0]) / cell)))
-        j0 = max(0, int(math.floor((py - reach - origin[1]) / cell)))
-        k0 = max(0, int(math.floor((pz - reach - origin[2]) / cell)))
-        i1 = min(dims[0] - 1, int(math.floor((px + reach - origin[0]) / cell)))
-        j1 = min(dims[1] - 1, int(math.floor((py + reach - origin[1]) / cell)))
-        k1 = min(dims[2] - 1, int(math.floor((pz + reach - origin[2]) / cell)))
+        i0, j0, k0, i1, j1, k1 = _cell_span(px - reach, py - reach, pz - reach, px + reach,
+                                            py + reach, pz + reach, origin, cell, dims)
         best = np.inf
         qx, qy, qz = px, py, pz
         for k in range(k0, k1 + 1):
@@ -171,12 +181,9 @@ def _ray_kernel(points, dirs, tris, origin, cell, dims, start, items, length, ou
         px, py, pz = points[p, 0], points[p, 1], points[p, 2]
         dx, dy, dz = dirs[p, 0], dirs[p, 1], dirs[p, 2]
         ex, ey, ez = px + length * dx, py + length * dy, pz + length * dz
-        i0 = max(0, int(math.floor((min(px, ex) - origin[0]) / cell)))
-        j0 = max(0, int(math.floor((min(py, ey) - origin[1]) / cell)))
-        k0 = max(0, int(math.floor((min(pz, ez) - origin[2]) / cell)))
-        i1 = min(dims[0] - 1, int(math.floor((max(px, ex) - origin[0]) / cell)))
-        j1 = min(dims[1] - 1, int(math.floor((max(py, ey) - origin[1]) / cell)))
-        k1 = min(dims[2] - 1, int(math.floor((max(pz, ez) - origin[2]) / cell)))
+        i0, j0, k0, i1, j1, k1 = _cell_span(min(px, ex), min(py, ey), min(pz, ez),
+                                            max(px, ex), max(py, ey), max(pz, ez),
+                                            origin, cell, dims)
         best = np.inf
         for k in range(k0, k1 + 1):
             for j in range(j0, j1 + 1):
@@ -260,12 +267,8 @@ def _nearest_within(points, centers, origin, cell, dims, start, items, out):
     n = points.shape[0]
     for p in numba.prange(n):
         px, py, pz = points[p, 0], points[p, 1], points[p, 2]
-        i0 = max(0, int(math.floor((px - cell - origin[0]) / cell)))
-        j0 = max(0, int(math.floor((py - cell - origin[1]) / cell)))
-        k0 = max(0, int(math.floor((pz - cell - origin[2]) / cell)))
-        i1 = min(dims[0] - 1, int(math.floor((px + cell - origin[0]) / cell)))
-        j1 = min(dims[1] - 1, int(math.floor((py + cell - origin[1]) / cell)))
-        k1 = min(dims[2] - 1, int(math.floor((pz + cell - origin[2]) / cell)))
+        i0, j0, k0, i1, j1, k1 = _cell_span(px - cell, py - cell, pz - cell, px + cell,
+                                            py + cell, pz + cell, origin, cell, dims)
         best = np.inf
         for k in range(k0, k1 + 1):
             for j in range(j0, j1 + 1):
