@@ -222,6 +222,14 @@ class BodyGroup:
     [kg m²], when given; None: the shape's, scaled to the mass."""
     starts_asleep: bool = False
     """Whether the bodies start asleep (they wake when something touches them)."""
+    kinematic: bool = False
+    """Whether the bodies follow ``motion`` instead of integrating (``[bodies.motion]``):
+    they push dynamic bodies and are never pushed."""
+    motion: Any = None
+    """A ``dempipe.motion.Motion`` for a kinematic group, or None."""
+    start_time: float = 0.0
+    """Time the bodies enter the simulation [s] (an emitter): before it they are not
+    simulated, not touched and hidden in the output."""
 
 
 @dataclass(frozen=True)
@@ -236,6 +244,8 @@ class PlaneCollider:
     """Material name."""
     name: str = "plane"
     """Collider name (USD prim name)."""
+    motion: Any = None
+    """A ``dempipe.motion.Motion`` (``[colliders.motion]``), or None: static."""
 
 
 @dataclass(frozen=True)
@@ -254,6 +264,8 @@ class BoxCollider:
     """Material name."""
     name: str = "box"
     """Collider name (USD prim name)."""
+    motion: Any = None
+    """A ``dempipe.motion.Motion`` (``[colliders.motion]``), or None: static."""
 
 
 @dataclass(frozen=True)
@@ -279,6 +291,8 @@ class MeshCollider:
     builtin or mesh_path."""
     name: str = "mesh"
     """Collider name (USD prim name)."""
+    motion: Any = None
+    """A ``dempipe.motion.Motion`` (``[colliders.motion]``), or None: static."""
 
 
 Collider = Union[PlaneCollider, BoxCollider, MeshCollider]
