@@ -30,6 +30,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
 from .errors import SceneError
+from .motion import Key, Motion
 
 __all__ = [
     "Scene", "OutputSettings", "SimulationSettings", "SleepSettings", "MaterialSpec",
@@ -531,17 +532,22 @@ _SPHERE_MODES = ("lattice", "surface")
 _SLEEP_KEYS = ("linear_speed", "angular_speed", "time")
 _MATERIAL_KEYS = ("density", "restitution", "friction", "stiffness")
 _BODY_COMMON = ("name", "shape", "material", "count", "layout", "rotation", "velocity",
-                "angular_velocity")
+                "angular_velocity", "kinematic", "motion", "start_time")
 _LAYOUT_KEYS = {
     "single": ("position",),
     "grid": ("origin", "dims", "spacing"),
     "random": ("region_min", "region_max"),
 }
 _COLLIDER_KEYS = {
-    "plane": ("type", "name", "material", "point", "normal"),
-    "box": ("type", "name", "material", "min", "max", "open_top", "thickness"),
-    "mesh": ("type", "name", "material", "mesh", "builtin", "scale", "position", "rotation"),
+    "plane": ("type", "name", "material", "point", "normal", "motion"),
+    "box": ("type", "name", "material", "min", "max", "open_top", "thickness", "motion"),
+    "mesh": ("type", "name", "material", "mesh", "builtin", "scale", "position", "rotation",
+             "motion"),
 }
+_MOTION_KEYS = ("velocity", "angular_velocity", "pivot", "keys", "interpolation")
+_MOTION_RATES = ("velocity", "angular_velocity", "pivot")
+_KEY_KEYS = ("time", "position", "rotation")
+_INTERPOLATIONS = ("linear", "smooth")     # motion.INTERPOLATIONS
 
 
 def _load_shape_registry():
@@ -760,6 +766,71 @@ def _material_ref(ctx: _Ctx, v: Any, key: str, materials) -> str:
     return v
 
 
+def _parse_motion(ctx: _Ctx, m: Any, key: str, origin, rotation, owner: str) -> Motion:
+    """``[<key>]`` (``[colliders.motion]``, ``[bodies.motion]``) -> a Motion.
+
+    ``origin`` [m] and ``rotation`` (w, x, y, z, or None where unknown at parse
+    time: a randomly rotated body) are the owner's authored frame: what a key's
+    ``position`` and ``rotation`` default to. ``owner`` names it in messages."""
+    m = ctx.table(m, key)
+    ctx.check_keys(m, key, _MOTION_KEYS)
+    rates = [k for k in _MOTION_RATES if k in m]
+    if "keys" in m and rates:
+        raise ctx.error(f"{key}.{rates[0]}", "given with keys",
+                        "give keys (absolute poses over time) or rates (velocity, "
+                        "angular_velocity, pivot), not both")
+    if "keys" not in m:
+        if "interpolation" in m:
+            raise ctx.error(f"{key}.interpolation", "applies to keys only",
+                            "remove it, or give keys = [{ time = 0.0, position = [...] }, ...]")
+        if "velocity" not in m and "angular_velocity" not in m:
+            raise ctx.error(key, "no motion given",
+                            "give velocity = [vx, vy, vz] (m/s) and/or angular_velocity = "
+                            "[wx, wy, wz] (rad/s), or keys = [{ time = 0.0, position = [...] }, "
+                            "...]")
+        kw: dict[str, Any] = {}
+        for k in _MOTION_RATES:
+            if k in m:
+                kw[k] = ctx.vector(m[k], f"{key}.{k}")
+        return Motion(**kw)
+    raw = m["keys"]
+    if not isinstance(raw, list) or not raw:
+        what = "an empty array" if isinstance(raw, list) else _describe(raw)
+        raise ctx.error(f"{key}.keys", f"expected an array of one or more keys, got {what}",
+                        "e.g. keys = [{ time = 0.0, position = [0, 0, 1] }, "
+                        "{ time = 1.0, position = [1, 0, 1] }]")
+    keys = []
+    for j, k in enumerate(raw):
+        kk = f"{key}.keys[{j}]"
+        if not isinstance(k, dict):
+            raise ctx.error(kk, f"expected a table, got {_describe(k)}",
+                            "write each key as { time = 0.0, position = [x, y, z], "
+                            "rotation = [w, x, y, z] }")
+        ctx.check_keys(k, kk, _KEY_KEYS)
+        t = ctx.number(ctx.require(k, kk, "time", "e.g. time = 0.0 (seconds)"), f"{kk}.time",
+                       unit="seconds")
+        if keys and t <= keys[-1].time:
+            prev = keys[-1].time
+            problem = (f"time {t:g} repeats keys[{j - 1}]" if t == prev else
+                       f"time {t:g} is before keys[{j - 1}].time = {prev:g}")
+            raise ctx.error(f"{kk}.time", problem,
+                            "key times must be strictly increasing: sort the keys by time")
+        pos = ctx.vector(k["position"], f"{kk}.position") if "position" in k \
+            else tuple(float(c) for c in origin)
+        if "rotation" in k:
+            rot = ctx.quaternion(k["rotation"], f"{kk}.rotation")     # normalized
+        elif rotation is None:
+            raise ctx.error(kk, f"no rotation, and {owner} has a random rotation",
+                            "give rotation = [w, x, y, z] in every key, or a fixed rotation")
+        else:
+            rot = tuple(float(c) for c in rotation)
+        keys.append(Key(time=t, position=pos, rotation=rot))
+    interp = "linear"
+    if "interpolation" in m:
+        interp = ctx.string(m["interpolation"], f"{key}.interpolation", _INTERPOLATIONS)
+    return Motion(keys=tuple(keys), interpolation=interp)
+
+
 def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
     key = f"bodies[{i}]"
     b = ctx.table(b, key)
@@ -862,6 +933,39 @@ def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
         kw["velocity"] = ctx.vector(b["velocity"], f"{key}.velocity")
     if "angular_velocity" in b:
         kw["angular_velocity"] = ctx.vector(b["angular_velocity"], f"{key}.angular_velocity")
+    if "start_time" in b:
+        kw["start_time"] = ctx.number(b["start_time"], f"{key}.start_time", lo=0.0,
+                                      unit="seconds")
+    kinematic = "kinematic" in b and ctx.boolean(b["kinematic"], f"{key}.kinematic")
+    if "motion" in b and not kinematic:
+        raise ctx.error(f"{key}.motion", "a dynamic group cannot follow a motion",
+                        "add kinematic = true to this group to move it by [bodies.motion]; "
+                        "for a dynamic group's initial velocity use velocity and "
+                        "angular_velocity")
+    if kinematic:
+        for k in ("velocity", "angular_velocity"):
+            if k in b:
+                raise ctx.error(f"{key}.{k}", "given on a kinematic group",
+                                "a kinematic group's velocity comes from [bodies.motion]: "
+                                "remove it, or set it there (velocity, angular_velocity)")
+        if "motion" not in b:
+            raise ctx.error(f"{key}.motion", "a kinematic group needs a motion",
+                            "add [bodies.motion] with velocity/angular_velocity or keys, "
+                            "e.g. [bodies.motion] velocity = [1, 0, 0]")
+        if layout == "single":
+            origin, what = kw["position"], f"{key} (its position)"
+        elif layout == "grid":
+            origin, what = kw["origin"], f"{key} (its origin)"
+        else:
+            origin = tuple(0.5 * (a + c) for a, c in zip(kw["region_min"], kw["region_max"]))
+            what = f"{key} (the centre of its region)"
+        rot = kw.get("rotation", "identity")
+        if layout != "single" or rot == "identity":
+            rot = (1.0, 0.0, 0.0, 0.0)
+        elif rot == "random":
+            rot = None
+        kw["kinematic"] = True
+        kw["motion"] = _parse_motion(ctx, b["motion"], f"{key}.motion", origin, rot, what)
     return BodyGroup(**kw)
 
 
@@ -888,6 +992,7 @@ def _parse_collider(ctx: _Ctx, i: int, c: Any, materials, registry, up_axis: str
                             "give a non-zero direction pointing into the free side, "
                             "e.g. normal = [0, 0, 1]")
         kw["normal"] = tuple(x / norm for x in n)
+        _collider_motion(ctx, c, key, kw, kw.get("point", (0.0, 0.0, 0.0)), "its point")
         return PlaneCollider(**kw)
     if ctype == "box":
         ctx.check_keys(c, key, _COLLIDER_KEYS["box"])
@@ -903,6 +1008,8 @@ def _parse_collider(ctx: _Ctx, i: int, c: Any, materials, registry, up_axis: str
         if "thickness" in c:
             kw["thickness"] = ctx.number(c["thickness"], f"{key}.thickness", lo=0.0,
                                          lo_open=True, unit="metres")
+        _collider_motion(ctx, c, key, kw, tuple(0.5 * (a + b) for a, b in zip(lo, hi)),
+                         "its centre")
         return BoxCollider(**kw)
     # mesh
     has_b, has_m = "builtin" in c, "mesh" in c
@@ -929,7 +1036,17 @@ def _parse_collider(ctx: _Ctx, i: int, c: Any, materials, registry, up_axis: str
             kw["rotation"] = (1.0, 0.0, 0.0, 0.0)
         else:
             kw["rotation"] = ctx.quaternion(r, f"{key}.rotation")
+    _collider_motion(ctx, c, key, kw, kw.get("position", (0.0, 0.0, 0.0)), "its position",
+                     kw.get("rotation", (1.0, 0.0, 0.0, 0.0)))
     return MeshCollider(**kw)
+
+
+def _collider_motion(ctx: _Ctx, c: dict, key: str, kw: dict, origin, what: str,
+                     rotation=(1.0, 0.0, 0.0, 0.0)) -> None:
+    """``[colliders.motion]`` into ``kw["motion"]``, if given."""
+    if "motion" in c:
+        kw["motion"] = _parse_motion(ctx, c["motion"], f"{key}.motion", origin, rotation,
+                                     f"{key} ({what})")
 
 
 def _array_of_tables(ctx: _Ctx, v: Any, key: str) -> list:
@@ -963,6 +1080,12 @@ def _validate(ctx: _Ctx, data: dict) -> Scene:
     seen: dict[str, int] = {}
     for i, b in enumerate(bodies_raw):
         g = _parse_body(ctx, i, b, shapes, materials)
+        if g.start_time > output.duration:
+            raise ctx.error(f"bodies[{i}].start_time",
+                            f"{g.start_time:g} s is after the end of the animation "
+                            f"(output.duration = {output.duration:g} s)",
+                            "the group would never appear: lower start_time or lengthen "
+                            "output.duration")
         if g.name in seen:
             raise ctx.error(f"bodies[{i}].name", f"duplicate group name {g.name!r}",
                             f"already used by bodies[{seen[g.name]}]; names must be unique")
