@@ -34,7 +34,8 @@ def _moving(kind, index, motion, origin, rotation=(1.0, 0.0, 0.0, 0.0)):
     motion = motion.with_pivot(origin)
     ref_p, ref_q = reference_anchor(motion, origin, rotation)
     return types.SimpleNamespace(kind=kind, index=index, motion=motion, ref_p=ref_p, ref_q=ref_q,
-                                 origin=np.asarray(origin, float), rotation=np.asarray(rotation, float))
+                                 origin=np.asarray(origin, float),
+                                 rotation=np.asarray(rotation, float))
 
 
 def _world_points(stage, path, code):
