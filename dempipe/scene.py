@@ -36,6 +36,7 @@ __all__ = [
     "Scene", "OutputSettings", "SimulationSettings", "SleepSettings", "MaterialSpec",
     "ShapeSpec", "BodyGroup", "PlaneCollider", "BoxCollider", "MeshCollider", "Collider",
     "BodyPlacement", "load_scene", "parse_scene", "expand_bodies", "DEFAULT_RESOLUTION",
+    "collider_frame", "group_frame",
 ]
 
 #: Spheres across the longest extent of the smallest shape when neither
@@ -1183,6 +1184,34 @@ def grid_offsets(dims, spacing, count: int, up_axis: str = "Z") -> np.ndarray:
     if up_axis == "Y":
         return lattice[:, [0, 2, 1]]
     return lattice
+
+
+def collider_frame(c: Collider):
+    """The authored frame of a collider, (origin (3,) [m], rotation (4,) w, x, y, z):
+    what its motion's keys are absolute poses of and its rates' default pivot — a
+    mesh's position and rotation, a plane's point, a box's centre (identity for
+    both)."""
+    if isinstance(c, MeshCollider):
+        return np.asarray(c.position, np.float64), np.asarray(c.rotation, np.float64)
+    if isinstance(c, BoxCollider):
+        centre = 0.5 * (np.asarray(c.min, np.float64) + np.asarray(c.max, np.float64))
+        return centre, np.array([1.0, 0.0, 0.0, 0.0])
+    return np.asarray(c.point, np.float64), np.array([1.0, 0.0, 0.0, 0.0])
+
+
+def group_frame(g: BodyGroup, placement: BodyPlacement):
+    """The frame a kinematic group's motion moves, (origin (3,) [m], rotation (4,)):
+    a single body's own pose (as placed: a "random" rotation drawn), a grid's
+    ``origin``, a random region's centre (identity for both). Its rates' default
+    pivot, and what a key without ``position`` / ``rotation`` stands at; pass it to
+    ``motion.reference_anchor(motion, *frame, group=g.layout != "single")``."""
+    if g.layout == "single":
+        return (np.asarray(placement.positions[0], np.float64),
+                np.asarray(placement.rotations[0], np.float64))
+    if g.layout == "grid":
+        return np.asarray(g.origin, np.float64), np.array([1.0, 0.0, 0.0, 0.0])
+    lo, hi = np.asarray(g.region_min, np.float64), np.asarray(g.region_max, np.float64)
+    return 0.5 * (lo + hi), np.array([1.0, 0.0, 0.0, 0.0])
 
 
 def expand_bodies(scene: Scene) -> list[BodyPlacement]:

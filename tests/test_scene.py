@@ -710,6 +710,14 @@ def test_motion_keys_rates_and_emitters():
     assert ring.motion.interpolation == "linear"
     assert [k.position for k in ring.motion.keys] == [(1.0, 2.0, 3.0), (1.0, 2.0, 4.0)]
     assert all(k.rotation == (0.0, 1.0, 0.0, 0.0) for k in ring.motion.keys)
+    # the frames motions move (what the builder anchors them at)
+    frames = [sc.collider_frame(c) for c in s.colliders]
+    assert [f[0].tolist() for f in frames] == [[0.0, 0.0, 0.5], [0.0, 1.0, 0.5], [1.0, 2.0, 3.0]]
+    assert frames[2][1].tolist() == [0.0, 1.0, 0.0, 0.0]
+    placements = sc.expand_bodies(s)
+    o, r = sc.group_frame(ball, placements[0])
+    assert o.tolist() == [0.0, 0.0, 1.0] and r.tolist() == [1.0, 0.0, 0.0, 0.0]
+    assert sc.group_frame(table, placements[1])[0].tolist() == [1.0, 2.0, 0.0]
     # static by default
     p = parse(minimal(body='[[colliders]]\ntype = "plane"\n'))
     assert p.colliders[0].motion is None and not p.bodies[0].kinematic

@@ -99,7 +99,7 @@ def _kinematic(prim):
 def write_physics_stage(scene, path) -> Path:
     """Write the TOML ``scene`` (a dempipe.scene.Scene) as a UsdPhysics stage at ``path``."""
     from ..build import _collider_mesh, _shape_mesh
-    from ..scene import expand_bodies
+    from ..scene import collider_frame, expand_bodies, group_frame
 
     path = Path(path)
     if path.suffix.lower() not in EXTENSIONS:
@@ -158,7 +158,7 @@ def write_physics_stage(scene, path) -> Path:
                           stacklevel=2)
         motion = ref = None
         if group.kinematic:
-            owner, rot = _owner_frame(group, placement)
+            owner, rot = group_frame(group, placement)
             motion = group.motion.with_pivot(owner)
             ref = reference_anchor(motion, owner, rot, group=group.layout != "single")
             times = _motion_times(motion, out)
@@ -202,8 +202,7 @@ def write_physics_stage(scene, path) -> Path:
         elif kind == "BoxCollider":
             box = UsdGeom.Xform.Define(stage, p)
             if c.motion is not None:
-                centre = 0.5 * (np.asarray(c.min, float) + np.asarray(c.max, float))
-                _moving_collider(box, c.motion, centre, (1.0, 0.0, 0.0, 0.0), out, mpu)
+                _moving_collider(box, c.motion, *collider_frame(c), out, mpu)
             lo, hi = np.asarray(c.min, float), np.asarray(c.max, float)
             t = c.thickness or 0.02 * float(np.max(hi - lo))
             prims = []
@@ -226,23 +225,12 @@ def write_physics_stage(scene, path) -> Path:
             m = _mesh(stage, p, mesh.vertices, mesh.faces, mpu)
             prims = [m.GetPrim()]
             if c.motion is not None:
-                _moving_collider(m, c.motion, c.position, c.rotation, out, mpu)
+                _moving_collider(m, c.motion, *collider_frame(c), out, mpu)
         for prim in prims:
             UsdPhysics.CollisionAPI.Apply(prim)
             bind(prim, c.material)
     _save_atomically(layer, path)
     return path
-
-
-def _owner_frame(group, placement):
-    """A kinematic group's own point [m] and rotation: a single body's pose, a grid's
-    origin, a random region's centre (identity rotation for both)."""
-    if group.layout == "single":
-        return placement.positions[0], placement.rotations[0]
-    if group.layout == "grid":
-        return np.asarray(group.origin, float), np.array([1.0, 0.0, 0.0, 0.0])
-    lo, hi = np.asarray(group.region_min, float), np.asarray(group.region_max, float)
-    return 0.5 * (lo + hi), np.array([1.0, 0.0, 0.0, 0.0])
 
 
 def _moving_collider(xf, motion, origin, rotation, out, mpu):
