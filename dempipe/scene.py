@@ -821,7 +821,7 @@ def _parse_motion(ctx: _Ctx, m: Any, key: str, origin, rotation, owner: str) -> 
         if "rotation" in k:
             rot = ctx.quaternion(k["rotation"], f"{kk}.rotation")     # normalized
         elif rotation is None:
-            raise ctx.error(kk, f"no rotation, and {owner} has a random rotation",
+            raise ctx.error(kk, f'no rotation, and {owner} has rotation = "random"',
                             "give rotation = [w, x, y, z] in every key, or a fixed rotation")
         else:
             rot = tuple(float(c) for c in rotation)
@@ -954,19 +954,18 @@ def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
                             "add [bodies.motion] with velocity/angular_velocity or keys, "
                             "e.g. [bodies.motion] velocity = [1, 0, 0]")
         if layout == "single":
-            origin, what = kw["position"], f"{key} (its position)"
+            origin = kw["position"]
         elif layout == "grid":
-            origin, what = kw["origin"], f"{key} (its origin)"
+            origin = kw["origin"]
         else:
             origin = tuple(0.5 * (a + c) for a, c in zip(kw["region_min"], kw["region_max"]))
-            what = f"{key} (the centre of its region)"
         rot = kw.get("rotation", "identity")
         if layout != "single" or rot == "identity":
             rot = (1.0, 0.0, 0.0, 0.0)
         elif rot == "random":
             rot = None
         kw["kinematic"] = True
-        kw["motion"] = _parse_motion(ctx, b["motion"], f"{key}.motion", origin, rot, what)
+        kw["motion"] = _parse_motion(ctx, b["motion"], f"{key}.motion", origin, rot, key)
     return BodyGroup(**kw)
 
 
@@ -993,7 +992,7 @@ def _parse_collider(ctx: _Ctx, i: int, c: Any, materials, registry, up_axis: str
                             "give a non-zero direction pointing into the free side, "
                             "e.g. normal = [0, 0, 1]")
         kw["normal"] = tuple(x / norm for x in n)
-        _collider_motion(ctx, c, key, kw, kw.get("point", (0.0, 0.0, 0.0)), "its point")
+        _collider_motion(ctx, c, key, kw, kw.get("point", (0.0, 0.0, 0.0)))
         return PlaneCollider(**kw)
     if ctype == "box":
         ctx.check_keys(c, key, _COLLIDER_KEYS["box"])
@@ -1009,8 +1008,7 @@ def _parse_collider(ctx: _Ctx, i: int, c: Any, materials, registry, up_axis: str
         if "thickness" in c:
             kw["thickness"] = ctx.number(c["thickness"], f"{key}.thickness", lo=0.0,
                                          lo_open=True, unit="metres")
-        _collider_motion(ctx, c, key, kw, tuple(0.5 * (a + b) for a, b in zip(lo, hi)),
-                         "its centre")
+        _collider_motion(ctx, c, key, kw, tuple(0.5 * (a + b) for a, b in zip(lo, hi)))
         return BoxCollider(**kw)
     # mesh
     has_b, has_m = "builtin" in c, "mesh" in c
@@ -1037,17 +1035,17 @@ def _parse_collider(ctx: _Ctx, i: int, c: Any, materials, registry, up_axis: str
             kw["rotation"] = (1.0, 0.0, 0.0, 0.0)
         else:
             kw["rotation"] = ctx.quaternion(r, f"{key}.rotation")
-    _collider_motion(ctx, c, key, kw, kw.get("position", (0.0, 0.0, 0.0)), "its position",
+    _collider_motion(ctx, c, key, kw, kw.get("position", (0.0, 0.0, 0.0)),
                      kw.get("rotation", (1.0, 0.0, 0.0, 0.0)))
     return MeshCollider(**kw)
 
 
-def _collider_motion(ctx: _Ctx, c: dict, key: str, kw: dict, origin, what: str,
+def _collider_motion(ctx: _Ctx, c: dict, key: str, kw: dict, origin,
                      rotation=(1.0, 0.0, 0.0, 0.0)) -> None:
-    """``[colliders.motion]`` into ``kw["motion"]``, if given."""
+    """``[colliders.motion]`` into ``kw["motion"]``, if given (``origin``,
+    ``rotation``: the collider's frame, scene.collider_frame)."""
     if "motion" in c:
-        kw["motion"] = _parse_motion(ctx, c["motion"], f"{key}.motion", origin, rotation,
-                                     f"{key} ({what})")
+        kw["motion"] = _parse_motion(ctx, c["motion"], f"{key}.motion", origin, rotation, key)
 
 
 def _array_of_tables(ctx: _Ctx, v: Any, key: str) -> list:

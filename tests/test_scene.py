@@ -766,7 +766,7 @@ KIN = 'kinematic = true\n'
      "bodies[0].motion.keys[0].postion", "did you mean 'position'?"),
     (KIN + "[bodies.motion]\nkeys = [1.0]\n", "bodies[0].motion.keys[0]", "expected a table"),
     (KIN + 'rotation = "random"\n[bodies.motion]\nkeys = [{ time = 0.0 }]\n',
-     "bodies[0].motion.keys[0]", "has a random rotation"),
+     "bodies[0].motion.keys[0]", 'bodies[0] has rotation = "random"'),
     (KIN + "[bodies.motion]\nvelocty = [1, 0, 0]\n", "bodies[0].motion.velocty",
      "did you mean 'velocity'?"),
     ('[[colliders]]\ntype = "plane"\n[colliders.motion]\npivot = [0, 0, 0]\n',
