@@ -89,6 +89,18 @@ def test_plane_moving_along_itself_stays_put_tipping_plane_tips():
         np.testing.assert_allclose(c_t - np.dot(c_t - centre, n_t) * n_t, centre, atol=1e-12)
 
 
+def test_rates_without_a_pivot_turn_about_the_collider_origin():
+    # a Motion as parsed (pivot None) gives the same transform as one with its pivot
+    # filled in: the exporter does not depend on the builder having filled it
+    origin, m = np.array([1.0, 2.0, 0.0]), Motion(angular_velocity=(0.0, 0.0, 1.0))
+    ref = reference_anchor(m, origin)
+    a = collider_xforms(m, ref, origin, (1.0, 0.0, 0.0, 0.0), [0.0, 0.7])
+    b = collider_xforms(m.with_pivot(origin), ref, origin, (1.0, 0.0, 0.0, 0.0), [0.0, 0.7])
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+    np.testing.assert_allclose(_quat_matrix(a[1][1]) @ origin + a[0][1], origin, atol=1e-12)
+
+
 def test_first_shown_frame():
     times = np.arange(5) / 24.0
     got = first_shown_frame([0.0, 1.0 / 24.0, 0.05, 9.0, 2.0 / 24.0 + 1e-12], times)

@@ -52,6 +52,7 @@ def collider_xforms(motion, ref, origin, rotation, times):
     Returns (translate (F, 3) [m], orient (F, 4) unit (w, x, y, z)), float64.
     """
     origin = np.asarray(origin, dtype=np.float64)
+    motion = motion.with_pivot(origin)      # rates without a pivot turn about the origin
     rot = np.asarray(rotation, dtype=np.float64)
     rot = rot / np.linalg.norm(rot)
     inv = (rot[0], -rot[1], -rot[2], -rot[3])
