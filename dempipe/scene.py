@@ -30,11 +30,13 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
 from .errors import SceneError
+from .motion import Key, Motion
 
 __all__ = [
     "Scene", "OutputSettings", "SimulationSettings", "SleepSettings", "MaterialSpec",
     "ShapeSpec", "BodyGroup", "PlaneCollider", "BoxCollider", "MeshCollider", "Collider",
     "BodyPlacement", "load_scene", "parse_scene", "expand_bodies", "DEFAULT_RESOLUTION",
+    "collider_frame", "group_frame",
 ]
 
 #: Spheres across the longest extent of the smallest shape when neither
@@ -531,17 +533,22 @@ _SPHERE_MODES = ("lattice", "surface")
 _SLEEP_KEYS = ("linear_speed", "angular_speed", "time")
 _MATERIAL_KEYS = ("density", "restitution", "friction", "stiffness")
 _BODY_COMMON = ("name", "shape", "material", "count", "layout", "rotation", "velocity",
-                "angular_velocity")
+                "angular_velocity", "kinematic", "motion", "start_time")
 _LAYOUT_KEYS = {
     "single": ("position",),
     "grid": ("origin", "dims", "spacing"),
     "random": ("region_min", "region_max"),
 }
 _COLLIDER_KEYS = {
-    "plane": ("type", "name", "material", "point", "normal"),
-    "box": ("type", "name", "material", "min", "max", "open_top", "thickness"),
-    "mesh": ("type", "name", "material", "mesh", "builtin", "scale", "position", "rotation"),
+    "plane": ("type", "name", "material", "point", "normal", "motion"),
+    "box": ("type", "name", "material", "min", "max", "open_top", "thickness", "motion"),
+    "mesh": ("type", "name", "material", "mesh", "builtin", "scale", "position", "rotation",
+             "motion"),
 }
+_MOTION_KEYS = ("velocity", "angular_velocity", "pivot", "keys", "interpolation")
+_MOTION_RATES = ("velocity", "angular_velocity", "pivot")
+_KEY_KEYS = ("time", "position", "rotation")
+_INTERPOLATIONS = ("linear", "smooth")     # motion.INTERPOLATIONS
 
 
 def _load_shape_registry():
@@ -760,6 +767,71 @@ def _material_ref(ctx: _Ctx, v: Any, key: str, materials) -> str:
     return v
 
 
+def _parse_motion(ctx: _Ctx, m: Any, key: str, origin, rotation, owner: str) -> Motion:
+    """``[<key>]`` (``[colliders.motion]``, ``[bodies.motion]``) -> a Motion.
+
+    ``origin`` [m] and ``rotation`` (w, x, y, z, or None where unknown at parse
+    time: a randomly rotated body) are the owner's authored frame: what a key's
+    ``position`` and ``rotation`` default to. ``owner`` names it in messages."""
+    m = ctx.table(m, key)
+    ctx.check_keys(m, key, _MOTION_KEYS)
+    rates = [k for k in _MOTION_RATES if k in m]
+    if "keys" in m and rates:
+        raise ctx.error(f"{key}.{rates[0]}", "given with keys",
+                        "give keys (absolute poses over time) or rates (velocity, "
+                        "angular_velocity, pivot), not both")
+    if "keys" not in m:
+        if "interpolation" in m:
+            raise ctx.error(f"{key}.interpolation", "applies to keys only",
+                            "remove it, or give keys = [{ time = 0.0, position = [...] }, ...]")
+        if "velocity" not in m and "angular_velocity" not in m:
+            raise ctx.error(key, "no motion given",
+                            "give velocity = [vx, vy, vz] (m/s) and/or angular_velocity = "
+                            "[wx, wy, wz] (rad/s), or keys = [{ time = 0.0, position = [...] }, "
+                            "...]")
+        kw: dict[str, Any] = {}
+        for k in _MOTION_RATES:
+            if k in m:
+                kw[k] = ctx.vector(m[k], f"{key}.{k}")
+        return Motion(**kw)
+    raw = m["keys"]
+    if not isinstance(raw, list) or not raw:
+        what = "an empty array" if isinstance(raw, list) else _describe(raw)
+        raise ctx.error(f"{key}.keys", f"expected an array of one or more keys, got {what}",
+                        "e.g. keys = [{ time = 0.0, position = [0, 0, 1] }, "
+                        "{ time = 1.0, position = [1, 0, 1] }]")
+    keys = []
+    for j, k in enumerate(raw):
+        kk = f"{key}.keys[{j}]"
+        if not isinstance(k, dict):
+            raise ctx.error(kk, f"expected a table, got {_describe(k)}",
+                            "write each key as { time = 0.0, position = [x, y, z], "
+                            "rotation = [w, x, y, z] }")
+        ctx.check_keys(k, kk, _KEY_KEYS)
+        t = ctx.number(ctx.require(k, kk, "time", "e.g. time = 0.0 (seconds)"), f"{kk}.time",
+                       unit="seconds")
+        if keys and t <= keys[-1].time:
+            prev = keys[-1].time
+            problem = (f"time {t:g} repeats keys[{j - 1}]" if t == prev else
+                       f"time {t:g} is before keys[{j - 1}].time = {prev:g}")
+            raise ctx.error(f"{kk}.time", problem,
+                            "key times must be strictly increasing: sort the keys by time")
+        pos = ctx.vector(k["position"], f"{kk}.position") if "position" in k \
+            else tuple(float(c) for c in origin)
+        if "rotation" in k:
+            rot = ctx.quaternion(k["rotation"], f"{kk}.rotation")     # normalized
+        elif rotation is None:
+            raise ctx.error(kk, f'no rotation, and {owner} has rotation = "random"',
+                            "give rotation = [w, x, y, z] in every key, or a fixed rotation")
+        else:
+            rot = tuple(float(c) for c in rotation)
+        keys.append(Key(time=t, position=pos, rotation=rot))
+    interp = "linear"
+    if "interpolation" in m:
+        interp = ctx.string(m["interpolation"], f"{key}.interpolation", _INTERPOLATIONS)
+    return Motion(keys=tuple(keys), interpolation=interp)
+
+
 def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
     key = f"bodies[{i}]"
     b = ctx.table(b, key)
@@ -862,6 +934,38 @@ def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
         kw["velocity"] = ctx.vector(b["velocity"], f"{key}.velocity")
     if "angular_velocity" in b:
         kw["angular_velocity"] = ctx.vector(b["angular_velocity"], f"{key}.angular_velocity")
+    if "start_time" in b:
+        kw["start_time"] = ctx.number(b["start_time"], f"{key}.start_time", lo=0.0,
+                                      unit="seconds")
+    kinematic = "kinematic" in b and ctx.boolean(b["kinematic"], f"{key}.kinematic")
+    if "motion" in b and not kinematic:
+        raise ctx.error(f"{key}.motion", "a dynamic group cannot follow a motion",
+                        "add kinematic = true to this group to move it by [bodies.motion]; "
+                        "for a dynamic group's initial velocity use velocity and "
+                        "angular_velocity")
+    if kinematic:
+        for k in ("velocity", "angular_velocity"):
+            if k in b:
+                raise ctx.error(f"{key}.{k}", "given on a kinematic group",
+                                "a kinematic group's velocity comes from [bodies.motion]: "
+                                "remove it, or set it there (velocity, angular_velocity)")
+        if "motion" not in b:
+            raise ctx.error(f"{key}.motion", "a kinematic group needs a motion",
+                            "add [bodies.motion] with velocity/angular_velocity or keys, "
+                            "e.g. [bodies.motion] velocity = [1, 0, 0]")
+        if layout == "single":
+            origin = kw["position"]
+        elif layout == "grid":
+            origin = kw["origin"]
+        else:
+            origin = tuple(0.5 * (a + c) for a, c in zip(kw["region_min"], kw["region_max"]))
+        rot = kw.get("rotation", "identity")
+        if layout != "single" or rot == "identity":
+            rot = (1.0, 0.0, 0.0, 0.0)
+        elif rot == "random":
+            rot = None
+        kw["kinematic"] = True
+        kw["motion"] = _parse_motion(ctx, b["motion"], f"{key}.motion", origin, rot, key)
     return BodyGroup(**kw)
 
 
@@ -888,6 +992,7 @@ def _parse_collider(ctx: _Ctx, i: int, c: Any, materials, registry, up_axis: str
                             "give a non-zero direction pointing into the free side, "
                             "e.g. normal = [0, 0, 1]")
         kw["normal"] = tuple(x / norm for x in n)
+        _collider_motion(ctx, c, key, kw, kw.get("point", (0.0, 0.0, 0.0)))
         return PlaneCollider(**kw)
     if ctype == "box":
         ctx.check_keys(c, key, _COLLIDER_KEYS["box"])
@@ -903,6 +1008,7 @@ def _parse_collider(ctx: _Ctx, i: int, c: Any, materials, registry, up_axis: str
         if "thickness" in c:
             kw["thickness"] = ctx.number(c["thickness"], f"{key}.thickness", lo=0.0,
                                          lo_open=True, unit="metres")
+        _collider_motion(ctx, c, key, kw, tuple(0.5 * (a + b) for a, b in zip(lo, hi)))
         return BoxCollider(**kw)
     # mesh
     has_b, has_m = "builtin" in c, "mesh" in c
@@ -929,7 +1035,17 @@ def _parse_collider(ctx: _Ctx, i: int, c: Any, materials, registry, up_axis: str
             kw["rotation"] = (1.0, 0.0, 0.0, 0.0)
         else:
             kw["rotation"] = ctx.quaternion(r, f"{key}.rotation")
+    _collider_motion(ctx, c, key, kw, kw.get("position", (0.0, 0.0, 0.0)),
+                     kw.get("rotation", (1.0, 0.0, 0.0, 0.0)))
     return MeshCollider(**kw)
+
+
+def _collider_motion(ctx: _Ctx, c: dict, key: str, kw: dict, origin,
+                     rotation=(1.0, 0.0, 0.0, 0.0)) -> None:
+    """``[colliders.motion]`` into ``kw["motion"]``, if given (``origin``,
+    ``rotation``: the collider's frame, scene.collider_frame)."""
+    if "motion" in c:
+        kw["motion"] = _parse_motion(ctx, c["motion"], f"{key}.motion", origin, rotation, key)
 
 
 def _array_of_tables(ctx: _Ctx, v: Any, key: str) -> list:
@@ -963,6 +1079,12 @@ def _validate(ctx: _Ctx, data: dict) -> Scene:
     seen: dict[str, int] = {}
     for i, b in enumerate(bodies_raw):
         g = _parse_body(ctx, i, b, shapes, materials)
+        if g.start_time > output.duration:
+            raise ctx.error(f"bodies[{i}].start_time",
+                            f"{g.start_time:g} s is after the end of the animation "
+                            f"(output.duration = {output.duration:g} s)",
+                            "the group would never appear: lower start_time or lengthen "
+                            "output.duration")
         if g.name in seen:
             raise ctx.error(f"bodies[{i}].name", f"duplicate group name {g.name!r}",
                             f"already used by bodies[{seen[g.name]}]; names must be unique")
@@ -1060,6 +1182,34 @@ def grid_offsets(dims, spacing, count: int, up_axis: str = "Z") -> np.ndarray:
     if up_axis == "Y":
         return lattice[:, [0, 2, 1]]
     return lattice
+
+
+def collider_frame(c: Collider):
+    """The authored frame of a collider, (origin (3,) [m], rotation (4,) w, x, y, z):
+    what its motion's keys are absolute poses of and its rates' default pivot — a
+    mesh's position and rotation, a plane's point, a box's centre (identity for
+    both)."""
+    if isinstance(c, MeshCollider):
+        return np.asarray(c.position, np.float64), np.asarray(c.rotation, np.float64)
+    if isinstance(c, BoxCollider):
+        centre = 0.5 * (np.asarray(c.min, np.float64) + np.asarray(c.max, np.float64))
+        return centre, np.array([1.0, 0.0, 0.0, 0.0])
+    return np.asarray(c.point, np.float64), np.array([1.0, 0.0, 0.0, 0.0])
+
+
+def group_frame(g: BodyGroup, placement: BodyPlacement):
+    """The frame a kinematic group's motion moves, (origin (3,) [m], rotation (4,)):
+    a single body's own pose (as placed: a "random" rotation drawn), a grid's
+    ``origin``, a random region's centre (identity for both). Its rates' default
+    pivot, and what a key without ``position`` / ``rotation`` stands at; pass it to
+    ``motion.reference_anchor(motion, *frame, group=g.layout != "single")``."""
+    if g.layout == "single":
+        return (np.asarray(placement.positions[0], np.float64),
+                np.asarray(placement.rotations[0], np.float64))
+    if g.layout == "grid":
+        return np.asarray(g.origin, np.float64), np.array([1.0, 0.0, 0.0, 0.0])
+    lo, hi = np.asarray(g.region_min, np.float64), np.asarray(g.region_max, np.float64)
+    return 0.5 * (lo + hi), np.array([1.0, 0.0, 0.0, 0.0])
 
 
 def expand_bodies(scene: Scene) -> list[BodyPlacement]:

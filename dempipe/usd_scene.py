@@ -21,12 +21,13 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from .errors import SceneError
+from .motion import Key, Motion
 from .scene import (BodyGroup, MaterialSpec, MeshCollider, OutputSettings, PlaneCollider,
                     Scene, ShapeSpec, SimulationSettings, STANDARD_GRAVITY)
 
@@ -65,11 +66,15 @@ class UsdBody:
         stage units per local unit; symmetric).
     com : (3,) centre of mass in the body's stretched local frame [m] (what dempipe
         puts at the body origin); filled in from the Model by the overlay writer.
+    kinematic : whether the body follows its authored animation (not written back).
     """
 
     prim: str
     instance: int = -1
     stretch: np.ndarray = field(default_factory=lambda: np.eye(3))
+    kinematic: bool = False
+    """A kinematic body (``kinematicEnabled``): it follows the prim's own animation,
+    which the overlay leaves as it is."""
 
 
 @dataclass(frozen=True)
@@ -246,7 +251,6 @@ class _Reader:
         self.xf = UsdGeom.XformCache(self.t0)
         self.gravity_given = gravity_given
         self.ignored: list[str] = []
-        self.kinematic: list[str] = []
         self.notes: list[str] = []
         self.materials: dict[str, MaterialSpec] = {"default": MaterialSpec("default")}
         self.material_of_prim: dict[str, str] = {}
@@ -318,7 +322,7 @@ class _Reader:
             if prim.IsA(UsdGeom.PointInstancer):
                 for t in UsdGeom.PointInstancer(prim).GetPrototypesRel().GetTargets():
                     protos.add(str(t))
-        body_prims, static_colliders = [], []
+        body_prims, kinematic_prims, static_colliders = [], [], []
         unsupported = {"joints": [], "articulations": [], "filtered pairs": [],
                        "collision groups": [], "deformables": [],
                        "disabled bodies (their shapes are static colliders)": [],
@@ -357,8 +361,7 @@ class _Reader:
                 if not rb.GetRigidBodyEnabledAttr().Get():
                     unsupported["disabled bodies (their shapes are static colliders)"].append(ps)
                 elif rb.GetKinematicEnabledAttr().Get():
-                    self.kinematic.append(ps)
-                    static_colliders += [(c, "kinematic") for c in self.collision_prims(prim)]
+                    kinematic_prims.append(prim)
                     it.PruneChildren()
                 else:
                     body_prims.append(prim)
@@ -368,6 +371,8 @@ class _Reader:
                 static_colliders.append((prim, "static"))
         for prim in body_prims:
             self.read_body(prim)
+        for prim in kinematic_prims:
+            self.read_kinematic(prim)
         for prim, why in static_colliders:
             self.read_static(prim)
         for what, prims in unsupported.items():
@@ -518,6 +523,44 @@ class _Reader:
             starts_asleep=bool(rb.GetStartsAsleepAttr().Get())))
         self.bodies.append(UsdBody(prim=instancer or str(prim.GetPath()), instance=instance,
                                    stretch=S))
+
+    def read_kinematic(self, prim):
+        """A kinematic body: a single-body group with ``kinematic = True`` whose Motion
+        keys are the prim's world pose (mesh origin [m], rotation) at every time
+        sample authored on its xformOps or its ancestors' (linear keys: USD
+        interpolates between samples); one key, held, when nothing is animated."""
+        from pxr import Usd, UsdGeom
+
+        if not self.collision_prims(prim):
+            self.ignored.append(f"kinematic bodies without collision shapes (nothing "
+                                f"to push with): {prim.GetPath()}")
+            return
+        self.read_body(prim)
+        codes = set()
+        p = prim
+        while p and not p.IsPseudoRoot():
+            if p.IsA(UsdGeom.Xformable):
+                codes.update(UsdGeom.Xformable(p).GetTimeSamples())
+            p = p.GetParent()
+        codes = sorted(codes) or [self.start]
+        origin = float(round(self.start))           # simulation time 0 (the first frame)
+        S0 = self.bodies[-1].stretch
+        keys, scaled = [], False
+        for code in codes:
+            W = _np(UsdGeom.XformCache(Usd.TimeCode(code)).GetLocalToWorldTransform(prim))
+            S, R = polar(W[:3, :3])
+            scaled |= bool(np.abs(S - S0).max() > 1e-6 * max(np.abs(S0).max(), 1e-300))
+            keys.append(Key(time=(code - origin) / self.tcps,
+                            position=tuple(float(x) for x in W[3, :3] * self.mpu),
+                            rotation=tuple(float(x) for x in matrix_to_quat(R.T))))
+        if scaled:
+            self.notes.append(f"{self.where(prim)}: a kinematic body whose scale is "
+                              "animated; it moves at its start-time scale")
+        g = self.groups[-1]
+        self.groups[-1] = replace(g, kinematic=True, motion=Motion(keys=tuple(keys)),
+                                  velocity=(0.0, 0.0, 0.0), angular_velocity=(0.0, 0.0, 0.0),
+                                  starts_asleep=False)
+        self.bodies[-1] = replace(self.bodies[-1], kinematic=True)
 
     def mass_properties(self, prim, parts, S, where):
         """(mass [kg] | None, centre of mass [m] | None, inertia [kg m²] | None), the
@@ -737,9 +780,6 @@ def load_usd_scene(path, simulation: SimulationSettings | None = None, *,
         warnings.append(f"{p.name}: no time range (startTimeCode/endTimeCode); baking "
                         f"{DEFAULT_DURATION:g} s from time code {r.start:g}")
     not_sim = list(r.ignored)
-    if r.kinematic:
-        not_sim.append("kinematic bodies (held static as colliders at their pose at the start "
-                       "time; prescribed motion is not supported yet): " + ", ".join(r.kinematic))
     if not_sim:
         warnings.append(f"{p.name}: not simulated: " + "; ".join(not_sim))
     warnings += r.notes

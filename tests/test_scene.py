@@ -9,6 +9,7 @@ import pytest
 
 from dempipe import scene as sc
 from dempipe.errors import SceneError
+from dempipe.motion import Key, Motion
 
 # A stand-in for dempipe.shapes.SHAPES, so these tests do not depend on the
 # exact parameter list of the real built-in shapes.
@@ -621,3 +622,162 @@ def test_real_builtin_collider_parameters(real_registry):
     text = minimal(body='[[colliders]]\ntype = "mesh"\nbuiltin = "torus"\nmajor_radius = "big"\n')
     with pytest.raises(SceneError, match=r"^scene\.toml: colliders\[0\]\.major_radius: expected"):
         sc.parse_scene(text, "scene.toml")
+
+
+# ------------------------------------------------ motion, kinematic groups, emitters
+
+MOVING = """\
+[output]
+duration = 2.0
+
+[shapes.pawn]
+builtin = "pawn"
+
+[[bodies]]
+name = "ball"
+shape = "pawn"
+position = [0.0, 0.0, 1.0]
+rotation = [2.0, 0.0, 0.0, 0.0]
+kinematic = true
+start_time = 0.5
+[bodies.motion]
+interpolation = "smooth"
+keys = [{ time = 0.0 },
+        { time = 1.0, position = [1.0, 0.0, 1.0], rotation = [0.0, 0.0, 0.0, 3.0] }]
+
+[[bodies]]
+name = "turntable"
+shape = "pawn"
+layout = "grid"
+origin = [1.0, 2.0, 0.0]
+dims = [2, 2, 1]
+spacing = 0.3
+kinematic = true
+[bodies.motion]
+angular_velocity = [0.0, 0.0, 1.0]
+
+[[bodies]]
+name = "late"
+shape = "pawn"
+start_time = 2.0
+velocity = [0.0, 0.0, -1.0]
+
+[[colliders]]
+type = "plane"
+name = "belt"
+point = [0.0, 0.0, 0.5]
+[colliders.motion]
+velocity = [1.0, 0.0, 0.0]
+
+[[colliders]]
+type = "box"
+min = [-1.0, -1.0, 0.0]
+max = [1.0, 3.0, 1.0]
+[colliders.motion]
+angular_velocity = [0.0, 0.0, 0.5]
+pivot = [0.0, 0.0, 0.0]
+
+[[colliders]]
+type = "mesh"
+builtin = "torus"
+position = [1.0, 2.0, 3.0]
+rotation = [0.0, 1.0, 0.0, 0.0]
+[colliders.motion]
+[[colliders.motion.keys]]
+time = 0.0
+[[colliders.motion.keys]]
+time = 1.5
+position = [1.0, 2.0, 4.0]
+"""
+
+
+def test_motion_keys_rates_and_emitters():
+    s = parse(MOVING)
+    ball, table, late = s.bodies
+    assert ball.kinematic and ball.start_time == 0.5
+    m = ball.motion
+    assert m.interpolation == "smooth" and m.keyed
+    # a key without position/rotation stands at the body's own pose; rotations normalized
+    assert m.keys[0] == Key(0.0, (0.0, 0.0, 1.0), (1.0, 0.0, 0.0, 0.0))
+    assert m.keys[1] == Key(1.0, (1.0, 0.0, 1.0), (0.0, 0.0, 0.0, 1.0))
+    # rates: the pivot is left to the builder (the owner's point)
+    assert table.kinematic and table.motion == Motion(angular_velocity=(0.0, 0.0, 1.0))
+    assert table.motion.pivot is None
+    assert not late.kinematic and late.motion is None and late.start_time == 2.0
+    belt, box, ring = s.colliders
+    assert belt.motion == Motion(velocity=(1.0, 0.0, 0.0))
+    assert box.motion.pivot == (0.0, 0.0, 0.0)
+    assert ring.motion.interpolation == "linear"
+    assert [k.position for k in ring.motion.keys] == [(1.0, 2.0, 3.0), (1.0, 2.0, 4.0)]
+    assert all(k.rotation == (0.0, 1.0, 0.0, 0.0) for k in ring.motion.keys)
+    # the frames motions move (what the builder anchors them at)
+    frames = [sc.collider_frame(c) for c in s.colliders]
+    assert [f[0].tolist() for f in frames] == [[0.0, 0.0, 0.5], [0.0, 1.0, 0.5], [1.0, 2.0, 3.0]]
+    assert frames[2][1].tolist() == [0.0, 1.0, 0.0, 0.0]
+    placements = sc.expand_bodies(s)
+    o, r = sc.group_frame(ball, placements[0])
+    assert o.tolist() == [0.0, 0.0, 1.0] and r.tolist() == [1.0, 0.0, 0.0, 0.0]
+    assert sc.group_frame(table, placements[1])[0].tolist() == [1.0, 2.0, 0.0]
+    # static by default
+    p = parse(minimal(body='[[colliders]]\ntype = "plane"\n'))
+    assert p.colliders[0].motion is None and not p.bodies[0].kinematic
+    assert p.bodies[0].start_time == 0.0
+
+
+def test_kinematic_group_keys_default_to_its_origin():
+    s = parse(minimal(body='layout = "random"\ncount = 3\nregion_min = [0, 0, 0]\n'
+                           'region_max = [2, 4, 6]\nkinematic = true\n'
+                           '[bodies.motion]\nkeys = [{ time = 0.0 }, '
+                           '{ time = 1.0, rotation = [0, 0, 0, 1] }]\n'))
+    assert [k.position for k in s.bodies[0].motion.keys] == [(1.0, 2.0, 3.0)] * 2
+
+
+KIN = 'kinematic = true\n'
+
+
+@pytest.mark.parametrize("body, key, expect", [
+    (KIN + "velocity = [1, 0, 0]\n[bodies.motion]\nvelocity = [1, 0, 0]\n",
+     "bodies[0].velocity", "given on a kinematic group"),
+    (KIN + "angular_velocity = [1, 0, 0]\n[bodies.motion]\nvelocity = [1, 0, 0]\n",
+     "bodies[0].angular_velocity", "given on a kinematic group"),
+    (KIN, "bodies[0].motion", "a kinematic group needs a motion"),
+    ("[bodies.motion]\nvelocity = [1, 0, 0]\n", "bodies[0].motion",
+     "add kinematic = true"),
+    ('kinematic = "yes"\n', "bodies[0].kinematic", "expected a boolean"),
+    ("start_time = -1.0\n", "bodies[0].start_time", "out of range"),
+    ("start_time = 5.0\n", "bodies[0].start_time", "after the end of the animation"),
+    (KIN + "[bodies.motion]\n", "bodies[0].motion", "no motion given"),
+    (KIN + "[bodies.motion]\nvelocity = [1, 0, 0]\nkeys = [{ time = 0.0 }]\n",
+     "bodies[0].motion.velocity", "not both"),
+    (KIN + "[bodies.motion]\nvelocity = [1, 0, 0]\ninterpolation = 'smooth'\n",
+     "bodies[0].motion.interpolation", "applies to keys only"),
+    (KIN + "[bodies.motion]\nkeys = []\n", "bodies[0].motion.keys", "got an empty array"),
+    (KIN + "[bodies.motion]\nkeys = [{ time = 0.0 }]\ninterpolation = 'cubic'\n",
+     "bodies[0].motion.interpolation", "known: linear, smooth"),
+    (KIN + "[bodies.motion]\nkeys = [{ time = 1.0 }, { time = 0.5 }]\n",
+     "bodies[0].motion.keys[1].time", "is before keys[0].time = 1"),
+    (KIN + "[bodies.motion]\nkeys = [{ time = 1.0 }, { time = 1.0 }]\n",
+     "bodies[0].motion.keys[1].time", "repeats keys[0]"),
+    (KIN + "[bodies.motion]\nkeys = [{ position = [0, 0, 0] }]\n",
+     "bodies[0].motion.keys[0].time", "missing required key"),
+    (KIN + "[bodies.motion]\nkeys = [{ time = 0.0, rotation = [0, 0, 0, 0] }]\n",
+     "bodies[0].motion.keys[0].rotation", "zero quaternion"),
+    (KIN + "[bodies.motion]\nkeys = [{ time = 0.0, postion = [0, 0, 0] }]\n",
+     "bodies[0].motion.keys[0].postion", "did you mean 'position'?"),
+    (KIN + "[bodies.motion]\nkeys = [1.0]\n", "bodies[0].motion.keys[0]", "expected a table"),
+    (KIN + 'rotation = "random"\n[bodies.motion]\nkeys = [{ time = 0.0 }]\n',
+     "bodies[0].motion.keys[0]", 'bodies[0] has rotation = "random"'),
+    (KIN + "[bodies.motion]\nvelocty = [1, 0, 0]\n", "bodies[0].motion.velocty",
+     "did you mean 'velocity'?"),
+    ('[[colliders]]\ntype = "plane"\n[colliders.motion]\npivot = [0, 0, 0]\n',
+     "colliders[0].motion", "no motion given"),
+    ('[[colliders]]\ntype = "box"\nmin = [0, 0, 0]\nmax = [1, 1, 1]\n[colliders.motion]\n'
+     'keys = [{ time = 0.0 }]\nangular_velocity = [0, 0, 1]\n',
+     "colliders[0].motion.angular_velocity", "not both"),
+    ('[[colliders]]\ntype = "plane"\nmotion = [1, 0, 0]\n', "colliders[0].motion",
+     "expected a table"),
+])
+def test_motion_errors(body, key, expect):
+    msg = error_of(minimal(head="[output]\nduration = 2.0\n", body=body))
+    assert f"scene.toml: {key}: " in msg
+    assert expect in msg

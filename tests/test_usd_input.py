@@ -102,8 +102,8 @@ VX = 0.2          # the cube's initial velocity [m/s]
 @pytest.fixture(scope="module")
 def shot(tmp_path_factory):
     """A stage with a Cube, a Sphere, a Mesh, an Xform body of two child cubes under a
-    rotated and scaled parent, an instancer of two bodies, a kinematic body and a
-    joint; baked for 0.5 s at resolution 3 into an overlay."""
+    rotated and scaled parent, an instancer of two bodies, a keyed kinematic body and
+    a joint; baked for 0.5 s at resolution 3 into an overlay."""
     d = tmp_path_factory.mktemp("shot")
     st = new_stage(d / "shot.usda")
     ground(st)
@@ -141,10 +141,12 @@ def shot(tmp_path_factory):
     pi.CreateProtoIndicesAttr([0, 0])
     pi.CreatePositionsAttr([Gf.Vec3f(0.0, -0.4, 0.03 + GAP), Gf.Vec3f(0.3, -0.4, 0.03 + GAP)])
     pi.CreateOrientationsAttr([Gf.Quath(1, 0, 0, 0), Gf.Quath(1, 0, 0, 0)])
-    # not simulated: a kinematic body (held static) and a joint
+    # a kinematic body on keys, clear of the others; not simulated: a joint
     kin = UsdGeom.Cube.Define(st, "/World/Pusher")
-    kin.CreateSizeAttr(0.05)
-    kin.AddTranslateOp().Set(Gf.Vec3d(0.8, 0.8, 0.025))
+    kin.CreateSizeAttr(0.08)        # not the smallest shape: the sphere size stays the others'
+    op = kin.AddTranslateOp()
+    op.Set(Gf.Vec3d(0.8, 0.8, 0.04), 0)
+    op.Set(Gf.Vec3d(1.0, 0.8, 0.04), 12)
     body(kin.GetPrim()).CreateKinematicEnabledAttr(True)
     weld = UsdPhysics.FixedJoint.Define(st, "/World/Weld")
     weld.CreateBody0Rel().SetTargets(["/World/Cube"])
@@ -162,7 +164,7 @@ def shot(tmp_path_factory):
 def test_not_simulated_prims_are_named_in_one_warning(shot):
     lines = [w for w in shot["warnings"] if "not simulated" in w]
     assert len(lines) == 1
-    assert "/World/Pusher" in lines[0] and "held static" in lines[0]
+    assert "/World/Pusher" not in lines[0]            # kinematic: it follows its keys
     assert "/World/Weld" in lines[0]
     assert any("ground plane" in w and "/World/Ground" in w for w in shot["warnings"])
 
@@ -187,6 +189,11 @@ def test_overlay_holds_no_geometry_and_sublayers_the_input(shot):
 
     walk(layer.pseudoRoot)
     assert "positions" in seen and "xformOp:orient:dempipe" in seen
+    # the kinematic body keeps the input's own animation: the overlay does not touch it
+    assert not layer.GetPrimAtPath("/World/Pusher")
+    assert [k.position for k in next(g for g in shot["scene"].bodies
+                                     if g.kinematic).motion.keys] == \
+        [pytest.approx((0.8, 0.8, 0.04)), pytest.approx((1.0, 0.8, 0.04))]
 
 
 def test_composed_overlay_validates(shot):
@@ -648,3 +655,131 @@ def test_overlay_leaves_out_redundant_samples(tmp_path):
     for t in range(5):
         z = xf.ComputeLocalToWorldTransform(Usd.TimeCode(t)).ExtractTranslation()[2]
         assert z == pytest.approx(x[t, 0, 2], abs=1e-12)
+
+
+def test_kinematic_body_keys_are_its_world_pose_at_the_authored_samples(tmp_path):
+    # A kinematic cube turning on its own rotateZ samples under a parent that
+    # translates on other samples, in centimetres and Y-up: the keys are the world
+    # pose at the union of the samples [m, s], linear; no samples: one key, held.
+    st = new_stage(tmp_path / "kin.usda", up="Y", mpu=0.01, start=1, end=25)
+    ground(st)
+    arm = UsdGeom.Xform.Define(st, "/World/Arm")
+    t_op = arm.AddTranslateOp()
+    t_op.Set(Gf.Vec3d(0, 50, 0), 1)
+    t_op.Set(Gf.Vec3d(100, 50, 0), 13)
+    cube = UsdGeom.Cube.Define(st, "/World/Arm/Blade")
+    cube.CreateSizeAttr(10.0)
+    cube.AddTranslateOp().Set(Gf.Vec3d(0, 0, 20))
+    r_op = cube.AddRotateZOp()
+    r_op.Set(0.0, 1)
+    r_op.Set(90.0, 7)
+    body(cube.GetPrim()).CreateKinematicEnabledAttr(True)
+    still = UsdGeom.Cube.Define(st, "/World/Post")
+    still.CreateSizeAttr(10.0)
+    still.AddTranslateOp().Set(Gf.Vec3d(-50, 5, 0))
+    body(still.GetPrim()).CreateKinematicEnabledAttr(True)
+    ball = UsdGeom.Sphere.Define(st, "/World/Ball")
+    ball.CreateRadiusAttr(5.0)
+    ball.AddTranslateOp().Set(Gf.Vec3d(0, 20, 0))
+    body(ball.GetPrim())
+    st.GetRootLayer().Save()
+    scene = load_usd_scene(tmp_path / "kin.usda")
+    groups = {g.name: g for g in scene.bodies}
+    assert [g.kinematic for g in scene.bodies].count(True) == 2
+    blade = next(g for g in scene.bodies if g.kinematic and "Blade" in g.name)
+    m = blade.motion
+    assert m.interpolation == "linear" and blade.velocity == (0.0, 0.0, 0.0)
+    assert [k.time for k in m.keys] == [0.0, 0.25, 0.5]        # codes 1, 7, 13 at 24 fps
+    s = math.sqrt(0.5)
+    expect = [((0.0, 0.5, 0.2), (1, 0, 0, 0)),                  # parent at 0, blade at 0°
+              ((0.5, 0.5, 0.2), (s, 0, 0, s)),                  # parent halfway, 90° about z
+              ((1.0, 0.5, 0.2), (s, 0, 0, s))]                  # rotation held after code 7
+    for k, (pos, rot) in zip(m.keys, expect):
+        assert k.position == pytest.approx(pos, abs=1e-12)
+        assert k.rotation == pytest.approx(rot, abs=1e-12)
+    # the group's initial pose is its first key; the motion reproduces it
+    assert blade.position == pytest.approx(m.keys[0].position, abs=1e-12)
+    post = next(g for g in scene.bodies if g.kinematic and "Post" in g.name)
+    assert [(k.time, k.position) for k in post.motion.keys] == \
+        [(0.0, pytest.approx((-0.5, 0.05, 0.0), abs=1e-12))]
+    assert not any(g.kinematic for g in groups.values() if "Ball" in g.name)
+    kin = [b for b in scene.usd.bodies if b.kinematic]
+    assert sorted(b.prim for b in kin) == ["/World/Arm/Blade", "/World/Post"]
+
+
+MOVING_EXPORT = """
+[output]
+fps = 24
+duration = 0.5
+start_frame = 1
+
+[shapes.box]
+builtin = "box"
+size = [0.04, 0.05, 0.06]
+
+[[bodies]]
+name = "pusher"
+shape = "box"
+position = [0.3, 0.2, 0.05]
+rotation = [0.9, 0.1, 0.3, 0.2]
+kinematic = true
+[bodies.motion]
+keys = [{ time = 0.0 }, { time = 0.25, position = [0.5, 0.2, 0.05] },
+        { time = 0.5, position = [0.5, 0.4, 0.05], rotation = [1.0, 0.0, 0.0, 0.0] }]
+
+[[bodies]]
+name = "late"
+shape = "box"
+position = [0.0, 0.0, 0.1]
+start_time = 0.25
+
+[[colliders]]
+type = "plane"
+[colliders.motion]
+velocity = [1.0, 0.0, 0.0]
+
+[[colliders]]
+type = "mesh"
+name = "paddle"
+builtin = "box"
+size = [0.1, 0.1, 0.02]
+position = [0.5, 0.5, 0.0]
+[colliders.motion]
+angular_velocity = [0.0, 0.0, 2.0]
+"""
+
+
+def test_scene_export_writes_kinematic_bodies_and_moving_colliders_animated(tmp_path):
+    """`dempipe scene export` of prescribed motion: a keyed kinematic body reads back
+    with the same keys; a spinning mesh collider becomes a kinematic body sampled at
+    every frame; what UsdPhysics cannot hold (a moving plane, start_time) is warned of."""
+    import warnings as w
+
+    from dempipe.export.physics_stage import write_physics_stage
+    from dempipe.scene import parse_scene
+
+    a = parse_scene(MOVING_EXPORT, tmp_path / "m.toml")
+    with w.catch_warnings(record=True) as caught:
+        w.simplefilter("always")
+        write_physics_stage(a, tmp_path / "m.usda")
+    text = " ".join(str(c.message) for c in caught)
+    assert "start_time = 0.25 s" in text and "moving plane" in text
+    b = load_scene(tmp_path / "m.usda")
+    pusher = next(g for g in b.bodies if g.kinematic and "pusher" in g.name)
+    src = a.bodies[0].motion.keys
+    got = pusher.motion.keys
+    assert [k.time for k in got] == pytest.approx([k.time for k in src], abs=1e-12)
+    for k, s in zip(got, src):
+        assert k.position == pytest.approx(s.position, abs=1e-12)
+        assert abs(np.dot(k.rotation, s.rotation)) == pytest.approx(1.0, abs=1e-12)
+    paddle = next(g for g in b.bodies if g.kinematic and "paddle" in g.name)
+    assert len(paddle.motion.keys) == a.output.n_frames        # rates: one key a frame
+    # the paddle's keys turn its world-space geometry about its position at 2 rad/s
+    for k in paddle.motion.keys:
+        c, s_ = math.cos(k.time), math.sin(k.time)             # half angle of 2 t
+        assert k.rotation == pytest.approx((c, 0.0, 0.0, s_), abs=1e-9)
+        R = np.array([[math.cos(2 * k.time), -math.sin(2 * k.time), 0.0],
+                      [math.sin(2 * k.time), math.cos(2 * k.time), 0.0], [0.0, 0.0, 1.0]])
+        centre = np.array([0.5, 0.5, 0.0])
+        assert k.position == pytest.approx(centre - R @ centre, abs=1e-9)
+    assert [g.kinematic for g in b.bodies].count(True) == 2 and len(b.bodies) == 3

@@ -20,6 +20,10 @@ Per body prim (see docs/usd-input.md, "The overlay"):
 * ``physics:velocity`` and ``physics:angularVelocity`` (degrees per second), in the
   parent's space as the schema has them.
 
+Kinematic bodies (``kinematicEnabled``) are left out: the input's own animation
+is what they follow (dempipe.usd_scene reads it as their keys), so the overlay
+does not restate it.
+
 Bodies that are instances of a ``PointInstancer`` are written back into the
 instancer's own ``positions``, ``orientations`` (or ``orientationsf`` when the
 input uses it), ``velocities`` and ``angularVelocities``; instances that are not
@@ -103,6 +107,8 @@ class OverlayWriter:
         self._author_header()
         self.prims, self.instanced = {}, {}
         for b, body in enumerate(shot.bodies):
+            if getattr(body, "kinematic", False):
+                continue        # it follows the input's own animation: left as authored
             if body.instance >= 0:
                 self.instanced.setdefault(body.prim, []).append(b)
             else:

@@ -13,6 +13,15 @@ per box collider one thin Cube per wall (a DCC sees the container; read back, th
 walls are static box meshes, not dempipe's bounded walls). What UsdPhysics cannot
 hold: a material's numeric stiffness, dempipe's simulation settings (sphere size,
 dt, sleeping), which a settings TOML gives (docs/usd-input.md). Written atomically.
+
+Prescribed motion (issue 25): a kinematic group's bodies get
+``physics:kinematicEnabled`` and time-sampled translate and orient ops (linear keys
+at their key times, exactly; smooth keys and rates at every frame and at the key
+times), which dempipe reads back as the same keys. A moving mesh or box collider
+becomes a kinematic body with its motion as time-sampled ops over its world-space
+geometry (UsdPhysics' way to animate a collider). A moving plane and a group's
+``start_time`` have no UsdPhysics form: a warning says so and the stage holds the
+plane still and the group from the start.
 """
 
 from __future__ import annotations
@@ -24,6 +33,8 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdShade, Vt
 
 from ..errors import ExportError
+from ..motion import carry, reference_anchor
+from .prescribed import collider_xforms
 from .usd import EXTENSIONS, _save_atomically
 
 __all__ = ["write_physics_stage"]
@@ -60,10 +71,35 @@ def _mesh(stage, path, vertices, faces, mpu):
     return m
 
 
+def _motion_times(motion, out) -> np.ndarray:
+    """Times [s] to sample a motion at: a linear one's key times (USD's linear
+    interpolation between them is the motion); otherwise every frame and the key
+    times."""
+    keys = np.array([k.time for k in motion.keys], dtype=np.float64)
+    if motion.keyed and motion.interpolation == "linear":
+        return keys
+    return np.union1d(np.arange(out.n_frames) / float(out.fps), keys)
+
+
+def _animate(xf, translate, orient, times, out, mpu):
+    """Time-sampled double translate and orient ops on the Xformable ``xf``:
+    ``translate`` (F, 3) [m], ``orient`` (F, 4) (w, x, y, z) at ``times`` (F,) [s]."""
+    t_op = xf.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble)
+    o_op = xf.AddOrientOp(UsdGeom.XformOp.PrecisionDouble)
+    for t, x, q in zip(times, translate, orient):
+        code = Usd.TimeCode(out.start_frame + float(t) * out.fps)
+        t_op.Set(Gf.Vec3d(*(np.asarray(x, float) / mpu)), code)
+        o_op.Set(Gf.Quatd(float(q[0]), Gf.Vec3d(*[float(v) for v in q[1:]])), code)
+
+
+def _kinematic(prim):
+    UsdPhysics.RigidBodyAPI.Apply(prim).CreateKinematicEnabledAttr(True)
+
+
 def write_physics_stage(scene, path) -> Path:
     """Write the TOML ``scene`` (a dempipe.scene.Scene) as a UsdPhysics stage at ``path``."""
     from ..build import _collider_mesh, _shape_mesh
-    from ..scene import expand_bodies
+    from ..scene import collider_frame, expand_bodies, group_frame
 
     path = Path(path)
     if path.suffix.lower() not in EXTENSIONS:
@@ -116,18 +152,35 @@ def write_physics_stage(scene, path) -> Path:
     UsdGeom.Scope.Define(stage, "/World/Bodies")
     for group, placement in zip(scene.bodies, expand_bodies(scene)):
         UsdGeom.Xform.Define(stage, f"/World/Bodies/{group.name}")
+        if group.start_time > 0:
+            warnings.warn(f"bodies {group.name!r}: start_time = {group.start_time:g} s has no "
+                          "UsdPhysics attribute; the stage has the group from the start",
+                          stacklevel=2)
+        motion = ref = None
+        if group.kinematic:
+            owner, rot = group_frame(group, placement)
+            motion = group.motion.with_pivot(owner)
+            ref = reference_anchor(motion, owner, rot, group=group.layout != "single")
+            times = _motion_times(motion, out)
         for i, shape in enumerate(placement.body_shapes()):
             mesh = meshes[shape]
             m = _mesh(stage, f"/World/Bodies/{group.name}/{group.name}_{i}", mesh.vertices,
                       mesh.faces, mpu)
-            m.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(
-                Gf.Vec3d(*(placement.positions[i] / mpu)))
-            _orient(m, placement.rotations[i])
             prim = m.GetPrim()
             UsdPhysics.CollisionAPI.Apply(prim)
             rb = UsdPhysics.RigidBodyAPI.Apply(prim)
-            rb.CreateVelocityAttr(Gf.Vec3f(*(placement.velocities[i] / mpu)))
-            rb.CreateAngularVelocityAttr(Gf.Vec3f(*np.degrees(placement.angular_velocities[i])))
+            if motion is not None:
+                poses = [carry(motion, ref, placement.positions[i], placement.rotations[i], t)
+                         for t in times]
+                _animate(m, [p[0] for p in poses], [p[1] for p in poses], times, out, mpu)
+                rb.CreateKinematicEnabledAttr(True)
+            else:
+                m.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(
+                    Gf.Vec3d(*(placement.positions[i] / mpu)))
+                _orient(m, placement.rotations[i])
+                rb.CreateVelocityAttr(Gf.Vec3f(*(placement.velocities[i] / mpu)))
+                rb.CreateAngularVelocityAttr(
+                    Gf.Vec3f(*np.degrees(placement.angular_velocities[i])))
             bind(prim, placement.material)
 
     UsdGeom.Scope.Define(stage, "/World/Colliders")
@@ -143,8 +196,13 @@ def write_physics_stage(scene, path) -> Path:
                 Gf.Vec3d(*(np.asarray(c.point) / mpu)))
             _orient(plane, _quat_between([0, 0, 1.0], c.normal))
             prims = [plane.GetPrim()]
+            if c.motion is not None:
+                warnings.warn(f"colliders {c.name!r}: a moving plane has no UsdPhysics form; "
+                              "the stage holds it still", stacklevel=2)
         elif kind == "BoxCollider":
-            UsdGeom.Xform.Define(stage, p)
+            box = UsdGeom.Xform.Define(stage, p)
+            if c.motion is not None:
+                _moving_collider(box, c.motion, *collider_frame(c), out, mpu)
             lo, hi = np.asarray(c.min, float), np.asarray(c.max, float)
             t = c.thickness or 0.02 * float(np.max(hi - lo))
             prims = []
@@ -164,9 +222,23 @@ def write_physics_stage(scene, path) -> Path:
                     prims.append(wall.GetPrim())
         else:
             mesh = _collider_mesh(c, p)
-            prims = [_mesh(stage, p, mesh.vertices, mesh.faces, mpu).GetPrim()]
+            m = _mesh(stage, p, mesh.vertices, mesh.faces, mpu)
+            prims = [m.GetPrim()]
+            if c.motion is not None:
+                _moving_collider(m, c.motion, *collider_frame(c), out, mpu)
         for prim in prims:
             UsdPhysics.CollisionAPI.Apply(prim)
             bind(prim, c.material)
     _save_atomically(layer, path)
     return path
+
+
+def _moving_collider(xf, motion, origin, rotation, out, mpu):
+    """A moving mesh or box collider as a kinematic body: its geometry stays in world
+    coordinates and its ops carry it by D(t) (export/prescribed.py)."""
+    motion = motion.with_pivot(origin)
+    ref = reference_anchor(motion, origin, rotation)
+    times = _motion_times(motion, out)
+    tr, ori = collider_xforms(motion, ref, origin, rotation, times)
+    _animate(xf, tr, ori, times, out, mpu)
+    _kinematic(xf.GetPrim())

@@ -76,6 +76,8 @@ class Scan:
         self.x0 = None
         self.shapes_ok = True
         self.shape_problem = None
+        self._numbers = []          # frame numbers and times [s] of every block
+        self._times = []
 
     def add(self, f: Frames) -> None:
         fn = np.asarray(f.frame_numbers)
@@ -90,9 +92,21 @@ class Scan:
             self.x0 = np.array(f.x[0], dtype=np.float64)
         self.last_number = fn[-1]
         self.n_frames += int(fn.size)
+        self._numbers.append(np.array(fn, dtype=np.float64))
+        self._times.append(np.array(f.times, dtype=np.float64).reshape(-1))
         x = np.asarray(f.x, dtype=np.float64)
         if x.size:
             self.max_abs_x = max(self.max_abs_x, float(np.abs(x).max()))
+
+    @property
+    def numbers(self) -> np.ndarray:
+        """(F,) frame numbers (USD time codes) of all frames."""
+        return np.concatenate(self._numbers) if self._numbers else np.zeros(0)
+
+    @property
+    def times(self) -> np.ndarray:
+        """(F,) simulation times [s] of all frames (what prescribed motion runs on)."""
+        return np.concatenate(self._times) if self._times else np.zeros(0)
 
     def plane_positions(self, source: FrameSource, planes) -> np.ndarray:
         """(1 + P, B, 3) positions [m] standing in for all frames in usd._plane_quad:

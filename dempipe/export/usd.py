@@ -35,6 +35,7 @@ from pxr import Gf, Sdf, Tf, Vt
 
 from .. import __version__
 from ..errors import ExportError
+from .prescribed import collider_xforms, first_shown_frame, plane_xforms
 from .samples import Scan, SparseTrack, as_source
 
 __all__ = ["ExportInfo", "write_usd", "LAYOUTS", "EXTENSIONS"]
@@ -100,7 +101,11 @@ def write_usd(path, frames, model, *, layout: str = "instancer", overwrite: bool
     model : Model
         Reads ``shapes``, ``n_bodies``, ``body_shape``, ``body_group``,
         ``group_names``, ``body_group_index``, ``plane_point``, ``plane_normal``,
-        ``boxes``, ``static_meshes``, ``fps``, ``up_axis``, ``meters_per_unit``.
+        ``boxes``, ``static_meshes``, ``fps``, ``up_axis``, ``meters_per_unit``;
+        where present, ``collider_motions`` (animated colliders: each one's kind
+        "plane" | "box" | "mesh", index, motion, ref_p, ref_q, origin, rotation;
+        export/prescribed.py) and ``body_start_time`` ((n_bodies,) [s]: emitted
+        bodies are hidden before it).
     layout : {"instancer", "xforms"}
         One PointInstancer, or one instanceable Xform per body.
     overwrite : bool
@@ -145,7 +150,8 @@ def write_usd(path, frames, model, *, layout: str = "instancer", overwrite: bool
             n_samples = _author_instancer(layer, world, source, scan, model, sparse, materials)
         else:
             n_samples = _author_xforms(layer, world, source, scan, model, sparse, materials)
-        _author_colliders(layer, world, source, scan, model, collider_material)
+        n_samples += _author_colliders(layer, world, source, scan, model, collider_material,
+                                       sparse)
 
     _save_atomically(layer, path)
     return ExportInfo(
@@ -426,6 +432,7 @@ def _author_instancer(layer, world, source, scan, model, sparse, materials) -> i
           Vt.IntArray.FromNumpy(np.asarray(model.body_shape, dtype=np.int32).reshape(-1)))
     _attr(bodies, "ids", _T.Int64Array,
           Vt.Int64Array.FromNumpy(np.arange(n_bodies, dtype=np.int64)))
+    n_vis = _author_invisible_ids(layer, bodies, model, scan)
 
     # Conservative per-frame bound: instance centres ± the largest prototype radius.
     radius = max((float(np.linalg.norm(p, axis=1).max()) for p in points if len(p)), default=0.0)
@@ -467,7 +474,26 @@ def _author_instancer(layer, world, source, scan, model, sparse, materials) -> i
             writers[0].push(float(t), pos[f], vel[f])
             writers[1].push(float(t), ori[f], ang[f])
             writers[2].push(float(t), ext[f], None)
-    return sum(wr.finish() for wr in writers)
+    return n_vis + sum(wr.finish() for wr in writers)
+
+
+def _author_invisible_ids(layer, bodies, model, scan) -> int:
+    """Emitted bodies hidden before their first frame: ``invisibleIds`` (ids are the
+    body indices) sampled at frame 0 and wherever the hidden set shrinks (an int
+    array is held between samples). Nothing when every body is there from the
+    start. Returns the samples written."""
+    shown = _first_shown(model, scan)
+    later = np.unique(shown[shown > 0])
+    if not later.size:
+        return 0
+    numbers = scan.numbers
+    spec = _attr(bodies, "invisibleIds", _T.Int64Array)
+    n = 0
+    for f in [0] + [int(k) for k in later if k < len(numbers)]:
+        hidden = np.flatnonzero(shown > f).astype(np.int64)
+        layer.SetTimeSample(spec.path, float(numbers[f]), Vt.Int64Array.FromNumpy(hidden))
+        n += 1
+    return n
 
 
 class _ArrayPair:
@@ -591,6 +617,20 @@ def _author_xforms(layer, world, source, scan, model, sparse, materials) -> int:
         o_paths.append(_attr(prim, "xformOp:orient", _T.Quatf).path)
         _attr(prim, "xformOpOrder", _T.TokenArray, op_order, uniform=True)
 
+    # emitted bodies: "invisible" until their first frame, then "inherited" (a token
+    # is held between samples, never interpolated)
+    numbers = scan.numbers
+    n_vis = 0
+    for b, f in enumerate(_first_shown(model, scan)):
+        if f == 0:
+            continue
+        vis = _attr(layer.GetPrimAtPath(t_paths[b].GetPrimPath()), "visibility", _T.Token)
+        layer.SetTimeSample(vis.path, float(numbers[0]), "invisible")
+        n_vis += 1
+        if f < len(numbers):
+            layer.SetTimeSample(vis.path, float(numbers[f]), "inherited")
+            n_vis += 1
+
     writers = (_BodySamples(layer, t_paths, Vt.Vec3dArray.FromNumpy, sparse),
                _BodySamples(layer, o_paths, Vt.QuatfArray.FromNumpy, sparse))
     for frames in source.blocks():
@@ -599,7 +639,22 @@ def _author_xforms(layer, world, source, scan, model, sparse, materials) -> int:
         for f, t in enumerate(np.asarray(frames.frame_numbers)):
             writers[0].push(float(t), trans[f])
             writers[1].push(float(t), orient[f])
-    return sum(wr.finish() for wr in writers)
+    return n_vis + sum(wr.finish() for wr in writers)
+
+
+def _first_shown(model, scan) -> np.ndarray:
+    """(n_bodies,) index of the frame each body is first shown at (0: from the start;
+    scan.n_frames: never), from ``model.body_start_time`` (zeros where absent)."""
+    n = int(model.n_bodies)
+    start = getattr(model, "body_start_time", None)
+    if start is None:
+        return np.zeros(n, dtype=np.int64)
+    start = np.asarray(start, dtype=np.float64).reshape(-1)
+    if start.shape != (n,):
+        raise ExportError(f"model.body_start_time has shape {start.shape}, expected ({n},)")
+    shown = first_shown_frame(start, scan.times)
+    shown[start <= 0.0] = 0
+    return shown
 
 
 class _BodySamples:
@@ -719,7 +774,10 @@ def _box_walls(box, up: int):
     return np.concatenate(verts), np.concatenate(faces)
 
 
-def _author_colliders(layer, world, source, scan, model, material) -> None:
+def _author_colliders(layer, world, source, scan, model, material, sparse=True) -> int:
+    """The colliders under /World/Colliders (geometry in world coordinates); the
+    animated ones (``model.collider_motions``) with time-sampled xformOps.
+    Returns the time samples written."""
     mpu = float(model.meters_per_unit)
     up = {"Y": 1, "Z": 2}[str(model.up_axis).upper()]
     plane_point = np.asarray(getattr(model, "plane_point", np.zeros((0, 3)))).reshape(-1, 3)
@@ -727,7 +785,10 @@ def _author_colliders(layer, world, source, scan, model, material) -> None:
     boxes = tuple(getattr(model, "boxes", ()) or ())
     statics = tuple(getattr(model, "static_meshes", ()) or ())
     if not (len(plane_point) or boxes or statics):
-        return
+        return 0
+    moving = {(str(m.kind), int(m.index)): m for m in getattr(model, "collider_motions", ()) or ()}
+    times, numbers = scan.times, scan.numbers
+    n = 0
     col = Sdf.PrimSpec(world, "Colliders", _DEF, "Xform")
     # frame 0 and, per plane, the farthest position of all frames (samples.Scan)
     positions = scan.plane_positions(source, list(zip(plane_point, plane_normal))) \
@@ -735,17 +796,61 @@ def _author_colliders(layer, world, source, scan, model, material) -> None:
     quad = np.array([[0, 1, 2, 3]], dtype=np.int32)
     for i, (p, nrm) in enumerate(zip(plane_point, plane_normal)):
         prim = Sdf.PrimSpec(col, f"plane_{i}", _DEF, "Mesh")
-        _author_mesh(prim, _plane_quad(p, nrm, positions) / mpu, quad, _COLLIDER_COLOR, material)
+        verts = _plane_quad(p, nrm, positions)
+        _author_mesh(prim, verts / mpu, quad, _COLLIDER_COLOR, material)
+        m = moving.get(("plane", i))
+        if m is not None:
+            tr, ori = plane_xforms(m.motion, (m.ref_p, m.ref_q), m.origin, nrm,
+                                   verts.mean(axis=0), times)
+            n += _author_collider_motion(layer, prim, tr / mpu, ori, numbers, sparse)
     for i, box in enumerate(boxes):
         prim = Sdf.PrimSpec(col, f"box_{i}", _DEF, "Mesh")
         verts, faces = _box_walls(box, up)
         _author_mesh(prim, verts / mpu, faces, _COLLIDER_COLOR, material)
+        n += _moving_collider(layer, prim, moving.get(("box", i)), times, numbers, mpu, sparse)
     reserved = {f"plane_{i}" for i in range(len(plane_point))} | {f"box_{i}" for i in range(len(boxes))}
     names = _unique_names(list(reserved) + [m.name for m in statics])[len(reserved):]
-    for name, mesh in zip(names, statics):
+    for i, (name, mesh) in enumerate(zip(names, statics)):
         prim = Sdf.PrimSpec(col, name, _DEF, "Mesh")
         _author_mesh(prim, np.asarray(mesh.vertices, dtype=np.float64) / mpu, mesh.faces,
                      _COLLIDER_COLOR, material)
+        n += _moving_collider(layer, prim, moving.get(("mesh", i)), times, numbers, mpu, sparse)
+    return n
+
+
+def _moving_collider(layer, prim, m, times, numbers, mpu, sparse) -> int:
+    """A box's or mesh's prim transform D(t) from its ColliderMotion ``m`` (None:
+    static, nothing written)."""
+    if m is None:
+        return 0
+    tr, ori = collider_xforms(m.motion, (m.ref_p, m.ref_q), m.origin, m.rotation, times)
+    return _author_collider_motion(layer, prim, tr / mpu, ori, numbers, sparse)
+
+
+def _author_collider_motion(layer, prim, translate, orient, numbers, sparse) -> int:
+    """``xformOp:translate`` (F, 3) [stage units] and ``xformOp:orient`` (F, 4)
+    (w, x, y, z), double precision, at time codes ``numbers`` (F,); sparse: the
+    kept samples of _kept_samples, a default only where nothing changes.
+    Returns the time samples written."""
+    t_spec = _attr(prim, "xformOp:translate", _T.Double3)
+    o_spec = _attr(prim, "xformOp:orient", _T.Quatd)
+    _attr(prim, "xformOpOrder", _T.TokenArray,
+          Vt.TokenArray(["xformOp:translate", "xformOp:orient"]), uniform=True)
+    orient = _flush_tiny(np.array(orient, dtype=np.float64))
+    values = np.concatenate([translate, orient], axis=1)
+
+    def quat(q):
+        return Gf.Quatd(float(q[0]), Gf.Vec3d(float(q[1]), float(q[2]), float(q[3])))
+
+    if sparse and bool(_constant(values[:, None])[0]):
+        t_spec.default = Gf.Vec3d(*map(float, translate[0]))
+        o_spec.default = quat(orient[0])
+        return 0
+    keep = _kept_samples(values[:, None])[:, 0] if sparse else np.ones(len(values), bool)
+    for f in np.flatnonzero(keep):
+        layer.SetTimeSample(t_spec.path, float(numbers[f]), Gf.Vec3d(*map(float, translate[f])))
+        layer.SetTimeSample(o_spec.path, float(numbers[f]), quat(orient[f]))
+    return 2 * int(keep.sum())
 
 
 # ------------------------------------------------------------------ atomic save
