@@ -105,7 +105,7 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
     force : accept a user dt above the critical step (see ModelBuilder.finalize).
     The returned Model's ``build_info`` holds sphere-set build time and cache hits.
     """
-    from .scene import expand_bodies
+    from .scene import collider_frame, expand_bodies, group_frame
     from .spheres import build_sphere_set_with_info, diameter_for_resolution
 
     o = overrides or Overrides()
@@ -158,15 +158,21 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
                      masses=None if g.mass is None else np.full(n_g, float(g.mass)),
                      inertias=(None if g.inertia is None
                                else np.broadcast_to(np.asarray(g.inertia, float), (n_g, 3, 3))),
-                     asleep=np.full(n_g, bool(g.starts_asleep)))
+                     asleep=np.full(n_g, bool(g.starts_asleep)),
+                     kinematic=bool(getattr(g, "kinematic", False)),
+                     motion=getattr(g, "motion", None),
+                     start_time=float(getattr(g, "start_time", 0.0) or 0.0),
+                     group_frame=g.layout != "single",
+                     frame=group_frame(g, placement) if g.kinematic else None)
     up = out.up_index
     for c in scene.colliders:
         kind = type(c).__name__
         mi = material_index[c.material]
         if kind == "PlaneCollider":
-            b.add_plane(c.point, c.normal, mi)
+            b.add_plane(c.point, c.normal, mi, motion=getattr(c, "motion", None))
         elif kind == "BoxCollider":
-            b.add_box(c.min, c.max, c.open_top, mi, c.thickness, up=up)
+            b.add_box(c.min, c.max, c.open_top, mi, c.thickness, up=up,
+                      motion=getattr(c, "motion", None))
         else:
             mesh = _collider_mesh(c, f"{src}: colliders.{c.name}")
             check_lattice(mesh, d, f"{src}: colliders.{c.name}",
@@ -175,7 +181,8 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
             ss, info = build_sphere_set_with_info(mesh, d, name=c.name, cache=cache,
                                                   options=sphere_options(scene, None, o))
             hits.append((c.name, info.cache, info.seconds, ss.count))
-            b.add_static_mesh(c.name, mesh, ss, mi)
+            b.add_static_mesh(c.name, mesh, ss, mi, motion=getattr(c, "motion", None),
+                              frame=collider_frame(c))
     build_seconds = time.perf_counter() - t0
 
     fps = out.fps

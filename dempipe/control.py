@@ -21,6 +21,7 @@ dashpot and friction, for kinematic bodies, animated colliders and belts.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -80,3 +81,88 @@ class Control:
         b = np.asarray(self.body)
         state.body_x[b] = self.x
         state.body_q[b] = self.q
+
+
+class Drive(NamedTuple):
+    """The scene's prescribed inputs as the kernels read them, one structured launch
+    argument (both targets): the Model's motions (motion.MotionTable), which bodies
+    and walls they carry, the emitters' start steps, and the motions evaluated at
+    the current step (``motion_now``, the per-step Control the kernels write).
+
+    motion_now (M, 14): each anchor's P [m], Q, V [m/s], W [rad/s] (world frame)
+    and 1 when it moves this step, 0 when it holds still; M = 0 when the scene
+    prescribes nothing (the kernels then skip the motion stages).
+    moving_walls: bit w set for each moving wall (-1 when walls are too many for
+    a mask), so stage_active visits the slots a moving wall may reach.
+    """
+
+    motion_kind: np.ndarray
+    motion_v: np.ndarray
+    motion_w: np.ndarray
+    motion_pivot: np.ndarray
+    key_start: np.ndarray
+    key_t: np.ndarray
+    key_p: np.ndarray
+    key_q: np.ndarray
+    motion_now: np.ndarray
+    driven_body: np.ndarray
+    body_motion: np.ndarray
+    body_anchor_c: np.ndarray
+    body_anchor_q: np.ndarray
+    wall_motion: np.ndarray
+    body_start: np.ndarray
+    moving_walls: np.int64
+
+
+def drive(model) -> Drive:
+    """The Drive of ``model``, with a fresh motion_now (host arrays)."""
+    from . import motion as mo
+    from .kernels.contacts import WALL_BITS
+
+    nb = int(model.body_mass.shape[0])
+    nw = int(model.wall_normal.shape[0])
+    table = model.motion_table if model.motion_table is not None else mo.pack(())
+    n_m = len(model.motions)
+    body_motion = (np.full(nb, -1, np.int32) if model.body_motion is None
+                   else np.ascontiguousarray(model.body_motion, dtype=np.int32))
+    wall_motion = (np.full(nw, -1, np.int32) if model.wall_motion is None
+                   else np.ascontiguousarray(model.wall_motion, dtype=np.int32))
+    mask = 0
+    for w in np.flatnonzero(wall_motion >= 0):
+        mask = -1 if nw > WALL_BITS else mask | (1 << int(w))
+    anchor_c = (np.zeros((nb, 3)) if model.body_anchor_c is None
+                else np.ascontiguousarray(model.body_anchor_c))
+    anchor_q = (np.tile([1.0, 0.0, 0.0, 0.0], (nb, 1)) if model.body_anchor_q is None
+                else np.ascontiguousarray(model.body_anchor_q))
+    start = (np.zeros(nb, np.int64) if model.body_start is None
+             else np.ascontiguousarray(model.body_start, dtype=np.int64))
+    f = lambda a, dt=np.float64: np.ascontiguousarray(a, dtype=dt)
+    # with motions: at least one dummy row each, so the arrays are never empty
+    kind = f(table.kind, np.int32) if n_m else np.zeros(1, np.int32)
+    v = f(table.v).reshape(-1, 3) if n_m else np.zeros((1, 3))
+    w = f(table.w).reshape(-1, 3) if n_m else np.zeros((1, 3))
+    piv = f(table.pivot).reshape(-1, 3) if n_m else np.zeros((1, 3))
+    ks = f(table.key_start, np.int32) if n_m else np.zeros(2, np.int32)
+    return Drive(
+        motion_kind=kind, motion_v=v, motion_w=w, motion_pivot=piv, key_start=ks,
+        key_t=f(table.key_t), key_p=f(table.key_p).reshape(-1, 3),
+        key_q=f(table.key_q).reshape(-1, 4), motion_now=np.zeros((n_m, 14)),
+        driven_body=(np.zeros(0, np.int32) if model.driven_body is None
+                     else np.ascontiguousarray(model.driven_body, dtype=np.int32)),
+        body_motion=body_motion, body_anchor_c=anchor_c, body_anchor_q=anchor_q,
+        wall_motion=wall_motion, body_start=start, moving_walls=np.int64(mask))
+
+
+def split_at(step: int, n: int, starts) -> list:
+    """``n`` steps from ``step`` cut so that each start step in ``starts`` (sorted)
+    begins a piece: the lengths of the pieces."""
+    out = []
+    end = step + n
+    for e in starts:
+        e = int(e)
+        if step < e < end:
+            out.append(e - step)
+            step = e
+    if end > step:
+        out.append(end - step)
+    return out

@@ -18,7 +18,7 @@ import numpy as np
 
 from . import laws
 from . import materials as mat
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from .errors import SceneError, StabilityError
 from .state import State
@@ -91,6 +91,20 @@ class StaticMesh:
     vertices: np.ndarray
     faces: np.ndarray
     body: int  # its pseudo-body index
+
+
+@dataclass(frozen=True)
+class ColliderMotion:
+    """A moving collider, for the exporter: at time t its prim moves by
+    T(t) T_authored⁻¹, T(t) = motion.carry(motion, (ref_p, ref_q), origin, rotation, t)."""
+
+    kind: str               # "plane", "box" or "mesh"
+    index: int              # row of plane_point, index into boxes or static_meshes
+    motion: Any             # dempipe.motion.Motion
+    ref_p: np.ndarray       # (3,) the anchor at which the collider stands as authored [m]
+    ref_q: np.ndarray       # (4,)
+    origin: np.ndarray      # (3,) the authored frame: mesh origin, plane point, box centre [m]
+    rotation: np.ndarray    # (4,)
 
 
 @dataclass(frozen=True)
@@ -187,6 +201,34 @@ class Model:
     initial_asleep: np.ndarray = None
     """(n_bodies,) bool, bodies that start asleep (None: none)."""
     contact_law: str = laws.DEFAULT
+    motions: tuple = ()
+    """Prescribed motions (dempipe.motion.Motion), indexed by body_motion and wall_motion."""
+    motion_table: Any = None
+    """The motions packed for the kernels (motion.MotionTable; one dummy row when none)."""
+    body_motion: np.ndarray = None
+    """(B,) int32: the motion carrying each body (kinematic bodies, moving mesh
+    colliders), -1 for none."""
+    body_anchor_c: np.ndarray = None
+    """(B, 3) [m], (B, 4): each carried body's centre of mass and orientation in its
+    motion's anchor frame (motion.carried_state)."""
+    body_anchor_q: np.ndarray = None
+    driven_body: np.ndarray = None
+    """(K,) int32: the bodies with a motion, in body order."""
+    wall_motion: np.ndarray = None
+    """(W,) int32: the motion carrying each wall, -1 for a static one; a moving wall's
+    normal, offset and box are given in its anchor frame."""
+    body_start: np.ndarray = None
+    """(B,) int64: the step a body enters the simulation at (emitters; 0: from the
+    start). Before it, it is not simulated and nothing touches it."""
+    body_start_time: np.ndarray = None
+    """(n_bodies,) float64 [s]: the same as a time (hidden before it in the output)."""
+    body_kinematic: np.ndarray = None
+    """(n_bodies,) bool: kinematic bodies (1/m = 0, carried by a motion)."""
+    collider_motions: tuple = ()
+    """ColliderMotion of each moving collider (the exporter animates them)."""
+    surface_speed: float = 0.0
+    """Fastest speed of a prescribed surface over the bake [m/s] (auto stiffness, dt
+    and the tunnelling check count it as an impact speed)."""
 
     @property
     def n_spheres(self) -> int:
@@ -332,6 +374,7 @@ class ModelBuilder:
         self._planes: list[tuple] = []
         self._boxes: list[BoxCollider] = []
         self._static: list[tuple] = []
+        self._moving: list[tuple] = []      # (kind, index, motion, origin, rotation, walls)
 
     # -- inputs ---------------------------------------------------------------
     def add_material(self, material: mat.Material) -> int:
@@ -362,7 +405,8 @@ class ModelBuilder:
 
     def add_bodies(self, group: str, shape, material: int, positions, rotations=None,
                    velocities=None, angular_velocities=None, *, masses=None, inertias=None,
-                   asleep=None) -> None:
+                   asleep=None, kinematic: bool = False, motion=None, start_time: float = 0.0,
+                   group_frame: bool = False, frame=None) -> None:
         """Add a group of bodies.
 
         shape : a shape index for all, or one per body (a mixed group)
@@ -373,7 +417,16 @@ class ModelBuilder:
         inertias : (n, 3, 3) [kg m²] given inertias about the centre of mass in the
             body frame, or None: the shape's, scaled to the mass
         asleep : (n,) bool, bodies that start asleep (None: all awake)
+        kinematic : the bodies follow ``motion`` (a dempipe.motion.Motion) and are
+            never pushed (1/m = 0); ``group_frame``: its keys move the group rigidly
+            (motion.reference_anchor's ``group``), else each body's mesh origin;
+            ``frame`` = (origin (3,) [m], rotation (4,)): the frame the motion moves
+            (scene.group_frame: its rates' default pivot; default the first body's
+            pose, or for a group frame the mean of its mesh origins)
+        start_time : the bodies enter the simulation at this time [s] (an emitter)
         """
+        if kinematic and motion is None:
+            raise SceneError(f"{group}: a kinematic group needs a motion")
         p = np.atleast_2d(np.asarray(positions, dtype=np.float64))
         n = p.shape[0]
         q = np.tile([1.0, 0, 0, 0], (n, 1)) if rotations is None else np.atleast_2d(
@@ -388,9 +441,13 @@ class ModelBuilder:
             name=group, shapes=shapes, material=material, p=p, q=q, v=np.array(v),
             w=np.array(w), asleep=np.zeros(n, bool) if asleep is None else np.array(asleep, bool),
             masses=None if masses is None else np.array(masses, dtype=np.float64).reshape(n),
-            inertias=None if inertias is None else np.array(inertias, np.float64).reshape(n, 3, 3)))
+            inertias=None if inertias is None else np.array(inertias, np.float64).reshape(n, 3, 3),
+            kinematic=bool(kinematic), motion=motion, start_time=float(start_time),
+            group_frame=bool(group_frame), frame=frame))
 
-    def add_plane(self, point, normal, material: int = 0) -> None:
+    def add_plane(self, point, normal, material: int = 0, motion=None) -> None:
+        """An infinite plane through ``point`` facing ``normal``; ``motion`` (a
+        dempipe.motion.Motion) moves it (a belt: a velocity along itself)."""
         n = np.asarray(normal, dtype=np.float64)
         n = n / np.linalg.norm(n)
         p = np.asarray(point, dtype=np.float64)
@@ -398,10 +455,15 @@ class ModelBuilder:
         depth = PLANE_DEPTH_DIAMETERS * self.diameter
         self._walls.append((n, float(n @ p), np.full(3, -np.inf), np.full(3, np.inf), depth,
                             material))
+        if motion is not None:
+            self._moving.append(("plane", len(self._planes) - 1, motion, p,
+                                 np.array([1.0, 0.0, 0.0, 0.0]), [len(self._walls) - 1]))
 
     def add_box(self, lo, hi, open_top: bool = True, material: int = 0,
-                thickness: float | None = None, up: int = 2) -> None:
-        """Axis-aligned container with inward walls; ``up`` is the up axis index."""
+                thickness: float | None = None, up: int = 2, motion=None) -> None:
+        """Axis-aligned container with inward walls; ``up`` is the up axis index;
+        ``motion`` (a dempipe.motion.Motion) moves it, its frame at the box's centre."""
+        first_wall = len(self._walls)
         lo = np.asarray(lo, dtype=np.float64)
         hi = np.asarray(hi, dtype=np.float64)
         t = float(thickness) if thickness else PLANE_DEPTH_DIAMETERS * self.diameter
@@ -421,12 +483,24 @@ class ModelBuilder:
                 if axis != up:                       # side walls reach up over an open top
                     whi[up] = np.inf if open_top else whi[up]
                 self._walls.append((n, sign * surface, wlo, whi, t, material))
+        if motion is not None:
+            self._moving.append(("box", len(self._boxes) - 1, motion, 0.5 * (lo + hi),
+                                 np.array([1.0, 0.0, 0.0, 0.0]),
+                                 list(range(first_wall, len(self._walls)))))
 
-    def add_static_mesh(self, name: str, mesh, sphere_set: "SphereSet", material: int = 0) -> None:
+    def add_static_mesh(self, name: str, mesh, sphere_set: "SphereSet", material: int = 0,
+                        motion=None, frame=None) -> None:
         """A static mesh collider given in world coordinates, with its sphere set
-        (its buried spheres are left out like a shape's, by ``contact_layers``)."""
+        (its buried spheres are left out like a shape's, by ``contact_layers``).
+        ``motion`` (a dempipe.motion.Motion) moves it; ``frame`` = (origin (3,),
+        rotation (4,)): its authored mesh origin [m], the frame keys are poses of."""
         self._static.append((name, mesh, sphere_set, material,
                              self._contact_centers(sphere_set)))
+        if motion is not None:
+            o, r = frame if frame is not None else ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0))
+            self._moving.append(("mesh", len(self._static) - 1, motion,
+                                 np.asarray(o, dtype=np.float64),
+                                 np.asarray(r, dtype=np.float64), []))
 
     # -- derived --------------------------------------------------------------
     def finalize(self, *, fps: float = 24.0, n_frames: int = 97, first_frame: int = 0,
@@ -524,10 +598,14 @@ class ModelBuilder:
             static_meshes.append(StaticMesh(name, _frozen(mesh.vertices), _frozen(mesh.faces,
                                             np.int32), n_dyn + k))
         n_static = len(static_meshes)
+        kin = (np.concatenate([np.full(g["p"].shape[0], g["kinematic"]) for g in groups])
+               if groups else np.zeros(0, bool))
+        inv_inertia[kin] = 0.0      # carried by their motion: never pushed
         all_x = np.concatenate([x0, np.array(st_x).reshape(-1, 3)])
         all_q = np.concatenate([q0, np.tile([1.0, 0, 0, 0], (n_static, 1))])
         all_mass = np.concatenate([mass, np.full(n_static, np.inf)])
-        all_inv_mass = np.concatenate([1.0 / np.where(mass > 0, mass, np.inf), np.zeros(n_static)])
+        all_inv_mass = np.concatenate([np.where(kin, 0.0, 1.0 / np.where(mass > 0, mass, np.inf)),
+                                       np.zeros(n_static)])
         all_inv_inertia = np.concatenate([inv_inertia, np.zeros((n_static, 6))])
         all_mat = np.concatenate([dyn_mat, np.array(st_mat, dtype=np.int32)]).astype(np.int32)
 
@@ -542,23 +620,29 @@ class ModelBuilder:
         body_radius = np.array([np.linalg.norm(self._shapes[s].sphere_set.centers, axis=1).max()
                                 + 0.5 * d for s in body_shape]) if n_dyn else np.zeros(0)
 
+        driven = self._prescribed(groups, x0, q0, all_x, all_q, body_radius, n_dyn, n_static,
+                                  fps, n_frames)
+        surface_speed = driven["surface_speed"]
+
         # materials: auto stiffness from impact speed and weight (the law's
         # stiffness_for_overlap)
         g = float(np.linalg.norm(self.gravity))
         up = -self.gravity / g if g > 0 else np.array([0.0, 0.0, 1.0])
-        heights = x0 @ up if n_dyn else np.zeros(1)
-        floors = [heights.min() - (body_radius.max() if n_dyn else 0.0)]
+        falls = ~kin                    # kinematic bodies do not fall: their motion is given
+        heights = x0[falls] @ up if falls.any() else np.zeros(1)
+        floors = [heights.min() - (body_radius[falls].max() if falls.any() else 0.0)]
         floors += [float(p @ up) for (p, n) in self._planes if n @ up > 0.5]  # ground-like
         floors += [float(b.lo @ up) for b in self._boxes]
         floors += [float((np.asarray(mesh.vertices) @ up).min()) for (_, mesh, _, _, _) in self._static]
         floor = min(floors)
-        if n_dyn:
+        launch = np.linalg.norm(v0, axis=1) + np.linalg.norm(w0, axis=1) * body_radius
+        if falls.any():
             fall = np.sqrt(2.0 * g * np.maximum(heights - floor, 0.0))
-            launch = np.linalg.norm(v0, axis=1) + np.linalg.norm(w0, axis=1) * body_radius
             # the fastest body meets a static wall, or a partner launched towards it
-            v_imp = float((fall + launch).max() + launch.max())
+            v_imp = float((fall + launch[falls]).max() + launch.max())
         else:
             v_imp = 0.0
+        v_imp += surface_speed      # a moving surface meets a falling body head on
         # scenes at rest still feel their weight settling one sphere deep
         v_imp = max(v_imp, math.sqrt(2.0 * g * d) if g > 0 else 0.01)
         # corner-contact effective mass m / (1 + m (r×n)ᵀ I⁻¹ (r×n)): a falling body
@@ -572,7 +656,7 @@ class ModelBuilder:
         auto_notes = []
         k_auto_all = 0.0
         for mi, m in enumerate(self._materials):
-            used = dyn_mat == mi
+            used = (dyn_mat == mi) & ~kin       # kinematic bodies: carried, infinite mass
             if m.stiffness is None and used.any():
                 k = law.stiffness_for_overlap(float(m_corner[used].max()), v_imp, g, d,
                                               target_overlap)
@@ -594,7 +678,7 @@ class ModelBuilder:
         has_contacts = n_dyn > 1 or bool(self._walls) or bool(self._static)
         if has_contacts:
             for gi, gdict in enumerate(groups):
-                if gdict["p"].shape[0] == 0:
+                if gdict["p"].shape[0] == 0 or gdict["kinematic"]:
                     continue
                 mi = gdict["material"]
                 in_group = body_group == gi
@@ -614,7 +698,7 @@ class ModelBuilder:
                      for sh in self._shapes]
             dyn_present = set(np.unique(dyn_mat).tolist())
             for gi, gdict in enumerate(groups):
-                if gdict["p"].shape[0] == 0:
+                if gdict["p"].shape[0] == 0 or gdict["kinematic"]:
                     continue
                 mi = gdict["material"]
                 n_face = max(faces[sj] for sj in np.unique(gdict["shapes"]))
@@ -627,6 +711,9 @@ class ModelBuilder:
                     dt_max = min(dt_max, mat.FLAT_FACE_SAFETY * flat)
         if n_dyn and np.any(w0):
             dt_max = min(dt_max, mat.MAX_SPIN_STEP / float(np.linalg.norm(w0, axis=1).max()))
+        if surface_speed > 0.0:
+            # a moving surface's fastest point crosses at most AUTO_TRAVEL d per step
+            dt_max = min(dt_max, mat.AUTO_TRAVEL * d / surface_speed)
         if n_dyn and float(launch.max()) > 0.0:
             # a launched or spinning body's fastest point (|v| + |w| r) crosses at most
             # AUTO_TRAVEL of a diameter per step, in free flight too (the travel guard)
@@ -653,7 +740,7 @@ class ModelBuilder:
                     f"{where}: dt = {dt:g} s does not divide a frame (1/{fps:g} s) into whole "
                     f"steps; use {dt_v:.6g} s ({spf} steps per frame)")
 
-        walls = self._walls
+        walls = driven["walls"]
         wall_arr = lambda i, shape: (np.array([w[i] for w in walls], dtype=np.float64)
                                      if walls else np.zeros(shape))
         friction = bool((table.mu > 0).any()) and bool(np.any(
@@ -661,7 +748,7 @@ class ModelBuilder:
         multi = any(s.sphere_set.centers.shape[0] > 1 for s in self._shapes)
         features = Features(
             friction=friction,
-            rotation=multi or friction or bool(np.any(w0)),
+            rotation=multi or friction or bool(np.any(w0)) or bool(driven["motions"]),
             walls=bool(walls),
             static_spheres=n_static > 0,
             gravity=g > 0,
@@ -702,4 +789,97 @@ class ModelBuilder:
             stiffness_auto=tuple(auto_notes), contact_layers=self.contact_layers,
             initial_asleep=_frozen(asleep0, bool) if asleep0.any() else None,
             contact_law=law_name,
+            motions=driven["motions"], motion_table=driven["table"],
+            body_motion=_frozen(driven["body_motion"], np.int32),
+            body_anchor_c=_frozen(driven["anchor_c"]), body_anchor_q=_frozen(driven["anchor_q"]),
+            driven_body=_frozen(np.flatnonzero(driven["body_motion"] >= 0), np.int32),
+            wall_motion=_frozen(driven["wall_motion"], np.int32),
+            body_start=_frozen(np.concatenate([
+                np.ceil(driven["start_time"] / float(dt_v) - 1e-9).astype(np.int64),
+                np.zeros(n_static, np.int64)]), np.int64),
+            body_start_time=_frozen(driven["start_time"]),
+            body_kinematic=_frozen(kin, bool),
+            collider_motions=tuple(driven["colliders"]), surface_speed=float(surface_speed),
         )
+
+    def _prescribed(self, groups, x0, q0, all_x, all_q, body_radius, n_dyn, n_static, fps,
+                    n_frames) -> dict:
+        """The motions of kinematic groups and moving colliders, each body's and
+        wall's place in its motion's anchor frame, the start times, and the fastest
+        prescribed surface speed over the bake [m/s]."""
+        from . import motion as mo
+
+        B = n_dyn + n_static
+        motions, colliders = [], []
+        body_motion = np.full(B, -1, dtype=np.int32)
+        anchor_c = np.zeros((B, 3))
+        anchor_q = np.tile([1.0, 0.0, 0.0, 0.0], (B, 1))
+        walls = [list(w) for w in self._walls]
+        wall_motion = np.full(len(walls), -1, dtype=np.int32)
+        start_time = np.zeros(n_dyn)
+        t_end = (n_frames - 1) / fps
+        speed = 0.0
+        # where contacts can happen: the bodies' reach from their initial places
+        pts = [x0] if n_dyn else []
+        pts += [np.asarray(m.vertices, dtype=np.float64) for (_, m, _, _, _) in self._static]
+        reach = np.concatenate(pts) if pts else np.zeros((1, 3))
+        r_body = float(body_radius.max()) if n_dyn else 0.0
+
+        b0 = 0
+        for g in groups:
+            n = g["p"].shape[0]
+            start_time[b0:b0 + n] = g["start_time"]
+            if g["kinematic"]:
+                m = g["motion"]
+                frame = g["frame"]
+                if frame is None:
+                    frame = ((g["p"].mean(axis=0), (1.0, 0.0, 0.0, 0.0)) if g["group_frame"]
+                             else (g["p"][0], g["q"][0]))
+                ref = mo.reference_anchor(m, frame[0], frame[1], group=g["group_frame"])
+                m = m.with_pivot(ref[0])
+                c, a = mo.relative_pose(ref[0], ref[1], x0[b0:b0 + n], q0[b0:b0 + n])
+                body_motion[b0:b0 + n] = len(motions)
+                anchor_c[b0:b0 + n] = c
+                anchor_q[b0:b0 + n] = a
+                motions.append(m)
+                # each body's centre, out by its radius along the way from the anchor
+                dist = np.linalg.norm(c, axis=1, keepdims=True)
+                pts = c * (1.0 + body_radius[b0:b0 + n, None] / np.maximum(dist, 1e-300))
+                speed = max(speed, m.max_speed(pts, 0.0, t_end))
+            b0 += n
+        for kind, index, m, origin, rotation, wall_ids in self._moving:
+            ref = mo.reference_anchor(m, origin, rotation)
+            m = m.with_pivot(ref[0])
+            k = len(motions)
+            motions.append(m)
+            colliders.append(ColliderMotion(kind, index, m, _frozen(ref[0]), _frozen(ref[1]),
+                                            _frozen(origin), _frozen(rotation)))
+            # the farthest point of it a body can touch, from its anchor: a mesh's or a
+            # box's own extent; anywhere a body may be on a plane
+            if kind == "mesh":
+                body = n_dyn + index
+                c, a = mo.relative_pose(ref[0], ref[1], all_x[body], all_q[body])
+                body_motion[body] = k
+                anchor_c[body] = c[0]
+                anchor_q[body] = a[0]
+                pts = np.asarray(self._static[index][1].vertices, dtype=np.float64)
+            elif kind == "box":
+                bx = self._boxes[index]
+                pts = np.array([[(bx.lo, bx.hi)[i >> j & 1][j] for j in range(3)]
+                                for i in range(8)])
+            else:                       # a plane: wherever a body may meet it
+                pts = reach + r_body * (reach - ref[0]) / np.maximum(
+                    np.linalg.norm(reach - ref[0], axis=1, keepdims=True), 1e-300)
+            # in the anchor frame (ref_q is the identity for planes and boxes)
+            pts, _ = mo.relative_pose(ref[0], ref[1], pts, np.tile([1.0, 0, 0, 0], (len(pts), 1)))
+            # the walls in the anchor frame (ref_q is the identity for planes and boxes)
+            for w in wall_ids:
+                n_w, off, lo, hi, depth, mat_w = walls[w]
+                walls[w] = [n_w, off - float(n_w @ ref[0]), lo - ref[0], hi - ref[0], depth,
+                            mat_w]
+                wall_motion[w] = k
+            speed = max(speed, m.max_speed(pts, 0.0, t_end))
+        return dict(motions=tuple(motions), table=mo.pack(motions), body_motion=body_motion,
+                    anchor_c=anchor_c, anchor_q=anchor_q, wall_motion=wall_motion,
+                    walls=[tuple(w) for w in walls], colliders=colliders,
+                    start_time=start_time, surface_speed=float(speed))

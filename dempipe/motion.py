@@ -125,7 +125,8 @@ def key_angular_velocity(k, k0, k1, key_t, key_q):
         return 0.0, 0.0, 0.0
     aw, ax, ay, az = key_q[k - 1, 0], key_q[k - 1, 1], key_q[k - 1, 2], key_q[k - 1, 3]
     bw, bx, by, bz = key_q[k + 1, 0], key_q[k + 1, 1], key_q[k + 1, 2], key_q[k + 1, 3]
-    rx, ry, rz = qlog(*qmul(bw, bx, by, bz, aw, -ax, -ay, -az))
+    dw, dx, dy, dz = qmul(bw, bx, by, bz, aw, -ax, -ay, -az)
+    rx, ry, rz = qlog(dw, dx, dy, dz)
     h = key_t[k + 1] - key_t[k - 1]
     return rx / h, ry / h, rz / h
 
@@ -166,7 +167,8 @@ def anchor_state(t, kind, v, w, pivot, key_t, key_p, key_q, k0, k1):
     s = (t - key_t[a]) / h
     aw, ax, ay, az = key_q[a, 0], key_q[a, 1], key_q[a, 2], key_q[a, 3]
     bw, bx, by, bz = key_q[b, 0], key_q[b, 1], key_q[b, 2], key_q[b, 3]
-    r1x, r1y, r1z = qlog(*qmul(bw, bx, by, bz, aw, -ax, -ay, -az))   # Q_b Q_a⁻¹
+    dw, dx, dy, dz = qmul(bw, bx, by, bz, aw, -ax, -ay, -az)        # Q_b Q_a⁻¹
+    r1x, r1y, r1z = qlog(dw, dx, dy, dz)
     if kind == LINEAR:
         px = key_p[a, 0] + s * (key_p[b, 0] - key_p[a, 0])
         py = key_p[a, 1] + s * (key_p[b, 1] - key_p[a, 1])
@@ -236,9 +238,50 @@ def carried_state(Px, Py, Pz, Qw, Qx, Qy, Qz, Vx, Vy, Vz, Wx, Wy, Wz,
             Vx + Wy * rz - Wz * ry, Vy + Wz * rx - Wx * rz, Vz + Wx * ry - Wy * rx)
 
 
+def anchor_local(motion_now, m, x, y, z):
+    """The world point (x, y, z) [m] in the frame of anchor m: Q⁻¹ (x − P).
+    motion_now (M, 14): each anchor's P, Q, V, W and whether it moves (stage_motion)."""
+    dx = x - motion_now[m, 0]
+    dy = y - motion_now[m, 1]
+    dz = z - motion_now[m, 2]
+    qw = motion_now[m, 3]
+    qx = -motion_now[m, 4]
+    qy = -motion_now[m, 5]
+    qz = -motion_now[m, 6]
+    tx = 2.0 * (qy * dz - qz * dy)
+    ty = 2.0 * (qz * dx - qx * dz)
+    tz = 2.0 * (qx * dy - qy * dx)
+    return (dx + qw * tx + (qy * tz - qz * ty), dy + qw * ty + (qz * tx - qx * tz),
+            dz + qw * tz + (qx * ty - qy * tx))
+
+
+def anchor_surface(motion_now, m, nx, ny, nz, x, y, z, dist):
+    """A moving wall at a sphere: its normal (nx, ny, nz), given in anchor m's frame,
+    in the world, and the surface velocity V + W × (p − P) [m/s] at p, the sphere's
+    centre (x, y, z) moved ``dist`` [m] along the normal onto the surface."""
+    qw = motion_now[m, 3]
+    qx = motion_now[m, 4]
+    qy = motion_now[m, 5]
+    qz = motion_now[m, 6]
+    tx = 2.0 * (qy * nz - qz * ny)
+    ty = 2.0 * (qz * nx - qx * nz)
+    tz = 2.0 * (qx * ny - qy * nx)
+    wnx = nx + qw * tx + (qy * tz - qz * ty)
+    wny = ny + qw * ty + (qz * tx - qx * tz)
+    wnz = nz + qw * tz + (qx * ty - qy * tx)
+    rx = x - wnx * dist - motion_now[m, 0]
+    ry = y - wny * dist - motion_now[m, 1]
+    rz = z - wnz * dist - motion_now[m, 2]
+    Wx = motion_now[m, 10]
+    Wy = motion_now[m, 11]
+    Wz = motion_now[m, 12]
+    return (wnx, wny, wnz, motion_now[m, 7] + Wy * rz - Wz * ry,
+            motion_now[m, 8] + Wz * rx - Wx * rz, motion_now[m, 9] + Wx * ry - Wy * rx)
+
+
 #: The functions above in dependency order, for kernels/compile.py.
 FORMULAS = ("qmul", "qexp", "qlog", "jac_left", "jac_left_inv", "key_angular_velocity",
-            "key_velocity", "anchor_state", "carried_state")
+            "key_velocity", "anchor_state", "carried_state", "anchor_local", "anchor_surface")
 
 
 # ----------------------------------------------------------------------- host side
@@ -308,14 +351,18 @@ class Motion:
         a = self.anchor(0.0)
         return a[0], a[1]
 
-    def max_speed(self, radius: float = 0.0, t0: float = 0.0, t1: float | None = None,
-                  samples: int = 512) -> float:
-        """Largest speed of a point within ``radius`` [m] of the anchor [m/s]:
-        |V| + |W| r (exact for rates; sampled over [t0, t1] and at the keys' segment
-        midpoints for keys)."""
+    def max_speed(self, offsets=None, t0: float = 0.0, t1: float | None = None,
+                  samples: int = 256) -> float:
+        """Largest speed of the points ``offsets`` ((N, 3) [m], in the anchor frame:
+        the points of what it carries, relative to its anchor) [m/s]:
+        max |V + W × Q r|. Rates: |v| + max |ω × r| (a rotation about ω keeps each
+        point's distance to the axis; exact when v is along ω or zero). Keys:
+        sampled over [t0, t1] and at the keys' segment midpoints."""
+        r = np.zeros((1, 3)) if offsets is None else np.asarray(offsets, float).reshape(-1, 3)
         if not self.keyed:
+            w = np.asarray(self.angular_velocity, dtype=np.float64)
             return float(np.linalg.norm(self.velocity)
-                         + np.linalg.norm(self.angular_velocity) * radius)
+                         + np.linalg.norm(np.cross(w, r), axis=1).max())
         ts = [k.time for k in self.keys]
         lo = ts[0] if t1 is None else max(ts[0], t0)
         hi = ts[-1] if t1 is None else min(ts[-1], t1)
@@ -323,8 +370,12 @@ class Motion:
         grid += [0.5 * (a + b) for a, b in zip(ts, ts[1:])] + ts
         best = 0.0
         for t in grid:
-            _, _, v, w = self.anchor(float(t))
-            best = max(best, float(np.linalg.norm(v) + np.linalg.norm(w) * radius))
+            _, q, v, w = self.anchor(float(t))
+            qw, qv = q[0], q[1:]
+            # Q r for every point (r + 2 qw (qv × r) + 2 qv × (qv × r))
+            c = np.cross(qv, r)
+            rr = r + 2.0 * qw * c + 2.0 * np.cross(qv, c)
+            best = max(best, float(np.linalg.norm(v + np.cross(w, rr), axis=1).max()))
         return best
 
     def arrays(self):

@@ -160,7 +160,20 @@ class Simulator:
         nb = m.n_bodies
         kin = 0.5 * (float(np.einsum("bi,bi->", state.body_P[:nb], v))
                      + float(np.einsum("bi,bi->", state.body_L[:nb], w)))
-        return kin - float(m.body_mass[:nb] @ (state.body_x[:nb] @ m.gravity))
+        mass = np.where(m.body_static[:nb], 0.0, m.body_mass[:nb])   # kinematic: carried
+        return kin - float(mass @ (state.body_x[:nb] @ m.gravity))
+
+    def energy_source(self, t: float) -> float:
+        """The most energy prescribed motion can have given the dynamic bodies by time
+        t [s] [J]: each body batted to twice the fastest surface speed v_s, and lifted
+        by v_s t against gravity. The energy guard counts it as a source."""
+        m = self.model
+        vs = float(getattr(m, "surface_speed", 0.0) or 0.0)
+        if vs <= 0.0:
+            return 0.0
+        nb = m.n_bodies
+        mass = float(np.where(m.body_static[:nb], 0.0, m.body_mass[:nb]).sum())
+        return mass * (2.0 * vs * vs + float(np.linalg.norm(m.gravity)) * vs * t)
 
     def _energy_budget(self, state, v, w) -> tuple[float, float]:
         """(E0, allowed gain) for the energy guard, see MAX_ENERGY_GAIN."""
@@ -173,7 +186,7 @@ class Simulator:
         up = -np.asarray(m.gravity) / g if g > 0 else np.zeros(3)
         h = state.body_x[:nb] @ up
         low = float(h.min() - m.body_radius.max())
-        mass = m.body_mass[:nb]
+        mass = np.where(m.body_static[:nb], 0.0, m.body_mass[:nb])
         kin0 = e0 + float(mass @ (state.body_x[:nb] @ m.gravity))
         scale = kin0 + g * float(mass @ (h - low + m.diameter))
         # elastic energy of frame-0 overlaps: at most the stiffest pair's per sphere
@@ -261,9 +274,17 @@ class Simulator:
                     progress(0, n_frames, self.stats)
                 if after_frame:
                     after_frame(0, state)
+            starts = (np.unique(m.body_start[m.body_start > 0]) if m.body_start is not None
+                      else np.zeros(0, np.int64))
             for k in range(self.frames_done, n_frames):
                 target = self.base_step + k * spf
                 while state.step < target:
+                    if state.step in starts:      # emitters start here: the frame-0 check
+                        problem = self._emission_check(state, k)
+                        if problem:
+                            exc = BakeFailure(problem, None)
+                            exc.frames_done = k
+                            raise exc
                     if interrupt.requested() is not None:
                         self._pending_overlap = max(self._pending_overlap,
                                                     self._peek_overlap())
@@ -271,6 +292,9 @@ class Simulator:
                         stop.frames_done = k
                         raise stop
                     n = target - state.step
+                    later = starts[starts > state.step]
+                    if later.size and later[0] < target:
+                        n = int(later[0]) - state.step      # stop at the next emission
                     tc = time.perf_counter()
                     if per_step is None:
                         # the first call compiles the kernels (seconds, in Python): a
@@ -307,6 +331,19 @@ class Simulator:
                     after_frame(k, state)
 
     _skipped_before = 0
+
+    def _emission_check(self, state, k: int) -> str | None:
+        """The frame-0 overlap check for the bodies an emitter starts at this step."""
+        from .stability import REFUSE_OVERLAP, emission_overlap
+
+        overlap, b = emission_overlap(self.model, state)
+        if overlap <= REFUSE_OVERLAP:
+            return None
+        return (f"bake stopped before frame {k} (t = {state.time:.4g} s, step {state.step}): "
+                f"body {self._body_name(b)} starts {overlap:.0%} of a sphere diameter deep in "
+                f"another body or a collider (limit {REFUSE_OVERLAP:.0%}); the first step "
+                f"would fling it away. Move the group's start position clear of what is "
+                f"there at its start_time, or start it at another time")
 
     def _peek_overlap(self) -> float:
         """Largest overlap since the last frame [m], without resetting it."""
@@ -355,7 +392,7 @@ class Simulator:
         if v is None or nb == 0:
             return None
         e = self.energy(state, v, w)
-        if e - self._e0 > self._gain:
+        if e - self._e0 > self._gain + self.energy_source(t):
             kin = 0.5 * (np.einsum("bi,bi->b", state.body_P[:nb], v)
                          + np.einsum("bi,bi->b", state.body_L[:nb], w))
             b = int(np.argmax(kin))

@@ -133,6 +133,9 @@ class StabilityReport:
     overlap_body: str | None
     shapes: list
     findings: list = field(default_factory=list)
+    prescribed: dict = field(default_factory=dict)
+    """Prescribed inputs: moving colliders, kinematic bodies, emitters and the
+    fastest prescribed surface speed [m/s] (counted in closing and impact speeds)."""
 
     @property
     def ok(self) -> bool:
@@ -186,6 +189,20 @@ class StabilityReport:
             f"  speed        fastest body {self.max_speed:.3g} m/s, closing {self.closing_speed:.3g} "
             f"m/s: {self.step_travel:.2%} of a diameter per step (auto stiffness assumed an "
             f"impact at {self.impact_speed:.3g} m/s)")
+        pr = self.prescribed
+        if pr:
+            parts = []
+            if pr.get("moving_colliders"):
+                parts.append(f"{pr['moving_colliders']} moving collider"
+                             f"{'s' * (pr['moving_colliders'] != 1)}")
+            if pr.get("kinematic_bodies"):
+                parts.append(f"{pr['kinematic_bodies']} kinematic bod"
+                             f"{'ies' if pr['kinematic_bodies'] != 1 else 'y'}")
+            if pr.get("emitted_bodies"):
+                parts.append(f"{pr['emitted_bodies']} bodies emitted from "
+                             f"t = {pr['first_emission']:.3g} s")
+            lines.append(f"  prescribed   {', '.join(parts)}; fastest surface "
+                         f"{pr['surface_speed']:.3g} m/s (in the closing and impact speeds)")
         where = f" ({self.overlap_body})" if self.overlap_body else ""
         lines.append(f"  frame 0      largest overlap {self.overlap:.1%} of a diameter{where}")
         if self.pairs:
@@ -298,10 +315,14 @@ def expected_speeds(model: Model) -> tuple[float, float, float]:
     if n == 0:
         return 0.0, 0.0, (math.sqrt(2.0 * g * d) if g > 0 else 0.01)
     up = -np.asarray(model.gravity) / g if g > 0 else np.array([0.0, 0.0, 1.0])
-    x0 = np.asarray(model.initial_x[:n])
-    v0 = np.asarray(model.initial_v[:n])
-    w0 = np.asarray(model.initial_w[:n])
-    radius = np.asarray(model.body_radius)
+    falls = (np.ones(n, bool) if model.body_kinematic is None
+             else ~np.asarray(model.body_kinematic))    # kinematic: their motion is given
+    if not falls.any():
+        falls[:] = True
+    x0 = np.asarray(model.initial_x[:n])[falls]
+    v0 = np.asarray(model.initial_v[:n])[falls]
+    w0 = np.asarray(model.initial_w[:n])[falls]
+    radius = np.asarray(model.body_radius)[falls]
     heights = x0 @ up
     floors = [heights.min() - radius.max()]
     floors += [float(p @ up) for p, nrm in zip(model.plane_point, model.plane_normal)
@@ -315,7 +336,9 @@ def expected_speeds(model: Model) -> tuple[float, float, float]:
     impact = fastest + float(launch.max())
     closing = impact if n > 1 else fastest
     impact = max(impact, math.sqrt(2.0 * g * d) if g > 0 else 0.01)
-    return fastest, closing, impact
+    # a moving surface meets a body head on: the speeds add (ModelBuilder.finalize)
+    surface = float(getattr(model, "surface_speed", 0.0) or 0.0)
+    return fastest, closing + surface, impact + surface
 
 
 def pair_stability(model: Model, factors: np.ndarray | None = None,
@@ -430,16 +453,28 @@ def sphere_overlaps(model: Model, state=None) -> np.ndarray:
 
     The contact stage's rules in NumPy: spheres of different bodies closer than a
     diameter (two static spheres never touch); a dynamic sphere within a radius of a
-    wall's surface and at most wall_depth behind it, inside the wall's box.
+    wall's surface and at most wall_depth behind it, inside the wall's box (a
+    moving wall where its motion has it at the State's time). Bodies not yet
+    emitted at that time touch nothing.
     """
     ns = model.n_spheres
     d = model.diameter
     ov = np.zeros(ns)
     if ns == 0:
         return ov
+    t = 0.0 if state is None else float(state.time)
     X = sphere_positions(model, state)
     body = np.asarray(model.sphere_body)
     dynamic = ~model.body_static[body]
+    if model.body_start_time is not None and len(model.body_start_time):
+        start = np.zeros(int(model.body_mass.shape[0]))
+        start[:model.n_bodies] = model.body_start_time
+        present = start[body] <= t + 1e-12
+        if not present.all():           # the absent spheres: far apart, far away
+            X = X.copy()
+            far = np.flatnonzero(~present)
+            X[far] = (np.abs(X).max() + 10.0 * d) + 3.0 * d * np.arange(1, len(far) + 1)[:, None]
+            dynamic = dynamic & present
     cell = np.floor(X / d).astype(np.int64)
     cell -= cell.min(axis=0)
     span = cell.max(axis=0) + 3                      # room for the -1..+1 neighbours
@@ -474,11 +509,32 @@ def sphere_overlaps(model: Model, state=None) -> np.ndarray:
     radius = 0.5 * d
     for w in range(model.n_walls):
         nrm = model.wall_normal[w]
-        dist = X @ nrm - model.wall_offset[w]
-        inside = ((X >= model.wall_lo[w]) & (X <= model.wall_hi[w])).all(axis=1)
+        Xw = X
+        mw = -1 if model.wall_motion is None else int(model.wall_motion[w])
+        if mw >= 0:                     # a moving wall: the spheres in its frame
+            P, Q, _, _ = model.motions[mw].anchor(t)
+            Xw = (X - P) @ quat_to_matrix(Q)
+        dist = Xw @ nrm - model.wall_offset[w]
+        inside = ((Xw >= model.wall_lo[w]) & (Xw <= model.wall_hi[w])).all(axis=1)
         hit = dynamic & inside & (dist < radius) & (dist > -model.wall_depth[w])
         np.maximum.at(ov, np.flatnonzero(hit), radius - dist[hit])
     return ov
+
+
+def emission_overlap(model: Model, state) -> tuple[float, int]:
+    """Largest overlap of the bodies emitted at ``state``'s step (body_start), as a
+    fraction of the diameter, and the body (-1: none): the frame-0 check of an
+    emitter, at its start."""
+    if model.body_start is None or model.n_spheres == 0:
+        return 0.0, -1
+    ov = sphere_overlaps(model, state)
+    body = np.asarray(model.sphere_body)
+    mine = np.asarray(model.body_start)[body] == int(state.step)
+    mine &= np.asarray(model.body_start)[body] > 0
+    if not mine.any():
+        return 0.0, -1
+    i = int(np.flatnonzero(mine)[np.argmax(ov[mine])])
+    return float(ov[i] / model.diameter), (int(body[i]) if ov[i] > 0 else -1)
 
 
 def frame0_overlap(model: Model, state=None) -> tuple[float, int]:
@@ -710,7 +766,23 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
         fps=model.fps, omega_max=omega_max, zeta_min=zeta_min, critical_dt=crit,
         dt_ratio=ratio, stiffness_auto={k: float(v) for k, v in model.stiffness_auto},
         max_speed=fastest, closing_speed=closing, impact_speed=impact, step_travel=travel,
-        overlap=overlap, overlap_body=name, shapes=shapes, findings=findings)
+        overlap=overlap, overlap_body=name, shapes=shapes, findings=findings,
+        prescribed=_prescribed(model))
+
+
+def _prescribed(model: Model) -> dict:
+    """What ``check`` says of a scene's prescribed inputs ({} for none)."""
+    n = model.n_bodies
+    kin = int(np.count_nonzero(model.body_kinematic)) if model.body_kinematic is not None else 0
+    start = (np.asarray(model.body_start_time) if model.body_start_time is not None
+             else np.zeros(n))
+    emitted = int(np.count_nonzero(start > 0))
+    moving = len(model.collider_motions or ())
+    if not (kin or emitted or moving):
+        return {}
+    return dict(moving_colliders=moving, kinematic_bodies=kin, emitted_bodies=emitted,
+                first_emission=float(start[start > 0].min()) if emitted else None,
+                surface_speed=float(model.surface_speed))
 
 
 def analyze_scene(path, cache=None) -> StabilityReport:

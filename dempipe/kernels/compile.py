@@ -14,7 +14,7 @@ import hashlib
 import os
 import types
 
-from .. import laws, physics
+from .. import laws, motion, physics
 
 #: physics.py functions in dependency order (callees before callers).
 FORMULAS = (
@@ -98,7 +98,8 @@ def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNam
                  contact_coefficients=formulas.contact_coefficients,
                  static_body=formulas.static_body,
                  sphere_pair_force=formulas.sphere_pair_force,
-                 sphere_wall_force=formulas.sphere_wall_force)
+                 sphere_wall_force=formulas.sphere_wall_force,
+                 anchor_local=formulas.anchor_local, anchor_surface=formulas.anchor_surface)
     given.update(constants)
     return compile_chain(contacts, ("pair_forces", "sphere_forces"), jit, given)
 
@@ -106,9 +107,10 @@ def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNam
 def compile_formulas(jit, law: str = laws.DEFAULT) -> types.SimpleNamespace:
     """Return a namespace of every formula compiled with ``jit`` (a decorator): the
     contact law's kernel functions (``laws.law(law).KERNEL``: contact_coefficients,
-    normal_force), then physics.py's, which call them."""
+    normal_force), motion.py's (prescribed motion), then physics.py's."""
     lw = laws.law(law)
     given = vars(compile_chain(lw, lw.KERNEL, jit, {}))
+    given.update(vars(compile_chain(motion, motion.FORMULAS, jit, {})))
     return compile_chain(physics, FORMULAS, jit, given)
 
 

@@ -102,14 +102,15 @@ WALL_SLACK = 1.25
 
 
 def wall_reach(s, radius, margin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
-               wall_depth, wall_mask):
+               wall_depth, wall_motion, wall_mask):
     """At a rebuild: wall_mask[s] gets bit w for each wall w that slot s may touch
     before the next rebuild (-1: every wall, when there are more than WALL_BITS).
 
     A sphere moves less than SKIN/2 d between rebuilds, so a wall farther than
     that (``margin`` [m], with slack) beyond the contact test of sphere_forces
     cannot pass it; only the marked walls are tested at each step. In a box most
-    spheres are far from every wall: their step skips the walls altogether."""
+    spheres are far from every wall: their step skips the walls altogether.
+    A moving wall (wall_motion ≥ 0) may come to any sphere: always marked."""
     n_walls = wall_normal.shape[0]
     if n_walls > WALL_BITS:
         wall_mask[s] = -1
@@ -119,6 +120,9 @@ def wall_reach(s, radius, margin, sorted_x, wall_normal, wall_offset, wall_lo, w
     zi = sorted_x[s, 2]
     mask = 0
     for w in range(n_walls):
+        if wall_motion[w] >= 0:
+            mask |= 1 << w
+            continue
         dist = wall_normal[w, 0] * xi + wall_normal[w, 1] * yi + wall_normal[w, 2] * zi \
             - wall_offset[w]
         if dist >= radius + margin or dist <= -wall_depth[w] - margin:
@@ -327,7 +331,7 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                 pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
                 hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                 wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                wall_mask, pair_f, wall_f):
+                wall_mask, pair_f, wall_f, wall_motion, motion_now):
     """Stage 4, first pass, for sorted slots s0 .. s1-1 (a chunk of the CPU's
     parallel loop; one slot on CUDA). For each slot s:
 
@@ -344,6 +348,12 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
       row's walls not touched this step are forgotten).
 
     A moving body (rest count 0) touching a sleeping one flags it to wake.
+    A carried body that moves this step (rest count -1: kernels' stage_driven) and
+    a moving wall (wall_motion[w] = m ≥ 0, its anchor in motion_now[m]: position,
+    orientation, velocity, angular velocity, moving) flag every body they touch
+    (body_wake): a sleeper wakes, an awake body's rest count stays 0. A moving
+    wall is given in its anchor frame; its surface velocity V + W × (y − P) at the
+    contact point y enters the dashpot and friction.
     pair_start, pair_t: slot s's rows and their partners' slots (PAIR_ROWS);
     wall_start, wall_s: its walls' packed rows, (stretch [m], 1 + parity or 0)
     (WALL_ROWS); unread otherwise."""
@@ -388,7 +398,8 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
             bj = sorted_body[t]
             imj = body_inv_mass[bj]
             if SLEEPING and sleep_steps > 0:  # noqa: F821
-                if asleep_i and (static_body(imj) or body_rest[bj] >= sleep_steps):  # noqa: F821
+                if asleep_i and body_rest[bj] >= 0 and (  # (-1: a carried body moving)
+                        static_body(imj) or body_rest[bj] >= sleep_steps):  # noqa: F821
                     if FRICTION and friction and pair_f[p, 9] != 0.0:  # noqa: F821
                         kept += 1
                     continue                # neither feels it: both keep their state
@@ -406,6 +417,8 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                     body_wake[bj] = 1
                 if not static_body(imj) and body_rest[bj] == 0 and asleep_i:  # noqa: F821
                     body_wake[bi] = 1
+            if body_rest[bj] < 0:
+                body_wake[bi] = 1           # carried and moving: wakes, keeps awake
             mj = body_material[bj]
             k, eta, kt, ks = contact_coefficients(  # noqa: F821 (the law's)
                 pair_k[mi, mj], pair_zeta[mi, mj], imi + imj, kt_ratio, ks_ratio)
@@ -457,6 +470,20 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                     pair_f[p, 5] = 0.0
         walls = wall_mask[s]
         # the walls marked at the rebuild; a sleeper feels nothing, its row stays as it was
+        if WALLS and walls != 0 and asleep_i and motion_now.shape[0] > 0:  # noqa: F821
+            for w in range(n_walls):        # ... but a moving wall wakes it
+                m = wall_motion[w]
+                if m < 0 or motion_now[m, 13] == 0.0 or (
+                        walls != -1 and (walls >> w) & 1 == 0):
+                    continue
+                lx, ly, lz = anchor_local(motion_now, m, xi, yi, zi)  # noqa: F821
+                dist = wall_normal[w, 0] * lx + wall_normal[w, 1] * ly + \
+                    wall_normal[w, 2] * lz - wall_offset[w]
+                if (dist < radius and dist > -wall_depth[w]
+                        and lx >= wall_lo[w, 0] and lx <= wall_hi[w, 0] and ly >= wall_lo[w, 1]
+                        and ly <= wall_hi[w, 1] and lz >= wall_lo[w, 2]
+                        and lz <= wall_hi[w, 2]):
+                    body_wake[bi] = 1
         if WALLS and walls != 0 and not asleep_i:  # noqa: F821
             fx = 0.0
             fy = 0.0
@@ -476,10 +503,16 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                 nx = wall_normal[w, 0]
                 ny = wall_normal[w, 1]
                 nz = wall_normal[w, 2]
-                dist = nx * xi + ny * yi + nz * zi - wall_offset[w]
+                m = wall_motion[w]
+                lx = xi                     # the sphere in the wall's frame
+                ly = yi
+                lz = zi
+                if m >= 0:
+                    lx, ly, lz = anchor_local(motion_now, m, xi, yi, zi)  # noqa: F821
+                dist = nx * lx + ny * ly + nz * lz - wall_offset[w]
                 if (dist >= radius or dist <= -wall_depth[w]
-                        or xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
-                        or yi > wall_hi[w, 1] or zi < wall_lo[w, 2] or zi > wall_hi[w, 2]):
+                        or lx < wall_lo[w, 0] or lx > wall_hi[w, 0] or ly < wall_lo[w, 1]
+                        or ly > wall_hi[w, 1] or lz < wall_lo[w, 2] or lz > wall_hi[w, 2]):
                     if FRICTION and friction and 0 <= col < cap:  # noqa: F821
                         if WALL_ROWS:  # noqa: F821
                             if wall_s[qw + col, 3] != 0.0:
@@ -522,8 +555,19 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                     sx = 0.0
                     sy = 0.0
                     sz = 0.0
+                uxi = vxi                   # the sphere's velocity relative to the wall
+                uyi = vyi
+                uzi = vzi
+                if m >= 0:
+                    nx, ny, nz, sux, suy, suz = anchor_surface(  # noqa: F821
+                        motion_now, m, nx, ny, nz, xi, yi, zi, dist)
+                    uxi -= sux
+                    uyi -= suy
+                    uzi -= suz
+                    if motion_now[m, 13] != 0.0:
+                        body_wake[bi] = 1   # never asleep on a moving surface
                 (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(  # noqa: F821
-                    -nx, -ny, -nz, radius - dist, radius, vxi, vyi, vzi, wxi, wyi, wzi,
+                    -nx, -ny, -nz, radius - dist, radius, uxi, uyi, uzi, wxi, wyi, wzi,
                     k, eta, kt, ks, mu, sx, sy, sz, dt)
                 if FRICTION and friction:  # noqa: F821
                     if walls == -1:

@@ -18,6 +18,8 @@ import numpy as np
 from numba import prange
 
 from . import contacts, neighbours
+from .bodies import body_update
+from .prescribed import driven_row, motion_row
 from .compile import (compile_chain, compile_formulas, compile_pairing, compile_slot_store,
                       compile_walk, invalidate_stale_cache, specialize)
 from ..state import CONTACT_SLOTS
@@ -43,6 +45,10 @@ history_store = F.history_store
 rest_steps = F.rest_steps
 contact_coefficients = F.contact_coefficients
 static_body = F.static_body
+anchor_state = F.anchor_state
+carried_state = F.carried_state
+anchor_local = F.anchor_local
+anchor_surface = F.anchor_surface
 sqrt = np.sqrt
 P = compile_pairing(numba.njit(inline="always", cache=False), F)
 entry_range = P.entry_range
@@ -172,6 +178,23 @@ def stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_
         body_w[b, 0] = wx
         body_w[b, 1] = wy
         body_w[b, 2] = wz
+
+
+def stage_motion(t, motion_kind, motion_v, motion_w, motion_pivot, key_start, key_t, key_p,
+                 key_q, motion_now):
+    """The prescribed motions at time t [s] into motion_now (prescribed.motion_row);
+    serial: a scene has a few."""
+    for m in range(motion_now.shape[0]):
+        motion_row(m, t, motion_kind, motion_v, motion_w, motion_pivot, key_start, key_t,
+                   key_p, key_q, motion_now)
+
+
+def stage_driven(driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now, body_x,
+                 body_q, body_v, body_w, body_rest, body_still):
+    """The carried bodies where their motions put them (prescribed.driven_row)."""
+    for k in range(driven_body.shape[0]):
+        driven_row(k, driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now,
+                   body_x, body_q, body_v, body_w, body_rest, body_still)
 
 
 def sphere_state(i, sphere_body, sphere_offset, body_x, body_q, body_v, body_w):
@@ -316,7 +339,7 @@ def stage_grid_gather(sorted_idx, grid_idx, sphere_x, sphere_v, sphere_key, sphe
 @numba.njit(cache=True)
 def sphere_neighbours(s0, s1, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x,
                       grid_key, grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
-                      body_inv_mass, built_x, nbr, nbr_n):
+                      body_inv_mass, built_x, nbr, nbr_n, body_start, step):
     """Stages 2-3 for sorted slots s0 .. s1-1: each slot's neighbour list
     (neighbours.neighbour_list); returns how many lists overflowed."""
     cap = nbr.shape[1]
@@ -324,7 +347,7 @@ def sphere_neighbours(s0, s1, cutoff2, inv_cell, grid, bucket_start, grid_idx, g
     for s in range(s0, s1):
         if neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x,
                           grid_key, grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
-                          body_inv_mass, built_x, nbr, nbr_n) > cap:
+                          body_inv_mass, built_x, nbr, nbr_n, body_start, step) > cap:
             over += 1
     return over
 
@@ -332,7 +355,7 @@ def sphere_neighbours(s0, s1, cutoff2, inv_cell, grid, bucket_start, grid_idx, g
 @numba.njit(parallel=True, cache=True)
 def stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_key, grid_body,
                      grid_slot, sorted_idx, sorted_x, sorted_body, body_inv_mass, built_x,
-                     nbr, nbr_n):
+                     nbr, nbr_n, body_start, step):
     """Stages 2-3 at a rebuild: every sorted slot's neighbour list (sphere_neighbours)
     of reach (1 + skin) d, from the grid just sorted (cells of that edge). Returns how
     many lists overflowed (0: all fit)."""
@@ -345,7 +368,7 @@ def stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_
                                   cutoff * cutoff, 1.0 / cutoff, grid, bucket_start,
                                   grid_idx, grid_x, grid_key, grid_body, grid_slot,
                                   sorted_idx, sorted_x, sorted_body,
-                                  body_inv_mass, built_x, nbr, nbr_n)
+                                  body_inv_mass, built_x, nbr, nbr_n, body_start, step)
     return over
 
 
@@ -391,7 +414,8 @@ def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, 
 
 @numba.njit(parallel=True, cache=True)
 def stage_wall_reach(diameter, skin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
-                     wall_depth, wall_mask, wall_start, cap, rows):
+                     wall_depth, wall_mask, wall_start, cap, rows, wall_motion, sorted_body,
+                     body_start, step):
     """At a rebuild: each slot's walls within reach until the next (contacts.wall_reach),
     for lists of reach (1 + skin) d, and its packed wall rows (contacts.py WALL_ROWS):
     wall_start[s] .. wall_start[s + 1] - 1, one per marked wall up to the ``cap``
@@ -402,7 +426,9 @@ def stage_wall_reach(diameter, skin, sorted_x, wall_normal, wall_offset, wall_lo
     n = sorted_x.shape[0]
     for s in prange(n):
         wall_reach(s, 0.5 * diameter, margin, sorted_x, wall_normal, wall_offset, wall_lo,
-                   wall_hi, wall_depth, wall_mask)
+                   wall_hi, wall_depth, wall_motion, wall_mask)
+        if body_start[sorted_body[s]] > step:
+            wall_mask[s] = 0                # not emitted yet: no wall either
     wall_start[0] = 0
     for s in range(n):
         m = wall_mask[s]
@@ -490,14 +516,16 @@ SEARCH_GAP = 8
 @numba.njit(inline="always", cache=True)
 def body_quiet(b, body_inv_mass, body_rest, body_still, sleep_steps):
     """Whether body b will do nothing in the contact passes of the next step: a
-    static collider, or a body asleep that also slept through the step just done
-    (body_still), so that its pass-1 and pass-2 results are those already stored."""
-    return static_body(body_inv_mass[b]) or (body_rest[b] >= sleep_steps and body_still[b] != 0)
+    static collider (not a carried one moving: rest count -1), or a body asleep
+    that also slept through the step just done (body_still), so that its pass-1
+    and pass-2 results are those already stored."""
+    return (static_body(body_inv_mass[b]) and body_rest[b] >= 0) or (
+        body_rest[b] >= sleep_steps and body_still[b] != 0)
 
 
 @numba.njit(parallel=True, cache=True)
 def stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still, sleep_steps,
-                 chunks, spans):
+                 chunks, spans, wall_mask, moving_walls):
     """After the body stage: spans[:n] (returned) = for each chunk of sorted slots
     (chunks) with a slot the next step's contact passes must visit, the first and
     one past the last such slot; the rest of the chunk's slots are left out.
@@ -520,7 +548,8 @@ def stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still, 
             bi = sorted_body[s]
             if static_body(body_inv_mass[bi]):
                 continue
-            visit = not body_quiet(bi, body_inv_mass, body_rest, body_still, sleep_steps)
+            visit = not body_quiet(bi, body_inv_mass, body_rest, body_still, sleep_steps) \
+                or (wall_mask[s] & moving_walls) != 0   # a moving wall may reach it
             e = 0
             while not visit and e < nbr_n[s]:
                 visit = not body_quiet(sorted_body[nbr[s, e]], body_inv_mass, body_rest,
@@ -547,7 +576,8 @@ def stage_contacts(diameter, nbr, nbr_n, pidx, pair_start, pair_t, sorted_idx, s
                    pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
                    hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                    wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                   wall_mask, pair_f, wall_f, wall_start, wall_s, spans, n_spans):
+                   wall_mask, pair_f, wall_f, wall_start, wall_s, spans, n_spans,
+                   wall_motion, motion_now):
     """Stages 3-4, first pass: the force of each contact, computed once, by the
     sphere that owns it (kernels/contacts.py: pair_forces), and each sphere's
     walls, in parallel over the spans of sorted slots spans[:n_spans] (every
@@ -570,7 +600,7 @@ def stage_contacts(diameter, nbr, nbr_n, pidx, pair_start, pair_t, sorted_idx, s
                     pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
                     hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                     wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                    wall_mask, pair_f, wall_f)
+                    wall_mask, pair_f, wall_f, wall_motion, motion_now)
 
 
 def stage_sums(diameter, nbr, nbr_n, pidx, list_start, list_e, sorted_idx, sorted_x,
@@ -632,96 +662,10 @@ def stage_unsort(sorted_idx, sorted_x, sphere_x):
         sphere_x[i, 2] = sorted_x[s, 2]
 
 
-def body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
-                body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
-                sleep_steps, v_sleep, w_sleep, body_rest, body_wake, body_still):
-    """Stages 5-8 for body b (the body of stage_bodies' loop), with sleeping.
-
-    Returns awake + 2 woke + 4 quiet + 8 calmed: awake (1) when the body will
-    integrate at the next step; quiet (4) when it is asleep and slept through
-    this step (stage_active's body_quiet); woke (2) when it was quiet before this
-    step and is not now; calmed (8) the other way round. body_still[b] = 1 when the body slept
-    through this step (did not move): stage 1 may keep its spheres' positions
-    from the last step."""
-    if SLEEPING and sleep_steps > 0 and body_rest[b] >= sleep_steps:
-        was_quiet = body_still[b] != 0
-        if body_wake[b] != 0:      # touched by a moving body: integrates from next step
-            body_rest[b] = 1
-            body_wake[b] = 0
-            body_still[b] = 0
-            return 1 + (2 if was_quiet else 0)
-        body_still[b] = 1
-        return 4 + (0 if was_quiet else 8)
-    m = body_mass[b]
-    FX = m * gx
-    FY = m * gy
-    FZ = m * gz
-    TX = 0.0
-    TY = 0.0
-    TZ = 0.0
-    for i in range(body_sphere_start[b], body_sphere_start[b + 1]):
-        fx = sphere_f[i, 0]
-        fy = sphere_f[i, 1]
-        fz = sphere_f[i, 2]
-        FX += fx
-        FY += fy
-        FZ += fz
-        if ROTATION:
-            rx = sphere_r[i, 0]
-            ry = sphere_r[i, 1]
-            rz = sphere_r[i, 2]
-            if FRICTION:           # torques about the spheres' centres (TORQUE_NOTE)
-                TX += (ry * fz - rz * fy) + sphere_t[i, 0]
-                TY += (rz * fx - rx * fz) + sphere_t[i, 1]
-                TZ += (rx * fy - ry * fx) + sphere_t[i, 2]
-            else:
-                TX += ry * fz - rz * fy
-                TY += rz * fx - rx * fz
-                TZ += rx * fy - ry * fx
-    ii = body_inv_inertia[b]
-    x = body_x[b]
-    q = body_q[b]
-    P = body_P[b]
-    L = body_L[b]
-    im = body_inv_mass[b]
-    if ROTATION:
-        (x[0], x[1], x[2], q[0], q[1], q[2], q[3], P[0], P[1], P[2], L[0], L[1], L[2]) = \
-            body_step(x[0], x[1], x[2], q[0], q[1], q[2], q[3], P[0], P[1], P[2],
-                      L[0], L[1], L[2], FX, FY, FZ, TX, TY, TZ, im,
-                      ii[0], ii[1], ii[2], ii[3], ii[4], ii[5], dt)
-    else:   # body_step's translation, in its arithmetic order; L = 0 and q stay put
-        P[0] += FX * dt
-        P[1] += FY * dt
-        P[2] += FZ * dt
-        x[0] += P[0] * im * dt
-        x[1] += P[1] * im * dt
-        x[2] += P[2] * im * dt
-    if SLEEPING and sleep_steps > 0:
-        wx = 0.0
-        wy = 0.0
-        wz = 0.0
-        if ROTATION:
-            wx, wy, wz = angular_velocity(q[0], q[1], q[2], q[3], ii[0], ii[1], ii[2], ii[3],
-                                          ii[4], ii[5], L[0], L[1], L[2])
-        r = rest_steps(body_rest[b], P[0] * im, P[1] * im, P[2] * im, wx, wy, wz,
-                       v_sleep, w_sleep)
-        if r >= sleep_steps:       # falls asleep: at rest exactly
-            P[0] = 0.0
-            P[1] = 0.0
-            P[2] = 0.0
-            L[0] = 0.0
-            L[1] = 0.0
-            L[2] = 0.0
-        body_rest[b] = r
-        body_wake[b] = 0
-        body_still[b] = 0
-        return 1 if r < sleep_steps else 0
-    return 1
-
-
 def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
                  body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
-                 sleep_steps, v_sleep, w_sleep, body_rest, body_wake, body_still):
+                 sleep_steps, v_sleep, w_sleep, body_rest, body_wake, body_still, body_start,
+                 step):
     """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10).
 
     With sleeping (sleep_steps > 0): a body slower than (v_sleep, w_sleep) for
@@ -738,7 +682,7 @@ def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t
         r = body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t,
                         sphere_r, body_mass, body_inv_mass, body_inv_inertia, body_x,
                         body_q, body_P, body_L, sleep_steps, v_sleep, w_sleep, body_rest,
-                        body_wake, body_still)
+                        body_wake, body_still, body_start, step)
         awake += r & 1
         woke += (r >> 1) & 1
         quiet += (r >> 2) & 1
@@ -758,7 +702,7 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
               sorted_v, sorted_body, grid_idx, grid_x, grid_key, grid_body, built_x, nbr,
               nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
               wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_overlap, skin_ctl,
-              chunks, spans, span_ctl, quiet_share):
+              chunks, spans, span_ctl, quiet_share, drive):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
     compiled code. Returns (steps done, steps computed). Done is fewer than
     n_steps only when a rebuild found a neighbour list longer than nbr holds
@@ -785,6 +729,11 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     quarter of the bodies not quiet at the last search have become quiet (the
     spans cover more than needed until then); exact too. span_ctl counts the
     steps run so (0) and the searches (1).
+
+    ``drive`` (control.Drive): the prescribed motions, evaluated at the start of
+    each step (stage_motion, stage_driven) and once more at the end, so the State
+    holds the carried bodies where they are at its time; and the emitters' start
+    steps (a call never spans one: the backend splits it there).
     """
     if n_steps <= 0:
         return 0, 0  # nothing sorted yet: the unsort below would scramble the State's rows
@@ -805,10 +754,19 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     since_search = SEARCH_GAP
     calmed_since = 0        # bodies that became quiet since the last search
     quiet_then = 0          # and how many were quiet at it
+    driven = drive.motion_now.shape[0] > 0
+    body_start = drive.body_start
     for step in range(first_step, first_step + n_steps):
         computed += 1
         stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
                               body_v, body_w)
+        if driven:
+            stage_motion(step * dt, drive.motion_kind, drive.motion_v, drive.motion_w,
+                         drive.motion_pivot, drive.key_start, drive.key_t, drive.key_p,
+                         drive.key_q, drive.motion_now)
+            stage_driven(drive.driven_body, drive.body_motion, drive.body_anchor_c,
+                         drive.body_anchor_q, drive.motion_now, body_x, body_q, body_v, body_w,
+                         body_rest, body_still)
         if not rebuild:
             rebuild = stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x,
                                            body_q, body_v, body_w, body_still, built_x,
@@ -840,7 +798,7 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                                        hist_partner, hist_spring)
             if stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_key,
                                 grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
-                                body_inv_mass, built_x, nbr, nbr_n) > 0 or \
+                                body_inv_mass, built_x, nbr, nbr_n, body_start, step) > 0 or \
                     stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
                                 pair_start, pidx, pair_t, pair_f.shape[0], list_start,
                                 list_e) > 0 or \
@@ -848,7 +806,8 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                                                 wall_offset, wall_lo, wall_hi, wall_depth,
                                                 wall_mask, wall_start,
                                                 hist_partner.shape[1] if FRICTION and friction
-                                                else 0, wall_s.shape[0]) > 0):
+                                                else 0, wall_s.shape[0], drive.wall_motion,
+                                                sorted_body, body_start, step) > 0):
                 skin_ctl[0] = skin              # the redo keeps this build's skin
                 skin_ctl[1] = since
                 return step - first_step, step - first_step   # the histories are current
@@ -869,7 +828,8 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                        pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, step & 1,
                        hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                        wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                       wall_mask, pair_f, wall_f, wall_start, wall_s, work, n_work)
+                       wall_mask, pair_f, wall_f, wall_start, wall_s, work, n_work,
+                       drive.wall_motion, drive.motion_now)
         stage_sums(diameter, nbr, nbr_n, pidx, list_start, list_e, sorted_idx, sorted_x,
                    sorted_body, body_inv_mass,
                    sleep_steps, body_rest, wall_mask, pair_f, wall_f, sphere_f, sphere_t,
@@ -878,7 +838,8 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
                                                   sphere_f, sphere_t, sphere_r, body_mass,
                                                   body_inv_mass, body_inv_inertia, body_x,
                                                   body_q, body_P, body_L, sleep_steps, v_sleep,
-                                                  w_sleep, body_rest, body_wake, body_still)
+                                                  w_sleep, body_rest, body_wake, body_still,
+                                                  body_start, step)
         since_search += 1
         calmed_since += calmed
         if rebuilt or woke > 0:
@@ -887,7 +848,8 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
             if since_search >= SEARCH_GAP and (
                     not spans_ok or 4 * calmed_since >= n_bodies - quiet_then):
                 n_spans = stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest,
-                                       body_still, sleep_steps, chunks, spans)
+                                       body_still, sleep_steps, chunks, spans, wall_mask,
+                                       drive.moving_walls)
                 span_ctl[1] += 1
                 spans_ok = True
                 since_search = 0
@@ -901,6 +863,13 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
             break                               # all asleep: nothing changes any more
     skin_ctl[0] = skin
     skin_ctl[1] = since
+    if driven:                  # the carried bodies where they are at the State's time
+        stage_motion((first_step + n_steps) * dt, drive.motion_kind, drive.motion_v,
+                     drive.motion_w, drive.motion_pivot, drive.key_start, drive.key_t,
+                     drive.key_p, drive.key_q, drive.motion_now)
+        stage_driven(drive.driven_body, drive.body_motion, drive.body_anchor_c,
+                     drive.body_anchor_q, drive.motion_now, body_x, body_q, body_v, body_w,
+                     body_rest, body_still)
     stage_unsort(sorted_idx, sorted_x, sphere_x)
     if FRICTION and friction:
         stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f,
@@ -910,12 +879,18 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     return n_steps, computed
 
 
-_STAGES = (stage_body_velocities, sphere_state, stage_spheres, stage_spheres_sorted,
+_STAGES = (stage_body_velocities, motion_row, driven_row, stage_motion, stage_driven,
+           sphere_state, stage_spheres,
+           stage_spheres_sorted,
            contacts.pair_forces, contacts.sphere_forces,
            stage_contacts, stage_sums, body_update,
            stage_bodies, run_steps)
 _JITS = {
     "stage_body_velocities": numba.njit(parallel=True, cache=True),
+    "motion_row": numba.njit(inline="always", cache=True),
+    "driven_row": numba.njit(inline="always", cache=True),
+    "stage_motion": numba.njit(cache=True),
+    "stage_driven": numba.njit(cache=True),
     "sphere_state": numba.njit(inline="always", cache=True),
     "stage_spheres": numba.njit(parallel=True, cache=True),
     "stage_spheres_sorted": numba.njit(parallel=True, cache=True),

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..control import drive, split_at
+
 from .cpu import (GENERAL, PAIR_COLS, QUIET_SHARE, SKIN, SKIN_MAX, cell_size, chunk_spans,
                   cpu_scratch, fit_grid, grid_table, kernel_flags, kernels, scene_features,
                   stage_grid_gather, stage_grid_sort, stage_neighbours, stage_pairs,
@@ -43,6 +45,9 @@ class CpuBackend:
         self.quiet_share = QUIET_SHARE
         if not self.features.friction:   # the histories in sorted-slot order, within a call
             self.hist_partner, self.hist_spring = self._no_partner, self._no_spring
+        #: The prescribed inputs as the kernels read them (control.Drive).
+        self.drive = drive(model)
+        self._starts = np.unique(self.drive.body_start[self.drive.body_start > 0])
         self.static_box = static_extent(model)
         if self.static_box is not None:
             self.static_lo[:], self.static_hi[:] = self.static_box
@@ -57,9 +62,14 @@ class CpuBackend:
         """Advance ``state`` in place by ``n_steps`` steps (and its step count and time).
         ``control`` (dempipe.control.Control): the controlled bodies' poses, put into
         the State before the first step (whose rebuild places their spheres)."""
-        m = self.model
         if control is not None:
             control.apply(state)
+        # an emitter's start step begins a call (whose first step rebuilds the lists)
+        for n in split_at(int(state.step), int(n_steps), self._starts):
+            self._advance(state, n)
+
+    def _advance(self, state, n_steps: int) -> None:
+        m = self.model
         self.fit_grid(state)
         partner, spring = self.contacts(state)
         left = int(n_steps)
@@ -81,7 +91,7 @@ class CpuBackend:
                 self._pidx(), self.pair_start, self.pair_t, self.pair_f, self.list_start,
                 self.list_e, self.wall_mask, self.wall_start, self.wall_s,
                 self.wall_f, self.sphere_f, self.sphere_t, self.sphere_overlap, self.skin_ctl,
-                self.chunks, self.spans, self.span_ctl, float(self.quiet_share))
+                self.chunks, self.spans, self.span_ctl, float(self.quiet_share), self.drive)
             state.step += int(done)
             state.time = state.step * m.dt
             left -= int(done)
@@ -139,6 +149,7 @@ class CpuBackend:
         self.k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
                                      m.body_inv_mass, m.body_inv_inertia, self.body_v,
                                      self.body_w)
+        self._drive_now(state)
         self.k.stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q,
                              self.body_v, self.body_w, 1.0 / cell_size(m.diameter), self.grid,
                              self.sphere_x, self.sphere_v, self.sphere_r, self.sphere_key,
@@ -152,7 +163,8 @@ class CpuBackend:
         while (stage_neighbours(m.diameter, SKIN, self.grid, self.bucket_start, self.grid_idx,
                                 self.grid_x, self.grid_key, self.grid_body, self.grid_slot,
                                 self.sorted_idx, self.sorted_x, self.sorted_body,
-                                m.body_inv_mass, self.built_x, self.nbr, self.nbr_n) > 0
+                                m.body_inv_mass, self.built_x, self.nbr, self.nbr_n,
+                                self.drive.body_start, int(state.step)) > 0
                or stage_pairs(self.nbr, self.nbr_n, self.sorted_idx, self.sorted_body,
                               m.body_inv_mass, self.pair_start, self._pidx(), self.pair_t,
                               self.pair_f.shape[0], self.list_start, self.list_e) > 0
@@ -160,7 +172,9 @@ class CpuBackend:
                                    m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth,
                                    self.wall_mask, self.wall_start,
                                    self.hist_partner.shape[1] if self.features.friction else 0,
-                                   self.wall_s.shape[0]) > 0):
+                                   self.wall_s.shape[0], self.drive.wall_motion,
+                                   self.sorted_body, self.drive.body_start,
+                                   int(state.step)) > 0):
             self.grow_neighbours()
         self.sphere_overlap[:] = 0.0
         partner, spring = self.contacts(state)
@@ -180,7 +194,8 @@ class CpuBackend:
                               self.body_wake.copy(), m.wall_normal, m.wall_offset, m.wall_lo,
                               m.wall_hi, m.wall_depth, m.wall_material, self.wall_mask,
                               self.pair_f, self.wall_f, self.wall_start, self.wall_s,
-                              self.chunks, self.chunks.shape[0])
+                              self.chunks, self.chunks.shape[0], self.drive.wall_motion,
+                              self.drive.motion_now)
         self.k.stage_sums(m.diameter, self.nbr, self.nbr_n, self.pidx, self.list_start,
                           self.list_e, self.sorted_idx,
                           self.sorted_x, self.sorted_body, m.body_inv_mass, m.sleep_steps,
@@ -193,7 +208,20 @@ class CpuBackend:
         m = self.model
         self.k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
                               m.body_inv_mass, m.body_inv_inertia, self.body_v, self.body_w)
+        self._drive_now(state)      # the kinematic bodies' prescribed velocities
         return self.body_v[: m.n_bodies].copy(), self.body_w[: m.n_bodies].copy()
+
+    def _drive_now(self, state) -> None:
+        """The prescribed motions at the State's time: the carried bodies' poses and
+        velocities (as the kernels put them at a step's start)."""
+        d = self.drive
+        if d.motion_now.shape[0]:
+            self.k.stage_motion(int(state.step) * self.model.dt, d.motion_kind, d.motion_v,
+                                d.motion_w, d.motion_pivot, d.key_start, d.key_t, d.key_p,
+                                d.key_q, d.motion_now)
+            self.k.stage_driven(d.driven_body, d.body_motion, d.body_anchor_c,
+                                d.body_anchor_q, d.motion_now, state.body_x, state.body_q,
+                                self.body_v, self.body_w, self.rest(state), self.body_still)
 
     def take_max_overlap(self) -> float:
         """Largest overlap since the last call [m], then reset."""

@@ -39,6 +39,7 @@ import types
 import numpy as np
 from numba import cuda
 
+from ..control import drive, split_at
 from ..errors import DeviceError
 from ..state import CONTACT_SLOTS
 from .compile import compile_contacts
@@ -51,15 +52,15 @@ from .neighbours import NEIGHBOURS, SKIN, cell_size
 # module (benchmarks/cuda_compile_table.py records launches by these names).
 from .cuda_device import (CONTACT_THREADS, CTL_AWAKE, CTL_DONE, CTL_FORCE,  # noqa: F401
                           CTL_IDLE, CTL_IDLE_STEPS, CTL_MAXN, CTL_MOVED, CTL_OVER, CTL_REBUILDS,
-                          CTL_SIZE, F, P, SCAN_B, SCAN_CHUNK, SCAN_ITEMS, SIMULATOR,
-                          TABLE_BLOCKS, THREADS, _device_jit)
+                          CTL_SIZE, CTL_STEP, F, P, SCAN_B, SCAN_CHUNK, SCAN_ITEMS, SIMULATOR,
+                          TABLE_BLOCKS, THREADS, _device_jit, compile_body_stage)
 from .cuda_grid import (k_bucket_sort, k_gather, k_neighbours, k_scan_add,  # noqa: F401
                         k_scan_blocks, k_scatter, k_spheres, k_spheres_sorted, k_unsort,
                         k_zero_buckets)
 from .cuda_contacts import (k_load_pairs, k_pair_forces, k_pair_mirror,  # noqa: F401
                             k_pair_slots, k_save_pairs, k_sphere_forces)
-from .cuda_bodies import (k_begin_call, k_bodies, k_body_velocities, k_fill,  # noqa: F401
-                          k_idle_check, k_take_max)
+from .cuda_bodies import (k_begin_call, k_bodies, k_body_velocities, k_driven,  # noqa: F401
+                          k_fill, k_idle_check, k_motion, k_take_max)
 
 
 # ---------------------------------------------------------------------------
@@ -89,12 +90,14 @@ def kernels(flags) -> types.SimpleNamespace:
     if flags not in _VARIANTS:
         consts = {n.upper(): f for n, f in zip(FLAGS, flags)}
         c = compile_contacts(_device_jit(), F, P, dict(consts, sqrt=math.sqrt, **CUDA_LAYOUT))
+        body_update, _, _ = compile_body_stage(consts)
         out = {}
         for name in SPECIALIZED:
             py = globals()[name].py_func
             glb = dict(py.__globals__)
             glb.update(consts)
-            glb.update(pair_forces=c.pair_forces, sphere_forces=c.sphere_forces)
+            glb.update(pair_forces=c.pair_forces, sphere_forces=c.sphere_forces,
+                       body_update=body_update)
             fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__,
                                     py.__closure__)
             fn.__qualname__ = f"{name}__{variant_tag(flags)}"
@@ -198,6 +201,7 @@ def scratch_layout(model, friction=None) -> dict:
     lay["contact_spring"] = ((nh, slots, 3), f8)
     lay["body_rest"] = ((nb,), i4)
     lay["body_wake"] = ((nb,), i4)
+    lay["body_still"] = ((nb,), i4)     # written by the shared body stage (the CPU reads it)
     for lvl, n in enumerate(_scan_levels(table + 1)[1:]):
         lay[f"scan_{lvl + 1}"] = ((n,), i8)
     return lay
@@ -271,6 +275,12 @@ class CudaBackend:
         for name, (shape, dt) in layout.items():
             if name not in d:
                 d[name] = cuda.to_device(np.zeros(shape, dtype=dt))
+        # the prescribed inputs (control.Drive, as the CPU's)
+        self.drive = drive(model)
+        self._starts = np.unique(self.drive.body_start[self.drive.body_start > 0])
+        for name, a in self.drive._asdict().items():
+            if name != "moving_walls":
+                d[name] = cuda.to_device(np.ascontiguousarray(a))
         self.d = d
         self.scan_sums = [d[f"scan_{lvl + 1}"] for lvl in range(len(self.scan_sizes) - 1)]
         self._resident = None            # (state, body_x, body_q, body_P, body_L) on device
@@ -323,9 +333,27 @@ class CudaBackend:
         self.d["grid"].copy_to_device(self.grid)
 
     # -- launches ----------------------------------------------------------------
-    def _begin_call(self):
+    def _begin_call(self, first_step: int = 0):
         """Arm the control array for a call: rebuild at its first step."""
-        k_begin_call[1, 1](self.d["ctl"])
+        k_begin_call[1, 1](self.d["ctl"], int(first_step))
+
+    def _drive(self, t: float = -1.0):
+        """The prescribed motions at the step being run (t < 0) or at time t [s], and
+        the carried bodies where they put them (nothing when there are none)."""
+        d = self.d
+        n_m = int(self.drive.motion_now.shape[0])
+        if n_m == 0:
+            return
+        k_motion[_blocks(n_m, THREADS), THREADS](
+            float(t), self.model.dt, d["motion_kind"], d["motion_v"], d["motion_w"],
+            d["motion_pivot"], d["key_start"], d["key_t"], d["key_p"], d["key_q"],
+            d["motion_now"], d["ctl"])
+        n_k = int(self.drive.driven_body.shape[0])
+        if n_k:
+            k_driven[_blocks(n_k, THREADS), THREADS](
+                d["driven_body"], d["body_motion"], d["body_anchor_c"], d["body_anchor_q"],
+                d["motion_now"], d["body_x"], d["body_q"], d["body_v"], d["body_w"],
+                d["body_rest"], d["body_still"])
 
     def _idle_check(self):
         k_idle_check[1, 1](self.d["ctl"], self.model.sleep_steps)
@@ -381,7 +409,7 @@ class CudaBackend:
         k_neighbours[_blocks(m.n_spheres, THREADS), THREADS](
             cutoff * cutoff, 1.0 / cutoff, d["grid"], d["bucket_start"], d["sorted_idx"],
             d["sorted_x"], d["sorted_key"], d["sorted_body"], d["body_inv_mass"],
-            d["built_x"], d["nbr"], d["nbr_n"], d["ctl"])
+            d["built_x"], d["nbr"], d["nbr_n"], d["body_start"], d["ctl"])
 
     def _save_pairs(self, at_end: bool = False):
         """With friction, before a rebuild's re-sort (or ``at_end`` of a call): the
@@ -401,7 +429,7 @@ class CudaBackend:
             0.5 * m.diameter, WALL_SLACK * 0.5 * SKIN * m.diameter, d["nbr"], d["nbr_n"],
             d["sorted_idx"], d["sorted_x"], d["sorted_body"], d["body_inv_mass"],
             d["wall_normal"], d["wall_offset"], d["wall_lo"], d["wall_hi"], d["wall_depth"],
-            d["wall_mask"], d["pidx"], d["ctl"])
+            d["wall_motion"], d["body_start"], d["wall_mask"], d["pidx"], d["ctl"])
         k_load_pairs[blocks, THREADS](
             bool(self.features.friction), d["nbr"], d["nbr_n"], d["pidx"], d["sorted_idx"],
             d["sorted_body"], d["body_inv_mass"], d["wall_mask"],
@@ -423,7 +451,8 @@ class CudaBackend:
             d["contact_spring"] if spring is None else spring,
             m.sleep_steps, d["body_rest"], d["body_wake"] if wake is None else wake,
             d["wall_normal"], d["wall_offset"], d["wall_lo"], d["wall_hi"], d["wall_depth"],
-            d["wall_material"], d["wall_mask"], d["pair_f"], d["wall_f"], d["ctl"])
+            d["wall_material"], d["wall_mask"], d["pair_f"], d["wall_f"], d["wall_motion"],
+            d["motion_now"], d["ctl"])
         self.k.k_sphere_forces[_blocks(m.n_spheres, THREADS), THREADS](
             m.diameter, d["nbr"], d["nbr_n"], d["pidx"], d["sorted_idx"], d["sorted_x"],
             d["sorted_body"], d["body_inv_mass"], m.sleep_steps, d["body_rest"],
@@ -437,7 +466,7 @@ class CudaBackend:
             d["sphere_r"], d["body_mass"], d["body_inv_mass"], d["body_inv_inertia"],
             d["body_x"], d["body_q"], d["body_P"], d["body_L"],
             m.sleep_steps, m.sleep_linear, m.sleep_angular, d["body_rest"], d["body_wake"],
-            d["ctl"])
+            d["body_still"], d["body_start"], d["ctl"])
 
     def _unsort(self):
         d = self.d
@@ -492,6 +521,7 @@ class CudaBackend:
         """
         self._idle_check()
         self._velocities()
+        self._drive()
         self._spheres_sorted()
         self._save_pairs()
         self._spheres()
@@ -537,11 +567,16 @@ class CudaBackend:
             control.apply(state)
             for name in ("body_x", "body_q"):
                 self.d[name].copy_to_device(np.ascontiguousarray(getattr(state, name)))
+        # an emitter's start step begins a call (whose first step rebuilds the lists)
+        for n in split_at(int(state.step), int(n_steps), self._starts):
+            self._advance(state, n)
+
+    def _advance(self, state, n_steps: int) -> None:
         self.fit(state)
         left = int(n_steps)
         stepped = False
         while left > 0:
-            self._begin_call()
+            self._begin_call(state.step)
             for step in range(state.step, state.step + left):
                 self.step_once(step & 1)
             ctl = self.d["ctl"].copy_to_host()
@@ -559,6 +594,7 @@ class CudaBackend:
                 self._save_pairs(at_end=True)
         if stepped:
             self._unsort()
+        self._drive(state.step * self.model.dt)    # the carried bodies at the State's time
         self.download(state)
         state.time = state.step * self.model.dt
 
@@ -571,8 +607,9 @@ class CudaBackend:
         self._ensure_resident(state)
         self.fit(state)
         self._velocities()
+        self._drive(state.step * self.model.dt)
         while True:
-            self._begin_call()
+            self._begin_call(state.step)
             self._spheres()
             self._grid_sort()
             self._gather()
@@ -595,6 +632,7 @@ class CudaBackend:
         """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""
         self._ensure_resident(state)
         self._velocities()
+        self._drive(state.step * self.model.dt)
         nb = self.model.n_bodies
         return (self.d["body_v"].copy_to_host()[:nb].copy(),
                 self.d["body_w"].copy_to_host()[:nb].copy())

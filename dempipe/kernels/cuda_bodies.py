@@ -9,30 +9,59 @@ from __future__ import annotations
 from numba import cuda
 
 from .cuda_device import (CTL_AWAKE, CTL_DONE, CTL_FORCE, CTL_IDLE, CTL_IDLE_STEPS, CTL_MOVED,
-                          CTL_OVER, CTL_REBUILDS, SLEEPING, angular_velocity, body_step,
-                          rebuilding, rest_steps)
+                          CTL_OVER, CTL_REBUILDS, CTL_STEP, angular_velocity, body_update,
+                          driven_row, motion_row, rebuilding)
 
 
 @cuda.jit
-def k_begin_call(ctl):
+def k_begin_call(ctl, first_step):
     """Once per ``step`` call (and per probe): rebuild at the first step, and no
-    spheres moved, no overflow, no rebuilds yet."""
+    spheres moved, no overflow, no rebuilds yet; the step count just before
+    ``first_step`` (k_idle_check counts each step in)."""
     if cuda.grid(1) == 0:
         for j in range(ctl.shape[0]):
             ctl[j] = 0
         ctl[CTL_FORCE] = 1
         ctl[CTL_AWAKE] = 1
+        ctl[CTL_STEP] = first_step - 1
 
 
 @cuda.jit
 def k_idle_check(ctl, sleep_steps):
-    """First launch of a step (one thread): with sleeping on and no body awake after
-    the last step's body stage, nothing can move any more, so this and the call's
-    remaining steps are no-ops (CTL_IDLE); then reset the awake count for this step."""
+    """First launch of a step (one thread): counts the step in (CTL_STEP); with
+    sleeping on and no body awake after the last step's body stage, nothing can
+    move any more, so this and the call's remaining steps are no-ops (CTL_IDLE);
+    then reset the awake count for this step."""
     if cuda.grid(1) == 0:
+        ctl[CTL_STEP] += 1
         if sleep_steps > 0 and ctl[CTL_AWAKE] == 0:
             ctl[CTL_IDLE] = 1
         ctl[CTL_AWAKE] = 0
+
+
+@cuda.jit
+def k_motion(t, dt, motion_kind, motion_v, motion_w, motion_pivot, key_start, key_t, key_p,
+             key_q, motion_now, ctl):
+    """The prescribed motions (prescribed.motion_row, a thread each) at time ``t``
+    [s], or when t < 0 at the step being run (ctl[CTL_STEP] dt)."""
+    m = cuda.grid(1)
+    if m >= motion_now.shape[0] or (t < 0.0 and ctl[CTL_IDLE] != 0):
+        return
+    tm = t if t >= 0.0 else ctl[CTL_STEP] * dt
+    motion_row(m, tm, motion_kind, motion_v, motion_w, motion_pivot, key_start, key_t, key_p,
+               key_q, motion_now)
+
+
+@cuda.jit
+def k_driven(driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now, body_x,
+             body_q, body_v, body_w, body_rest, body_still):
+    """The carried bodies where their motions put them (prescribed.driven_row, a
+    thread each), after k_motion."""
+    k = cuda.grid(1)
+    if k >= driven_body.shape[0]:
+        return
+    driven_row(k, driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now, body_x,
+               body_q, body_v, body_w, body_rest, body_still)
 
 
 @cuda.jit
@@ -59,9 +88,9 @@ def k_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_
 @cuda.jit
 def k_bodies(n_bodies, dt, gravity, body_sphere_start, sphere_f, sphere_t, sphere_r,
              body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
-             sleep_steps, v_sleep, w_sleep, body_rest, body_wake, ctl):
-    """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10);
-    sleeping as kernels.cpu.body_update.
+             sleep_steps, v_sleep, w_sleep, body_rest, body_wake, body_still, body_start, ctl):
+    """Stages 5-8 with sleeping, a thread per body: kernels/bodies.py's body_update,
+    the CPU's own; each body awake for the next step adds 1 to ctl[CTL_AWAKE].
 
     Thread 0 also closes the step's rebuild decision: counts a rebuild if there
     was one and clears CTL_FORCE and CTL_MOVED for the next step (no kernel of
@@ -81,71 +110,11 @@ def k_bodies(n_bodies, dt, gravity, body_sphere_start, sphere_f, sphere_t, spher
             ctl[CTL_IDLE_STEPS] += 1
     if b >= n_bodies or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
-    if SLEEPING and sleep_steps > 0 and body_rest[b] >= sleep_steps:
-        if body_wake[b] != 0:
-            body_rest[b] = 1
-            body_wake[b] = 0
-            cuda.atomic.add(ctl, CTL_AWAKE, 1)   # integrates from the next step
-        return
-    m = body_mass[b]
-    FX = m * gravity[0]
-    FY = m * gravity[1]
-    FZ = m * gravity[2]
-    TX = 0.0
-    TY = 0.0
-    TZ = 0.0
-    for i in range(body_sphere_start[b], body_sphere_start[b + 1]):
-        fx = sphere_f[i, 0]
-        fy = sphere_f[i, 1]
-        fz = sphere_f[i, 2]
-        rx = sphere_r[i, 0]
-        ry = sphere_r[i, 1]
-        rz = sphere_r[i, 2]
-        FX += fx
-        FY += fy
-        FZ += fz
-        TX += (ry * fz - rz * fy) + sphere_t[i, 0]
-        TY += (rz * fx - rx * fz) + sphere_t[i, 1]
-        TZ += (rx * fy - ry * fx) + sphere_t[i, 2]
-    (X, Y, Z, qw, qx, qy, qz, PX, PY, PZ, LX, LY, LZ) = body_step(
-        body_x[b, 0], body_x[b, 1], body_x[b, 2],
-        body_q[b, 0], body_q[b, 1], body_q[b, 2], body_q[b, 3],
-        body_P[b, 0], body_P[b, 1], body_P[b, 2], body_L[b, 0], body_L[b, 1], body_L[b, 2],
-        FX, FY, FZ, TX, TY, TZ, body_inv_mass[b],
-        body_inv_inertia[b, 0], body_inv_inertia[b, 1], body_inv_inertia[b, 2],
-        body_inv_inertia[b, 3], body_inv_inertia[b, 4], body_inv_inertia[b, 5], dt)
-    body_x[b, 0] = X
-    body_x[b, 1] = Y
-    body_x[b, 2] = Z
-    body_q[b, 0] = qw
-    body_q[b, 1] = qx
-    body_q[b, 2] = qy
-    body_q[b, 3] = qz
-    body_P[b, 0] = PX
-    body_P[b, 1] = PY
-    body_P[b, 2] = PZ
-    body_L[b, 0] = LX
-    body_L[b, 1] = LY
-    body_L[b, 2] = LZ
-    if SLEEPING and sleep_steps > 0:
-        im = body_inv_mass[b]
-        wx, wy, wz = angular_velocity(qw, qx, qy, qz, body_inv_inertia[b, 0],
-                                      body_inv_inertia[b, 1], body_inv_inertia[b, 2],
-                                      body_inv_inertia[b, 3], body_inv_inertia[b, 4],
-                                      body_inv_inertia[b, 5], LX, LY, LZ)
-        r = rest_steps(body_rest[b], PX * im, PY * im, PZ * im, wx, wy, wz, v_sleep, w_sleep)
-        if r >= sleep_steps:
-            body_P[b, 0] = 0.0
-            body_P[b, 1] = 0.0
-            body_P[b, 2] = 0.0
-            body_L[b, 0] = 0.0
-            body_L[b, 1] = 0.0
-            body_L[b, 2] = 0.0
-        body_rest[b] = r
-        body_wake[b] = 0
-        if r < sleep_steps:
-            cuda.atomic.add(ctl, CTL_AWAKE, 1)
-    else:
+    r = body_update(b, dt, gravity[0], gravity[1], gravity[2], body_sphere_start, sphere_f,
+                    sphere_t, sphere_r, body_mass, body_inv_mass, body_inv_inertia, body_x,
+                    body_q, body_P, body_L, sleep_steps, v_sleep, w_sleep, body_rest,
+                    body_wake, body_still, body_start, ctl[CTL_STEP])
+    if r & 1:
         cuda.atomic.add(ctl, CTL_AWAKE, 1)
 
 

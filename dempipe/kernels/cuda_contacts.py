@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from numba import cuda
 
-from .cuda_device import (CTL_FORCE, CTL_IDLE, CTL_MOVED, CTL_OVER, pair_forces, pair_mirror,
-                          pair_slots, pairs_to_rows, rebuilding, rows_to_pairs, sphere_forces,
+from .cuda_device import (CTL_FORCE, CTL_IDLE, CTL_MOVED, CTL_OVER, CTL_STEP, pair_forces,
+                          pair_mirror, pair_slots, pairs_to_rows, rebuilding, rows_to_pairs, sphere_forces,
                           wall_reach)
 
 
@@ -44,7 +44,7 @@ def k_pair_slots(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx, ctl):
 @cuda.jit
 def k_pair_mirror(radius, margin, nbr, nbr_n, sorted_idx, sorted_x, sorted_body,
                   body_inv_mass, wall_normal, wall_offset, wall_lo, wall_hi, wall_depth,
-                  wall_mask, pidx, ctl):
+                  wall_motion, body_start, wall_mask, pidx, ctl):
     """Rebuild, after k_pair_slots: the entries the partner owns
     (contacts.pair_mirror) and the walls in reach (contacts.wall_reach)."""
     s = cuda.grid(1)
@@ -52,7 +52,9 @@ def k_pair_mirror(radius, margin, nbr, nbr_n, sorted_idx, sorted_x, sorted_body,
         return
     pair_mirror(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
     wall_reach(s, radius, margin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
-               wall_depth, wall_mask)
+               wall_depth, wall_motion, wall_mask)
+    if body_start[sorted_body[s]] > ctl[CTL_STEP]:
+        wall_mask[s] = 0                    # not emitted yet: no wall either
 
 
 @cuda.jit
@@ -74,7 +76,7 @@ def k_pair_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
                   pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
                   contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
                   wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                  wall_mask, pair_f, wall_f, ctl):
+                  wall_mask, pair_f, wall_f, wall_motion, motion_now, ctl):
     """Stages 3-4, first pass (contacts.pair_forces, one thread per sorted slot): each
     contact computed once, by its owner, and each sphere's walls. After an overflow
     in this call (ctl[CTL_OVER]) or once every body sleeps it returns at once."""
@@ -90,7 +92,7 @@ def k_pair_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
                 pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
                 contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
                 wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                wall_mask, pair_f, wall_f)
+                wall_mask, pair_f, wall_f, wall_motion, motion_now)
 
 
 @cuda.jit

@@ -13,8 +13,8 @@ import math
 from numba import cuda, int64
 from numba.core import config
 
-from .compile import (compile_contacts, compile_formulas, compile_pairing, compile_slot_store,
-                      compile_walk)
+from .compile import (compile_chain, compile_contacts, compile_formulas, compile_pairing,
+                      compile_slot_store, compile_walk)
 from .layout import CUDA_LAYOUT
 
 
@@ -80,6 +80,10 @@ CTL_AWAKE = 6
 #: k_idle_check; the CPU target skips them the same way). Counted in CTL_IDLE_STEPS.
 CTL_IDLE = 7
 CTL_IDLE_STEPS = 8
+#: The number of the step being run (k_begin_call sets the call's first step
+#: less one, k_idle_check adds one as each step begins): the time of the
+#: prescribed motions and the emitters' start steps read it on the device.
+CTL_STEP = 9
 CTL_SIZE = 10
 
 
@@ -133,6 +137,23 @@ C = compile_contacts(_device_jit(), F, P, dict(FRICTION=True, ROTATION=True, SLE
                                              WALLS=True, sqrt=math.sqrt, **CUDA_LAYOUT))
 pair_forces = C.pair_forces
 sphere_forces = C.sphere_forces
+
+
+def compile_body_stage(consts: dict):
+    """kernels/bodies.py's body_update and kernels/prescribed.py's motion_row,
+    driven_row as device functions with the feature flags ``consts``."""
+    from . import bodies, prescribed
+
+    given = dict(consts, static_body=F.static_body, body_step=F.body_step,
+                 angular_velocity=F.angular_velocity, rest_steps=F.rest_steps,
+                 anchor_state=F.anchor_state, carried_state=F.carried_state)
+    b = compile_chain(bodies, ("body_update",), _device_jit(), given)
+    r = compile_chain(prescribed, ("motion_row", "driven_row"), _device_jit(), given)
+    return b.body_update, r.motion_row, r.driven_row
+
+
+body_update, motion_row, driven_row = compile_body_stage(
+    dict(FRICTION=True, ROTATION=True, SLEEPING=True, WALLS=True))
 
 
 @cuda.jit(device=True)

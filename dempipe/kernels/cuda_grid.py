@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from numba import cuda, int64
 
-from .cuda_device import (CTL_FORCE, CTL_IDLE, CTL_MAXN, CTL_MOVED, CTL_OVER, SCAN_B, SCAN_CHUNK,
-                          SCAN_ITEMS, cell_coord, cell_hash, cell_key, neighbour_list, rebuilding,
+from .cuda_device import (CTL_FORCE, CTL_IDLE, CTL_MAXN, CTL_MOVED, CTL_OVER, CTL_STEP, SCAN_B,
+                          SCAN_CHUNK, SCAN_ITEMS, cell_coord, cell_hash, cell_key, neighbour_list, rebuilding,
                           slot_store, sphere_kinematics)
 
 
@@ -178,7 +178,7 @@ def k_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
 
 @cuda.jit
 def k_neighbours(cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x, sorted_key,
-                 sorted_body, body_inv_mass, built_x, nbr, nbr_n, ctl):
+                 sorted_body, body_inv_mass, built_x, nbr, nbr_n, body_start, ctl):
     """Stages 2-3 at a rebuild: each sorted slot's neighbour list, from the grid
     just sorted (kernels.cpu.sphere_neighbours, one thread per slot).
 
@@ -199,7 +199,7 @@ def k_neighbours(cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x, so
     # body order instead)
     n = neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, sorted_idx, sorted_x,
                        sorted_key, sorted_body, sorted_idx, sorted_idx, sorted_x, sorted_body,
-                       body_inv_mass, built_x, nbr, nbr_n)
+                       body_inv_mass, built_x, nbr, nbr_n, body_start, ctl[CTL_STEP])
     if n > cap:
         cuda.atomic.add(ctl, CTL_OVER, 1)        # integer atomics: order-independent
         cuda.atomic.max(ctl, CTL_MAXN, n)

@@ -96,7 +96,7 @@ def slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere
 
 def neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x, grid_key,
                    grid_body, grid_slot, sorted_idx, sorted_x, sorted_body, body_inv_mass,
-                   built_x, nbr, nbr_n):
+                   built_x, nbr, nbr_n, body_start, step):
     """Stages 2-3 for sorted slot s at a rebuild: its neighbour list. Returns its
     true length (more than nbr.shape[1] when it overflowed).
 
@@ -104,7 +104,8 @@ def neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x, g
     sqrt(cutoff2) [m], found over the 27 cells round s, in the order of their
     sphere index (so the forces are summed in an order that does not depend on
     the grid, the slots or when lists are rebuilt). A static sphere gets none (it
-    feels nothing). A list that would hold more than nbr.shape[1] keeps its true
+    feels nothing), nor does a sphere of a body not yet in the simulation at
+    ``step`` (body_start, an emitter's), which is in no list either. A list that would hold more than nbr.shape[1] keeps its true
     count in nbr_n and stores what fits. Notes the slot's position at the build
     (built_x). Written once, compiled for each target (compile.compile_walk) with
     that target's cell_coord, cell_key, cell_hash and GRID_SLOTS.
@@ -126,7 +127,7 @@ def neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x, g
     built_x[s, 2] = zi
     bi = sorted_body[s]
     n = 0
-    if static_body(body_inv_mass[bi]):  # noqa: F821 (the target's, see compile_walk)
+    if static_body(body_inv_mass[bi]) or body_start[bi] > step:  # noqa: F821 (the target's)
         nbr_n[s] = 0
         return 0
     cx0 = cell_coord(xi, inv_cell)  # noqa: F821 (the target's, see compile_walk)
@@ -164,6 +165,8 @@ def neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x, g
                     rz = grid_x[g, 2] - zi
                     if rx * rx + ry * ry + rz * rz >= cutoff2:
                         continue
+                    if body_start[grid_body[g]] > step:
+                        continue        # not emitted yet
                     if n < cap:         # insert in sphere-index order
                         it = grid_idx[g]
                         p = n
