@@ -160,9 +160,9 @@ def invalidate_stale_cache(module_file: str) -> None:
     module's entries when it differs.
     """
     here = os.path.dirname(os.path.abspath(module_file))
-    # every source a kernel may inline or link: the formulas, the laws, and all of
+    # every source a kernel may inline or link: the formulas (physics, motion), the laws, and all of
     # kernels/ (a driver links the stages it calls, wherever they are written)
-    sources = [physics.__file__,
+    sources = [physics.__file__, motion.__file__,
                *sorted(glob.glob(os.path.join(os.path.dirname(laws.__file__), "*.py"))),
                *sorted(glob.glob(os.path.join(os.path.dirname(__file__), "*.py")))]
     digest = hashlib.sha256(b"".join(open(f, "rb").read() for f in sources)).hexdigest()[:16]
