@@ -102,6 +102,22 @@ def _scenes():
     out.append(("sleeping", sleepy, None))
     ball = build(0.4, True, False, shape="ball")
     out.append(("one-sphere bodies (no rotation)", ball, None))
+    # prescribed motion: a belt, a moving box, a kinematic body, an emitter
+    from dempipe.motion import Motion
+
+    b = ModelBuilder(d)
+    ss, mesh = box_set(2, 1, 1, d)
+    s = b.add_shape("s", mesh, ss)
+    m = b.add_material(Material("m", density=1000, restitution=0.5, friction=0.4))
+    b.add_bodies("g", s, m, [[0, 0, 0.0049], [0.0205, 0, 0.0049]])
+    b.add_bodies("k", s, m, [[-0.02, 0, 0.006]], kinematic=True,
+                 motion=Motion(velocity=(0.1, 0, 0), angular_velocity=(0, 0, 5.0)))
+    b.add_bodies("e", s, m, [[0.04, 0, 0.006]], start_time=1e-9)
+    b.add_plane([0, 0, 0], [0, 0, 1], m, motion=Motion(velocity=(0.05, 0, 0)))
+    b.add_box([-0.05, -0.02, -0.01], [0.08, 0.02, 0.1], material=m,
+              motion=Motion(velocity=(0.02, 0, 0)))
+    moving = b.finalize(fps=60, n_frames=1, sleep=(1.0, 100.0, 1e-9))
+    out.append(("prescribed motion", replace(moving, sleep_steps=2), None))
     return out
 
 

@@ -155,6 +155,35 @@ def sleepy_model():
     return replace(model, sleep_steps=2)
 
 
+def prescribed_model():
+    """Prescribed motion on both targets: two boxes on a belt (a plane moving along
+    itself) inside a pen that slides in (a moving box collider), a kinematic box
+    spinning and drifting through them, and a third box emitted on the belt after
+    a few steps; sleeping on (a moving surface keeps what it touches awake)."""
+    from bodies import box_set
+    from dempipe.materials import Material
+    from dempipe.model import ModelBuilder
+    from dempipe.motion import Motion
+
+    b = ModelBuilder(D)
+    ss, mesh = box_set(2, 2, 1, D)
+    s = b.add_shape("box", mesh, ss)
+    m = b.add_material(Material("m", density=800, restitution=0.4, friction=0.4,
+                                stiffness=4000.0))
+    b.add_bodies("boxes", s, m, [[0, 0, 0.499 * D], [2.0 * D, 0, 0.499 * D]])
+    b.add_bodies("spinner", s, m, [[-2.2 * D, 0.0, 0.6 * D]], kinematic=True,
+                 motion=Motion(velocity=(0.5, 0.0, 0.0), angular_velocity=(0.0, 0.0, 30.0)))
+    b.add_bodies("late", s, m, [[4.0 * D, 0, 0.6 * D]], start_time=0.0)
+    b.add_plane([0, 0, 0], [0, 0, 1], m, motion=Motion(velocity=(0.3, 0.0, 0.0)))
+    b.add_box([-4 * D, -3 * D, -D], [8 * D, 3 * D, 4 * D], True, m,
+              motion=Motion(velocity=(0.4, 0.0, 0.0)))
+    model = b.finalize(fps=60, n_frames=2, sleep=(1.0, 100.0, 1e-9))
+    # the emitter enters after 3 steps, sleeping after 2 steps at rest
+    start = np.array(model.body_start)
+    start[3] = 3
+    return replace(model, sleep_steps=2, body_start=start)
+
+
 def _rel(a, b) -> float:
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
@@ -348,6 +377,25 @@ def _sim_main() -> dict:
         "skipped_cpu": n_cpu.steps_skipped, "skipped_cuda": n_cu.steps_skipped,
     }
 
+    # prescribed motion: a belt, a sliding pen, a spinning kinematic box, an
+    # emitter; in calls of 2, 5 and 7 steps (the emitter's start inside the second)
+    pm = prescribed_model()
+    p_cpu, p_cu = kcpu.CpuBackend(pm), kcu.CudaBackend(pm)
+    u, w_ = pm.initial_state(), pm.initial_state()
+    for n_steps in (2, 5, 7):
+        p_cpu.step(u, n_steps)
+        p_cu.step(w_, n_steps)
+    p_cu.download(w_, contacts=True)
+    vu, ww = p_cpu.velocities(u), p_cu.velocities(w_)
+    out["prescribed"] = {
+        "identical": all(np.array_equal(getattr(w_, n), getattr(u, n))
+                         for n in BODY + ("body_rest", "contact_partner", "contact_spring")),
+        "velocities_identical": bool(np.array_equal(vu[0], ww[0])
+                                     and np.array_equal(vu[1], ww[1])),
+        "kinematic_moved": float(u.body_x[2, 0] - pm.initial_x[2, 0]),
+        "boxes_moved": float(np.abs(u.body_x[:2, 0] - pm.initial_x[:2, 0]).max()),
+    }
+
     # the whole Simulator path on device="cuda": a few steps per frame
     fast = contact_model(fps=1.0 / (4 * model.dt), n_frames=4)
     f_cpu = Simulator(fast, device="cpu")
@@ -451,6 +499,14 @@ def test_sim_all_asleep_steps_skipped_on_both_targets_bit_identical(sim):
     a = sim["asleep"]
     assert a["all_asleep"] and a["identical"]
     assert a["skipped_cpu"] > 0 and a["skipped_cuda"] == a["skipped_cpu"]
+
+
+def test_sim_prescribed_motion_is_bit_identical_to_cpu(sim):
+    """Moving walls, a kinematic body and an emitter: the same State on both targets,
+    rest counts and contact histories included."""
+    p = sim["prescribed"]
+    assert p["identical"] and p["velocities_identical"], p
+    assert p["kinematic_moved"] > 0 and p["boxes_moved"] > 0, p
 
 
 def test_sim_run_to_run_identical(sim):

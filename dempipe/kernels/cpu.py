@@ -326,19 +326,7 @@ def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t
     return awake, woke, quiet, calmed
 
 
-def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
-              sphere_body, sphere_offset, body_sphere_start, body_mass, body_inv_mass,
-              body_inv_inertia, body_material, pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio,
-              friction, contact_partner, contact_spring, hist_partner, hist_spring,
-              sleep_steps, v_sleep, w_sleep, body_rest, body_wake, body_still,
-              wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-              body_x, body_q, body_P, body_L,
-              body_v, body_w, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash,
-              bucket_start, bucket_fill, body_key, grid_slot, sorted_idx, slot_of, sorted_x,
-              sorted_v, sorted_body, grid_idx, grid_x, grid_key, grid_body, built_x, nbr,
-              nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
-              wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_overlap, skin_ctl,
-              chunks, spans, span_ctl, quiet_share, drive):
+def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, drive):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
     compiled code. Returns (steps done, steps computed). Done is fewer than
     n_steps only when a rebuild found a neighbour list longer than nbr holds
@@ -366,11 +354,26 @@ def run_steps(n_steps, first_step, dt, diameter, n_bodies, gravity, grid,
     spans cover more than needed until then); exact too. span_ctl counts the
     steps run so (0) and the searches (1).
 
-    ``drive`` (control.Drive): the prescribed motions, evaluated at the start of
+    The arguments: model (layout.StepModel: what the step reads of the Model),
+    state (layout.StepState: the State's arrays), scratch (layout.Scratch: the
+    backend's), drive (control.Drive): the prescribed motions, evaluated at the start of
     each step (stage_motion, stage_driven) and once more at the end, so the State
     holds the carried bodies where they are at its time; and the emitters' start
     steps (a call never spans one: the backend splits it there).
     """
+    # the structured arguments (layout.StepModel, StepState, Scratch; control.Drive),
+    # under the names the stages take them by
+    (dt, diameter, n_bodies, gravity, sphere_body, sphere_offset, body_sphere_start,
+     body_mass, body_inv_mass, body_inv_inertia, body_material, pair_k, pair_zeta, pair_mu,
+     kt_ratio, ks_ratio, friction, sleep_steps, v_sleep, w_sleep, wall_normal, wall_offset,
+     wall_lo, wall_hi, wall_depth, wall_material) = model
+    (body_x, body_q, body_P, body_L, body_rest, contact_partner, contact_spring) = state
+    (hist_partner, hist_spring, body_wake, body_still, body_v, body_w, sphere_x, sphere_v,
+     sphere_r, sphere_key, sphere_hash, bucket_start, bucket_fill, body_key, grid_slot,
+     sorted_idx, slot_of, sorted_x, sorted_v, sorted_body, grid_idx, grid_x, grid_key,
+     grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
+     wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_overlap, skin_ctl,
+     chunks, spans, span_ctl) = scratch
     if n_steps <= 0:
         return 0, 0  # nothing sorted yet: the unsort below would scramble the State's rows
     skin = skin_ctl[0]

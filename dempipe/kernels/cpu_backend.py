@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..control import drive, split_at
+from .layout import StepState, scratch_of, step_model
 
 from .cpu import (GENERAL, PAIR_COLS, QUIET_SHARE, SKIN, SKIN_MAX, cell_size, chunk_spans,
                   cpu_scratch, fit_grid, grid_table, kernel_flags, kernels, scene_features,
@@ -45,6 +46,8 @@ class CpuBackend:
         self.quiet_share = QUIET_SHARE
         if not self.features.friction:   # the histories in sorted-slot order, within a call
             self.hist_partner, self.hist_spring = self._no_partner, self._no_spring
+        #: What a step reads of the Model (layout.StepModel), one structured argument.
+        self.step_model = step_model(model, self.features.friction)
         #: The prescribed inputs as the kernels read them (control.Drive).
         self.drive = drive(model)
         self._starts = np.unique(self.drive.body_start[self.drive.body_start > 0])
@@ -75,29 +78,22 @@ class CpuBackend:
         left = int(n_steps)
         while left > 0:
             done, computed = self.k.run_steps(
-                left, int(state.step), m.dt, m.diameter, m.n_bodies, m.gravity, self.grid,
-                m.sphere_body, m.sphere_offset, m.body_sphere_start, m.body_mass,
-                m.body_inv_mass, m.body_inv_inertia, m.body_material, m.pair_k, m.pair_zeta,
-                m.pair_mu, m.kt_ratio, m.ks_ratio, self.features.friction, partner, spring,
-                self.hist_partner, self.hist_spring, m.sleep_steps, m.sleep_linear, m.sleep_angular, self.rest(state),
-                self.body_wake, self.body_still, m.wall_normal, m.wall_offset, m.wall_lo,
-                m.wall_hi,
-                m.wall_depth, m.wall_material, state.body_x, state.body_q, state.body_P,
-                state.body_L, self.body_v, self.body_w, self.sphere_x, self.sphere_v,
-                self.sphere_r, self.sphere_key, self.sphere_hash, self.bucket_start,
-                self.bucket_fill, self.body_key, self.grid_slot, self.sorted_idx, self.slot_of,
-                self.sorted_x, self.sorted_v, self.sorted_body, self.grid_idx, self.grid_x,
-                self.grid_key, self.grid_body, self.built_x, self.nbr, self.nbr_n,
-                self._pidx(), self.pair_start, self.pair_t, self.pair_f, self.list_start,
-                self.list_e, self.wall_mask, self.wall_start, self.wall_s,
-                self.wall_f, self.sphere_f, self.sphere_t, self.sphere_overlap, self.skin_ctl,
-                self.chunks, self.spans, self.span_ctl, float(self.quiet_share), self.drive)
+                left, int(state.step), self.grid, float(self.quiet_share), self.step_model,
+                StepState(state.body_x, state.body_q, state.body_P, state.body_L,
+                          self.rest(state), partner, spring),
+                self._scratch(), self.drive)
             state.step += int(done)
             state.time = state.step * m.dt
             left -= int(done)
             self.steps_skipped += int(done) - int(computed)
             if left > 0:
                 self.grow_neighbours()
+
+    def _scratch(self):
+        """The scratch arrays as run_steps takes them (layout.Scratch): the current
+        ones (the lists may have grown, a test may have replaced one)."""
+        self._pidx()
+        return scratch_of(self)
 
     def grow_neighbours(self) -> None:
         """Room for the longest neighbour list the last rebuild found (nbr_n), doubled

@@ -202,6 +202,10 @@ def scratch_layout(model, friction=None) -> dict:
     lay["body_rest"] = ((nb,), i4)
     lay["body_wake"] = ((nb,), i4)
     lay["body_still"] = ((nb,), i4)     # written by the shared body stage (the CPU reads it)
+    # the prescribed inputs (control.Drive): what the scene's motions and emitters need
+    for name, a in drive(model)._asdict().items():
+        if name != "moving_walls":
+            lay[name] = (a.shape, a.dtype)
     for lvl, n in enumerate(_scan_levels(table + 1)[1:]):
         lay[f"scan_{lvl + 1}"] = ((n,), i8)
     return lay
@@ -272,15 +276,15 @@ class CudaBackend:
             a = np.ascontiguousarray(getattr(model, name), dtype=dt).reshape(shape)
             d[name] = cuda.to_device(a)
         d["grid"] = cuda.to_device(self.grid)
-        for name, (shape, dt) in layout.items():
-            if name not in d:
-                d[name] = cuda.to_device(np.zeros(shape, dtype=dt))
         # the prescribed inputs (control.Drive, as the CPU's)
         self.drive = drive(model)
         self._starts = np.unique(self.drive.body_start[self.drive.body_start > 0])
         for name, a in self.drive._asdict().items():
             if name != "moving_walls":
                 d[name] = cuda.to_device(np.ascontiguousarray(a))
+        for name, (shape, dt) in layout.items():
+            if name not in d:
+                d[name] = cuda.to_device(np.zeros(shape, dtype=dt))
         self.d = d
         self.scan_sums = [d[f"scan_{lvl + 1}"] for lvl in range(len(self.scan_sizes) - 1)]
         self._resident = None            # (state, body_x, body_q, body_P, body_L) on device
@@ -609,7 +613,8 @@ class CudaBackend:
         self._velocities()
         self._drive(state.step * self.model.dt)
         while True:
-            self._begin_call(state.step)
+            # ctl[CTL_STEP] is the step being run: no k_idle_check counts it in here
+            self._begin_call(state.step + 1)
             self._spheres()
             self._grid_sort()
             self._gather()

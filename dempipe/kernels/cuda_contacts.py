@@ -10,8 +10,8 @@ from __future__ import annotations
 from numba import cuda
 
 from .cuda_device import (CTL_FORCE, CTL_IDLE, CTL_MOVED, CTL_OVER, CTL_STEP, pair_forces,
-                          pair_mirror, pair_slots, pairs_to_rows, rebuilding, rows_to_pairs, sphere_forces,
-                          wall_reach)
+                          pair_mirror, pair_slots, pairs_to_rows, rebuilding, rows_to_pairs,
+                          sphere_forces, wall_reach)
 
 
 @cuda.jit

@@ -10,8 +10,8 @@ from __future__ import annotations
 from numba import cuda, int64
 
 from .cuda_device import (CTL_FORCE, CTL_IDLE, CTL_MAXN, CTL_MOVED, CTL_OVER, CTL_STEP, SCAN_B,
-                          SCAN_CHUNK, SCAN_ITEMS, cell_coord, cell_hash, cell_key, neighbour_list, rebuilding,
-                          slot_store, sphere_kinematics)
+                          SCAN_CHUNK, SCAN_ITEMS, cell_coord, cell_hash, cell_key, neighbour_list,
+                          rebuilding, slot_store, sphere_kinematics)
 
 
 @cuda.jit

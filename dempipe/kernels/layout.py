@@ -15,6 +15,8 @@ here; its scan buffers depend on the device's block sizes, so it stays there.
 
 from __future__ import annotations
 
+from typing import Any, NamedTuple
+
 import numpy as np
 
 from ..state import CONTACT_SLOTS
@@ -213,3 +215,123 @@ def kernel_flags(features) -> tuple:
     """Flags (FLAGS) of the specialized kernels for ``features``."""
     return (bool(features.friction), bool(features.rotation), bool(features.sleeping),
             bool(features.walls))
+
+
+# ---------------------------------------------------------------------------
+# Structured launch arguments of the CPU's step driver (kernels/cpu.py run_steps)
+# ---------------------------------------------------------------------------
+
+class StepModel(NamedTuple):
+    """What a step reads of the Model (frozen): constants and arrays, as
+    ``step_model`` takes them from a Model (see Model's docstring for units)."""
+
+    dt: Any
+    diameter: Any
+    n_bodies: Any
+    gravity: Any
+    sphere_body: Any
+    sphere_offset: Any
+    body_sphere_start: Any
+    body_mass: Any
+    body_inv_mass: Any
+    body_inv_inertia: Any
+    body_material: Any
+    pair_k: Any
+    pair_zeta: Any
+    pair_mu: Any
+    kt_ratio: Any
+    ks_ratio: Any
+    friction: Any
+    sleep_steps: Any
+    v_sleep: Any
+    w_sleep: Any
+    wall_normal: Any
+    wall_offset: Any
+    wall_lo: Any
+    wall_hi: Any
+    wall_depth: Any
+    wall_material: Any
+
+
+class StepState(NamedTuple):
+    """The State's arrays a step changes (the contact histories: the State's, or a
+    one-slot stand-in without friction)."""
+
+    body_x: Any
+    body_q: Any
+    body_P: Any
+    body_L: Any
+    body_rest: Any
+    contact_partner: Any
+    contact_spring: Any
+
+
+class Scratch(NamedTuple):
+    """The backend's scratch arrays a step uses (``cpu_scratch``, by name): rebuilt
+    by the backend when one is replaced (the lists grow)."""
+
+    hist_partner: Any
+    hist_spring: Any
+    body_wake: Any
+    body_still: Any
+    body_v: Any
+    body_w: Any
+    sphere_x: Any
+    sphere_v: Any
+    sphere_r: Any
+    sphere_key: Any
+    sphere_hash: Any
+    bucket_start: Any
+    bucket_fill: Any
+    body_key: Any
+    grid_slot: Any
+    sorted_idx: Any
+    slot_of: Any
+    sorted_x: Any
+    sorted_v: Any
+    sorted_body: Any
+    grid_idx: Any
+    grid_x: Any
+    grid_key: Any
+    grid_body: Any
+    built_x: Any
+    nbr: Any
+    nbr_n: Any
+    pidx: Any
+    pair_start: Any
+    pair_t: Any
+    pair_f: Any
+    list_start: Any
+    list_e: Any
+    wall_mask: Any
+    wall_start: Any
+    wall_s: Any
+    wall_f: Any
+    sphere_f: Any
+    sphere_t: Any
+    sphere_overlap: Any
+    skin_ctl: Any
+    chunks: Any
+    spans: Any
+    span_ctl: Any
+
+
+def step_model(model, friction: bool) -> StepModel:
+    """The StepModel of ``model``; ``friction``: the backend's feature (its
+    histories are kept)."""
+    return StepModel(
+        dt=float(model.dt), diameter=float(model.diameter), n_bodies=int(model.n_bodies),
+        gravity=model.gravity, sphere_body=model.sphere_body, sphere_offset=model.sphere_offset,
+        body_sphere_start=model.body_sphere_start, body_mass=model.body_mass,
+        body_inv_mass=model.body_inv_mass, body_inv_inertia=model.body_inv_inertia,
+        body_material=model.body_material, pair_k=model.pair_k, pair_zeta=model.pair_zeta,
+        pair_mu=model.pair_mu, kt_ratio=float(model.kt_ratio), ks_ratio=float(model.ks_ratio),
+        friction=bool(friction), sleep_steps=int(model.sleep_steps),
+        v_sleep=float(model.sleep_linear), w_sleep=float(model.sleep_angular),
+        wall_normal=model.wall_normal, wall_offset=model.wall_offset, wall_lo=model.wall_lo,
+        wall_hi=model.wall_hi, wall_depth=model.wall_depth, wall_material=model.wall_material)
+
+
+def scratch_of(backend) -> Scratch:
+    """The Scratch of a backend holding ``cpu_scratch``'s arrays as attributes."""
+    return Scratch(*(getattr(backend, n) for n in Scratch._fields))

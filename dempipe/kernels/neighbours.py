@@ -105,7 +105,8 @@ def neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x, g
     sphere index (so the forces are summed in an order that does not depend on
     the grid, the slots or when lists are rebuilt). A static sphere gets none (it
     feels nothing), nor does a sphere of a body not yet in the simulation at
-    ``step`` (body_start, an emitter's), which is in no list either. A list that would hold more than nbr.shape[1] keeps its true
+    ``step`` (body_start, an emitter's), which is in no list either. A list that
+    would hold more than nbr.shape[1] keeps its true
     count in nbr_n and stores what fits. Notes the slot's position at the build
     (built_x). Written once, compiled for each target (compile.compile_walk) with
     that target's cell_coord, cell_key, cell_hash and GRID_SLOTS.
