@@ -55,6 +55,16 @@ def qmul(aw, ax, ay, az, bw, bx, by, bz):
             aw * bz + ax * by - ay * bx + az * bw)
 
 
+def qrot(qw, qx, qy, qz, vx, vy, vz):
+    """The vector v rotated by the unit quaternion q: q v q⁻¹
+    (v + 2 qw (q⃗ × v) + 2 q⃗ × (q⃗ × v), written out)."""
+    tx = 2.0 * (qy * vz - qz * vy)
+    ty = 2.0 * (qz * vx - qx * vz)
+    tz = 2.0 * (qx * vy - qy * vx)
+    return (vx + qw * tx + (qy * tz - qz * ty), vy + qw * ty + (qz * tx - qx * tz),
+            vz + qw * tz + (qx * ty - qy * tx))
+
+
 def qexp(rx, ry, rz):
     """Unit quaternion of the rotation vector r [rad] (angle |r| about r/|r|)."""
     th = math.sqrt(rx * rx + ry * ry + rz * rz)
@@ -226,13 +236,7 @@ def carried_state(Px, Py, Pz, Qw, Qx, Qy, Qz, Vx, Vy, Vz, Wx, Wy, Wz,
                   cx, cy, cz, aw, ax, ay, az):
     """The pose and velocity of a body fixed at (c, a) in an anchor frame (P, Q, V,
     W): (x, y, z, qw, qx, qy, qz, vx, vy, vz) [m, 1, m/s], world frame."""
-    # Q c, written out (physics.quat_rotate is not reachable from this module's chain)
-    tx = 2.0 * (Qy * cz - Qz * cy)
-    ty = 2.0 * (Qz * cx - Qx * cz)
-    tz = 2.0 * (Qx * cy - Qy * cx)
-    rx = cx + Qw * tx + (Qy * tz - Qz * ty)
-    ry = cy + Qw * ty + (Qz * tx - Qx * tz)
-    rz = cz + Qw * tz + (Qx * ty - Qy * tx)
+    rx, ry, rz = qrot(Qw, Qx, Qy, Qz, cx, cy, cz)
     qw, qx, qy, qz = qmul(Qw, Qx, Qy, Qz, aw, ax, ay, az)
     return (Px + rx, Py + ry, Pz + rz, qw, qx, qy, qz,
             Vx + Wy * rz - Wz * ry, Vy + Wz * rx - Wx * rz, Vz + Wx * ry - Wy * rx)
@@ -241,34 +245,16 @@ def carried_state(Px, Py, Pz, Qw, Qx, Qy, Qz, Vx, Vy, Vz, Wx, Wy, Wz,
 def anchor_local(motion_now, m, x, y, z):
     """The world point (x, y, z) [m] in the frame of anchor m: Q⁻¹ (x − P).
     motion_now (M, 14): each anchor's P, Q, V, W and whether it moves (stage_motion)."""
-    dx = x - motion_now[m, 0]
-    dy = y - motion_now[m, 1]
-    dz = z - motion_now[m, 2]
-    qw = motion_now[m, 3]
-    qx = -motion_now[m, 4]
-    qy = -motion_now[m, 5]
-    qz = -motion_now[m, 6]
-    tx = 2.0 * (qy * dz - qz * dy)
-    ty = 2.0 * (qz * dx - qx * dz)
-    tz = 2.0 * (qx * dy - qy * dx)
-    return (dx + qw * tx + (qy * tz - qz * ty), dy + qw * ty + (qz * tx - qx * tz),
-            dz + qw * tz + (qx * ty - qy * tx))
+    return qrot(motion_now[m, 3], -motion_now[m, 4], -motion_now[m, 5], -motion_now[m, 6],
+                x - motion_now[m, 0], y - motion_now[m, 1], z - motion_now[m, 2])
 
 
 def anchor_surface(motion_now, m, nx, ny, nz, x, y, z, dist):
     """A moving wall at a sphere: its normal (nx, ny, nz), given in anchor m's frame,
     in the world, and the surface velocity V + W × (p − P) [m/s] at p, the sphere's
     centre (x, y, z) moved ``dist`` [m] along the normal onto the surface."""
-    qw = motion_now[m, 3]
-    qx = motion_now[m, 4]
-    qy = motion_now[m, 5]
-    qz = motion_now[m, 6]
-    tx = 2.0 * (qy * nz - qz * ny)
-    ty = 2.0 * (qz * nx - qx * nz)
-    tz = 2.0 * (qx * ny - qy * nx)
-    wnx = nx + qw * tx + (qy * tz - qz * ty)
-    wny = ny + qw * ty + (qz * tx - qx * tz)
-    wnz = nz + qw * tz + (qx * ty - qy * tx)
+    wnx, wny, wnz = qrot(motion_now[m, 3], motion_now[m, 4], motion_now[m, 5],
+                         motion_now[m, 6], nx, ny, nz)
     rx = x - wnx * dist - motion_now[m, 0]
     ry = y - wny * dist - motion_now[m, 1]
     rz = z - wnz * dist - motion_now[m, 2]
@@ -280,7 +266,7 @@ def anchor_surface(motion_now, m, nx, ny, nz, x, y, z, dist):
 
 
 #: The functions above in dependency order, for kernels/compile.py.
-FORMULAS = ("qmul", "qexp", "qlog", "jac_left", "jac_left_inv", "key_angular_velocity",
+FORMULAS = ("qmul", "qrot", "qexp", "qlog", "jac_left", "jac_left_inv", "key_angular_velocity",
             "key_velocity", "anchor_state", "carried_state", "anchor_local", "anchor_surface")
 
 
