@@ -11,6 +11,7 @@ spheres sit in the grid like any other but are never integrated.
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import replace, dataclass, field
 
@@ -252,17 +253,109 @@ def sleep_defaults(diameter, g, body_radius, linear=None, angular=None, time=Non
     return float(linear), float(angular), float(SLEEP_TIME if time is None else time)
 
 
-def flat_face_spheres(centers: np.ndarray, diameter: float) -> int:
-    """Most spheres of a sphere set lying in one outer lattice plane: how many
-    touch at once when the body lands flat on that face."""
-    if centers.shape[0] == 0:
+#: Widest band [fraction of d] below a set's extreme plane counted as one face: a
+#: lattice's next layer of centres is a whole d behind its face, so any band below d
+#: counts a lattice face exactly; 0.25 d is also the count without a landing.
+FLAT_FACE_BAND = 0.25
+#: A surface set's flat face: its centres lie on the offset plane within
+#: surface_spheres._DEPTH_TOL r; heights below this fraction of d count as on it.
+FLAT_FACE_TOL = 1e-3
+
+_FLAT_FACE_MEMO: dict = {}
+
+
+def flat_face_spheres(centers: np.ndarray, diameter: float, k: float | None = None,
+                      mass: float = 0.0, speed: float = 0.0, g: float = 0.0) -> int:
+    """Most spheres of a sphere set that a plane presses at once when the body lands
+    or rests on it: the n of the flat-face critical step (n contacts in parallel).
+
+    A body lands on a plane with a face of the convex hull of its centres (a vertex
+    or an edge being a face of fewer), so the planes tried are the hull's facets and
+    the six axis planes. Without ``k``: the centres within FLAT_FACE_BAND d of each
+    plane. With the contact stiffness ``k`` [N/m], the body's ``mass`` [kg], its
+    landing ``speed`` [m/s] and gravity ``g`` [m/s²] along the normal: the centres
+    that the deepest landing on that plane presses, where the springs (the linear
+    law's, each k (δ − h_i) for a centre h_i above the deepest point) have taken
+    the kinetic energy and the weight's work,
+
+        Σ_{h_i < δ} ½ k (δ − h_i)² = ½ m v² + m g δ,
+
+    solved exactly piece by piece over the sorted heights (damping only makes the
+    landing shallower). On a face, every centre at h = 0, that is the whole face
+    (a lattice's count is the same as without ``k``: its next layer is d away). On
+    a curved part only the cap within δ presses: the ball of 8 spheres across rests
+    and lands on 1–3 of its 916 spheres, not the 28–35 within 0.25 d
+    (docs/spheres.md, "The flat-face step of a surface set").
+    """
+    c = np.ascontiguousarray(centers, dtype=np.float64)
+    if c.shape[0] == 0:
         return 0
-    best = 1
+    load = None
+    if k is not None and k > 0 and mass > 0 and math.isfinite(k):
+        load = (mass * speed * speed / k, mass * max(g, 0.0) / k)
+    key = (hashlib.sha1(c.tobytes()).hexdigest(), c.shape[0], float(diameter), load)
+    hit = _FLAT_FACE_MEMO.get(key)
+    if hit is not None:
+        return hit
+    band = FLAT_FACE_BAND * diameter
+    heights = []        # per plane: the heights above it of the centres within the band
     for a in range(3):
-        c = centers[:, a]
-        for edge in (c.min(), c.max()):
-            best = max(best, int(np.count_nonzero(np.abs(c - edge) < 0.25 * diameter)))
+        x = c[:, a]
+        for h in (x - x.min(), x.max() - x):
+            heights.append(np.sort(h[h < band]))
+    heights += _hull_heights(c, band)
+    best = max(_pressed(h, load, diameter) for h in heights)
+    if len(_FLAT_FACE_MEMO) > 256:
+        _FLAT_FACE_MEMO.clear()
+    _FLAT_FACE_MEMO[key] = best
     return best
+
+
+def _pressed(h: np.ndarray, load, diameter: float) -> int:
+    """How many of the sorted heights ``h`` [m] a landing of ``load`` = (m v²/k,
+    m g/k) presses (flat_face_spheres); all of them without a load."""
+    h = np.maximum(h - FLAT_FACE_TOL * diameter, 0.0)
+    n = h.shape[0]
+    if load is None or n <= 1:
+        return max(1, n)
+    e2, w = load
+    j = np.arange(1, n + 1, dtype=np.float64)
+    s1 = np.cumsum(h) + w
+    s2 = np.cumsum(h * h)
+    # j δ² − 2 δ (S1 + w) + S2 − m v²/k = 0 with the j lowest centres pressed
+    disc = np.maximum(s1 * s1 - j * (s2 - e2), 0.0)
+    delta = (s1 + np.sqrt(disc)) / j
+    nxt = np.append(h[1:], np.inf)
+    stop = np.flatnonzero(delta <= nxt)
+    return int(stop[0] + 1) if stop.size else n
+
+
+def _hull_heights(c: np.ndarray, band: float) -> list:
+    """Per distinct facet plane of the centres' convex hull, the sorted heights of
+    the centres within ``band`` of it (one plane through all of them when the set
+    is flat, which has no hull)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    if c.shape[0] < 4:
+        return []
+    try:
+        eq = ConvexHull(c).equations
+    except (QhullError, ValueError):
+        x = c - c.mean(axis=0)
+        normal = np.linalg.svd(x, full_matrices=False)[2][-1]
+        off = x @ normal
+        h = off - off.min()
+        return [np.sort(h[h < band])]
+    # coplanar triangles of one facet share their plane: each plane once
+    eq = np.unique(np.round(eq, 9), axis=0)
+    out = []
+    for i in range(0, eq.shape[0], 512):
+        e = eq[i:i + 512]
+        dist = -(c @ e[:, :3].T + e[:, 3])      # height above each plane, >= 0 inside
+        for col in range(dist.shape[1]):
+            h = dist[:, col]
+            out.append(np.sort(h[h < band]))
+    return out
 
 
 def _sym6_to_mat(s):
@@ -610,17 +703,21 @@ class ModelBuilder:
         dt_max = math.inf
         flat_crit = math.inf        # the same without the safety: a user dt's limit
         if has_contacts:
-            faces = [flat_face_spheres(np.asarray(sh.sphere_set.centers), d)
-                     for sh in self._shapes]
             dyn_present = set(np.unique(dyn_mat).tolist())
             for gi, gdict in enumerate(groups):
                 if gdict["p"].shape[0] == 0:
                     continue
                 mi = gdict["material"]
-                n_face = max(faces[sj] for sj in np.unique(gdict["shapes"]))
-                m_flat = float(mass[body_group == gi].min())
+                in_group = body_group == gi
+                m_flat = float(mass[in_group].min())
+                m_deep = float(mass[in_group].max())    # the heaviest sinks deepest
                 for mj in (present if n_dyn > 1 else wall_mats):
                     half = 0.5 if (n_dyn > 1 and mj in dyn_present) else 1.0
+                    # the spheres a plane presses at once in the deepest landing
+                    n_face = max(flat_face_spheres(
+                        np.asarray(self._shapes[sj].sphere_set.centers), d,
+                        float(table.k[mi, mj]), m_deep * half, v_imp, g)
+                        for sj in np.unique(gdict["shapes"]))
                     flat = mat.flat_face_critical_step(n_face, table.k[mi, mj],
                                                        m_flat * half, table.zeta[mi, mj])
                     flat_crit = min(flat_crit, flat)
