@@ -648,3 +648,56 @@ def test_overlay_leaves_out_redundant_samples(tmp_path):
     for t in range(5):
         z = xf.ComputeLocalToWorldTransform(Usd.TimeCode(t)).ExtractTranslation()[2]
         assert z == pytest.approx(x[t, 0, 2], abs=1e-12)
+
+
+# ------------------------------------------------------------------ faults: resume
+
+
+def test_killed_stage_bake_resumes_to_the_same_overlay(tmp_path):
+    """A stage baked by a real `dempipe bake` killed with a real SIGKILL once its
+    checkpoints pass frame 12, then `--resume`: the overlay's time samples equal an
+    uninterrupted bake's bit for bit (issue 22's faults, the same way for a stage)."""
+    import json
+    import signal
+
+    from test_faults import assert_same_samples, dempipe, frames_done, run, wait_for
+
+    from dempipe.checkpoint import work_dir
+
+    st = new_stage(tmp_path / "drop.usda", end=48)
+    ground(st)
+    for i, x in enumerate((-0.3, -0.1, 0.1, 0.3)):
+        c = UsdGeom.Cube.Define(st, f"/World/Box{i}")
+        c.CreateSizeAttr(0.08)
+        c.AddTranslateOp().Set(Gf.Vec3d(x, 0, 0.1 + 0.05 * i))
+        c.AddRotateXYZOp().Set(Gf.Vec3f(10 * i, 20, 0))
+        body(c.GetPrim(), velocity=(0.2, 0.1 * i, 0))
+        s = UsdGeom.Sphere.Define(st, f"/World/Ball{i}")
+        s.CreateRadiusAttr(0.04)
+        s.AddTranslateOp().Set(Gf.Vec3d(x, 0.25, 0.08 + 0.03 * i))
+        body(s.GetPrim(), angular=(0, 90, 0))
+    st.GetRootLayer().Save()
+    (tmp_path / "drop.toml").write_text('[usd]\nstage = "drop.usda"\n[simulation]\n'
+                                        'resolution = 3\nsleeping = false\n')
+    cache = tmp_path / "cache"
+    ref, out = tmp_path / "ref.usda", tmp_path / "out.usda"     # one folder: one sublayer path
+    code, _, err = run("bake", tmp_path / "drop.toml", "-o", ref, "--device", "cpu", "-q",
+                       cache=cache)
+    assert code == 0, err
+    p = dempipe("bake", tmp_path / "drop.toml", "-o", out, "--device", "cpu",
+                "--chunk-frames", "4", "-q", cache=cache)
+    wait_for(lambda: frames_done(out) >= 12, p)
+    p.send_signal(signal.SIGKILL)
+    p.communicate(timeout=60)
+    assert p.returncode == -signal.SIGKILL
+    assert 12 <= frames_done(out) < 49 and not out.exists()     # stopped mid-way
+    code, _, err = run("bake", tmp_path / "drop.toml", "-o", out, "--device", "cpu",
+                       "--chunk-frames", "4", "--resume", "-q", "--report",
+                       tmp_path / "r.json", cache=cache)
+    assert code == 0, err
+    r = json.loads((tmp_path / "r.json").read_text())
+    assert r["resumed"] and r["resumed_from_frame"] >= 12       # not baked again from 0
+    assert_same_samples(ref, out)
+    assert Sdf.Layer.FindOrOpen(str(out)).subLayerPaths == ["drop.usda"]
+    assert not work_dir(out).exists()
+    assert [q.name for q in tmp_path.rglob("*") if ".tmp" in q.name] == []
