@@ -180,6 +180,7 @@ class ReportResult:
     bodies: int
     target_overlap: float = 0.02
     rolling_tolerance: float | None = None
+    stage: str | None = None    # the USD stage's file name when it was given as the scene
 
 
 # --------------------------------------------------------------------------- sweep
@@ -440,6 +441,8 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
         wall_s=0.0, scene=str(scene_path), material=material.name, pile=pile,
         duration=duration, horizon=horizon, tolerance=sweep.tolerance,
         bodies=ref.model.n_bodies, rolling_tolerance=sweep.rolling_tolerance,
+        stage=(Path(scene_path).name if scene.usd is not None
+               and Path(scene_path).suffix.lower() in (".usd", ".usda", ".usdc") else None),
         target_overlap=scene.simulation.stiffness_target_overlap or 0.02)
     out.mkdir(parents=True, exist_ok=True)
     result.files.append(_atomic_write(out / "report.csv", write_csv(runs).encode()))
@@ -668,9 +671,13 @@ def format_markdown(r: ReportResult) -> str:
         L.append(f"Cheapest run with error within the tolerance {r.tolerance:g}{rolls}: "
                  f"**{u.label}** (error {_num(u.error)}, {_num(u.wall_s, '.1f')} s, "
                  f"{_num(ref.wall_s / u.wall_s, '.1f')}× faster than the reference). "
-                 "In the scene file:")
+                 + ("In the scene file:" if r.stage is None else
+                    "dempipe's settings for a stage go in a small TOML beside it that names "
+                    "it (docs/usd-input.md), baked with `dempipe bake SETTINGS.toml -o OUT`:"))
         L.append("")
         L.append("```toml")
+        if r.stage is not None:
+            L += ["[usd]", f'stage = "{r.stage}"', ""]
         L.append("[simulation]")
         L += scene_settings(u, r.target_overlap)
         L.append("```")

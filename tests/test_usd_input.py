@@ -701,3 +701,36 @@ def test_killed_stage_bake_resumes_to_the_same_overlay(tmp_path):
     assert Sdf.Layer.FindOrOpen(str(out)).subLayerPaths == ["drop.usda"]
     assert not work_dir(out).exists()
     assert [q.name for q in tmp_path.rglob("*") if ".tmp" in q.name] == []
+
+
+def test_report_on_a_stage_and_on_its_settings_toml(tmp_path):
+    """`dempipe report` takes a stage, or a TOML naming it: two boxes sliding onto the
+    ground, one resolution and two steps; the recommendation for the bare stage is a
+    settings TOML naming it."""
+    import csv
+
+    from dempipe_cli.main import main
+
+    st = new_stage(tmp_path / "tiny.usda", end=6)
+    ground(st)
+    for i in range(2):
+        c = UsdGeom.Cube.Define(st, f"/World/Box{i}")
+        c.CreateSizeAttr(0.1)
+        c.AddTranslateOp().Set(Gf.Vec3d(0.3 * i, 0, 0.08))
+        body(c.GetPrim(), velocity=(0.2, 0, 0))
+    st.GetRootLayer().Save()
+    (tmp_path / "tiny.toml").write_text('[usd]\nstage = "tiny.usda"\n[simulation]\n'
+                                        'resolution = 2\n')
+    for name in ("tiny.usda", "tiny.toml"):
+        out = tmp_path / f"out-{name}"
+        main(["report", str(tmp_path / name), "-o", str(out), "--resolutions", "2",
+              "--dt-factors", "1,0.5", "--stiffness-factors", "1", "--tolerance", "1",
+              "--no-plots", "-q", "--cache-dir", str(tmp_path / "cache")])
+        with open(out / "report.csv", newline="") as f:
+            table = list(csv.DictReader(f))
+        assert len(table) == 2 and all(r["status"] == "ok" for r in table)
+        other = next(r for r in table if r["reference"] != "1")
+        assert 0 < float(other["error"]) < 1 and int(other["spheres"]) > 0
+        md = (out / "report.md").read_text()
+        assert "**r2 dt×1 k×1**" in md                  # recommended: the coarser step
+        assert ('stage = "tiny.usda"' in md) == (name == "tiny.usda"), name
