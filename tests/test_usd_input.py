@@ -734,3 +734,49 @@ def test_report_on_a_stage_and_on_its_settings_toml(tmp_path):
         md = (out / "report.md").read_text()
         assert "**r2 dt×1 k×1**" in md                  # recommended: the coarser step
         assert ('stage = "tiny.usda"' in md) == (name == "tiny.usda"), name
+
+
+def test_y_up_centimetre_xform_body_of_child_meshes_rests_on_the_ground(tmp_path):
+    """Y-up in centimetres, baked: an Xform body whose collision shapes are two child
+    Mesh prims (4 cm cubes as a DCC writes them, 6 cm apart) falls 6 cm onto a ground
+    cube and rests on it: the composed geometry's lowest point ends at y = 0 within a
+    quarter diameter (the lattice reaches a box's faces exactly; the rest is the
+    contact overlap, ~2 % d). Its mass is the two meshes' volume of water."""
+    st = new_stage(tmp_path / "cm.usda", up="Y", mpu=0.01, end=12)
+    g = UsdGeom.Cube.Define(st, "/World/Ground")
+    g.CreateSizeAttr(1.0)
+    g.AddTranslateOp().Set(Gf.Vec3d(0, -5, 0))
+    g.AddScaleOp().Set(Gf.Vec3f(2000, 10, 2000))
+    UsdPhysics.CollisionAPI.Apply(g.GetPrim())
+    pair = UsdGeom.Xform.Define(st, "/World/Pair")
+    pair.AddTranslateOp().Set(Gf.Vec3d(0, 8, 0))
+    UsdPhysics.RigidBodyAPI.Apply(pair.GetPrim())
+    for i, x in enumerate((-3.0, 3.0)):
+        m = box_mesh(st, f"/World/Pair/Part{i}", 2.0)
+        m.AddTranslateOp().Set(Gf.Vec3d(x, 0, 0))
+        UsdPhysics.CollisionAPI.Apply(m.GetPrim())
+    st.GetRootLayer().Save()
+    # spheres of 2 cm tile the parts exactly (a lattice rests on a box's faces only
+    # when its extents are whole diameters)
+    (tmp_path / "cm.toml").write_text('[usd]\nstage = "cm.usda"\n[simulation]\n'
+                                      'sphere_diameter = 0.02\n')
+    scene = load_scene(tmp_path / "cm.toml")
+    (pair_g,) = scene.bodies
+    assert pair_g.mass == pytest.approx(2 * 0.04 ** 3 * 1000, rel=1e-6)
+    result = bake(tmp_path / "cm.toml", tmp_path / "cm_baked.usda", device="cpu",
+                  cache=SphereCache(tmp_path / "cache"))
+    stage = Usd.Stage.Open(str(result.path))
+    d_cm = result.report["diameter"] / 0.01
+    assert d_cm == pytest.approx(2.0)
+
+    def bottom(t):
+        cache = UsdGeom.BBoxCache(Usd.TimeCode(t), [UsdGeom.Tokens.default_])
+        box = cache.ComputeWorldBound(stage.GetPrimAtPath("/World/Pair")).ComputeAlignedRange()
+        return box.GetMin()[1], box.GetSize()
+
+    y0, size0 = bottom(0)
+    assert y0 == pytest.approx(6.0, abs=1e-6)
+    y1, size1 = bottom(12)
+    assert abs(y1) < 0.25 * d_cm
+    assert size1[0] == pytest.approx(10.0, abs=0.05)        # it landed flat, both parts down
+    assert size1[1] == pytest.approx(4.0, abs=0.05)
