@@ -97,8 +97,8 @@ def test_ball_rolls_at_five_sevenths(tmp_path):
 
 # force, for the cylinder and the torus: finalize refuses DT = 1e-4 s for them, rightly.
 # Landing on an end face (the cylinder) or lying flat (the torus) a plane presses 344
-# and 73 of their spheres at once, whose flat-face critical step at K is below DT
-# (model.flat_face_spheres, docs/spheres.md). Here they stay on their rims, on a line
+# and 43 of their spheres at once, whose flat-face critical steps at K (2.5e-5 and
+# 8.5e-5 s) are below DT (model.flat_face_spheres, docs/spheres.md). Here they stay on their rims, on a line
 # of a few spheres, where DT is stable (the energy guard and overlap limits still run).
 ON_RIM = dict(rotation=ON_SIDE, force=True)
 
