@@ -281,11 +281,13 @@ def flat_face_spheres(centers: np.ndarray, diameter: float, k: float | None = No
         Σ_{h_i < δ} ½ k (δ − h_i)² = ½ m v² + m g δ,
 
     solved exactly piece by piece over the sorted heights (damping only makes the
-    landing shallower). On a face, every centre at h = 0, that is the whole face
-    (a lattice's count is the same as without ``k``: its next layer is d away). On
-    a curved part only the cap within δ presses: the ball of 8 spheres across rests
-    and lands on 1–3 of its 916 spheres, not the 28–35 within 0.25 d
-    (docs/spheres.md, "The flat-face step of a surface set").
+    landing shallower; centres more than FLAT_FACE_BAND d above the plane are not
+    counted, a landing that deep being past the overlap limits). On a face, every
+    centre at h = 0, that is the whole face (a lattice's count is the same as
+    without ``k``: its next layer is d away). On a curved part only the cap within δ
+    presses: the surface ball of 8 spheres across counts 5 of its 916 spheres (a
+    landing pressed 1), not the 35 within 0.25 d (docs/spheres.md, "The flat-face
+    step of a surface set"). The linear law's springs; results are memoized.
     """
     c = np.ascontiguousarray(centers, dtype=np.float64)
     if c.shape[0] == 0:
@@ -293,47 +295,68 @@ def flat_face_spheres(centers: np.ndarray, diameter: float, k: float | None = No
     load = None
     if k is not None and k > 0 and mass > 0 and math.isfinite(k):
         load = (mass * speed * speed / k, mass * max(g, 0.0) / k)
-    key = (hashlib.sha1(c.tobytes()).hexdigest(), c.shape[0], float(diameter), load)
-    hit = _FLAT_FACE_MEMO.get(key)
+    shape_key = (hashlib.sha1(c.tobytes()).hexdigest(), c.shape[0], float(diameter))
+    hit = _FLAT_FACE_MEMO.get(shape_key + (load,))
     if hit is not None:
         return hit
-    band = FLAT_FACE_BAND * diameter
-    heights = []        # per plane: the heights above it of the centres within the band
-    for a in range(3):
-        x = c[:, a]
-        for h in (x - x.min(), x.max() - x):
-            heights.append(np.sort(h[h < band]))
-    heights += _hull_heights(c, band)
-    best = max(_pressed(h, load, diameter) for h in heights)
+    heights = _FLAT_FACE_MEMO.get(shape_key)
+    if heights is None:
+        band = FLAT_FACE_BAND * diameter
+        heights = []        # per plane: the heights above it of the centres within the band
+        for a in range(3):
+            x = c[:, a]
+            for h in (x - x.min(), x.max() - x):
+                heights.append(np.sort(h[h < band]))
+        heights += _hull_heights(c, band)
+        heights = _padded(heights)
+    best = int(_pressed(heights, load, diameter).max())
     if len(_FLAT_FACE_MEMO) > 256:
         _FLAT_FACE_MEMO.clear()
-    _FLAT_FACE_MEMO[key] = best
+    _FLAT_FACE_MEMO[shape_key] = heights
+    _FLAT_FACE_MEMO[shape_key + (load,)] = best
     return best
 
 
-def _pressed(h: np.ndarray, load, diameter: float) -> int:
-    """How many of the sorted heights ``h`` [m] a landing of ``load`` = (m v²/k,
-    m g/k) presses (flat_face_spheres); all of them without a load."""
+def _padded(heights: list) -> np.ndarray:
+    """Sorted heights (1-D arrays: one plane; 2-D: a plane per row, padded with +inf)
+    as the rows of one array, padded with +inf."""
+    rows = [np.atleast_2d(h) for h in heights]
+    n = max(1, max(r.shape[1] for r in rows))
+    out = np.full((sum(r.shape[0] for r in rows), n), np.inf)
+    i = 0
+    for r in rows:
+        out[i:i + r.shape[0], :r.shape[1]] = r
+        i += r.shape[0]
+    return out
+
+
+def _pressed(h: np.ndarray, load, diameter: float) -> np.ndarray:
+    """Per row of sorted heights ``h`` [m] (padded with +inf; one row may be given as
+    a 1-D array), how many of them a landing of ``load`` = (m v²/k, m g/k) presses
+    (flat_face_spheres); all of them without a load, at least one."""
+    h = np.atleast_2d(np.asarray(h, dtype=np.float64))
+    n_row = np.count_nonzero(np.isfinite(h), axis=1)
+    if load is None or h.shape[1] <= 1:
+        return np.maximum(n_row, 1)
     h = np.maximum(h - FLAT_FACE_TOL * diameter, 0.0)
-    n = h.shape[0]
-    if load is None or n <= 1:
-        return max(1, n)
     e2, w = load
-    j = np.arange(1, n + 1, dtype=np.float64)
-    s1 = np.cumsum(h) + w
-    s2 = np.cumsum(h * h)
+    j = np.arange(1, h.shape[1] + 1, dtype=np.float64)
+    fin = np.where(np.isfinite(h), h, 0.0)
+    s1 = np.cumsum(fin, axis=1) + w
+    s2 = np.cumsum(fin * fin, axis=1)
     # j δ² − 2 δ (S1 + w) + S2 − m v²/k = 0 with the j lowest centres pressed
     disc = np.maximum(s1 * s1 - j * (s2 - e2), 0.0)
     delta = (s1 + np.sqrt(disc)) / j
-    nxt = np.append(h[1:], np.inf)
-    stop = np.flatnonzero(delta <= nxt)
-    return int(stop[0] + 1) if stop.size else n
+    nxt = np.concatenate([h[:, 1:], np.full((h.shape[0], 1), np.inf)], axis=1)
+    stop = delta <= nxt                 # the first j whose δ stays below the next centre
+    first = np.argmax(stop, axis=1) + 1
+    return np.maximum(np.minimum(first, n_row), 1)
 
 
 def _hull_heights(c: np.ndarray, band: float) -> list:
     """Per distinct facet plane of the centres' convex hull, the sorted heights of
-    the centres within ``band`` of it (one plane through all of them when the set
-    is flat, which has no hull)."""
+    the centres within ``band`` of it: 2-D arrays, a plane per row padded with +inf
+    (one plane through all of them when the set is flat, which has no hull)."""
     from scipy.spatial import ConvexHull, QhullError
 
     if c.shape[0] < 4:
@@ -351,10 +374,13 @@ def _hull_heights(c: np.ndarray, band: float) -> list:
     out = []
     for i in range(0, eq.shape[0], 512):
         e = eq[i:i + 512]
-        dist = -(c @ e[:, :3].T + e[:, 3])      # height above each plane, >= 0 inside
-        for col in range(dist.shape[1]):
-            h = dist[:, col]
-            out.append(np.sort(h[h < band]))
+        # a plane per row: every centre's height above it, >= 0 inside the hull
+        dist = -(e[:, :3] @ c.T + e[:, 3:4])
+        dist[dist >= band] = np.inf
+        k = max(1, int(np.count_nonzero(np.isfinite(dist), axis=1).max()))
+        if k < dist.shape[1]:
+            dist = np.partition(dist, k - 1, axis=1)[:, :k]
+        out.append(np.sort(dist, axis=1))
     return out
 
 
