@@ -43,12 +43,16 @@ import click
 @click.option("--spheres", "sphere_modes", default=None, metavar="LIST",
               help="Sphere-set modes to sweep, e.g. lattice,surface (the reference takes "
                    "the last). Default: the scene's own, no mode axis.")
+@click.option("--rolling-tolerance", type=float, default=None, metavar="X",
+              help="Largest incline rolling error (a ball of each run's resolution and "
+                   "sphere mode against 5/7 g sin θ) a recommended setting may have "
+                   "[default: not a condition; it is measured and shown].")
 @click.option("--no-plots", is_flag=True, help="Skip the PNG plots (no matplotlib needed).")
 @click.option("--quiet", "-q", is_flag=True, help="No line per run.")
 @click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
 def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, horizon,
            tolerance, bodies, device, threads, workers, scheduler, cache_dir, no_plots, quiet,
-           debug, sphere_modes):
+           debug, sphere_modes, rolling_tolerance):
     """Bake SCENE at every combination of resolution, dt and stiffness factors; write
     the error of each run against its run time to OUTPUT (report.md, report.csv, PNGs).
 
@@ -62,12 +66,14 @@ def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, 
         raise ReportError(f"--duration: {duration:g} must be greater than 0")
     if not tolerance > 0:
         raise ReportError(f"--tolerance: {tolerance:g} must be greater than 0")
+    if rolling_tolerance is not None and not rolling_tolerance > 0:
+        raise ReportError(f"--rolling-tolerance: {rolling_tolerance:g} must be greater than 0")
     sweep = Sweep(
         resolutions=parse_values(resolutions, "--resolutions", int) if resolutions else None,
         dt_factors=parse_values(dt_factors, "--dt-factors"),
         stiffness_factors=parse_values(stiffness_factors, "--stiffness-factors"),
         duration=duration, horizon=horizon, tolerance=tolerance, bodies=bodies, device=device,
-        threads=threads, plots=not no_plots,
+        threads=threads, plots=not no_plots, rolling_tolerance=rolling_tolerance,
         sphere_modes=tuple(m.strip() for m in sphere_modes.split(",") if m.strip())
         if sphere_modes else None)
     from dempipe.bake import check_writable

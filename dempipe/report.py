@@ -88,6 +88,8 @@ class Sweep:
     bodies : bake only the first N bodies of the scene (group order)
     sphere_modes : sphere-set modes to sweep ("lattice", "surface"); None: the scene's
         own (no mode axis). The reference takes the last one given.
+    rolling_tolerance : the incline rolling error (accuracy.incline_rolling_error) a
+        recommended setting may have; None: not a condition (it is still measured).
     """
 
     resolutions: tuple | None = None
@@ -101,6 +103,7 @@ class Sweep:
     threads: int | None = None
     plots: bool = True
     sphere_modes: tuple | None = None
+    rolling_tolerance: float | None = None
 
 
 @dataclass
@@ -176,6 +179,8 @@ class ReportResult:
     tolerance: float
     bodies: int
     target_overlap: float = 0.02
+    rolling_tolerance: float | None = None
+    stage: str | None = None    # the USD stage's file name when it was given as the scene
 
 
 # --------------------------------------------------------------------------- sweep
@@ -427,15 +432,17 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
         horizon = min(sweep.horizon, duration)
     _measure_motion(runs, ref, horizon)
     say("closed-form cases (bounce, rolling, spin) ...")
-    mi, material = _measure_physics(runs, ref, fixed_dt=not isinstance(scene.simulation.dt, str))
+    mi, material = _measure_physics(runs, ref, fixed_dt=not isinstance(scene.simulation.dt, str),
+                                    scene_mode=scene.simulation.spheres, cache=cache)
     _mark_pareto(runs)
-    candidates = [u for u in runs if u.ok and not u.reference and u.error <= sweep.tolerance]
-    recommended = min(candidates, key=lambda u: u.wall_s) if candidates else None
+    recommended = recommend(runs, sweep.tolerance, sweep.rolling_tolerance)
     result = ReportResult(
         runs=runs, reference=ref, recommended=recommended, shapes=shapes, files=[],
         wall_s=0.0, scene=str(scene_path), material=material.name, pile=pile,
         duration=duration, horizon=horizon, tolerance=sweep.tolerance,
-        bodies=ref.model.n_bodies,
+        bodies=ref.model.n_bodies, rolling_tolerance=sweep.rolling_tolerance,
+        stage=(Path(scene_path).name if scene.usd is not None
+               and Path(scene_path).suffix.lower() in (".usd", ".usda", ".usdc") else None),
         target_overlap=scene.simulation.stiffness_target_overlap or 0.02)
     out.mkdir(parents=True, exist_ok=True)
     result.files.append(_atomic_write(out / "report.csv", write_csv(runs).encode()))
@@ -446,9 +453,29 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
     return result
 
 
+def recommend(runs, tolerance: float, rolling_tolerance: float | None = None):
+    """The cheapest run (wall time) other than the reference whose error is within
+    ``tolerance`` and, when given, whose incline rolling error is within
+    ``rolling_tolerance``; None when there is none."""
+    candidates = [u for u in runs if u.ok and not u.reference and u.error <= tolerance
+                  and _rolls(u, rolling_tolerance)]
+    return min(candidates, key=lambda u: u.wall_s) if candidates else None
+
+
+def _rolls(u: Run, tolerance) -> bool:
+    """Whether run ``u``'s incline error is within ``tolerance`` (None: not asked; an
+    incline that could not be measured, NaN, passes: it says nothing against it)."""
+    if tolerance is None:
+        return True
+    e = u.physics.get("incline", math.nan)
+    return not e > tolerance
+
+
 def scene_settings(u: Run, target_overlap: float) -> list:
     """The scene-file lines that bake run ``u``'s setting."""
     lines = [f"resolution = {u.resolution}"]
+    if u.mode:
+        lines.append(f'spheres = "{u.mode}"')
     if u.dt_factor != 1.0:
         per_frame = u.steps // max(u.model_frames, 1)
         lines.append(f"dt = {u.dt:.6g}   # {per_frame} steps per frame")
@@ -491,14 +518,18 @@ def _measure_motion(runs, ref, horizon: float) -> None:
         u.error = u.motion["position_h"]
 
 
-def _measure_physics(runs, ref, fixed_dt: bool):
+def _measure_physics(runs, ref, fixed_dt: bool, scene_mode=None, cache=None):
     """Closed-form cases per dt rule, in the scene's dominant material.
 
     With dt="auto" a ball's own contact is resolved in 16/dt_factor steps whatever
     its size and stiffness, so the cases run once per dt factor (at the reference's
     diameter and stiffness); with a fixed scene dt they run per run. The spin runs at
-    each run's own dt.
+    each run's own dt. The incline (a ball of the run's resolution and sphere-set
+    mode rolling down a slope) runs once per resolution, mode and dt factor, at its
+    own automatic contact resolved in 16/dt_factor steps.
     """
+    from .spheres import DEFAULT_MODE
+
     mi, material = _dominant_material(ref.model)
     memo = {}
     smallest = int(np.argmin([s.sphere_set.volume for s in ref.model.shapes]))
@@ -523,9 +554,19 @@ def _measure_physics(runs, ref, fixed_dt: bool):
         spin_key = ("spin", m.dt)
         if spin_key not in memo:
             memo[spin_key] = acc.spin_drift(m.shapes[smallest], m.dt)
+        mode = u.mode or scene_mode or DEFAULT_MODE
+        incline_key = ("incline", u.resolution, mode, u.dt_factor)
+        if incline_key not in memo:
+            try:
+                memo[incline_key] = acc.incline_rolling_error(
+                    material, u.resolution, mode,
+                    acc.DtRule(steps_per_contact=16.0 / u.dt_factor), cache=cache)
+            except StabilityError:
+                memo[incline_key] = math.nan
         bounce, rolling = memo[key]
         spin_L, spin_E = memo[spin_key]
-        u.physics = dict(bounce=bounce, rolling=rolling, spin_L=spin_L, spin_energy=spin_E)
+        u.physics = dict(bounce=bounce, rolling=rolling, spin_L=spin_L, spin_energy=spin_E,
+                         incline=memo[incline_key])
     return mi, material
 
 
@@ -557,7 +598,8 @@ CSV_COLUMNS = (
     "memory_mib", "sphere_build_cold_s", "sphere_build_cached_s",
     "volume_err", "inertia_err", "hausdorff", "position_h", "orientation_h_deg",
     "position_end", "orientation_end_deg", "pile_height", "pile_com", "pile_spread",
-    "settle_s", "at_rest", "bounce", "rolling", "spin_L", "spin_energy", "error", "pareto",
+    "settle_s", "at_rest", "bounce", "rolling", "incline", "spin_L", "spin_energy", "error",
+    "pareto",
     "sphere_mode", "envelope_hausdorff_d", "envelope_bump_d")
 
 
@@ -575,7 +617,8 @@ def csv_row(u: Run) -> dict:
         **{k: mo.get(k, math.nan) for k in ("position_h", "orientation_h_deg", "position_end",
                                             "orientation_end_deg", "pile_height", "pile_com",
                                             "pile_spread", "settle_s", "at_rest")},
-        **{k: ph.get(k, math.nan) for k in ("bounce", "rolling", "spin_L", "spin_energy")},
+        **{k: ph.get(k, math.nan) for k in ("bounce", "rolling", "incline", "spin_L",
+                                           "spin_energy")},
         error=u.error, pareto=int(u.pareto), sphere_mode=u.mode or "",
         envelope_hausdorff_d=u.envelope.get("hausdorff_d", math.nan),
         envelope_bump_d=u.envelope.get("bump_d", math.nan))
@@ -623,29 +666,38 @@ def format_markdown(r: ReportResult) -> str:
     L.append("")
     if r.recommended is not None:
         u = r.recommended
-        L.append(f"Cheapest run with error within the tolerance {r.tolerance:g}: "
+        rolls = ("" if r.rolling_tolerance is None else
+                 f" and incline rolling error within {r.rolling_tolerance:g}")
+        L.append(f"Cheapest run with error within the tolerance {r.tolerance:g}{rolls}: "
                  f"**{u.label}** (error {_num(u.error)}, {_num(u.wall_s, '.1f')} s, "
                  f"{_num(ref.wall_s / u.wall_s, '.1f')}× faster than the reference). "
-                 "In the scene file:")
+                 + ("In the scene file:" if r.stage is None else
+                    "dempipe's settings for a stage go in a small TOML beside it that names "
+                    "it (docs/usd-input.md), baked with `dempipe bake SETTINGS.toml -o OUT`:"))
         L.append("")
         L.append("```toml")
+        if r.stage is not None:
+            L += ["[usd]", f'stage = "{r.stage}"', ""]
         L.append("[simulation]")
         L += scene_settings(u, r.target_overlap)
         L.append("```")
     else:
         best = min((u for u in ok if not u.reference), key=lambda u: u.error, default=None)
         L.append(f"No run other than the reference stays within the tolerance {r.tolerance:g}"
+                 + ("" if r.rolling_tolerance is None else
+                    f" (and the incline rolling tolerance {r.rolling_tolerance:g})")
                  + (f"; the closest is {best.label} (error {_num(best.error)})" if best else "")
                  + ". Keep the reference's setting, loosen --tolerance, or widen the sweep.")
     L.append("")
     L.append("## Runs")
     L.append("")
     L.append("| run | spheres | dt [s] | steps | wall [s] | s/step | s per sim. s | memory "
-             "[MiB] | hausdorff | pos. @h | orient. @h [°] | bounce e² | error | Pareto |")
-    L.append("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|:-:|")
+             "[MiB] | hausdorff | pos. @h | orient. @h [°] | bounce e² | incline roll | "
+             "error | Pareto |")
+    L.append("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|:-:|")
     for u in r.runs:
         if not u.ok:
-            L.append(f"| {u.label} | {u.spheres:,} | {_num(u.dt)} | | | | | | | | | | "
+            L.append(f"| {u.label} | {u.spheres:,} | {_num(u.dt)} | | | | | | | | | | | "
                      f"{u.status} | |")
             continue
         name = f"**{u.label}** (ref.)" if u.reference else u.label
@@ -654,11 +706,14 @@ def format_markdown(r: ReportResult) -> str:
                  f"{_num(u.s_per_sim_s, '.1f')} | {_num(u.memory_bytes / 2 ** 20, '.1f')} | "
                  f"{_pct(u.geometry.get('hausdorff', math.nan))} | {_num(u.motion['position_h'])} | "
                  f"{_num(u.motion['orientation_h_deg'], '.1f')} | {_pct(u.physics['bounce'])} | "
+                 f"{_pct(u.physics.get('incline', math.nan))} | "
                  f"{_num(u.error)} | {'●' if u.pareto else ''} |")
     L.append("")
     L.append(f"pos. @h, orient. @h: per-body RMS at the horizon t = {r.horizon:g} s. s/step "
              "and s per sim. s are wall time of the simulation alone (kernels already "
-             "compiled).")
+             "compiled). Incline roll: a ball of the run's resolution and sphere-set mode "
+             f"rolling down a {acc.INCLINE_DEGREES:g}° slope, its acceleration against "
+             "5/7 g sin θ (docs/accuracy.md); what the sphere set does to round bodies.")
     L.append("")
     L.append(f"## {'Pile statistics' if r.pile else 'Bodies'} at the last frame "
              f"(t = {r.duration:g} s)")
@@ -710,12 +765,13 @@ def format_markdown(r: ReportResult) -> str:
     if any(u.mode for u in r.runs):
         L.append("## Sphere-set modes")
         L.append("")
-        L.append("| run | spheres | Hausdorff [d] | bump [d] | error | wall [s] |")
-        L.append("|---|---:|---:|---:|---:|---:|")
+        L.append("| run | spheres | Hausdorff [d] | bump [d] | incline roll | error | wall [s] |")
+        L.append("|---|---:|---:|---:|---:|---:|---:|")
         for u in ok:
             e = u.envelope
             L.append(f"| {u.label} | {u.spheres:,} | {_num(e.get('hausdorff_d', math.nan))} | "
-                     f"{_num(e.get('bump_d', math.nan))} | {_pct(u.error)} | "
+                     f"{_num(e.get('bump_d', math.nan))} | "
+                     f"{_pct(u.physics.get('incline', math.nan))} | {_pct(u.error)} | "
                      f"{_num(u.wall_s, '.1f')} |")
         L.append("")
         L.append("Hausdorff and bump: the worst shape's spheres' envelope against its mesh "

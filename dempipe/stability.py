@@ -405,8 +405,9 @@ def flat_face_step(model: Model) -> tuple[float, str]:
     has_contacts = n > 1 or model.n_walls > 0 or model.n_static > 0
     if not n or not has_contacts:
         return math.inf, ""
-    faces = [flat_face_spheres(np.asarray(sh.sphere_set.centers), model.diameter)
-             for sh in model.shapes]
+    d = model.diameter
+    g = float(np.linalg.norm(model.gravity))
+    impact = expected_speeds(model)[2]
     mass = np.asarray(model.body_mass[:n])
     shape = np.asarray(model.body_shape)
     dyn_mat = np.asarray(model.body_material[:n])
@@ -417,12 +418,16 @@ def flat_face_step(model: Model) -> tuple[float, str]:
     best, what = math.inf, ""
     for mi in dyn_present:
         sel = dyn_mat == mi
-        n_face = max(faces[s] for s in np.unique(shape[sel]))
         m = float(mass[sel].min())
         partners = [("body", mj) for mj in dyn_present] if n > 1 else []
         partners += [("wall", mj) for mj in sorted(wall_mats)]
         for kind, mj in partners:
             half = 0.5 if kind == "body" else 1.0
+            # the spheres a plane presses at once in the deepest landing (as finalize)
+            n_face = max(flat_face_spheres(np.asarray(model.shapes[s].sphere_set.centers), d,
+                                           float(model.pair_k[mi, mj]),
+                                           float(mass[sel].max()) * half, impact, g)
+                         for s in np.unique(shape[sel]))
             crit = mat.flat_face_critical_step(n_face, float(model.pair_k[mi, mj]), m * half,
                                                float(model.pair_zeta[mi, mj]))
             if crit < best:

@@ -65,17 +65,12 @@ ON_SIDE = "[0.7071067811865476, 0.7071067811865476, 0.0, 0.0]"   # +z axis onto 
 
 
 def bake(tmp_path, shape, z, *, mode="surface", rotation="[1.0, 0.0, 0.0, 0.0]", mu=0.9,
-         d=0.0125, e=0.8, theta=THETA, duration=DURATION, k=K):
+         d=0.0125, e=0.8, theta=THETA, duration=DURATION, k=K, force=False):
     text = SCENE.format(duration=duration, d=d, gx=G * math.sin(theta), gz=-G * math.cos(theta),
                         dt=DT, mode=mode, e=e, mu=mu, k=k, shape=textwrap.dedent(shape), z=z,
                         rotation=rotation)
     scene = parse_scene(text, tmp_path / "incline.toml")
-    # force: model.finalize refuses a given dt above the flat-face critical step, which
-    # counts every sphere of a surface set within 0.25 d of its extreme plane as one
-    # face (a curved band, not a face: far more than touch at once). These settings
-    # roll stably (the energy guard and overlap limits still run); the bound's count
-    # for surface sets is an open item (docs/spheres.md, "Surface mode").
-    model = build_model(scene, force=True)
+    model = build_model(scene, force=force)
     frames = Simulator(model).advance(model.initial_state())
     return model, frames
 
@@ -100,8 +95,16 @@ def test_ball_rolls_at_five_sevenths(tmp_path):
     assert v == pytest.approx(w * 0.05, rel=0.05)
 
 
+# force, for the cylinder and the torus: finalize refuses DT = 1e-4 s for them, rightly.
+# Landing on an end face (the cylinder) or lying flat (the torus) a plane presses 344
+# and 43 of their spheres at once, whose flat-face critical steps at K (2.5e-5 and
+# 8.5e-5 s) are below DT (model.flat_face_spheres, docs/spheres.md). Here they stay on their rims, on a line
+# of a few spheres, where DT is stable (the energy guard and overlap limits still run).
+ON_RIM = dict(rotation=ON_SIDE, force=True)
+
+
 def test_cylinder_on_its_side_rolls_at_two_thirds(tmp_path):
-    model, fr = bake(tmp_path, CYLINDER, 0.0501, rotation=ON_SIDE)
+    model, fr = bake(tmp_path, CYLINDER, 0.0501, **ON_RIM)
     assert acceleration(fr) == pytest.approx(2.0 / 3.0 * G * math.sin(THETA), rel=0.05)
 
 
@@ -115,7 +118,7 @@ def test_lattice_ball_does_not_roll(tmp_path):
 def test_torus_rolls_on_its_rim(tmp_path):
     R, a = 0.035, 0.015          # outer diameter 0.1 m, tube 2.4 spheres thick
     model, fr = bake(tmp_path, f'builtin = "torus"\nmajor_radius = {R}\nminor_radius = {a}',
-                     R + a + 1e-4, rotation=ON_SIDE)
+                     R + a + 1e-4, **ON_RIM)
     ss = model.shapes[0].sphere_set
     i_over_m = ss.inertia[2, 2] / ss.volume          # about the torus axis, exact mesh
     expect = G * math.sin(THETA) / (1.0 + i_over_m / (R + a) ** 2)
@@ -143,7 +146,7 @@ def test_ball_and_cylinder_within_two_percent_at_sixteen_across(tmp_path):
     d = 0.1 / 16
     model, fr = bake(tmp_path, BALL, 0.0501, d=d)
     assert acceleration(fr) == pytest.approx(5.0 / 7.0 * G * math.sin(THETA), rel=0.02)
-    model, fr = bake(tmp_path, CYLINDER, 0.0501, d=d, rotation=ON_SIDE)
+    model, fr = bake(tmp_path, CYLINDER, 0.0501, d=d, **ON_RIM)
     assert acceleration(fr) == pytest.approx(2.0 / 3.0 * G * math.sin(THETA), rel=0.02)
 
 

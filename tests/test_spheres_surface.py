@@ -292,7 +292,7 @@ type = "plane"
 def test_report_sweeps_the_mode(tmp_path):
     import csv
 
-    from dempipe.report import ReportError, Sweep, run_report
+    from dempipe.report import ReportError, Sweep, recommend, run_report
 
     scene = tmp_path / "balls.toml"
     scene.write_text(REPORT_SCENE)
@@ -308,5 +308,14 @@ def test_report_sweeps_the_mode(tmp_path):
     assert float(sur["envelope_bump_d"]) < float(lat["envelope_bump_d"])
     md = (tmp_path / "out" / "report.md").read_text()
     assert "## Sphere-set modes" in md and "r4 dt×1 k×1 lattice" in md
+    # the incline: a ball of 4 spheres across rolls down 20° within 10 % of 5/7 g sin θ
+    # as a surface set (8 % measured); the lattice ball (a polyhedron) is off by over
+    # half (0.57 measured), so a rolling tolerance makes the recommendation the surface run
+    assert float(sur["incline"]) < 0.1 < 0.5 < float(lat["incline"])
+    assert "incline roll" in md
+    runs = {u.mode: u for u in result.runs}
+    runs["surface"].reference = False            # as if a finer run were the reference
+    assert recommend(result.runs, tolerance=1e9) is min(runs.values(), key=lambda u: u.wall_s)
+    assert recommend(result.runs, tolerance=1e9, rolling_tolerance=0.1) is runs["surface"]
     with pytest.raises(ReportError, match="--spheres"):
         run_report(scene, tmp_path / "o2", Sweep(plots=False, sphere_modes=("voxel",)))

@@ -783,3 +783,135 @@ def test_scene_export_writes_kinematic_bodies_and_moving_colliders_animated(tmp_
         centre = np.array([0.5, 0.5, 0.0])
         assert k.position == pytest.approx(centre - R @ centre, abs=1e-9)
     assert [g.kinematic for g in b.bodies].count(True) == 2 and len(b.bodies) == 3
+
+
+# ------------------------------------------------------------------ faults: resume
+
+
+def test_killed_stage_bake_resumes_to_the_same_overlay(tmp_path):
+    """A stage baked by a real `dempipe bake` killed with a real SIGKILL once its
+    checkpoints pass frame 12, then `--resume`: the overlay's time samples equal an
+    uninterrupted bake's bit for bit (issue 22's faults, the same way for a stage)."""
+    import json
+    import signal
+
+    from test_faults import assert_same_samples, dempipe, frames_done, run, wait_for
+
+    from dempipe.checkpoint import work_dir
+
+    st = new_stage(tmp_path / "drop.usda", end=48)
+    ground(st)
+    for i, x in enumerate((-0.3, -0.1, 0.1, 0.3)):
+        c = UsdGeom.Cube.Define(st, f"/World/Box{i}")
+        c.CreateSizeAttr(0.08)
+        c.AddTranslateOp().Set(Gf.Vec3d(x, 0, 0.1 + 0.05 * i))
+        c.AddRotateXYZOp().Set(Gf.Vec3f(10 * i, 20, 0))
+        body(c.GetPrim(), velocity=(0.2, 0.1 * i, 0))
+        s = UsdGeom.Sphere.Define(st, f"/World/Ball{i}")
+        s.CreateRadiusAttr(0.04)
+        s.AddTranslateOp().Set(Gf.Vec3d(x, 0.25, 0.08 + 0.03 * i))
+        body(s.GetPrim(), angular=(0, 90, 0))
+    st.GetRootLayer().Save()
+    (tmp_path / "drop.toml").write_text('[usd]\nstage = "drop.usda"\n[simulation]\n'
+                                        'resolution = 3\nsleeping = false\n')
+    cache = tmp_path / "cache"
+    ref, out = tmp_path / "ref.usda", tmp_path / "out.usda"     # one folder: one sublayer path
+    code, _, err = run("bake", tmp_path / "drop.toml", "-o", ref, "--device", "cpu", "-q",
+                       cache=cache)
+    assert code == 0, err
+    p = dempipe("bake", tmp_path / "drop.toml", "-o", out, "--device", "cpu",
+                "--chunk-frames", "4", "-q", cache=cache)
+    wait_for(lambda: frames_done(out) >= 12, p)
+    p.send_signal(signal.SIGKILL)
+    p.communicate(timeout=60)
+    assert p.returncode == -signal.SIGKILL
+    assert 12 <= frames_done(out) < 49 and not out.exists()     # stopped mid-way
+    code, _, err = run("bake", tmp_path / "drop.toml", "-o", out, "--device", "cpu",
+                       "--chunk-frames", "4", "--resume", "-q", "--report",
+                       tmp_path / "r.json", cache=cache)
+    assert code == 0, err
+    r = json.loads((tmp_path / "r.json").read_text())
+    assert r["resumed"] and r["resumed_from_frame"] >= 12       # not baked again from 0
+    assert_same_samples(ref, out)
+    assert Sdf.Layer.FindOrOpen(str(out)).subLayerPaths == ["drop.usda"]
+    assert not work_dir(out).exists()
+    assert [q.name for q in tmp_path.rglob("*") if ".tmp" in q.name] == []
+
+
+def test_report_on_a_stage_and_on_its_settings_toml(tmp_path):
+    """`dempipe report` takes a stage, or a TOML naming it: two boxes sliding onto the
+    ground, one resolution and two steps; the recommendation for the bare stage is a
+    settings TOML naming it."""
+    import csv
+
+    from dempipe_cli.main import main
+
+    st = new_stage(tmp_path / "tiny.usda", end=6)
+    ground(st)
+    for i in range(2):
+        c = UsdGeom.Cube.Define(st, f"/World/Box{i}")
+        c.CreateSizeAttr(0.1)
+        c.AddTranslateOp().Set(Gf.Vec3d(0.3 * i, 0, 0.08))
+        body(c.GetPrim(), velocity=(0.2, 0, 0))
+    st.GetRootLayer().Save()
+    (tmp_path / "tiny.toml").write_text('[usd]\nstage = "tiny.usda"\n[simulation]\n'
+                                        'resolution = 2\n')
+    for name in ("tiny.usda", "tiny.toml"):
+        out = tmp_path / f"out-{name}"
+        main(["report", str(tmp_path / name), "-o", str(out), "--resolutions", "2",
+              "--dt-factors", "1,0.5", "--stiffness-factors", "1", "--tolerance", "1",
+              "--no-plots", "-q", "--cache-dir", str(tmp_path / "cache")])
+        with open(out / "report.csv", newline="") as f:
+            table = list(csv.DictReader(f))
+        assert len(table) == 2 and all(r["status"] == "ok" for r in table)
+        other = next(r for r in table if r["reference"] != "1")
+        assert 0 < float(other["error"]) < 1 and int(other["spheres"]) > 0
+        md = (out / "report.md").read_text()
+        assert "**r2 dt×1 k×1**" in md                  # recommended: the coarser step
+        assert ('stage = "tiny.usda"' in md) == (name == "tiny.usda"), name
+
+
+def test_y_up_centimetre_xform_body_of_child_meshes_rests_on_the_ground(tmp_path):
+    """Y-up in centimetres, baked: an Xform body whose collision shapes are two child
+    Mesh prims (4 cm cubes as a DCC writes them, 6 cm apart) falls 6 cm onto a ground
+    cube and rests on it: the composed geometry's lowest point ends at y = 0 within a
+    quarter diameter (the lattice reaches a box's faces exactly; the rest is the
+    contact overlap, ~2 % d). Its mass is the two meshes' volume of water."""
+    st = new_stage(tmp_path / "cm.usda", up="Y", mpu=0.01, end=12)
+    g = UsdGeom.Cube.Define(st, "/World/Ground")
+    g.CreateSizeAttr(1.0)
+    g.AddTranslateOp().Set(Gf.Vec3d(0, -5, 0))
+    g.AddScaleOp().Set(Gf.Vec3f(2000, 10, 2000))
+    UsdPhysics.CollisionAPI.Apply(g.GetPrim())
+    pair = UsdGeom.Xform.Define(st, "/World/Pair")
+    pair.AddTranslateOp().Set(Gf.Vec3d(0, 8, 0))
+    UsdPhysics.RigidBodyAPI.Apply(pair.GetPrim())
+    for i, x in enumerate((-3.0, 3.0)):
+        m = box_mesh(st, f"/World/Pair/Part{i}", 2.0)
+        m.AddTranslateOp().Set(Gf.Vec3d(x, 0, 0))
+        UsdPhysics.CollisionAPI.Apply(m.GetPrim())
+    st.GetRootLayer().Save()
+    # spheres of 2 cm tile the parts exactly (a lattice rests on a box's faces only
+    # when its extents are whole diameters)
+    (tmp_path / "cm.toml").write_text('[usd]\nstage = "cm.usda"\n[simulation]\n'
+                                      'sphere_diameter = 0.02\n')
+    scene = load_scene(tmp_path / "cm.toml")
+    (pair_g,) = scene.bodies
+    assert pair_g.mass == pytest.approx(2 * 0.04 ** 3 * 1000, rel=1e-6)
+    result = bake(tmp_path / "cm.toml", tmp_path / "cm_baked.usda", device="cpu",
+                  cache=SphereCache(tmp_path / "cache"))
+    stage = Usd.Stage.Open(str(result.path))
+    d_cm = result.report["diameter"] / 0.01
+    assert d_cm == pytest.approx(2.0)
+
+    def bottom(t):
+        cache = UsdGeom.BBoxCache(Usd.TimeCode(t), [UsdGeom.Tokens.default_])
+        box = cache.ComputeWorldBound(stage.GetPrimAtPath("/World/Pair")).ComputeAlignedRange()
+        return box.GetMin()[1], box.GetSize()
+
+    y0, size0 = bottom(0)
+    assert y0 == pytest.approx(6.0, abs=1e-6)
+    y1, size1 = bottom(12)
+    assert abs(y1) < 0.25 * d_cm
+    assert size1[0] == pytest.approx(10.0, abs=0.05)        # it landed flat, both parts down
+    assert size1[1] == pytest.approx(4.0, abs=0.05)
