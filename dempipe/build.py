@@ -161,7 +161,8 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
                      asleep=np.full(n_g, bool(g.starts_asleep)),
                      kinematic=bool(getattr(g, "kinematic", False)),
                      motion=getattr(g, "motion", None),
-                     start_time=float(getattr(g, "start_time", 0.0) or 0.0),
+                     start_time=(placement.start_times if placement.start_times is not None
+                                 else float(getattr(g, "start_time", 0.0) or 0.0)),
                      group_frame=g.layout != "single",
                      frame=group_frame(g, placement) if g.kinematic else None)
     up = out.up_index

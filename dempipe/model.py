@@ -542,7 +542,8 @@ class ModelBuilder:
             ``frame`` = (origin (3,) [m], rotation (4,)): the frame the motion moves
             (scene.group_frame: its rates' default pivot; default the first body's
             pose, or for a group frame the mean of its mesh origins)
-        start_time : the bodies enter the simulation at this time [s] (an emitter)
+        start_time : the bodies enter the simulation at this time [s] (an emitter), one
+            for all or (n,) one per body
         """
         if kinematic and motion is None:
             raise SceneError(f"{group}: a kinematic group needs a motion")
@@ -561,7 +562,8 @@ class ModelBuilder:
             w=np.array(w), asleep=np.zeros(n, bool) if asleep is None else np.array(asleep, bool),
             masses=None if masses is None else np.array(masses, dtype=np.float64).reshape(n),
             inertias=None if inertias is None else np.array(inertias, np.float64).reshape(n, 3, 3),
-            kinematic=bool(kinematic), motion=motion, start_time=float(start_time),
+            kinematic=bool(kinematic), motion=motion,
+            start_time=np.broadcast_to(np.asarray(start_time, dtype=np.float64), (n,)).copy(),
             group_frame=bool(group_frame), frame=frame))
 
     def add_plane(self, point, normal, material: int = 0, motion=None) -> None:

@@ -196,7 +196,7 @@ class BodyGroup:
     count: int = 1
     """Number of bodies in the group [count] ≥ 1."""
     layout: str = "single"
-    """Placement: "single", "grid" or "random"."""
+    """Placement: "single", "grid", "random" or "emit" (random, released over time)."""
     position: Vec3 | None = None
     """single: where the mesh origin goes [m], world frame."""
     origin: Vec3 | None = None
@@ -232,6 +232,9 @@ class BodyGroup:
     start_time: float = 0.0
     """Time the bodies enter the simulation [s] (an emitter): before it they are not
     simulated, not touched and hidden in the output."""
+    rate: float | None = None
+    """emit: bodies released per second [1/s] from start_time on, body i at
+    start_time + i / rate, each at a random place in the region (seeded)."""
 
 
 @dataclass(frozen=True)
@@ -356,6 +359,9 @@ class BodyPlacement:
     """(n, 3) float64 linear velocities [m/s], world frame."""
     angular_velocities: np.ndarray
     """(n, 3) float64 angular velocities [rad/s], world frame."""
+    start_times: np.ndarray | None = None
+    """(n,) float64 [s]: when each body enters (layout "emit"), or None: the group's
+    start_time for all."""
 
 
 # --------------------------------------------------------------------- validation
@@ -538,6 +544,7 @@ _LAYOUT_KEYS = {
     "single": ("position",),
     "grid": ("origin", "dims", "spacing"),
     "random": ("region_min", "region_max"),
+    "emit": ("region_min", "region_max", "rate"),
 }
 _COLLIDER_KEYS = {
     "plane": ("type", "name", "material", "point", "normal", "motion"),
@@ -905,7 +912,7 @@ def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
             raise ctx.error(f"{key}.count",
                             f"count = {count} is larger than dims = {list(dims)} holds ({cap})",
                             "enlarge dims or lower count")
-    else:  # random
+    else:  # random, emit
         lo = ctx.vector(ctx.require(b, key, "region_min", "e.g. region_min = [-1, -1, 0]"),
                         f"{key}.region_min")
         hi = ctx.vector(ctx.require(b, key, "region_max", "e.g. region_max = [1, 1, 2]"),
@@ -918,7 +925,11 @@ def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
         kw["region_min"], kw["region_max"] = lo, hi
         if count is None:
             raise ctx.error(f"{key}.count", "missing required key",
-                            'layout = "random" needs count, e.g. count = 100')
+                            f'layout = "{layout}" needs count, e.g. count = 100')
+        if layout == "emit":
+            kw["rate"] = ctx.number(ctx.require(b, key, "rate", "e.g. rate = 20 (bodies per "
+                                                "second)"), f"{key}.rate", lo=0.0,
+                                    lo_open=True, unit="bodies per second")
     kw["count"] = count
 
     if "rotation" in b:
@@ -938,6 +949,9 @@ def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
         kw["start_time"] = ctx.number(b["start_time"], f"{key}.start_time", lo=0.0,
                                       unit="seconds")
     kinematic = "kinematic" in b and ctx.boolean(b["kinematic"], f"{key}.kinematic")
+    if kinematic and layout == "emit":
+        raise ctx.error(f"{key}.kinematic", 'a group with layout = "emit" cannot be kinematic',
+                        "emit dynamic bodies; move a kinematic group by its [bodies.motion]")
     if "motion" in b and not kinematic:
         raise ctx.error(f"{key}.motion", "a dynamic group cannot follow a motion",
                         "add kinematic = true to this group to move it by [bodies.motion]; "
@@ -1226,7 +1240,7 @@ def expand_bodies(scene: Scene) -> list[BodyPlacement]:
         n = g.count
         if g.layout == "grid":
             pos = np.asarray(g.origin, np.float64) + grid_offsets(g.dims, g.spacing, n, up)
-        elif g.layout == "random":
+        elif g.layout in ("random", "emit"):
             rng = np.random.default_rng([seed, gi, 0])
             lo = np.asarray(g.region_min, np.float64)
             hi = np.asarray(g.region_max, np.float64)
@@ -1245,5 +1259,6 @@ def expand_bodies(scene: Scene) -> list[BodyPlacement]:
             rotations=np.ascontiguousarray(rot, dtype=np.float64),
             velocities=np.tile(np.asarray(g.velocity, np.float64), (n, 1)),
             angular_velocities=np.tile(np.asarray(g.angular_velocity, np.float64), (n, 1)),
+            start_times=(g.start_time + np.arange(n) / g.rate if g.layout == "emit" else None),
         ))
     return out

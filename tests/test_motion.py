@@ -296,3 +296,56 @@ def test_examples_bake_a_short_range(tmp_path, example, moving):
         a = xf.ComputeLocalToWorldTransform(0.0)
         b = xf.ComputeLocalToWorldTransform(2.0)
         assert a != b                          # a roller turns
+
+
+def test_emit_layout_releases_bodies_at_its_rate():
+    """layout = "emit": count bodies, body i entering at start_time + i / rate at a
+    seeded random place in the region; each waits unmoved, then falls freely."""
+    bodies = """
+[[bodies]]
+name = "hail"
+shape = "pebble"
+material = "m"
+layout = "emit"
+count = 5
+rate = 20.0
+start_time = 0.1
+region_min = [-0.5, -0.5, 1.0]
+region_max = [0.5, 0.5, 1.2]
+"""
+    sc = scene(bodies, "", duration=0.5, mu=0.0)
+    m, fr = bake(sc)
+    starts = 0.1 + np.arange(5) / 20.0
+    assert np.allclose(m.body_start_time, starts)
+    assert np.array_equal(m.body_start, np.ceil(starts / m.dt - 1e-9).astype(np.int64))
+    t = fr.times
+    for b in range(5):
+        ts = m.body_start[b] * m.dt
+        wait = t <= ts + 1e-12
+        assert np.all(fr.x[wait, b] == fr.x[0, b])
+        s = t[t > ts] - ts
+        drop = fr.x[0, b, 2] - fr.x[t > ts, b, 2]
+        assert np.allclose(drop, 0.5 * G * s * (s + m.dt), atol=1e-9)
+
+
+@pytest.mark.parametrize("extra, key, words", [
+    ("rate = 0.0\n", "rate", "out of range"),
+    ("", "rate", "missing"),
+    ("rate = 5.0\nkinematic = true\n", "kinematic", "cannot be kinematic"),
+])
+def test_emit_layout_bad_values_name_the_key(extra, key, words):
+    from dempipe.errors import SceneError
+
+    bodies = """
+[[bodies]]
+name = "hail"
+shape = "pebble"
+material = "m"
+layout = "emit"
+count = 5
+region_min = [0, 0, 1]
+region_max = [1, 1, 1]
+""" + extra
+    with pytest.raises(SceneError) as err:
+        scene(bodies, "")
+    assert f"bodies[0].{key}" in str(err.value) and words in str(err.value), str(err.value)

@@ -152,7 +152,7 @@ def write_physics_stage(scene, path) -> Path:
     UsdGeom.Scope.Define(stage, "/World/Bodies")
     for group, placement in zip(scene.bodies, expand_bodies(scene)):
         UsdGeom.Xform.Define(stage, f"/World/Bodies/{group.name}")
-        if group.start_time > 0:
+        if group.start_time > 0 or group.layout == "emit":
             warnings.warn(f"bodies {group.name!r}: start_time = {group.start_time:g} s has no "
                           "UsdPhysics attribute; the stage has the group from the start",
                           stacklevel=2)
