@@ -141,3 +141,16 @@ def test_blender_imports_the_instancer_layout(tmp_path):
         np.testing.assert_allclose(m[:3, 3], frames.x[mid, b], atol=2e-6)
         # quath orientations: up to ~1e-3 rad (docs/usd-output.md, "Precision")
         assert _rotation_angle(m[:3, :3], _quat_matrix(frames.q[mid, b])) < 2e-3
+
+
+def test_blender_shows_an_emitted_instance_from_its_start(tmp_path):
+    """The instancer's invisibleIds, as Blender plays them: the last body, emitted at
+    the middle frame, is not instanced before it and is from it on."""
+    model, frames = make_model(), make_frames()       # a namespace standing for a Model
+    mid = len(frames.frame_numbers) // 2
+    model.body_start_time = np.zeros(model.n_bodies)
+    model.body_start_time[-1] = frames.times[mid]
+    path = write_usd(tmp_path / "bake.usdc", frames, model).path
+    before = blender_import(path, FIRST + mid - 1)["instances"]
+    after = blender_import(path, FIRST + mid)["instances"]
+    assert len(before) == model.n_bodies - 1 and len(after) == model.n_bodies
