@@ -73,6 +73,12 @@ rows a sphere.
 #: (1 + SKIN) d, and cannot touch before the next rebuild anyway.
 UNPAIRED = -(1 << 30)
 
+#: (reach / d)² within which a pair apart is tested for ``closing``: touching one
+#: step ago, so that its dashpot's last impulse lands (laws.linear.normal_force).
+#: A contact that opens by more than 5% of d in one step is far outside the force
+#: law's range anyway (auto stiffness keeps overlaps near 2% of d).
+CLOSE_REACH2 = 1.05 * 1.05
+
 
 #: Columns of a row of pair_f: the force on the owner (0-2) [N], the torque about
 #: its centre (3-5) [N m], the contact's tangential stretch (6-8) [m], and 1 + the
@@ -397,9 +403,20 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
             rz = sorted_x[t, 2] - zi
             dist2 = rx * rx + ry * ry + rz * rz
             if dist2 >= d2:
-                if FRICTION and friction:  # noqa: F821
-                    pair_f[p, 9] = 0.0      # not touching: the contact ends, its stretch goes
-                continue
+                on = False
+                if dist2 < d2 * CLOSE_REACH2:   # touching a step ago? (normal_force)
+                    on = closing(  # noqa: F821 (the law's)
+                        diameter - sqrt(dist2), ((sorted_v[t, 0] - vxi) * rx  # noqa: F821
+                                                 + (sorted_v[t, 1] - vyi) * ry
+                                                 + (sorted_v[t, 2] - vzi) * rz) / sqrt(dist2),  # noqa: F821
+                        dt)
+                    if not on:
+                        for c in range(6):
+                            pair_f[p, c] = 0.0      # sphere_forces sums this reach
+                if not on:
+                    if FRICTION and friction:  # noqa: F821
+                        pair_f[p, 9] = 0.0      # not touching: the contact ends, its stretch goes
+                    continue
             if SLEEPING and sleep_steps > 0:  # noqa: F821
                 # a moving body touches a sleeper (the same value from any thread)
                 if body_rest[bi] == 0 and body_rest[bj] >= sleep_steps:
@@ -407,9 +424,10 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                 if not static_body(imj) and body_rest[bj] == 0 and asleep_i:  # noqa: F821
                     body_wake[bi] = 1
             mj = body_material[bj]
-            k, eta, kt, ks = contact_coefficients(  # noqa: F821 (the law's)
-                pair_k[mi, mj], pair_zeta[mi, mj], imi + imj, kt_ratio, ks_ratio)
             dist = sqrt(dist2)  # noqa: F821
+            k, eta, kt, ks = contact_coefficients(  # noqa: F821 (the law's)
+                pair_k[mi, mj], pair_zeta[mi, mj], imi + imj, kt_ratio, ks_ratio, dt,
+                diameter - dist)
             if FRICTION and friction and pair_f[p, 9] != 0.0:  # noqa: F821 (touching last step)
                 mu = pair_mu[mi, mj]
                 sx = pair_f[p, 6]
@@ -477,7 +495,9 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                 ny = wall_normal[w, 1]
                 nz = wall_normal[w, 2]
                 dist = nx * xi + ny * yi + nz * zi - wall_offset[w]
-                if (dist >= radius or dist <= -wall_depth[w]
+                if ((dist >= radius and not closing(  # noqa: F821 (touching a step ago?)
+                        radius - dist, vxi * nx + vyi * ny + vzi * nz, dt))
+                        or dist <= -wall_depth[w]
                         or xi < wall_lo[w, 0] or xi > wall_hi[w, 0] or yi < wall_lo[w, 1]
                         or yi > wall_hi[w, 1] or zi < wall_lo[w, 2] or zi > wall_hi[w, 2]):
                     if FRICTION and friction and 0 <= col < cap:  # noqa: F821
@@ -495,7 +515,8 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                     continue
                 mj = wall_material[w]
                 k, eta, kt, ks = contact_coefficients(  # noqa: F821 (the law's; a wall adds
-                    pair_k[mi, mj], pair_zeta[mi, mj], imi, kt_ratio, ks_ratio)  # no 1/m)
+                    pair_k[mi, mj], pair_zeta[mi, mj], imi, kt_ratio, ks_ratio, dt,  # no 1/m)
+                    radius - dist)
                 if FRICTION and friction:  # noqa: F821
                     mu = pair_mu[mi, mj]
                     code = n_spheres + w + 1
@@ -635,7 +656,7 @@ def sphere_forces(s0, s1, diameter, nbr, nbr_n, pidx, list_start, list_e, sorted
             ry = sorted_x[t, 1] - yi
             rz = sorted_x[t, 2] - zi
             dist2 = rx * rx + ry * ry + rz * rz
-            if dist2 >= d2:
+            if dist2 >= d2 * CLOSE_REACH2:     # touching, or in the step after (pair_forces)
                 continue
             p = list_e[e, 1] if LIST_ROWS else pidx[s, e]  # noqa: F821
             if p >= 0:

@@ -24,6 +24,7 @@ from ..state import CONTACT_SLOTS
 # UNPAIRED: read by contacts.sphere_forces, which is compiled with this module's globals
 from .contacts import (CONTACT_CHUNK, LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE,  # noqa: F401
                        UNPAIRED, WALL_SLACK)
+from .contacts import CLOSE_REACH2  # noqa: F401 (read by contacts.pair_forces, sphere_forces)
 from .layout import (BUCKETS_PER_SPHERE, CPU_LAYOUT, FLAGS, GENERAL,  # noqa: F401
                      chunk_spans, cpu_scratch, fit_grid, grid_table, kernel_flags,
                      scene_features, static_extent)
@@ -42,6 +43,7 @@ history_recall = F.history_recall
 history_store = F.history_store
 rest_steps = F.rest_steps
 contact_coefficients = F.contact_coefficients
+closing = F.closing
 static_body = F.static_body
 sqrt = np.sqrt
 P = compile_pairing(numba.njit(inline="always", cache=False), F)
@@ -930,16 +932,24 @@ _JITS = {
 _VARIANTS: dict = {}
 
 
-def kernels(flags) -> "types.SimpleNamespace":
-    """The stage drivers compiled for ``flags`` (friction, rotation, sleeping, walls),
-    created on first use; numba compiles each (or loads it from its disk cache)
-    at its first call."""
+def kernels(flags, law: str = "linear") -> "types.SimpleNamespace":
+    """The stage drivers compiled for ``flags`` (friction, rotation, sleeping, walls)
+    and the contact ``law`` (laws.LAWS; the module's formulas are the linear law's,
+    another law's are compiled and overlaid), created on first use; numba compiles
+    each (or loads it from its disk cache) at its first call."""
     flags = tuple(bool(f) for f in flags)
-    if flags not in _VARIANTS:
+    key = flags if law == "linear" else (flags, law)
+    if key not in _VARIANTS:
         tag = "".join(f"{n[0].upper()}{int(f)}" for n, f in zip(FLAGS, flags))
-        _VARIANTS[flags] = specialize(
-            _STAGES, _JITS, {n.upper(): f for n, f in zip(FLAGS, flags)}, tag, globals())
-    return _VARIANTS[flags]
+        consts = {n.upper(): f for n, f in zip(FLAGS, flags)}
+        if law != "linear":
+            tag += f"_{law}"
+            fl = compile_formulas(numba.njit(inline="always", cache=False), law)
+            consts.update(sphere_pair_force=fl.sphere_pair_force,
+                          sphere_wall_force=fl.sphere_wall_force,
+                          contact_coefficients=fl.contact_coefficients, closing=fl.closing)
+        _VARIANTS[key] = specialize(_STAGES, _JITS, consts, tag, globals())
+    return _VARIANTS[key]
 
 
 # The backend (host side) lives beside: kernels/cpu_backend.py.
