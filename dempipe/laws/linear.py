@@ -28,7 +28,7 @@ A second law (Hertz-Mindlin) is a module with the same names, registered in
 from __future__ import annotations
 
 import math
-from math import exp, sqrt
+from math import sqrt
 
 NAME = "linear"
 
@@ -150,13 +150,20 @@ def step_damping(zeta, a):
     itself, taken at the step's velocity, removes too much (e = 0.2 bounced 10%
     low at 16 steps per contact)."""
     z2 = zeta * zeta
-    s5 = zeta * (2.0 * z2 * z2 + 7.0 * z2 + 1.0) / 60.0
-    s4 = (491.0 * z2 * z2 + 634.0 * z2 + 27.0) / 5760.0
-    s3 = zeta * (2.0 * z2 + 1.0) / 12.0
-    s2 = (7.0 * z2 + 1.0) / 24.0
+    # the coefficients as products (no division per contact)
+    s5 = zeta * (0.03333333333333333 * z2 * z2 + 0.11666666666666667 * z2
+                 + 0.016666666666666666)
+    s4 = 0.08524305555555556 * z2 * z2 + 0.11006944444444444 * z2 + 0.0046875
+    s3 = zeta * (0.16666666666666666 * z2 + 0.08333333333333333)
+    s2 = 0.2916666666666667 * z2 + 0.041666666666666664
     s1 = 0.5 * zeta
     sigma = zeta * a * (1.0 + a * (s1 + a * (s2 + a * (s3 + a * (s4 + a * s5)))))
-    return 1.0 - exp(-2.0 * sigma)
+    # 1 - exp(-x), x = 2σ, by its series to x⁸ (Horner, no libm call per contact):
+    # relative error below 1e-7 for x ≤ 0.6 (e ≥ 0.05 at 8 or more steps per contact)
+    x = 2.0 * sigma
+    return x * (1.0 - x * 0.5 * (1.0 - x * 0.3333333333333333 * (1.0 - x * 0.25 * (
+        1.0 - x * 0.2 * (1.0 - x * 0.16666666666666666 * (1.0 - x * 0.14285714285714285 * (
+            1.0 - x * 0.125)))))))
 
 
 def contact_coefficients(k, zeta, inv_mass_sum, kt_ratio, ks_ratio, dt, overlap):
@@ -172,7 +179,7 @@ def contact_coefficients(k, zeta, inv_mass_sum, kt_ratio, ks_ratio, dt, overlap)
     do not depend on it)."""
     root = sqrt(k / inv_mass_sum)
     if dt > 0.0:
-        eta = step_damping(zeta, k / root * dt) * root * root / (k * dt)
+        eta = step_damping(zeta, k / root * dt) / (inv_mass_sum * dt)
     else:
         eta = 2.0 * zeta * root
     return k, eta, kt_ratio * root, ks_ratio * k
