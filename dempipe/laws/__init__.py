@@ -12,10 +12,10 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from . import linear
+from . import hertz, linear
 
 #: name -> law module.
-LAWS: dict[str, ModuleType] = {linear.NAME: linear}
+LAWS: dict[str, ModuleType] = {linear.NAME: linear, hertz.NAME: hertz}
 
 #: The law a scene uses unless it says otherwise.
 DEFAULT = linear.NAME
