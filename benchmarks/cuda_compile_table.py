@@ -387,13 +387,16 @@ def table(result: dict) -> str:
     special = sorted({r["kernel"] for r in result["rows"] if r["variant"]})
     if tags:
         lines += ["", "The kernels specialized to the scene, per feature set (F friction, "
-                  "R rotation, S sleeping, W walls; 1 compiled in): registers / stack frame [B].",
+                  "R rotation, S sleeping, W walls; 1 compiled in; _hertz: the contact pass "
+                  "of that law, the others' kernels do not depend on it): registers / stack "
+                  "frame [B].",
                   "", "| variant | " + " | ".join(f"`{k}`" for k in special) + " |",
                   "|---|" + "---:|" * len(special)]
         cell = {(r["kernel"], r["variant"]): r for r in result["rows"]}
         for t in tags:
             lines.append(f"| {t} | " + " | ".join(
-                f"{cell[k, t]['registers']} / {cell[k, t]['stack']}" for k in special) + " |")
+                f"{cell[k, t]['registers']} / {cell[k, t]['stack']}" if (k, t) in cell else "–"
+                for k in special) + " |")
     return "\n".join(lines)
 
 
