@@ -437,8 +437,8 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                     body_wake[bj] = 1
                 if not static_body(imj) and body_rest[bj] == 0 and asleep_i:  # noqa: F821
                     body_wake[bi] = 1
-            if body_rest[bj] < 0:
-                body_wake[bi] = 1           # carried and moving: wakes, keeps awake
+                if body_rest[bj] < 0:
+                    body_wake[bi] = 1       # carried and moving: wakes, keeps awake
             mj = body_material[bj]
             dist = sqrt(dist2)  # noqa: F821
             k, eta, kt, ks = contact_coefficients(  # noqa: F821 (the law's)
@@ -590,7 +590,7 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                     sx = 0.0
                     sy = 0.0
                     sz = 0.0
-                if m >= 0 and motion_now[m, 13] != 0.0:
+                if SLEEPING and m >= 0 and motion_now[m, 13] != 0.0:  # noqa: F821
                     body_wake[bi] = 1       # never asleep on a moving surface
                 (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(  # noqa: F821
                     -nx, -ny, -nz, radius - dist, radius, uxi, uyi, uzi, wxi, wyi, wzi,
