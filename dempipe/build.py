@@ -27,8 +27,7 @@ class Overrides:
     stiffness_factor multiplies every material's stiffness (auto included);
     dt [s] or dt_factor (times the auto step); duration [s]; sleeping on/off;
     contact_layers (0: every sphere takes part in contacts); spheres: the sphere-set
-    mode of every shape and mesh collider ("lattice" or "surface"); contact_law: the
-    contact force law ("linear" or "hertz", laws.LAWS).
+    mode of every shape and mesh collider ("lattice" or "surface").
     """
 
     diameter: float | None = None
@@ -40,7 +39,6 @@ class Overrides:
     sleeping: bool | None = None
     contact_layers: int | None = None
     spheres: str | None = None
-    contact_law: str | None = None
 
 
 def _shape_mesh(spec, where: str):
@@ -194,14 +192,13 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
     dt = o.dt if o.dt is not None else sim.dt
     target = sim.stiffness_target_overlap or 0.02
     steps_per_contact = mat.STEPS_PER_CONTACT / o.dt_factor   # dt_factor 0.5: twice the steps
-    law_name = o.contact_law or sim.contact_law
     if o.stiffness_factor != 1.0:
         # auto stiffness scales through the target overlap (the law says how)
-        target = laws.law(law_name).overlap_for_stiffness_factor(target, o.stiffness_factor)
+        target = laws.law().overlap_for_stiffness_factor(target, o.stiffness_factor)
     model = b.finalize(fps=fps, n_frames=n_frames, first_frame=out.start_frame, dt=dt,
                        target_overlap=target, steps_per_contact=steps_per_contact,
                        up_axis=out.up_axis, meters_per_unit=out.meters_per_unit,
-                       where=f"{src}: simulation.dt", force=force, contact_law=law_name,
+                       where=f"{src}: simulation.dt", force=force,
                        sleep=((sim.sleep.linear_speed, sim.sleep.angular_speed, sim.sleep.time)
                               if (o.sleeping if o.sleeping is not None else sim.sleeping)
                               else None))

@@ -135,8 +135,7 @@ AUTO_TRAVEL = 0.25
 FLAT_FACE_SAFETY = 0.5
 
 
-def flat_face_critical_step(n: int, k: float, m: float, zeta: float, law=_law,
-                            speed: float = 1.0) -> float:
+def flat_face_critical_step(n: int, k: float, m: float, zeta: float) -> float:
     """Critical step of a body of mass m landing flat on n spheres at once [s].
 
     Each contact's dashpot is η = 2ζ√(k m) (the body's mass, see docs/physics.md),
@@ -144,8 +143,8 @@ def flat_face_critical_step(n: int, k: float, m: float, zeta: float, law=_law,
     n η: ω_n = √n ω, ζ_n = √n ζ. A wide flat face (a tile: n = 64) makes ζ_n
     large and its critical step far shorter than a corner contact's.
     """
-    kn, zn = law.parallel(n, k, zeta)
-    return law.critical_step(law.omega(kn, m, speed), zn)
+    kn, zn = _law.parallel(n, k, zeta)
+    return _law.critical_step(_law.omega(kn, m), zn)
 
 
 def auto_dt(omega_max: float, fps: float, steps_per_contact: float = STEPS_PER_CONTACT,
@@ -189,11 +188,11 @@ _STIFF_REFUSAL = ("simulation.dt: the auto step finds the contacts {what}: check
                   "second, about 9.81 m/s² and 0.01-0.1)")
 
 
-def check_dt(dt: float, omega_max: float, zeta_min: float, where: str, law=_law) -> None:
-    """Refuse a user dt above the critical step of the stiffest contact (``law``'s)."""
+def check_dt(dt: float, omega_max: float, zeta_min: float, where: str) -> None:
+    """Refuse a user dt above the critical step of the stiffest contact."""
     if omega_max <= 0.0:
         return
-    limit = law.critical_step(omega_max, zeta_min)
+    limit = _law.critical_step(omega_max, zeta_min)
     if dt >= limit:
         raise StabilityError(
             f"{where}: dt = {dt:.3g} s is above the critical step {limit:.3g} s of the "

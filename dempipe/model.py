@@ -230,9 +230,6 @@ class Model:
     surface_speed: float = 0.0
     """Fastest speed of a prescribed surface over the bake [m/s] (auto stiffness, dt
     and the tunnelling check count it as an impact speed)."""
-    impact_speed: float = 1.0
-    """The fastest impact the scene can produce [m/s] (auto stiffness; the Hertz
-    law's contact frequency depends on it)."""
 
     @property
     def n_spheres(self) -> int:
@@ -813,7 +810,7 @@ class ModelBuilder:
                     k = table.k[mi, mj]
                     half = 0.5 if (n_dyn > 1 and mj in dyn_present) else 1.0
                     contacts.append((k, m_eff * half, table.zeta[mi, mj]))
-        omega_max, zeta_min, zeta_max = laws.stiffest(contacts, law_name, v_imp)
+        omega_max, zeta_min, zeta_max = laws.stiffest(contacts, law_name)
         # flat landings (n spheres of a face at once) and free spin bound dt further
         dt_max = math.inf
         flat_crit = math.inf        # the same without the safety: a user dt's limit
@@ -834,8 +831,7 @@ class ModelBuilder:
                         float(table.k[mi, mj]), m_deep * half, v_imp, g)
                         for sj in np.unique(gdict["shapes"]))
                     flat = mat.flat_face_critical_step(n_face, table.k[mi, mj],
-                                                       m_flat * half, table.zeta[mi, mj],
-                                                       law, v_imp)
+                                                       m_flat * half, table.zeta[mi, mj])
                     flat_crit = min(flat_crit, flat)
                     dt_max = min(dt_max, mat.FLAT_FACE_SAFETY * flat)
         if n_dyn and np.any(w0):
@@ -850,13 +846,12 @@ class ModelBuilder:
         if isinstance(dt, str):
             if dt != "auto":
                 raise SceneError(f"{where}: expected \"auto\" or seconds, got {dt!r}")
-            dt_v, spf = mat.auto_dt(omega_max, fps, steps_per_contact,
-                                    law.duration_zeta(zeta_max), dt_max)
+            dt_v, spf = mat.auto_dt(omega_max, fps, steps_per_contact, zeta_max, dt_max)
         else:
             if not (dt > 0 and math.isfinite(dt)):
                 raise SceneError(f"{where}: dt must be positive seconds, got {dt!r}")
             if not force:
-                mat.check_dt(float(dt), omega_max, zeta_min, where, law)
+                mat.check_dt(float(dt), omega_max, zeta_min, where)
                 if float(dt) >= flat_crit:
                     raise StabilityError(
                         f"{where}: dt = {dt:.3g} s is above the critical step {flat_crit:.3g} s "
@@ -918,7 +913,7 @@ class ModelBuilder:
             initial_w=_frozen(np.concatenate([w0, np.zeros((n_static, 3))])),
             stiffness_auto=tuple(auto_notes), contact_layers=self.contact_layers,
             initial_asleep=_frozen(asleep0, bool) if asleep0.any() else None,
-            contact_law=law_name, impact_speed=float(v_imp),
+            contact_law=law_name,
             motions=driven["motions"], motion_table=driven["table"],
             body_motion=_frozen(driven["body_motion"], np.int32),
             body_anchor_c=_frozen(driven["anchor_c"]), body_anchor_q=_frozen(driven["anchor_q"]),

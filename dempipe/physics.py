@@ -15,7 +15,7 @@ from math import cos, sin, sqrt
 
 # The contact law's normal force (laws/linear.py); compile_formulas replaces it by
 # the scene's law compiled for the target. Plain-Python callers get the linear one.
-from .laws.linear import closing, normal_force  # noqa: F401 (the law's)
+from .laws.linear import normal_force
 
 
 # ---------------------------------------------------------------------------
@@ -127,8 +127,7 @@ def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, s
     tangential spring for static friction (Cundall and Strack 1979).
 
     n : unit normal from i towards the other body.
-    overlap : d - |r_ij| for two spheres, radius - distance for a wall [m]; > 0, or
-      ≤ 0 in the step after a contact ends (laws.linear.normal_force).
+    overlap : d - |r_ij| for two spheres, radius - distance for a wall [m], > 0.
     u : velocity of the other body's contact point relative to i's [m/s].
     k : normal spring [N/m]; eta : normal dashpot [N s/m];
     kt : tangential dashpot [N s/m]; ks : tangential spring [N/m] (0: none);
@@ -155,7 +154,7 @@ def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, s
     momentum and both sides' histories stay exact opposites.
     """
     un = ux * nx + uy * ny + uz * nz
-    fn = normal_force(k, eta, overlap, un, dt)   # along n; negative pushes i away (the law's)
+    fn = normal_force(k, eta, overlap, un)   # along n; negative pushes i away (the law's)
     fx = fn * nx
     fy = fn * ny
     fz = fn * nz

@@ -14,12 +14,10 @@ import pytest
 
 from bodies import ball_set, box_set
 from dempipe import physics
-from dempipe.laws import law
 from dempipe.kernels import contacts, cpu
 from dempipe.materials import Material
 from dempipe.model import ModelBuilder
 from dempipe.simulator import Simulator
-from reference import pair_closing, wall_closing
 from test_cuda import falling_model
 from test_neighbours import loose_balls
 from test_sleeping import pile
@@ -106,18 +104,17 @@ def own_forces(model, state, be):
                 continue
             r = x[j] - x[i]
             dist2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
-            if dist2 >= d * d and not pair_closing(r, dist2, v[j] - v[i], d, model.dt):
+            if dist2 >= d * d:
                 continue
             mi, mj = model.body_material[bi], model.body_material[bj]
-            k, eta, kt, ks = law(model.contact_law).contact_coefficients(
-                model.pair_k[mi, mj], model.pair_zeta[mi, mj],
-                model.body_inv_mass[bi] + model.body_inv_mass[bj], model.kt_ratio,
-                model.ks_ratio, model.dt, d - np.sqrt(dist2))
+            k = model.pair_k[mi, mj]
+            root = np.sqrt(k / (model.body_inv_mass[bi] + model.body_inv_mass[bj]))
             mu = model.pair_mu[mi, mj]
             s0 = owner_stretch(state, i, j)
             out = physics.sphere_pair_force(
                 r[0], r[1], r[2], np.sqrt(dist2), d, *(v[j] - v[i]), *(W[bi] + W[bj]),
-                k, eta, kt, ks, mu, *s0, model.dt)
+                k, 2.0 * model.pair_zeta[mi, mj] * root, model.kt_ratio * root,
+                model.ks_ratio * k, mu, *s0, model.dt)
             fx += out[0]
             fy += out[1]
             fz += out[2]
@@ -129,19 +126,19 @@ def own_forces(model, state, be):
         for w in range(model.n_walls):
             n = model.wall_normal[w]
             dist = n[0] * x[i, 0] + n[1] * x[i, 1] + n[2] * x[i, 2] - model.wall_offset[w]
-            if ((dist >= d / 2 and not wall_closing(n, dist, v[i], d, model.dt))
-                    or dist <= -model.wall_depth[w]):
+            if dist >= d / 2 or dist <= -model.wall_depth[w]:
                 continue
             if np.any(x[i] < model.wall_lo[w]) or np.any(x[i] > model.wall_hi[w]):
                 continue
             mi, mj = model.body_material[bi], model.wall_material[w]
-            k, eta, kt, ks = law(model.contact_law).contact_coefficients(
-                model.pair_k[mi, mj], model.pair_zeta[mi, mj], model.body_inv_mass[bi],
-                model.kt_ratio, model.ks_ratio, model.dt, d / 2 - dist)
+            k = model.pair_k[mi, mj]
+            root = np.sqrt(k / model.body_inv_mass[bi])
             mu = model.pair_mu[mi, mj]
             s0 = owner_stretch(state, i, ns + w)
-            out = physics.sphere_wall_force(*(-n), d / 2 - dist, d / 2, *v[i], *W[bi],
-                                            k, eta, kt, ks, mu, *s0, model.dt)
+            out = physics.sphere_wall_force(*(-n), d / 2 - dist, d / 2, *v[i], *W[bi], k,
+                                            2.0 * model.pair_zeta[mi, mj] * root,
+                                            model.kt_ratio * root, model.ks_ratio * k, mu,
+                                            *s0, model.dt)
             for c in range(3):
                 wf[c] += out[c]
                 if mu > 0.0:

@@ -96,7 +96,6 @@ def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNam
     given = dict(history_recall=formulas.history_recall, history_store=formulas.history_store,
                  entry_range=pairing.entry_range,
                  contact_coefficients=formulas.contact_coefficients,
-                 closing=formulas.closing,
                  static_body=formulas.static_body,
                  sphere_pair_force=formulas.sphere_pair_force,
                  sphere_wall_force=formulas.sphere_wall_force,

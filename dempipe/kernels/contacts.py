@@ -73,15 +73,6 @@ rows a sphere.
 #: (1 + SKIN) d, and cannot touch before the next rebuild anyway.
 UNPAIRED = -(1 << 30)
 
-#: (reach / d)² within which a pair apart is tested for ``closing``: touching one
-#: step ago, so that its dashpot's last impulse lands (laws.linear.normal_force).
-#: 1% of d: at dt auto a contact's overlap (near 2% of d at the fastest impact)
-#: changes by about a fifth of that per step; a contact that opens by more than 1%
-#: of d in one step (a user's much softer stiffness, or dt) keeps the old end, its
-#: last impulse missed. Kept small: in a dense pile every pair within the reach
-#: costs a test (measured: 5% of d cost the 25 k pile 15% of its step).
-CLOSE_REACH2 = 1.01 * 1.01
-
 
 #: Columns of a row of pair_f: the force on the owner (0-2) [N], the torque about
 #: its centre (3-5) [N m], the contact's tangential stretch (6-8) [m], and 1 + the
@@ -417,20 +408,9 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
             rz = sorted_x[t, 2] - zi
             dist2 = rx * rx + ry * ry + rz * rz
             if dist2 >= d2:
-                on = False
-                if dist2 < d2 * CLOSE_REACH2:   # touching a step ago? (normal_force)
-                    dvr = ((sorted_v[t, 0] - vxi) * rx + (sorted_v[t, 1] - vyi) * ry
-                           + (sorted_v[t, 2] - vzi) * rz)
-                    if dvr > 0.0:               # only a separating pair can have touched
-                        on = closing(  # noqa: F821 (the law's)
-                            diameter - sqrt(dist2), dvr / sqrt(dist2), dt)  # noqa: F821
-                    if not on:
-                        for c in range(6):
-                            pair_f[p, c] = 0.0      # sphere_forces sums this reach
-                if not on:
-                    if FRICTION and friction:  # noqa: F821
-                        pair_f[p, 9] = 0.0      # not touching: the contact ends, its stretch goes
-                    continue
+                if FRICTION and friction:  # noqa: F821
+                    pair_f[p, 9] = 0.0      # not touching: the contact ends, its stretch goes
+                continue
             if SLEEPING and sleep_steps > 0:  # noqa: F821
                 # a moving body touches a sleeper (the same value from any thread)
                 if body_rest[bi] == 0 and body_rest[bj] >= sleep_steps:
@@ -440,10 +420,9 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                 if body_rest[bj] < 0:
                     body_wake[bi] = 1       # carried and moving: wakes, keeps awake
             mj = body_material[bj]
-            dist = sqrt(dist2)  # noqa: F821
             k, eta, kt, ks = contact_coefficients(  # noqa: F821 (the law's)
-                pair_k[mi, mj], pair_zeta[mi, mj], imi + imj, kt_ratio, ks_ratio, dt,
-                diameter - dist)
+                pair_k[mi, mj], pair_zeta[mi, mj], imi + imj, kt_ratio, ks_ratio)
+            dist = sqrt(dist2)  # noqa: F821
             if FRICTION and friction and pair_f[p, 9] != 0.0:  # noqa: F821 (touching last step)
                 mu = pair_mu[mi, mj]
                 sx = pair_f[p, 6]
@@ -528,23 +507,10 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                 lx = xi                     # the sphere in the wall's frame
                 ly = yi
                 lz = zi
-                uxi = vxi                   # its velocity relative to the wall
-                uyi = vyi
-                uzi = vzi
-                if m >= 0:                  # a moving wall: its frame, its surface's velocity
+                if m >= 0:
                     lx, ly, lz = anchor_local(motion_now, m, xi, yi, zi)  # noqa: F821
-                    nx, ny, nz, sux, suy, suz = anchor_surface(  # noqa: F821
-                        motion_now, m, nx, ny, nz, xi, yi, zi,
-                        wall_normal[w, 0] * lx + wall_normal[w, 1] * ly
-                        + wall_normal[w, 2] * lz - wall_offset[w])
-                    uxi -= sux
-                    uyi -= suy
-                    uzi -= suz
-                dist = wall_normal[w, 0] * lx + wall_normal[w, 1] * ly + \
-                    wall_normal[w, 2] * lz - wall_offset[w]
-                if ((dist >= radius and not closing(  # noqa: F821 (touching a step ago?)
-                        radius - dist, uxi * nx + uyi * ny + uzi * nz, dt))
-                        or dist <= -wall_depth[w]
+                dist = nx * lx + ny * ly + nz * lz - wall_offset[w]
+                if (dist >= radius or dist <= -wall_depth[w]
                         or lx < wall_lo[w, 0] or lx > wall_hi[w, 0] or ly < wall_lo[w, 1]
                         or ly > wall_hi[w, 1] or lz < wall_lo[w, 2] or lz > wall_hi[w, 2]):
                     if FRICTION and friction and 0 <= col < cap:  # noqa: F821
@@ -562,8 +528,7 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                     continue
                 mj = wall_material[w]
                 k, eta, kt, ks = contact_coefficients(  # noqa: F821 (the law's; a wall adds
-                    pair_k[mi, mj], pair_zeta[mi, mj], imi, kt_ratio, ks_ratio, dt,  # no 1/m)
-                    radius - dist)
+                    pair_k[mi, mj], pair_zeta[mi, mj], imi, kt_ratio, ks_ratio)  # no 1/m)
                 if FRICTION and friction:  # noqa: F821
                     mu = pair_mu[mi, mj]
                     code = n_spheres + w + 1
@@ -590,8 +555,17 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                     sx = 0.0
                     sy = 0.0
                     sz = 0.0
-                if SLEEPING and m >= 0 and motion_now[m, 13] != 0.0:  # noqa: F821
-                    body_wake[bi] = 1       # never asleep on a moving surface
+                uxi = vxi                   # the sphere's velocity relative to the wall
+                uyi = vyi
+                uzi = vzi
+                if m >= 0:
+                    nx, ny, nz, sux, suy, suz = anchor_surface(  # noqa: F821
+                        motion_now, m, nx, ny, nz, xi, yi, zi, dist)
+                    uxi -= sux
+                    uyi -= suy
+                    uzi -= suz
+                    if SLEEPING and motion_now[m, 13] != 0.0:  # noqa: F821
+                        body_wake[bi] = 1   # never asleep on a moving surface
                 (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(  # noqa: F821
                     -nx, -ny, -nz, radius - dist, radius, uxi, uyi, uzi, wxi, wyi, wzi,
                     k, eta, kt, ks, mu, sx, sy, sz, dt)
@@ -705,7 +679,7 @@ def sphere_forces(s0, s1, diameter, nbr, nbr_n, pidx, list_start, list_e, sorted
             ry = sorted_x[t, 1] - yi
             rz = sorted_x[t, 2] - zi
             dist2 = rx * rx + ry * ry + rz * rz
-            if dist2 >= d2 * CLOSE_REACH2:     # touching, or in the step after (pair_forces)
+            if dist2 >= d2:
                 continue
             p = list_e[e, 1] if LIST_ROWS else pidx[s, e]  # noqa: F821
             if p >= 0:

@@ -20,12 +20,11 @@ from numba import prange
 from . import contacts, neighbours
 from .bodies import body_update
 from .prescribed import driven_row, motion_row
-from .compile import compile_formulas, invalidate_stale_cache, specialize
+from .compile import invalidate_stale_cache, specialize
 from ..state import CONTACT_SLOTS
 # UNPAIRED: read by contacts.sphere_forces, which is compiled with this module's globals
 from .contacts import (CONTACT_CHUNK, LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE,  # noqa: F401
                        UNPAIRED, WALL_SLACK)
-from .contacts import CLOSE_REACH2  # noqa: F401 (read by contacts.pair_forces, sphere_forces)
 from .layout import (BUCKETS_PER_SPHERE, CPU_LAYOUT, FLAGS, GENERAL,  # noqa: F401
                      chunk_spans, cpu_scratch, fit_grid, grid_table, kernel_flags,
                      scene_features, static_extent)
@@ -38,7 +37,7 @@ from .cpu_device import (  # noqa: F401
     cell_key, contact_coefficients, entry_range, history_recall, history_store, owns,
     pair_count, pair_mirror, pair_slots, pairs_to_rows, quat_rotate, rest_steps, rows_to_pairs,
     slot_store, sphere_kinematics, sphere_pair_force, sphere_wall_force, sqrt, static_body,
-    wall_reach, closing)
+    wall_reach)
 from .cpu_grid import (  # noqa: F401
     stage_grid_gather, stage_grid_sort, stage_history_to_slots, stage_history_to_spheres,
     stage_neighbours, stage_pairs, stage_pairs_to_rows, stage_rows_to_pairs, stage_unsort,
@@ -545,24 +544,16 @@ _JITS = {
 _VARIANTS: dict = {}
 
 
-def kernels(flags, law: str = "linear") -> "types.SimpleNamespace":
-    """The stage drivers compiled for ``flags`` (friction, rotation, sleeping, walls)
-    and the contact ``law`` (laws.LAWS; the module's formulas are the linear law's,
-    another law's are compiled and overlaid), created on first use; numba compiles
-    each (or loads it from its disk cache) at its first call."""
+def kernels(flags) -> "types.SimpleNamespace":
+    """The stage drivers compiled for ``flags`` (friction, rotation, sleeping, walls),
+    created on first use; numba compiles each (or loads it from its disk cache)
+    at its first call."""
     flags = tuple(bool(f) for f in flags)
-    key = flags if law == "linear" else (flags, law)
-    if key not in _VARIANTS:
+    if flags not in _VARIANTS:
         tag = "".join(f"{n[0].upper()}{int(f)}" for n, f in zip(FLAGS, flags))
-        consts = {n.upper(): f for n, f in zip(FLAGS, flags)}
-        if law != "linear":
-            tag += f"_{law}"
-            fl = compile_formulas(numba.njit(inline="always", cache=False), law)
-            consts.update(sphere_pair_force=fl.sphere_pair_force,
-                          sphere_wall_force=fl.sphere_wall_force,
-                          contact_coefficients=fl.contact_coefficients, closing=fl.closing)
-        _VARIANTS[key] = specialize(_STAGES, _JITS, consts, tag, globals())
-    return _VARIANTS[key]
+        _VARIANTS[flags] = specialize(
+            _STAGES, _JITS, {n.upper(): f for n, f in zip(FLAGS, flags)}, tag, globals())
+    return _VARIANTS[flags]
 
 
 # The backend (host side) lives beside: kernels/cpu_backend.py.

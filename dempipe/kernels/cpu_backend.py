@@ -32,7 +32,7 @@ class CpuBackend:
         self.steps_skipped = 0
         self.features = scene_features(model, features)
         self.flags = kernel_flags(self.features) if specialize else GENERAL
-        self.k = kernels(self.flags, model.contact_law)
+        self.k = kernels(self.flags)
         # every array, by name (layout.cpu_scratch: what memory_estimate counts and a
         # checkpoint walks), zeroed; then the ones that start otherwise
         for name, (shape, dtype) in cpu_scratch(model, self.features.friction).items():

@@ -42,7 +42,7 @@ from numba import cuda
 from ..control import drive, split_at
 from ..errors import DeviceError
 from ..state import CONTACT_SLOTS
-from .compile import compile_contacts, compile_formulas
+from .compile import compile_contacts
 from .contacts import PAIR_COLS, WALL_SLACK
 from .layout import (BUCKETS_PER_SPHERE, CUDA_LAYOUT, FLAGS, GENERAL, fit_grid,  # noqa: F401
                      grid_table, kernel_flags, scene_features, static_extent)
@@ -77,23 +77,19 @@ def variant_tag(flags) -> str:
     return "".join(f"{n[0].upper()}{int(f)}" for n, f in zip(FLAGS, flags))
 
 
-def kernels(flags, law: str = "linear") -> types.SimpleNamespace:
+def kernels(flags) -> types.SimpleNamespace:
     """The SPECIALIZED kernels compiled for ``flags`` (friction, rotation, sleeping,
     walls), created on first use (numba-cuda compiles each at its first launch):
     contacts.pair_forces / sphere_forces compiled with those flags as constants,
     and the kernels re-created with their modules' globals overlaid by them and by
     the flags (compile.specialize's rebinding, for cuda.jit). ``GENERAL`` gives
-    the module's own kernels; a ``law`` other than the linear one (laws.LAWS) has its
-    formulas compiled into the contact passes."""
+    the module's own kernels."""
     flags = tuple(bool(f) for f in flags)
-    if flags == GENERAL and law == "linear":
+    if flags == GENERAL:
         return types.SimpleNamespace(**{n: globals()[n] for n in SPECIALIZED})
-    key = flags if law == "linear" else (flags, law)
-    if key not in _VARIANTS:
+    if flags not in _VARIANTS:
         consts = {n.upper(): f for n, f in zip(FLAGS, flags)}
-        formulas = F if law == "linear" else compile_formulas(_device_jit(), law)
-        c = compile_contacts(_device_jit(), formulas, P,
-                             dict(consts, sqrt=math.sqrt, **CUDA_LAYOUT))
+        c = compile_contacts(_device_jit(), F, P, dict(consts, sqrt=math.sqrt, **CUDA_LAYOUT))
         body_update, _, _ = compile_body_stage(consts)
         out = {}
         for name in SPECIALIZED:
@@ -104,12 +100,11 @@ def kernels(flags, law: str = "linear") -> types.SimpleNamespace:
                        body_update=body_update)
             fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__,
                                     py.__closure__)
-            fn.__qualname__ = f"{name}__{variant_tag(flags)}" + \
-                ("" if law == "linear" else f"_{law}")
+            fn.__qualname__ = f"{name}__{variant_tag(flags)}"
             fn.__doc__ = py.__doc__
             out[name] = cuda.jit(fn)
-        _VARIANTS[key] = types.SimpleNamespace(**out)
-    return _VARIANTS[key]
+        _VARIANTS[flags] = types.SimpleNamespace(**out)
+    return _VARIANTS[flags]
 
 
 def _blocks(n: int, threads: int) -> int:
@@ -262,7 +257,7 @@ class CudaBackend:
         self.features = scene_features(model, features)
         self.specialize = specialize
         self.flags = kernel_flags(self.features) if specialize else GENERAL
-        self.k = kernels(self.flags, model.contact_law)
+        self.k = kernels(self.flags)
         layout = scratch_layout(model, self.features.friction)
         ctx = cuda.current_context()
         free, total = ctx.get_memory_info()

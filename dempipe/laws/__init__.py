@@ -12,10 +12,10 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from . import hertz, linear
+from . import linear
 
 #: name -> law module.
-LAWS: dict[str, ModuleType] = {linear.NAME: linear, hertz.NAME: hertz}
+LAWS: dict[str, ModuleType] = {linear.NAME: linear}
 
 #: The law a scene uses unless it says otherwise.
 DEFAULT = linear.NAME
@@ -30,17 +30,15 @@ def law(name: str = DEFAULT) -> ModuleType:
             from None
 
 
-def stiffest(contacts, law_name: str = DEFAULT,
-             speed: float = 1.0) -> tuple[float, float, float]:
+def stiffest(contacts, law_name: str = DEFAULT) -> tuple[float, float, float]:
     """(ω_max, ζ_min, ζ_max) over ``contacts``, an iterable of (k, m_eff, ζ): the
     stiffest contact frequency [rad/s] and the extreme damping ratios. The one
     derivation ``ModelBuilder.finalize`` (dt) and ``stability.pair_stability`` (the
-    report) share; (0, 1, 0) when there is no contact. ``speed``: the fastest
-    impact [m/s], for laws whose frequency depends on it (Hertz)."""
+    report) share; (0, 1, 0) when there is no contact."""
     lw = law(law_name)
     omega_max, zeta_min, zeta_max = 0.0, 1.0, 0.0
     for k, m_eff, zeta in contacts:
-        omega_max = max(omega_max, lw.omega(k, m_eff, speed))
+        omega_max = max(omega_max, lw.omega(k, m_eff))
         zeta_min = min(zeta_min, zeta)
         zeta_max = max(zeta_max, zeta)
     return omega_max, zeta_min, zeta_max

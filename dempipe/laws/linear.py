@@ -58,12 +58,12 @@ def restitution(zeta: float) -> float:
     return math.exp(-zeta * math.pi / math.sqrt(1.0 - zeta * zeta))
 
 
-def omega(k: float, m_eff: float, speed: float = 1.0) -> float:
-    """Undamped frequency ω0 = √(k/m_eff) of a contact [rad/s] (at any impact speed)."""
+def omega(k: float, m_eff: float) -> float:
+    """Undamped frequency ω0 = √(k/m_eff) of a contact [rad/s]."""
     return math.sqrt(k / m_eff)
 
 
-def contact_time(k: float, m_eff: float, zeta: float, speed: float = 1.0) -> float:
+def contact_time(k: float, m_eff: float, zeta: float) -> float:
     """Duration of one contact, tc = π/ωd [s]."""
     omega0 = math.sqrt(k / m_eff)
     return math.pi / (omega0 * math.sqrt(max(1.0 - zeta * zeta, 1e-6)))
@@ -78,14 +78,9 @@ def critical_step(omega0: float, zeta: float) -> float:
     return 2.0 * (math.sqrt(1.0 + zeta * zeta) - zeta) / omega0
 
 
-def critical_dt(k: float, m_eff: float, zeta: float, speed: float = 1.0) -> float:
+def critical_dt(k: float, m_eff: float, zeta: float) -> float:
     """:func:`critical_step` of a contact of stiffness k and effective mass m_eff [s]."""
     return critical_step(math.sqrt(k / m_eff), zeta)
-
-
-def duration_zeta(zeta: float) -> float:
-    """The damping ratio by which dt="auto" lengthens the contact (materials.auto_dt)."""
-    return zeta
 
 
 def parallel(n: int, k: float, zeta: float) -> tuple[float, float]:
@@ -132,87 +127,22 @@ def elastic_energy(k: float, overlap) -> float:
 # ---------------------------------------------------------------------------
 
 
-def step_damping(zeta, a):
-    """The fraction b of a contact's relative normal speed its dashpot removes in one
-    step of symplectic Euler, chosen so that the *discrete* oscillator bounces with
-    exactly the restitution ζ stands for [dimensionless].
-
-    a = ω0 dt. The step map of the undamped spring plus a dashpot η' has
-    determinant 1 - b (b = η' dt / m_eff) and turns by θ per step; the contact
-    lasts π/θ steps and returns (1 - b)^(π/2θ) of the speed. Asking that to be
-    e = exp(-ζπ/√(1-ζ²)) gives, with 1 - b = exp(-2σ),
-
-        a² = 1 + e^(-2σ) - 2 e^(-σ) cos(σ √(1-ζ²)/ζ),
-
-    whose series inverse is σ = ζ a (1 + s1 a + ... + s5 a⁵) below (error of e
-    below 0.1% for e ≥ 0.05 at 8 or more steps per contact, docs/physics.md).
-    As dt → 0, b → 2ζ ω0 dt: the plain dashpot η = 2ζ√(k m_eff). The plain dashpot
-    itself, taken at the step's velocity, removes too much (e = 0.2 bounced 10%
-    low at 16 steps per contact)."""
-    z2 = zeta * zeta
-    # the coefficients as products (no division per contact)
-    s5 = zeta * (0.03333333333333333 * z2 * z2 + 0.11666666666666667 * z2
-                 + 0.016666666666666666)
-    s4 = 0.08524305555555556 * z2 * z2 + 0.11006944444444444 * z2 + 0.0046875
-    s3 = zeta * (0.16666666666666666 * z2 + 0.08333333333333333)
-    s2 = 0.2916666666666667 * z2 + 0.041666666666666664
-    s1 = 0.5 * zeta
-    sigma = zeta * a * (1.0 + a * (s1 + a * (s2 + a * (s3 + a * (s4 + a * s5)))))
-    # 1 - exp(-x), x = 2σ, by its series to x⁸ (Horner, no libm call per contact):
-    # relative error below 1e-7 for x ≤ 0.6 (e ≥ 0.05 at 8 or more steps per contact)
-    x = 2.0 * sigma
-    return x * (1.0 - x * 0.5 * (1.0 - x * 0.3333333333333333 * (1.0 - x * 0.25 * (
-        1.0 - x * 0.2 * (1.0 - x * 0.16666666666666666 * (1.0 - x * 0.14285714285714285 * (
-            1.0 - x * 0.125)))))))
-
-
-def contact_coefficients(k, zeta, inv_mass_sum, kt_ratio, ks_ratio, dt, overlap):
-    """(k, η, kt, ks) of one contact: its normal spring [N/m], normal dashpot η
-    [N s/m], tangential dashpot kt_ratio √(k m_eff) [N s/m] and tangential spring
-    ks_ratio k [N/m], with m_eff = 1/inv_mass_sum the two bodies' effective mass
-    (a static partner adds 0 to inv_mass_sum), so a one-sphere body bounces with
-    exactly the restitution ζ came from.
-
-    η = step_damping(ζ, ω0 dt) m_eff / dt: the dashpot that makes the stepped
-    contact lose what the closed form loses (2ζ√(k m_eff) as dt → 0; with
-    dt = 0, that limit). ``overlap`` [m]: unused (the linear law's coefficients
-    do not depend on it)."""
+def contact_coefficients(k, zeta, inv_mass_sum, kt_ratio, ks_ratio):
+    """(k, η, kt, ks) of one contact: its normal spring [N/m], normal dashpot
+    η = 2ζ√(k m_eff) [N s/m], tangential dashpot kt_ratio √(k m_eff) [N s/m] and
+    tangential spring ks_ratio k [N/m], with m_eff = 1/inv_mass_sum the two
+    bodies' effective mass (a static partner adds 0 to inv_mass_sum), so a
+    one-sphere body bounces with exactly the restitution ζ came from."""
     root = sqrt(k / inv_mass_sum)
-    if dt > 0.0:
-        eta = step_damping(zeta, k / root * dt) / (inv_mass_sum * dt)
-    else:
-        eta = 2.0 * zeta * root
-    return k, eta, kt_ratio * root, ks_ratio * k
+    return k, 2.0 * zeta * root, kt_ratio * root, ks_ratio * k
 
 
-def normal_force(k, eta, overlap, un, dt):
+def normal_force(k, eta, overlap, un):
     """Normal force along n (from i towards its partner) on sphere i [N]: the
     spring -k δ and a dashpot on the normal relative velocity u_n; negative
-    pushes i away.
-
-    The contact begins and ends within a step. Over the step that brought the
-    overlap to δ, it changed linearly from δ_prev = δ + u_n dt (u_n < 0 closes),
-    so the dashpot's impulse, -η ∫ dδ⁺, is -η (δ⁺ - δ_prev⁺): η u_n dt while
-    the contact lasts, -η δ in the step it begins (the part of the step spent in
-    contact), and +η δ_prev in the step after it ends (``overlap`` ≤ 0 then;
-    the kernels call it while δ_prev > 0: ``closing``). Summed over a contact the
-    impulses telescope to 0, as the closed form's do, and each is dissipative."""
-    if overlap > 0.0:
-        if overlap + un * dt > 0.0:
-            return -k * overlap + eta * un
-        return -(k + eta / dt) * overlap          # it began within this step
-    prev = overlap + un * dt
-    if prev > 0.0:
-        return eta * prev / dt                    # it ended within the last step
-    return 0.0
-
-
-def closing(overlap, un, dt):
-    """Whether a contact apart by -``overlap`` [m] (≤ 0) was still touching one
-    step ago, by δ_prev = δ + u_n dt > 0: the step in which normal_force applies
-    the end of its dashpot."""
-    return overlap + un * dt > 0.0
+    pushes i away."""
+    return -k * overlap + eta * un
 
 
 #: The functions the kernels compile from this law (callees first).
-KERNEL = ("step_damping", "contact_coefficients", "normal_force", "closing")
+KERNEL = ("contact_coefficients", "normal_force")
