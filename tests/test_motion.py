@@ -298,21 +298,22 @@ def test_examples_bake_a_short_range(tmp_path, example, moving):
         assert a != b                          # a roller turns
 
 
-def test_emit_layout_releases_bodies_at_its_rate():
-    """layout = "emit": count bodies, body i entering at start_time + i / rate at a
-    seeded random place in the region; each waits unmoved, then falls freely."""
-    bodies = """
+HAIL = """
 [[bodies]]
 name = "hail"
 shape = "pebble"
 material = "m"
 layout = "emit"
 count = 5
-rate = 20.0
-start_time = 0.1
 region_min = [-0.5, -0.5, 1.0]
 region_max = [0.5, 0.5, 1.2]
 """
+
+
+def test_emit_layout_releases_bodies_at_its_rate():
+    """layout = "emit": count bodies, body i entering at start_time + i / rate at a
+    seeded random place in the region; each waits unmoved, then falls freely."""
+    bodies = HAIL + "rate = 20.0\nstart_time = 0.1\n"
     sc = scene(bodies, "", duration=0.5, mu=0.0)
     m, fr = bake(sc)
     starts = 0.1 + np.arange(5) / 20.0
@@ -336,16 +337,7 @@ region_max = [0.5, 0.5, 1.2]
 def test_emit_layout_bad_values_name_the_key(extra, key, words):
     from dempipe.errors import SceneError
 
-    bodies = """
-[[bodies]]
-name = "hail"
-shape = "pebble"
-material = "m"
-layout = "emit"
-count = 5
-region_min = [0, 0, 1]
-region_max = [1, 1, 1]
-""" + extra
+    bodies = HAIL + extra
     with pytest.raises(SceneError) as err:
         scene(bodies, "")
     assert f"bodies[0].{key}" in str(err.value) and words in str(err.value), str(err.value)
