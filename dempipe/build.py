@@ -159,10 +159,9 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
                      inertias=(None if g.inertia is None
                                else np.broadcast_to(np.asarray(g.inertia, float), (n_g, 3, 3))),
                      asleep=np.full(n_g, bool(g.starts_asleep)),
-                     kinematic=bool(getattr(g, "kinematic", False)),
-                     motion=getattr(g, "motion", None),
+                     kinematic=g.kinematic, motion=g.motion,
                      start_time=(placement.start_times if placement.start_times is not None
-                                 else float(getattr(g, "start_time", 0.0) or 0.0)),
+                                 else g.start_time),
                      group_frame=g.layout != "single",
                      frame=group_frame(g, placement) if g.kinematic else None)
     up = out.up_index
@@ -170,10 +169,10 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
         kind = type(c).__name__
         mi = material_index[c.material]
         if kind == "PlaneCollider":
-            b.add_plane(c.point, c.normal, mi, motion=getattr(c, "motion", None))
+            b.add_plane(c.point, c.normal, mi, motion=c.motion)
         elif kind == "BoxCollider":
             b.add_box(c.min, c.max, c.open_top, mi, c.thickness, up=up,
-                      motion=getattr(c, "motion", None))
+                      motion=c.motion)
         else:
             mesh = _collider_mesh(c, f"{src}: colliders.{c.name}")
             check_lattice(mesh, d, f"{src}: colliders.{c.name}",
@@ -182,7 +181,7 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
             ss, info = build_sphere_set_with_info(mesh, d, name=c.name, cache=cache,
                                                   options=sphere_options(scene, None, o))
             hits.append((c.name, info.cache, info.seconds, ss.count))
-            b.add_static_mesh(c.name, mesh, ss, mi, motion=getattr(c, "motion", None),
+            b.add_static_mesh(c.name, mesh, ss, mi, motion=c.motion,
                               frame=collider_frame(c))
     build_seconds = time.perf_counter() - t0
 

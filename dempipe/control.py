@@ -115,42 +115,24 @@ class Drive(NamedTuple):
 
 
 def drive(model) -> Drive:
-    """The Drive of ``model``, with a fresh motion_now (host arrays)."""
-    from . import motion as mo
+    """The Drive of ``model`` (ModelBuilder.finalize's prescription), with a fresh
+    motion_now (host arrays)."""
     from .kernels.contacts import WALL_BITS
 
-    nb = int(model.body_mass.shape[0])
-    nw = int(model.wall_normal.shape[0])
-    table = model.motion_table if model.motion_table is not None else mo.pack(())
-    n_m = len(model.motions)
-    body_motion = (np.full(nb, -1, np.int32) if model.body_motion is None
-                   else np.ascontiguousarray(model.body_motion, dtype=np.int32))
-    wall_motion = (np.full(nw, -1, np.int32) if model.wall_motion is None
-                   else np.ascontiguousarray(model.wall_motion, dtype=np.int32))
+    t = model.motion_table
+    wall_motion = np.ascontiguousarray(model.wall_motion, dtype=np.int32)
     mask = 0
     for w in np.flatnonzero(wall_motion >= 0):
-        mask = -1 if nw > WALL_BITS else mask | (1 << int(w))
-    anchor_c = (np.zeros((nb, 3)) if model.body_anchor_c is None
-                else np.ascontiguousarray(model.body_anchor_c))
-    anchor_q = (np.tile([1.0, 0.0, 0.0, 0.0], (nb, 1)) if model.body_anchor_q is None
-                else np.ascontiguousarray(model.body_anchor_q))
-    start = (np.zeros(nb, np.int64) if model.body_start is None
-             else np.ascontiguousarray(model.body_start, dtype=np.int64))
-    f = lambda a, dt=np.float64: np.ascontiguousarray(a, dtype=dt)
-    # with motions: at least one dummy row each, so the arrays are never empty
-    kind = f(table.kind, np.int32) if n_m else np.zeros(1, np.int32)
-    v = f(table.v).reshape(-1, 3) if n_m else np.zeros((1, 3))
-    w = f(table.w).reshape(-1, 3) if n_m else np.zeros((1, 3))
-    piv = f(table.pivot).reshape(-1, 3) if n_m else np.zeros((1, 3))
-    ks = f(table.key_start, np.int32) if n_m else np.zeros(2, np.int32)
+        mask = -1 if wall_motion.shape[0] > WALL_BITS else mask | (1 << int(w))
+    f = np.ascontiguousarray
     return Drive(
-        motion_kind=kind, motion_v=v, motion_w=w, motion_pivot=piv, key_start=ks,
-        key_t=f(table.key_t), key_p=f(table.key_p).reshape(-1, 3),
-        key_q=f(table.key_q).reshape(-1, 4), motion_now=np.zeros((n_m, 14)),
-        driven_body=(np.zeros(0, np.int32) if model.driven_body is None
-                     else np.ascontiguousarray(model.driven_body, dtype=np.int32)),
-        body_motion=body_motion, body_anchor_c=anchor_c, body_anchor_q=anchor_q,
-        wall_motion=wall_motion, body_start=start, moving_walls=np.int64(mask))
+        motion_kind=f(t.kind, dtype=np.int32), motion_v=f(t.v), motion_w=f(t.w),
+        motion_pivot=f(t.pivot), key_start=f(t.key_start, dtype=np.int32), key_t=f(t.key_t),
+        key_p=f(t.key_p), key_q=f(t.key_q), motion_now=np.zeros((len(model.motions), 14)),
+        driven_body=f(model.driven_body, dtype=np.int32),
+        body_motion=f(model.body_motion, dtype=np.int32), body_anchor_c=f(model.body_anchor_c),
+        body_anchor_q=f(model.body_anchor_q), wall_motion=wall_motion,
+        body_start=f(model.body_start, dtype=np.int64), moving_walls=np.int64(mask))
 
 
 def split_at(step: int, n: int, starts) -> list:

@@ -39,6 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .physics import quat_rotate, quat_rotate_inv
+
 #: Motion kinds in the packed arrays.
 RATES, LINEAR, SMOOTH = 0, 1, 2
 INTERPOLATIONS = {"linear": LINEAR, "smooth": SMOOTH}
@@ -53,16 +55,6 @@ def qmul(aw, ax, ay, az, bw, bx, by, bz):
             aw * bx + ax * bw + ay * bz - az * by,
             aw * by - ax * bz + ay * bw + az * bx,
             aw * bz + ax * by - ay * bx + az * bw)
-
-
-def qrot(qw, qx, qy, qz, vx, vy, vz):
-    """The vector v rotated by the unit quaternion q: q v q⁻¹
-    (v + 2 qw (q⃗ × v) + 2 q⃗ × (q⃗ × v), written out)."""
-    tx = 2.0 * (qy * vz - qz * vy)
-    ty = 2.0 * (qz * vx - qx * vz)
-    tz = 2.0 * (qx * vy - qy * vx)
-    return (vx + qw * tx + (qy * tz - qz * ty), vy + qw * ty + (qz * tx - qx * tz),
-            vz + qw * tz + (qx * ty - qy * tx))
 
 
 def qexp(rx, ry, rz):
@@ -236,7 +228,7 @@ def carried_state(Px, Py, Pz, Qw, Qx, Qy, Qz, Vx, Vy, Vz, Wx, Wy, Wz,
                   cx, cy, cz, aw, ax, ay, az):
     """The pose and velocity of a body fixed at (c, a) in an anchor frame (P, Q, V,
     W): (x, y, z, qw, qx, qy, qz, vx, vy, vz) [m, 1, m/s], world frame."""
-    rx, ry, rz = qrot(Qw, Qx, Qy, Qz, cx, cy, cz)
+    rx, ry, rz = quat_rotate(Qw, Qx, Qy, Qz, cx, cy, cz)
     qw, qx, qy, qz = qmul(Qw, Qx, Qy, Qz, aw, ax, ay, az)
     return (Px + rx, Py + ry, Pz + rz, qw, qx, qy, qz,
             Vx + Wy * rz - Wz * ry, Vy + Wz * rx - Wx * rz, Vz + Wx * ry - Wy * rx)
@@ -245,16 +237,17 @@ def carried_state(Px, Py, Pz, Qw, Qx, Qy, Qz, Vx, Vy, Vz, Wx, Wy, Wz,
 def anchor_local(motion_now, m, x, y, z):
     """The world point (x, y, z) [m] in the frame of anchor m: Q⁻¹ (x − P).
     motion_now (M, 14): each anchor's P, Q, V, W and whether it moves (stage_motion)."""
-    return qrot(motion_now[m, 3], -motion_now[m, 4], -motion_now[m, 5], -motion_now[m, 6],
-                x - motion_now[m, 0], y - motion_now[m, 1], z - motion_now[m, 2])
+    return quat_rotate_inv(motion_now[m, 3], motion_now[m, 4], motion_now[m, 5],
+                           motion_now[m, 6], x - motion_now[m, 0], y - motion_now[m, 1],
+                           z - motion_now[m, 2])
 
 
 def anchor_surface(motion_now, m, nx, ny, nz, x, y, z, dist):
     """A moving wall at a sphere: its normal (nx, ny, nz), given in anchor m's frame,
     in the world, and the surface velocity V + W × (p − P) [m/s] at p, the sphere's
     centre (x, y, z) moved ``dist`` [m] along the normal onto the surface."""
-    wnx, wny, wnz = qrot(motion_now[m, 3], motion_now[m, 4], motion_now[m, 5],
-                         motion_now[m, 6], nx, ny, nz)
+    wnx, wny, wnz = quat_rotate(motion_now[m, 3], motion_now[m, 4], motion_now[m, 5],
+                                motion_now[m, 6], nx, ny, nz)
     rx = x - wnx * dist - motion_now[m, 0]
     ry = y - wny * dist - motion_now[m, 1]
     rz = z - wnz * dist - motion_now[m, 2]
@@ -265,8 +258,9 @@ def anchor_surface(motion_now, m, nx, ny, nz, x, y, z, dist):
             motion_now[m, 8] + Wz * rx - Wx * rz, motion_now[m, 9] + Wx * ry - Wy * rx)
 
 
-#: The functions above in dependency order, for kernels/compile.py.
-FORMULAS = ("qmul", "qrot", "qexp", "qlog", "jac_left", "jac_left_inv", "key_angular_velocity",
+#: The functions above in dependency order, for kernels/compile.py (which compiles
+#: them after physics.py's: quat_rotate and quat_rotate_inv are physics.py's).
+FORMULAS = ("qmul", "qexp", "qlog", "jac_left", "jac_left_inv", "key_angular_velocity",
             "key_velocity", "anchor_state", "carried_state", "anchor_local", "anchor_surface")
 
 
@@ -431,20 +425,16 @@ def pack(motions) -> MotionTable:
 
 
 def relative_pose(anchor_p, anchor_q, x, q):
-    """(c, a): the pose (x, q) expressed in the anchor frame (anchor_p, anchor_q), so
-    that carried_state gives back (x, q) at that anchor. Arrays (n, 3), (n, 4) or
-    single poses."""
+    """(c, a): the poses (x, q) expressed in the anchor frame (anchor_p, anchor_q), so
+    that carried_state gives back (x, q) at that anchor: c = Q⁻¹ (x − P), a = Q⁻¹ q.
+    Arrays (n, 3), (n, 4) or single poses; returns (n, 3), (n, 4)."""
     x = np.atleast_2d(np.asarray(x, dtype=np.float64))
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     Qw, Qx, Qy, Qz = (float(c) for c in anchor_q)
-    c = np.empty_like(x)
-    a = np.empty_like(q)
-    for i in range(len(x)):
-        d = x[i] - np.asarray(anchor_p, dtype=np.float64)
-        # Q⁻¹ d
-        cw, cx, cy, cz = qmul(*qmul(Qw, -Qx, -Qy, -Qz, 0.0, *d), Qw, Qx, Qy, Qz)
-        c[i] = (cx, cy, cz)
-        a[i] = qmul(Qw, -Qx, -Qy, -Qz, *q[i])
+    d = x - np.asarray(anchor_p, dtype=np.float64)
+    # the formulas are plain arithmetic: they take the columns whole
+    c = np.stack(quat_rotate_inv(Qw, Qx, Qy, Qz, d[:, 0], d[:, 1], d[:, 2]), axis=1)
+    a = np.stack(qmul(Qw, -Qx, -Qy, -Qz, q[:, 0], q[:, 1], q[:, 2], q[:, 3]), axis=1)
     return c, a
 
 

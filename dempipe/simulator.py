@@ -152,6 +152,10 @@ class Simulator:
             numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
         self.backend = make_backend(model, self.device, features, specialize)
         self.stats = RunStats()
+        nb = model.n_bodies
+        #: (n_bodies,) [kg]: the bodies' masses, 0 for kinematic ones (carried by
+        #: their motion: no part of the dynamic energy)
+        self.dynamic_mass = np.where(model.body_static[:nb], 0.0, model.body_mass[:nb])
 
     def energy(self, state, v, w) -> float:
         """Kinetic (½ P·V + ½ L·W) plus gravitational potential energy [J] of the
@@ -160,20 +164,17 @@ class Simulator:
         nb = m.n_bodies
         kin = 0.5 * (float(np.einsum("bi,bi->", state.body_P[:nb], v))
                      + float(np.einsum("bi,bi->", state.body_L[:nb], w)))
-        mass = np.where(m.body_static[:nb], 0.0, m.body_mass[:nb])   # kinematic: carried
-        return kin - float(mass @ (state.body_x[:nb] @ m.gravity))
+        return kin - float(self.dynamic_mass @ (state.body_x[:nb] @ m.gravity))
 
     def energy_source(self, t: float) -> float:
         """The most energy prescribed motion can have given the dynamic bodies by time
         t [s] [J]: each body batted to twice the fastest surface speed v_s, and lifted
         by v_s t against gravity. The energy guard counts it as a source."""
-        m = self.model
-        vs = float(getattr(m, "surface_speed", 0.0) or 0.0)
+        vs = self.model.surface_speed
         if vs <= 0.0:
             return 0.0
-        nb = m.n_bodies
-        mass = float(np.where(m.body_static[:nb], 0.0, m.body_mass[:nb]).sum())
-        return mass * (2.0 * vs * vs + float(np.linalg.norm(m.gravity)) * vs * t)
+        g = float(np.linalg.norm(self.model.gravity))
+        return float(self.dynamic_mass.sum()) * (2.0 * vs * vs + g * vs * t)
 
     def _energy_budget(self, state, v, w) -> tuple[float, float]:
         """(E0, allowed gain) for the energy guard, see MAX_ENERGY_GAIN."""
@@ -186,7 +187,7 @@ class Simulator:
         up = -np.asarray(m.gravity) / g if g > 0 else np.zeros(3)
         h = state.body_x[:nb] @ up
         low = float(h.min() - m.body_radius.max())
-        mass = np.where(m.body_static[:nb], 0.0, m.body_mass[:nb])
+        mass = self.dynamic_mass
         kin0 = e0 + float(mass @ (state.body_x[:nb] @ m.gravity))
         scale = kin0 + g * float(mass @ (h - low + m.diameter))
         # elastic energy of frame-0 overlaps: at most the stiffest pair's per sphere

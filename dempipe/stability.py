@@ -337,8 +337,7 @@ def expected_speeds(model: Model) -> tuple[float, float, float]:
     closing = impact if n > 1 else fastest
     impact = max(impact, math.sqrt(2.0 * g * d) if g > 0 else 0.01)
     # a moving surface meets a body head on: the speeds add (ModelBuilder.finalize)
-    surface = float(getattr(model, "surface_speed", 0.0) or 0.0)
-    return fastest, closing + surface, impact + surface
+    return fastest, closing + model.surface_speed, impact + model.surface_speed
 
 
 def pair_stability(model: Model, factors: np.ndarray | None = None,
@@ -468,18 +467,13 @@ def sphere_overlaps(model: Model, state=None) -> np.ndarray:
     if ns == 0:
         return ov
     t = 0.0 if state is None else float(state.time)
+    step = 0 if state is None else int(state.step)
     X = sphere_positions(model, state)
     body = np.asarray(model.sphere_body)
     dynamic = ~model.body_static[body]
-    if model.body_start_time is not None and len(model.body_start_time):
-        start = np.zeros(int(model.body_mass.shape[0]))
-        start[:model.n_bodies] = model.body_start_time
-        present = start[body] <= t + 1e-12
-        if not present.all():           # the absent spheres: far apart, far away
-            X = X.copy()
-            far = np.flatnonzero(~present)
-            X[far] = (np.abs(X).max() + 10.0 * d) + 3.0 * d * np.arange(1, len(far) + 1)[:, None]
-            dynamic = dynamic & present
+    # a body not yet emitted at this step touches nothing (as in the kernels)
+    present = np.asarray(model.body_start)[body] <= step
+    dynamic &= present
     cell = np.floor(X / d).astype(np.int64)
     cell -= cell.min(axis=0)
     span = cell.max(axis=0) + 3                      # room for the -1..+1 neighbours
@@ -505,7 +499,7 @@ def sphere_overlaps(model: Model, state=None) -> np.ndarray:
         first = np.repeat(lo - np.concatenate([[0], np.cumsum(cnt)[:-1]]), cnt)
         j = order[first + np.arange(total)]
         keep = body[i] != body[j]
-        keep &= dynamic[i] | dynamic[j]
+        keep &= (dynamic[i] | dynamic[j]) & present[i] & present[j]
         i, j = i[keep], j[keep]
         r = X[j] - X[i]
         dist2 = np.einsum("ij,ij->i", r, r)
@@ -530,7 +524,7 @@ def emission_overlap(model: Model, state) -> tuple[float, int]:
     """Largest overlap of the bodies emitted at ``state``'s step (body_start), as a
     fraction of the diameter, and the body (-1: none): the frame-0 check of an
     emitter, at its start."""
-    if model.body_start is None or model.n_spheres == 0:
+    if model.n_spheres == 0:
         return 0.0, -1
     ov = sphere_overlaps(model, state)
     body = np.asarray(model.sphere_body)

@@ -30,6 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..motion import carry, qmul
+from ..physics import quat_rotate
 
 __all__ = ["collider_xforms", "plane_xforms", "first_shown_frame"]
 
@@ -39,8 +40,7 @@ START_SLACK = 1e-9
 
 def _rotate(q, v):
     """The vector v (3,) rotated by the unit quaternion q (w, x, y, z)."""
-    w, x, y, z = qmul(*qmul(*q, 0.0, *v), q[0], -q[1], -q[2], -q[3])
-    return np.array([x, y, z])
+    return np.array(quat_rotate(*q, *v))
 
 
 def collider_xforms(motion, ref, origin, rotation, times):

@@ -101,17 +101,18 @@ def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNam
                  sphere_wall_force=formulas.sphere_wall_force,
                  anchor_local=formulas.anchor_local, anchor_surface=formulas.anchor_surface)
     given.update(constants)
-    return compile_chain(contacts, ("pair_forces", "sphere_forces"), jit, given)
+    return compile_chain(contacts, ("wall_gap", "pair_forces", "sphere_forces"), jit, given)
 
 
 def compile_formulas(jit, law: str = laws.DEFAULT) -> types.SimpleNamespace:
     """Return a namespace of every formula compiled with ``jit`` (a decorator): the
     contact law's kernel functions (``laws.law(law).KERNEL``: contact_coefficients,
-    normal_force), motion.py's (prescribed motion), then physics.py's."""
+    normal_force), then physics.py's, which call them, then motion.py's (prescribed
+    motion), which call physics.py's rotations."""
     lw = laws.law(law)
     given = vars(compile_chain(lw, lw.KERNEL, jit, {}))
-    given.update(vars(compile_chain(motion, motion.FORMULAS, jit, {})))
-    return compile_chain(physics, FORMULAS, jit, given)
+    given = vars(compile_chain(physics, FORMULAS, jit, given))
+    return compile_chain(motion, motion.FORMULAS, jit, given)
 
 
 def specialize(functions, jits: dict, constants: dict, tag: str,

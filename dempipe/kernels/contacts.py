@@ -325,6 +325,26 @@ def pairs_to_rows(s, h, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
         c += 1
 
 
+def wall_gap(w, xi, yi, zi, wall_normal, wall_offset, wall_lo, wall_hi, wall_motion,
+             motion_now):
+    """Wall w at the sphere centred at (xi, yi, zi) [m]: (dist, inside): its signed
+    distance from the wall's surface along the wall's normal [m], and whether it is
+    inside the wall's box; a moving wall (wall_motion[w] = m ≥ 0) is tested in its
+    anchor frame (motion_now[m]). The sphere touches the wall when inside, dist <
+    its radius and dist > -wall_depth[w]."""
+    lx = xi
+    ly = yi
+    lz = zi
+    m = wall_motion[w]
+    if m >= 0:
+        lx, ly, lz = anchor_local(motion_now, m, xi, yi, zi)  # noqa: F821
+    dist = wall_normal[w, 0] * lx + wall_normal[w, 1] * ly + wall_normal[w, 2] * lz \
+        - wall_offset[w]
+    inside = (lx >= wall_lo[w, 0] and lx <= wall_hi[w, 0] and ly >= wall_lo[w, 1]
+              and ly <= wall_hi[w, 1] and lz >= wall_lo[w, 2] and lz <= wall_hi[w, 2])
+    return dist, inside
+
+
 def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s,
                 sorted_idx, sorted_x, sorted_v,
                 sorted_body, body_w, body_inv_mass, body_material,
@@ -476,13 +496,9 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                 if m < 0 or motion_now[m, 13] == 0.0 or (
                         walls != -1 and (walls >> w) & 1 == 0):
                     continue
-                lx, ly, lz = anchor_local(motion_now, m, xi, yi, zi)  # noqa: F821
-                dist = wall_normal[w, 0] * lx + wall_normal[w, 1] * ly + \
-                    wall_normal[w, 2] * lz - wall_offset[w]
-                if (dist < radius and dist > -wall_depth[w]
-                        and lx >= wall_lo[w, 0] and lx <= wall_hi[w, 0] and ly >= wall_lo[w, 1]
-                        and ly <= wall_hi[w, 1] and lz >= wall_lo[w, 2]
-                        and lz <= wall_hi[w, 2]):
+                dist, inside = wall_gap(w, xi, yi, zi, wall_normal, wall_offset,  # noqa: F821
+                                        wall_lo, wall_hi, wall_motion, motion_now)
+                if inside and dist < radius and dist > -wall_depth[w]:
                     body_wake[bi] = 1
         if WALLS and walls != 0 and not asleep_i:  # noqa: F821
             fx = 0.0
@@ -504,15 +520,9 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                 ny = wall_normal[w, 1]
                 nz = wall_normal[w, 2]
                 m = wall_motion[w]
-                lx = xi                     # the sphere in the wall's frame
-                ly = yi
-                lz = zi
-                if m >= 0:
-                    lx, ly, lz = anchor_local(motion_now, m, xi, yi, zi)  # noqa: F821
-                dist = nx * lx + ny * ly + nz * lz - wall_offset[w]
-                if (dist >= radius or dist <= -wall_depth[w]
-                        or lx < wall_lo[w, 0] or lx > wall_hi[w, 0] or ly < wall_lo[w, 1]
-                        or ly > wall_hi[w, 1] or lz < wall_lo[w, 2] or lz > wall_hi[w, 2]):
+                dist, inside = wall_gap(w, xi, yi, zi, wall_normal, wall_offset,  # noqa: F821
+                                        wall_lo, wall_hi, wall_motion, motion_now)
+                if dist >= radius or dist <= -wall_depth[w] or not inside:
                     if FRICTION and friction and 0 <= col < cap:  # noqa: F821
                         if WALL_ROWS:  # noqa: F821
                             if wall_s[qw + col, 3] != 0.0:

@@ -521,7 +521,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
 _STAGES = (stage_body_velocities, motion_row, driven_row, stage_motion, stage_driven,
            sphere_state, stage_spheres,
            stage_spheres_sorted,
-           contacts.pair_forces, contacts.sphere_forces,
+           contacts.wall_gap, contacts.pair_forces, contacts.sphere_forces,
            stage_contacts, stage_sums, body_update,
            stage_bodies, run_steps)
 _JITS = {
@@ -533,6 +533,7 @@ _JITS = {
     "sphere_state": numba.njit(inline="always", cache=True),
     "stage_spheres": numba.njit(parallel=True, cache=True),
     "stage_spheres_sorted": numba.njit(parallel=True, cache=True),
+    "wall_gap": numba.njit(inline="always", cache=True),
     "pair_forces": numba.njit(cache=True),
     "sphere_forces": numba.njit(cache=True),
     "stage_contacts": numba.njit(parallel=True, cache=True),
