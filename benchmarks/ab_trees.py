@@ -7,7 +7,8 @@
 Each run is a fresh interpreter with the tree on PYTHONPATH (its own numba cache,
 warmed by a first unmeasured run); the two trees alternate (A B, B A, ...), so a
 machine's changing load falls on both sides of each pair. Printed: each pair's
-ms per step and ratio A/B (above 1: B is faster), their median, and whether the
+ms per step (with --cpu: CPU time of one thread) and ratio A/B (above 1: B is
+faster), their median, and whether the
 final States (x, q, P, L, rest counts, contact histories) are identical bit for
 bit. Exit status 1 when they differ. For a refactor that must keep the State and
 the speed (docs/performance.md, "One step, two targets").
@@ -47,22 +48,26 @@ def _child(root: str, scene: str, spheres: int, steps: int, out: str) -> None:
     st = model.initial_state()
     sim.backend.step(st, 2)
     t0 = time.perf_counter()
+    c0 = time.process_time()
     sim.backend.step(st, steps)
     ms = 1e3 * (time.perf_counter() - t0) / steps
+    cpu_ms = 1e3 * (time.process_time() - c0) / steps
     np.savez(out, **{k: np.asarray(getattr(st, k)) for k in FIELDS
                      if getattr(st, k, None) is not None})
-    print(json.dumps({"ms": ms}))
+    print(json.dumps({"ms": ms, "cpu_ms": cpu_ms}))
 
 
 def run(root: str, args, out: str) -> float:
     env = dict(os.environ, PYTHONPATH=os.path.abspath(root))
     env.pop("NUMBA_ENABLE_CUDASIM", None)
+    if args.cpu:
+        env["NUMBA_NUM_THREADS"] = "1"
     r = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", root, "--scene",
                         args.scene, "--spheres", str(args.spheres), "--steps", str(args.steps),
                         "--out", out], env=env, capture_output=True, text=True)
     if r.returncode != 0:
         raise SystemExit(f"{root}: run failed\n{r.stderr[-3000:]}")
-    return json.loads(r.stdout.strip().splitlines()[-1])["ms"]
+    return json.loads(r.stdout.strip().splitlines()[-1])["cpu_ms" if args.cpu else "ms"]
 
 
 def main(argv=None) -> int:
@@ -73,6 +78,9 @@ def main(argv=None) -> int:
     ap.add_argument("--spheres", type=int, default=25000, help="the pile's spheres")
     ap.add_argument("--steps", type=int, default=30, help="timed steps per run")
     ap.add_argument("--pairs", type=int, default=5, help="alternated A/B pairs")
+    ap.add_argument("--cpu", action="store_true",
+                    help="one thread, compare CPU time (steadier than wall time on a "
+                         "shared machine)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)

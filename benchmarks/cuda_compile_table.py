@@ -252,18 +252,24 @@ def compile_kernel(pyfunc, types, cc, ptxas: str, workdir: str) -> dict:
 
 
 def jobs(records: dict) -> list[tuple]:
-    """(kernel, flags or None, signature index) of every kernel variant to compile:
-    each recorded kernel as launched, and each SPECIALIZED one for every feature set."""
+    """(kernel, flags or None, signature index, contact law) of every kernel variant to
+    compile: each recorded kernel as launched, each SPECIALIZED one for every feature
+    set, and the contact pass (the one kernel a law changes) for every other law
+    with every feature on (its most demanding variant: the others are subsets)."""
     import itertools
 
+    from dempipe import laws
     from dempipe.kernels import cuda as kc
     out = []
     for name, sigs in records.items():
         for i in range(len(sigs)):
             if name in kc.SPECIALIZED:
-                out += [(name, flags, i) for flags in itertools.product((False, True), repeat=4)]
+                out += [(name, flags, i, laws.DEFAULT)
+                        for flags in itertools.product((False, True), repeat=4)]
             else:
-                out.append((name, None, i))
+                out.append((name, None, i, laws.DEFAULT))
+            if name == "k_pair_forces":
+                out += [(name, (True,) * 4, i, law) for law in laws.LAWS if law != laws.DEFAULT]
     return out
 
 
@@ -275,10 +281,12 @@ def compile_jobs(records: dict, todo: list, cc=(9, 0)) -> list[dict]:
         raise RuntimeError("ptxas not found (install the CUDA toolkit, or put it on PATH)")
     rows = []
     with tempfile.TemporaryDirectory() as work:
-        for name, flags, i in todo:
-            kernel = getattr(kc, name) if flags is None else getattr(kc.kernels(flags), name)
+        for name, flags, i, law in todo:
+            kernel = getattr(kc, name) if flags is None else \
+                getattr(kc.kernels(flags, law), name)
             row = compile_kernel(kernel.py_func, tuple(records[name][i]), cc, ptxas, work)
-            row.update(kernel=name, variant=kc.variant_tag(flags) if flags else "",
+            tag = kc.variant_tag(flags) if flags else ""
+            row.update(kernel=name, variant=tag + ("" if law == "linear" else f"_{law}"),
                        signature=", ".join(str(t) for t in records[name][i]))
             rows.append(row)
     return rows
@@ -395,13 +403,16 @@ def table(result: dict) -> str:
     special = sorted({r["kernel"] for r in result["rows"] if r["variant"]})
     if tags:
         lines += ["", "The kernels specialized to the scene, per feature set (F friction, "
-                  "R rotation, S sleeping, W walls; 1 compiled in): registers / stack frame [B].",
+                  "R rotation, S sleeping, W walls; 1 compiled in; _hertz: the contact pass "
+                  "of that law, the others' kernels do not depend on it): registers / stack "
+                  "frame [B].",
                   "", "| variant | " + " | ".join(f"`{k}`" for k in special) + " |",
                   "|---|" + "---:|" * len(special)]
         cell = {(r["kernel"], r["variant"]): r for r in result["rows"]}
         for t in tags:
             lines.append(f"| {t} | " + " | ".join(
-                f"{cell[k, t]['registers']} / {cell[k, t]['stack']}" for k in special) + " |")
+                f"{cell[k, t]['registers']} / {cell[k, t]['stack']}" if (k, t) in cell else "–"
+                for k in special) + " |")
     return "\n".join(lines)
 
 

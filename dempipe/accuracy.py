@@ -32,6 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import materials as mat
+
 #: Points sampled on the mesh surface (area-weighted, seeded) for the Hausdorff estimate.
 MESH_SAMPLES = 2000
 #: Directions sampled on each sphere (Fibonacci lattice) for the sphere-union surface;
@@ -346,7 +348,7 @@ class DtRule:
     dt : a fixed step [s] instead (a scene that gives simulation.dt)
     """
 
-    steps_per_contact: float = 16.0
+    steps_per_contact: float = mat.STEPS_PER_CONTACT
     dt: float | None = None
 
     def finalize_args(self, fps: float) -> dict:

@@ -14,7 +14,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import laws
-from . import materials as mat
 from .errors import SceneError
 from .model import Model, ModelBuilder, quat_to_matrix
 
@@ -27,7 +26,8 @@ class Overrides:
     stiffness_factor multiplies every material's stiffness (auto included);
     dt [s] or dt_factor (times the auto step); duration [s]; sleeping on/off;
     contact_layers (0: every sphere takes part in contacts); spheres: the sphere-set
-    mode of every shape and mesh collider ("lattice" or "surface").
+    mode of every shape and mesh collider ("lattice" or "surface"); contact_law: the
+    contact force law ("linear" or "hertz", laws.LAWS).
     """
 
     diameter: float | None = None
@@ -39,6 +39,7 @@ class Overrides:
     sleeping: bool | None = None
     contact_layers: int | None = None
     spheres: str | None = None
+    contact_law: str | None = None
 
 
 def _shape_mesh(spec, where: str):
@@ -190,14 +191,16 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
     n_frames = int(round(duration * fps)) + 1
     dt = o.dt if o.dt is not None else sim.dt
     target = sim.stiffness_target_overlap or 0.02
-    steps_per_contact = mat.STEPS_PER_CONTACT / o.dt_factor   # dt_factor 0.5: twice the steps
+    law_name = o.contact_law or sim.contact_law
+    # dt_factor 0.5: twice the steps
+    steps_per_contact = laws.law(law_name).STEPS_PER_CONTACT / o.dt_factor
     if o.stiffness_factor != 1.0:
         # auto stiffness scales through the target overlap (the law says how)
-        target = laws.law().overlap_for_stiffness_factor(target, o.stiffness_factor)
+        target = laws.law(law_name).overlap_for_stiffness_factor(target, o.stiffness_factor)
     model = b.finalize(fps=fps, n_frames=n_frames, first_frame=out.start_frame, dt=dt,
                        target_overlap=target, steps_per_contact=steps_per_contact,
                        up_axis=out.up_axis, meters_per_unit=out.meters_per_unit,
-                       where=f"{src}: simulation.dt", force=force,
+                       where=f"{src}: simulation.dt", force=force, contact_law=law_name,
                        sleep=((sim.sleep.linear_speed, sim.sleep.angular_speed, sim.sleep.time)
                               if (o.sleeping if o.sleeping is not None else sim.sleeping)
                               else None))

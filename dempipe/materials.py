@@ -23,10 +23,9 @@ import numpy as np
 from .errors import StabilityError
 from .laws import linear as _law
 
-#: Steps per contact duration that dt="auto" aims for. The bounce-height test
-#: (e² within 3%) needs ≥ ~10; piles with several contacts per body add stiffness,
-#: so 16 leaves room for ~25 simultaneous contacts before the critical step.
-STEPS_PER_CONTACT = 16.0
+#: Steps per contact duration that dt="auto" aims for, the default law's (each law
+#: says its own: laws.linear.STEPS_PER_CONTACT, laws.hertz.STEPS_PER_CONTACT).
+STEPS_PER_CONTACT = _law.STEPS_PER_CONTACT
 
 #: Tangential dashpot as a multiple of √(k m_eff). With the tangential spring
 #: (ks = 2/7 k, below) doing the holding, the dashpot only damps the tangential
@@ -135,7 +134,8 @@ AUTO_TRAVEL = 0.25
 FLAT_FACE_SAFETY = 0.5
 
 
-def flat_face_critical_step(n: int, k: float, m: float, zeta: float) -> float:
+def flat_face_critical_step(n: int, k: float, m: float, zeta: float, law=_law,
+                            speed: float = 1.0) -> float:
     """Critical step of a body of mass m landing flat on n spheres at once [s].
 
     Each contact's dashpot is η = 2ζ√(k m) (the body's mass, see docs/physics.md),
@@ -143,8 +143,8 @@ def flat_face_critical_step(n: int, k: float, m: float, zeta: float) -> float:
     n η: ω_n = √n ω, ζ_n = √n ζ. A wide flat face (a tile: n = 64) makes ζ_n
     large and its critical step far shorter than a corner contact's.
     """
-    kn, zn = _law.parallel(n, k, zeta)
-    return _law.critical_step(_law.omega(kn, m), zn)
+    kn, zn = law.parallel(n, k, zeta)
+    return law.critical_step(law.omega(kn, m, speed), zn)
 
 
 def auto_dt(omega_max: float, fps: float, steps_per_contact: float = STEPS_PER_CONTACT,
@@ -188,14 +188,14 @@ _STIFF_REFUSAL = ("simulation.dt: the auto step finds the contacts {what}: check
                   "second, about 9.81 m/s² and 0.01-0.1)")
 
 
-def check_dt(dt: float, omega_max: float, zeta_min: float, where: str) -> None:
-    """Refuse a user dt above the critical step of the stiffest contact."""
+def check_dt(dt: float, omega_max: float, zeta_min: float, where: str, law=_law) -> None:
+    """Refuse a user dt above the critical step of the stiffest contact (``law``'s)."""
     if omega_max <= 0.0:
         return
-    limit = _law.critical_step(omega_max, zeta_min)
+    limit = law.critical_step(omega_max, zeta_min)
     if dt >= limit:
         raise StabilityError(
             f"{where}: dt = {dt:.3g} s is above the critical step {limit:.3g} s of the "
             f"stiffest contact (ω = {omega_max:.4g} rad/s); use dt = \"auto\", a dt below "
-            f"{limit / STEPS_PER_CONTACT * math.pi / 2:.3g} s, or softer materials"
+            f"{limit / law.STEPS_PER_CONTACT * math.pi / 2:.3g} s, or softer materials"
         )

@@ -138,7 +138,8 @@ class Model:
       surface; wall_lo, wall_hi (W, 3) box the sphere centre must be in [m];
       wall_depth (W,) [m] how far behind the surface a sphere still touches it;
       wall_material (W,).
-    Materials: pair_k, pair_zeta, pair_mu (M, M); kt_ratio; ks_ratio.
+    Materials: pair_k, pair_zeta, pair_mu (M, M); kt_ratio; ks_ratio; pair_damp
+      (M, M, laws.linear.DAMP_TERMS): the law's step-sized dashpot (damping_table).
     Time: dt [s], steps_per_frame, fps, n_frames, first_frame.
     Sleeping: a body slower than sleep_linear [m/s] and sleep_angular [rad/s] for
       sleep_steps steps in a row sleeps (0: sleeping off); see kernels.cpu.stage_bodies.
@@ -176,6 +177,7 @@ class Model:
     static_meshes: tuple
     pair_k: np.ndarray
     pair_zeta: np.ndarray
+    pair_damp: np.ndarray
     pair_mu: np.ndarray
     kt_ratio: float
     ks_ratio: float
@@ -230,6 +232,16 @@ class Model:
     surface_speed: float = 0.0
     """Fastest speed of a prescribed surface over the bake [m/s] (auto stiffness, dt
     and the tunnelling check count it as an impact speed)."""
+    impact_speed: float = 1.0
+    """The fastest impact the scene can produce [m/s] (auto stiffness; the Hertz
+    law's contact frequency depends on it)."""
+
+    @property
+    def onset_speed(self) -> float:
+        """The speed [m/s] below which a contact that begins or ends is a resting one:
+        the law resolves the onset and end of faster ones within the step
+        (laws.ONSET_SPEED_FRACTION of impact_speed; laws.linear.normal_force)."""
+        return laws.ONSET_SPEED_FRACTION * self.impact_speed
 
     @property
     def n_spheres(self) -> int:
@@ -626,7 +638,7 @@ class ModelBuilder:
     # -- derived --------------------------------------------------------------
     def finalize(self, *, fps: float = 24.0, n_frames: int = 97, first_frame: int = 0,
                  dt: float | str = "auto", target_overlap: float = 0.02,
-                 steps_per_contact: float = mat.STEPS_PER_CONTACT,
+                 steps_per_contact: float | None = None,
                  up_axis: str = "Z", meters_per_unit: float = 1.0,
                  where: str = "simulation.dt", force: bool = False,
                  sleep: tuple | None = None, contact_law: str = laws.DEFAULT) -> Model:
@@ -637,9 +649,13 @@ class ModelBuilder:
         sleep : None (off) or (linear [m/s] | None, angular [rad/s] | None,
                 time [s] | None); None entries take the defaults of ``sleep_defaults``.
         contact_law : the registered law (``laws.LAWS``) every contact follows.
+        steps_per_contact : dt="auto"'s steps per contact (None: the law's
+        STEPS_PER_CONTACT).
         """
         law_name = contact_law
         law = laws.law(law_name)
+        if steps_per_contact is None:
+            steps_per_contact = law.STEPS_PER_CONTACT
         d = self.diameter
         groups = self._groups
         # bodies
@@ -810,7 +826,7 @@ class ModelBuilder:
                     k = table.k[mi, mj]
                     half = 0.5 if (n_dyn > 1 and mj in dyn_present) else 1.0
                     contacts.append((k, m_eff * half, table.zeta[mi, mj]))
-        omega_max, zeta_min, zeta_max = laws.stiffest(contacts, law_name)
+        omega_max, zeta_min, zeta_max = laws.stiffest(contacts, law_name, v_imp)
         # flat landings (n spheres of a face at once) and free spin bound dt further
         dt_max = math.inf
         flat_crit = math.inf        # the same without the safety: a user dt's limit
@@ -831,7 +847,8 @@ class ModelBuilder:
                         float(table.k[mi, mj]), m_deep * half, v_imp, g)
                         for sj in np.unique(gdict["shapes"]))
                     flat = mat.flat_face_critical_step(n_face, table.k[mi, mj],
-                                                       m_flat * half, table.zeta[mi, mj])
+                                                       m_flat * half, table.zeta[mi, mj],
+                                                       law, v_imp)
                     flat_crit = min(flat_crit, flat)
                     dt_max = min(dt_max, mat.FLAT_FACE_SAFETY * flat)
         if n_dyn and np.any(w0):
@@ -846,12 +863,13 @@ class ModelBuilder:
         if isinstance(dt, str):
             if dt != "auto":
                 raise SceneError(f"{where}: expected \"auto\" or seconds, got {dt!r}")
-            dt_v, spf = mat.auto_dt(omega_max, fps, steps_per_contact, zeta_max, dt_max)
+            dt_v, spf = mat.auto_dt(omega_max, fps, steps_per_contact,
+                                    law.duration_zeta(zeta_max), dt_max)
         else:
             if not (dt > 0 and math.isfinite(dt)):
                 raise SceneError(f"{where}: dt must be positive seconds, got {dt!r}")
             if not force:
-                mat.check_dt(float(dt), omega_max, zeta_min, where)
+                mat.check_dt(float(dt), omega_max, zeta_min, where, law)
                 if float(dt) >= flat_crit:
                     raise StabilityError(
                         f"{where}: dt = {dt:.3g} s is above the critical step {flat_crit:.3g} s "
@@ -903,7 +921,8 @@ class ModelBuilder:
             plane_point=_frozen(np.array([p for p, _ in self._planes]).reshape(-1, 3)),
             plane_normal=_frozen(np.array([n for _, n in self._planes]).reshape(-1, 3)),
             boxes=tuple(self._boxes), static_meshes=tuple(static_meshes),
-            pair_k=_frozen(table.k), pair_zeta=_frozen(table.zeta), pair_mu=_frozen(table.mu),
+            pair_k=_frozen(table.k), pair_zeta=_frozen(table.zeta),
+            pair_damp=_frozen(law.damping_table(table.zeta)), pair_mu=_frozen(table.mu),
             kt_ratio=table.kt_ratio, ks_ratio=table.ks_ratio, gravity=_frozen(self.gravity), dt=float(dt_v),
             steps_per_frame=int(spf), fps=float(fps), n_frames=int(n_frames),
             first_frame=int(first_frame), up_axis=up_axis, meters_per_unit=float(meters_per_unit),
@@ -913,7 +932,7 @@ class ModelBuilder:
             initial_w=_frozen(np.concatenate([w0, np.zeros((n_static, 3))])),
             stiffness_auto=tuple(auto_notes), contact_layers=self.contact_layers,
             initial_asleep=_frozen(asleep0, bool) if asleep0.any() else None,
-            contact_law=law_name,
+            contact_law=law_name, impact_speed=float(v_imp),
             motions=driven["motions"], motion_table=driven["table"],
             body_motion=_frozen(driven["body_motion"], np.int32),
             body_anchor_c=_frozen(driven["anchor_c"]), body_anchor_q=_frozen(driven["anchor_q"]),

@@ -15,7 +15,7 @@ from math import cos, sin, sqrt
 
 # The contact law's normal force (laws/linear.py); compile_formulas replaces it by
 # the scene's law compiled for the target. Plain-Python callers get the linear one.
-from .laws.linear import normal_force
+from .laws.linear import closing, normal_force  # noqa: F401 (the law's)
 
 
 # ---------------------------------------------------------------------------
@@ -122,17 +122,20 @@ def static_body(inv_mass):
 # Stage 4: contact force between two spheres, or a sphere and a wall (eq. 11-14)
 # ---------------------------------------------------------------------------
 
-def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, sz, dt):
+def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, sz, dt,
+                  vc=0.0):
     """Force on sphere i from one contact (eq. 11-14), with a Coulomb cap and a
     tangential spring for static friction (Cundall and Strack 1979).
 
     n : unit normal from i towards the other body.
-    overlap : d - |r_ij| for two spheres, radius - distance for a wall [m], > 0.
+    overlap : d - |r_ij| for two spheres, radius - distance for a wall [m]; > 0, or
+      ≤ 0 in the step after a contact ends (laws.linear.normal_force).
     u : velocity of the other body's contact point relative to i's [m/s].
     k : normal spring [N/m]; eta : normal dashpot [N s/m];
     kt : tangential dashpot [N s/m]; ks : tangential spring [N/m] (0: none);
     mu : Coulomb friction; s : the contact's tangential spring stretch [m] from
-    the last step (0 for a new contact); dt : the step [s].
+    the last step (0 for a new contact); dt : the step [s]; vc : the onset speed
+    [m/s] (the law's normal_force: a contact that begins or ends slower is resting).
     Returns (fx, fy, fz, sx, sy, sz): the force [N] and the new stretch.
 
     Normal: the contact law's normal_force, for the linear law spring -k δ n
@@ -154,7 +157,7 @@ def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, s
     momentum and both sides' histories stay exact opposites.
     """
     un = ux * nx + uy * ny + uz * nz
-    fn = normal_force(k, eta, overlap, un)   # along n; negative pushes i away (the law's)
+    fn = normal_force(k, eta, overlap, un, dt, vc)   # along n; negative pushes i away (the law's)
     fx = fn * nx
     fy = fn * ny
     fz = fn * nz
@@ -211,7 +214,7 @@ def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, s
 
 
 def sphere_pair_force(rx, ry, rz, dist, diameter, dvx, dvy, dvz, wsx, wsy, wsz,
-                      k, eta, kt, ks, mu, sx, sy, sz, dt):
+                      k, eta, kt, ks, mu, sx, sy, sz, dt, vc=0.0):
     """Force on sphere i from sphere j, its torque about i's centre, and the new
     tangential stretch of the contact.
 
@@ -237,14 +240,14 @@ def sphere_pair_force(rx, ry, rz, dist, diameter, dvx, dvy, dvz, wsx, wsy, wsz,
     uy = dvy - radius * (wsz * nx - wsx * nz)
     uz = dvz - radius * (wsx * ny - wsy * nx)
     fx, fy, fz, sx, sy, sz = contact_force(nx, ny, nz, diameter - dist, ux, uy, uz,
-                                           k, eta, kt, ks, mu, sx, sy, sz, dt)
+                                           k, eta, kt, ks, mu, sx, sy, sz, dt, vc)
     return (fx, fy, fz,
             radius * (ny * fz - nz * fy), radius * (nz * fx - nx * fz), radius * (nx * fy - ny * fx),
             sx, sy, sz)
 
 
 def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz,
-                      k, eta, kt, ks, mu, sx, sy, sz, dt):
+                      k, eta, kt, ks, mu, sx, sy, sz, dt, vc=0.0):
     """Force on a sphere from a static wall, its torque about the sphere's centre,
     and the new tangential stretch (as sphere_pair_force).
 
@@ -257,7 +260,7 @@ def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz,
     uy = -(vy + radius * (wz * nx - wx * nz))
     uz = -(vz + radius * (wx * ny - wy * nx))
     fx, fy, fz, sx, sy, sz = contact_force(nx, ny, nz, overlap, ux, uy, uz,
-                                           k, eta, kt, ks, mu, sx, sy, sz, dt)
+                                           k, eta, kt, ks, mu, sx, sy, sz, dt, vc)
     return (fx, fy, fz,
             radius * (ny * fz - nz * fy), radius * (nz * fx - nx * fz), radius * (nx * fy - ny * fx),
             sx, sy, sz)

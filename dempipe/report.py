@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from . import accuracy as acc
+from . import laws
 from .errors import DempipeError, StabilityError
 
 
@@ -531,6 +532,7 @@ def _measure_physics(runs, ref, fixed_dt: bool, scene_mode=None, cache=None):
     from .spheres import DEFAULT_MODE
 
     mi, material = _dominant_material(ref.model)
+    spc = laws.law(ref.model.contact_law).STEPS_PER_CONTACT   # dt="auto"'s
     memo = {}
     smallest = int(np.argmin([s.sphere_set.volume for s in ref.model.shapes]))
     for u in runs:
@@ -539,7 +541,7 @@ def _measure_physics(runs, ref, fixed_dt: bool, scene_mode=None, cache=None):
         m = u.model
         if not fixed_dt:
             key = ("auto", u.dt_factor)
-            rule = acc.DtRule(steps_per_contact=16.0 / u.dt_factor)
+            rule = acc.DtRule(steps_per_contact=spc / u.dt_factor)
             d, k = ref.model.diameter, float(ref.model.pair_k[mi, mi])
         else:
             key = (u.resolution, u.dt_factor, u.stiffness_factor)
@@ -560,7 +562,7 @@ def _measure_physics(runs, ref, fixed_dt: bool, scene_mode=None, cache=None):
             try:
                 memo[incline_key] = acc.incline_rolling_error(
                     material, u.resolution, mode,
-                    acc.DtRule(steps_per_contact=16.0 / u.dt_factor), cache=cache)
+                    acc.DtRule(steps_per_contact=spc / u.dt_factor), cache=cache)
             except StabilityError:
                 memo[incline_key] = math.nan
         bounce, rolling = memo[key]

@@ -133,6 +133,9 @@ class SimulationSettings:
     spheres: str | None = None
     """Sphere-set mode of every shape that names none: "lattice" or "surface"
     (docs/spheres.md); None: the library's default (spheres.DEFAULT_MODE)."""
+    contact_law: str = "linear"
+    """Contact force law (laws.LAWS): "linear" (the paper's spring-dashpot) or "hertz"
+    (Hertz-Mindlin with Tsuji's damping); docs/physics.md."""
 
 
 @dataclass(frozen=True)
@@ -532,7 +535,10 @@ _TOP_KEYS = ("output", "simulation", "materials", "shapes", "bodies", "colliders
 _OUTPUT_KEYS = ("fps", "duration", "up_axis", "meters_per_unit", "start_frame")
 _SIM_KEYS = ("sphere_diameter", "resolution", "gravity", "dt", "device", "seed",
              "stiffness_target_overlap", "dt_safety", "sleeping", "sleep", "contact_layers",
-             "spheres")
+             "spheres", "contact_law")
+#: The values of the ``contact_law`` key (laws.LAWS, kept here so that parsing a scene
+#: imports no law).
+_LAWS = ("linear", "hertz")
 #: The values of the ``spheres`` key (spheres.MODES, kept here so that parsing a scene
 #: does not import the sphere builder).
 _SPHERE_MODES = ("lattice", "surface")
@@ -644,6 +650,8 @@ def _parse_simulation(ctx: _Ctx, d: Any, up_axis: str) -> SimulationSettings:
             kw["contact_layers"] = n
     if "spheres" in d:
         kw["spheres"] = ctx.string(d["spheres"], "simulation.spheres", _SPHERE_MODES)
+    if "contact_law" in d:
+        kw["contact_law"] = ctx.string(d["contact_law"], "simulation.contact_law", _LAWS)
     if "sleep" in d:
         s = ctx.table(d["sleep"], "simulation.sleep")
         ctx.check_keys(s, "simulation.sleep", _SLEEP_KEYS)

@@ -378,16 +378,17 @@ def pair_stability(model: Model, factors: np.ndarray | None = None,
         k = float(model.pair_k[a, b])
         z = float(model.pair_zeta[a, b])
         contacts.append((k, mr, z))
-        crit_r = law.critical_dt(k, mr, z)
+        v = model.impact_speed
+        crit_r = law.critical_dt(k, mr, z, v)
         out.append(PairStability(
             materials=(names[a], names[b]), kind=kind, k=k, zeta=z,
             restitution=law.restitution(z), friction=float(model.pair_mu[a, b]),
             mass_translational=mt, mass_rotational=mr,
-            contact_time_translational=law.contact_time(k, mt, z),
-            contact_time_rotational=law.contact_time(k, mr, z),
-            critical_dt_translational=law.critical_dt(k, mt, z),
+            contact_time_translational=law.contact_time(k, mt, z, v),
+            contact_time_rotational=law.contact_time(k, mr, z, v),
+            critical_dt_translational=law.critical_dt(k, mt, z, v),
             critical_dt_rotational=crit_r, dt_ratio=dt / crit_r))
-    omega_max, zeta_min, _ = laws.stiffest(contacts, model.contact_law)
+    omega_max, zeta_min, _ = laws.stiffest(contacts, model.contact_law, model.impact_speed)
     return out, omega_max, zeta_min
 
 
@@ -428,7 +429,8 @@ def flat_face_step(model: Model) -> tuple[float, str]:
                                            float(mass[sel].max()) * half, impact, g)
                          for s in np.unique(shape[sel]))
             crit = mat.flat_face_critical_step(n_face, float(model.pair_k[mi, mj]), m * half,
-                                               float(model.pair_zeta[mi, mj]))
+                                               float(model.pair_zeta[mi, mj]),
+                                               laws.law(model.contact_law), model.impact_speed)
             if crit < best:
                 best = crit
                 what = (f"a body of {names[mi]} resting flat on {n_face} spheres of a face "

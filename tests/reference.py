@@ -7,6 +7,25 @@ is the oracle the fast kernels (CPU and CUDA) are compared against.
 import numpy as np
 
 from dempipe import physics
+from dempipe.kernels.contacts import CLOSE_REACH2
+from dempipe.laws import law, linear
+
+
+def pair_closing(r, dist2, dv, d, dt, vc):
+    """Whether two spheres apart (|r|² = dist2 ≥ d²) touched a step ago and separate
+    faster than the onset speed vc: the step in which the law applies the end of
+    its dashpot (kernels/contacts.py: pair_ended)."""
+    if dist2 >= d * d * CLOSE_REACH2:
+        return False
+    un = (dv[0] * r[0] + dv[1] * r[1] + dv[2] * r[2]) / np.sqrt(dist2)
+    return un > vc and linear.closing(d - np.sqrt(dist2), un, dt)
+
+
+def wall_closing(n, dist, v, d, dt, vc):
+    """Whether a sphere at ``dist`` ≥ d/2 from a wall of normal n touched it a step
+    ago and leaves faster than vc."""
+    un = v[0] * n[0] + v[1] * n[1] + v[2] * n[2]
+    return un > vc and linear.closing(0.5 * d - dist, un, dt)
 
 
 def reference_step(model, state):
@@ -47,38 +66,42 @@ def reference_step(model, state):
                 continue
             rij = x[j] - x[i]
             dist = float(np.sqrt(rij @ rij))
-            if dist >= d:
+            if dist >= d and not pair_closing(rij, rij @ rij, v[j] - v[i], d, model.dt,
+                                                    model.onset_speed):
                 continue
             mi, mj = model.body_material[bi], model.body_material[bj]
-            k = model.pair_k[mi, mj]
-            root = np.sqrt(k / im)
+            k, eta, kt, ks = law(model.contact_law).contact_coefficients(model.pair_k[mi, mj],
+                                                         model.pair_damp, mi, mj, im,
+                                                         model.kt_ratio, model.ks_ratio, model.dt,
+                                                         d - dist)
             mu = model.pair_mu[mi, mj] if model.features.friction else 0.0
             if (i, j + 1) in spring:
                 s0 = spring[(i, j + 1)]
             else:
                 s0 = -spring.get((j, i + 1), np.zeros(3))
-            out = physics.sphere_pair_force(*rij, dist, d, *(v[j] - v[i]), *(W[bi] + W[bj]), k,
-                                            2 * model.pair_zeta[mi, mj] * root,
-                                            model.kt_ratio * root, model.ks_ratio * k, mu,
-                                            *s0, model.dt)
+            out = physics.sphere_pair_force(*rij, dist, d, *(v[j] - v[i]), *(W[bi] + W[bj]),
+                                            k, eta, kt, ks, mu, *s0, model.dt,
+                                            model.onset_speed)
             f[i] += out[0:3]; t[i] += out[3:6]
         if model.body_inv_mass[bi] > 0:
             for w in range(model.n_walls):
                 n = model.wall_normal[w]
                 dist = float(n @ x[i] - model.wall_offset[w])
-                if not (-model.wall_depth[w] < dist < d / 2):
+                if not (-model.wall_depth[w] < dist < d / 2
+                        or (dist >= d / 2
+                            and wall_closing(n, dist, v[i], d, model.dt, model.onset_speed))):
                     continue
                 if np.any(x[i] < model.wall_lo[w]) or np.any(x[i] > model.wall_hi[w]):
                     continue
                 mi, mj = model.body_material[bi], model.wall_material[w]
-                k = model.pair_k[mi, mj]
-                root = np.sqrt(k / model.body_inv_mass[bi])
+                k, eta, kt, ks = law(model.contact_law).contact_coefficients(
+                    model.pair_k[mi, mj], model.pair_damp, mi, mj, model.body_inv_mass[bi],
+                    model.kt_ratio, model.ks_ratio, model.dt, d / 2 - dist)
                 mu = model.pair_mu[mi, mj] if model.features.friction else 0.0
                 s0 = spring.get((i, S + w + 1), np.zeros(3))
-                out = physics.sphere_wall_force(*(-n), d / 2 - dist, d / 2, *v[i], *W[bi], k,
-                                                2 * model.pair_zeta[mi, mj] * root,
-                                                model.kt_ratio * root, model.ks_ratio * k, mu,
-                                                *s0, model.dt)
+                out = physics.sphere_wall_force(*(-n), d / 2 - dist, d / 2, *v[i], *W[bi],
+                                                k, eta, kt, ks, mu, *s0, model.dt,
+                                            model.onset_speed)
                 f[i] += out[0:3]; t[i] += out[3:6]
     for b in range(model.n_bodies):
         sl = slice(model.body_sphere_start[b], model.body_sphere_start[b + 1])

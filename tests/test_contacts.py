@@ -14,10 +14,12 @@ import pytest
 
 from bodies import ball_set, box_set
 from dempipe import physics
+from dempipe.laws import law
 from dempipe.kernels import contacts, cpu
 from dempipe.materials import Material
 from dempipe.model import ModelBuilder
 from dempipe.simulator import Simulator
+from reference import pair_closing, wall_closing
 from test_cuda import falling_model
 from test_neighbours import loose_balls
 from test_sleeping import pile
@@ -60,9 +62,9 @@ def scenes():
     static slab; a pile part asleep; sleeping pairs."""
     return [("loose balls in a box", loose_balls(), 40),
             ("box onto slab", falling_model(), 30),
-            ("pile, part asleep", pile(sleep=(0.05, 1.0, 0.02), n_frames=6), 1600),
+            ("pile, part asleep", pile(sleep=(0.05, 1.0, 0.02), n_frames=6), 1000),
             ("boxes on a static slab", boxes_on_static_slab(), 600),
-            ("pressed boxes asleep, one dropped on them", pressed_boxes_woken(), 4600)]
+            ("pressed boxes asleep, one dropped on them", pressed_boxes_woken(), 3000)]
 
 
 def owner_stretch(state, i, j):
@@ -104,17 +106,19 @@ def own_forces(model, state, be):
                 continue
             r = x[j] - x[i]
             dist2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
-            if dist2 >= d * d:
+            if dist2 >= d * d and not pair_closing(r, dist2, v[j] - v[i], d, model.dt,
+                                                        model.onset_speed):
                 continue
             mi, mj = model.body_material[bi], model.body_material[bj]
-            k = model.pair_k[mi, mj]
-            root = np.sqrt(k / (model.body_inv_mass[bi] + model.body_inv_mass[bj]))
+            k, eta, kt, ks = law(model.contact_law).contact_coefficients(
+                model.pair_k[mi, mj], model.pair_damp, mi, mj,
+                model.body_inv_mass[bi] + model.body_inv_mass[bj], model.kt_ratio,
+                model.ks_ratio, model.dt, d - np.sqrt(dist2))
             mu = model.pair_mu[mi, mj]
             s0 = owner_stretch(state, i, j)
             out = physics.sphere_pair_force(
                 r[0], r[1], r[2], np.sqrt(dist2), d, *(v[j] - v[i]), *(W[bi] + W[bj]),
-                k, 2.0 * model.pair_zeta[mi, mj] * root, model.kt_ratio * root,
-                model.ks_ratio * k, mu, *s0, model.dt)
+                k, eta, kt, ks, mu, *s0, model.dt, model.onset_speed)
             fx += out[0]
             fy += out[1]
             fz += out[2]
@@ -126,19 +130,19 @@ def own_forces(model, state, be):
         for w in range(model.n_walls):
             n = model.wall_normal[w]
             dist = n[0] * x[i, 0] + n[1] * x[i, 1] + n[2] * x[i, 2] - model.wall_offset[w]
-            if dist >= d / 2 or dist <= -model.wall_depth[w]:
+            if ((dist >= d / 2 and not wall_closing(n, dist, v[i], d, model.dt, model.onset_speed))
+                    or dist <= -model.wall_depth[w]):
                 continue
             if np.any(x[i] < model.wall_lo[w]) or np.any(x[i] > model.wall_hi[w]):
                 continue
             mi, mj = model.body_material[bi], model.wall_material[w]
-            k = model.pair_k[mi, mj]
-            root = np.sqrt(k / model.body_inv_mass[bi])
+            k, eta, kt, ks = law(model.contact_law).contact_coefficients(
+                model.pair_k[mi, mj], model.pair_damp, mi, mj, model.body_inv_mass[bi],
+                model.kt_ratio, model.ks_ratio, model.dt, d / 2 - dist)
             mu = model.pair_mu[mi, mj]
             s0 = owner_stretch(state, i, ns + w)
-            out = physics.sphere_wall_force(*(-n), d / 2 - dist, d / 2, *v[i], *W[bi], k,
-                                            2.0 * model.pair_zeta[mi, mj] * root,
-                                            model.kt_ratio * root, model.ks_ratio * k, mu,
-                                            *s0, model.dt)
+            out = physics.sphere_wall_force(*(-n), d / 2 - dist, d / 2, *v[i], *W[bi],
+                                            k, eta, kt, ks, mu, *s0, model.dt, model.onset_speed)
             for c in range(3):
                 wf[c] += out[c]
                 if mu > 0.0:
@@ -273,15 +277,16 @@ def many_walls_model(n_floors, far_boxes=0):
 def test_a_full_history_row_does_not_depend_on_how_steps_are_split(n_floors):
     # With 11 floors the first ball remembers 12 walls and its pair: one more than its
     # row holds. The pair's stretch is then forgotten at every step (walls first),
-    # in one call of 200 steps as in four of 50 (found by review: it was kept within
-    # a call and dropped at each call's end).
+    # in one call of 150 steps as in three of 50 (found by review: it was kept within
+    # a call and dropped at each call's end). (The ball rattles in its corner of 12
+    # coincident walls: 150 steps end with it touching.)
     model = many_walls_model(n_floors)
     ref = model.initial_state()
-    Simulator(model).backend.step(ref, 200)
+    Simulator(model).backend.step(ref, 150)
     assert (ref.contact_partner[0] != 0).sum() == 12
     be = Simulator(model).backend
     st = model.initial_state()
-    for _ in range(4):
+    for _ in range(3):
         be.step(st, 50)
     for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner", "contact_spring"):
         assert np.array_equal(getattr(st, name), getattr(ref, name)), name

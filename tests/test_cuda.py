@@ -56,7 +56,7 @@ def _env(sim: bool) -> dict:
 # Scenes (shared by the simulator script and the GPU tests)
 # ---------------------------------------------------------------------------
 
-def contact_model(fps=60.0, n_frames=8, seed=0):
+def contact_model(fps=60.0, n_frames=8, seed=0, law="linear"):
     """Six bodies (two box shapes, a ball; two materials) touching each other, a
     box container and a tilted plane at the start: every contact kind in step 1."""
     from bodies import ball_set, box_set
@@ -80,7 +80,7 @@ def contact_model(fps=60.0, n_frames=8, seed=0):
                      angular_velocities=[rng.normal(size=3) * 3])
     b.add_box([-0.0145, -0.0145, 0], [0.0345, 0.025, 0.1], material=mats[0])
     b.add_plane([0, 0, 0.0005], [0.1, 0, 1], mats[1])
-    return b.finalize(fps=fps, n_frames=n_frames)
+    return b.finalize(fps=fps, n_frames=n_frames, contact_law=law)
 
 
 def pile_model(n_side=12, layers=4, friction=0.4):
@@ -295,6 +295,14 @@ def _sim_main() -> dict:
     be.step(e, 2)
     out["new_state_identical"] = all(np.array_equal(getattr(e, n), getattr(c, n)) for n in BODY)
 
+    # the Hertz law: its own variant of the contact passes on each target, the same bits
+    mh = contact_model(law="hertz")
+    c, e = mh.initial_state(), mh.initial_state()
+    kcpu.CpuBackend(mh).step(c, 12)
+    kcu.CudaBackend(mh).step(e, 12)
+    out["hertz"] = {"identical": all(np.array_equal(getattr(e, n), getattr(c, n)) for n in BODY),
+                    "moved": float(np.abs(c.body_x - mh.initial_state().body_x).max() / D)}
+
     # run to run on the CUDA target (in-bucket sort after the atomic scatter)
     r1, r2 = st0.copy(), st0.copy()
     kcu.CudaBackend(model).step(r1, 6)
@@ -471,6 +479,13 @@ def test_sim_is_bit_identical_to_cpu(sim):
     assert all(sim["probe"]["identical"].values()), sim["probe"]["identical"]
     assert sim["step1"]["identical"] and sim["step20"]["identical"]
     assert sim["new_state_identical"] and sim["simulator"]["identical"]
+
+
+def test_sim_hertz_law_is_bit_identical_to_cpu(sim):
+    # The contact law is a compile-time axis of the contact passes on both targets
+    # (laws/hertz.py compiled into pair_forces): the same formulas, the same bits.
+    assert sim["hertz"]["identical"], sim["hertz"]
+    assert sim["hertz"]["moved"] > 0.01          # the bodies moved (and touched)
 
 
 def test_sim_list_overflow_relaunches_bit_identical(sim):

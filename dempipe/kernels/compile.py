@@ -96,12 +96,14 @@ def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNam
     given = dict(history_recall=formulas.history_recall, history_store=formulas.history_store,
                  entry_range=pairing.entry_range,
                  contact_coefficients=formulas.contact_coefficients,
+                 closing=formulas.closing,
                  static_body=formulas.static_body,
                  sphere_pair_force=formulas.sphere_pair_force,
                  sphere_wall_force=formulas.sphere_wall_force,
                  anchor_local=formulas.anchor_local, anchor_surface=formulas.anchor_surface)
     given.update(constants)
-    return compile_chain(contacts, ("wall_gap", "pair_forces", "sphere_forces"), jit, given)
+    return compile_chain(contacts, ("wall_gap", "pair_ended", "pair_forces", "sphere_forces"), jit,
+                         given)
 
 
 def compile_formulas(jit, law: str = laws.DEFAULT) -> types.SimpleNamespace:

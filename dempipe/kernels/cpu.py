@@ -20,11 +20,12 @@ from numba import prange
 from . import contacts, neighbours
 from .bodies import body_update
 from .prescribed import driven_row, motion_row
-from .compile import invalidate_stale_cache, specialize
+from .compile import compile_formulas, invalidate_stale_cache, specialize
 from ..state import CONTACT_SLOTS
 # UNPAIRED: read by contacts.sphere_forces, which is compiled with this module's globals
 from .contacts import (CONTACT_CHUNK, LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE,  # noqa: F401
                        UNPAIRED, WALL_SLACK)
+from .contacts import CLOSE_REACH2  # noqa: F401 (read by contacts.pair_forces, sphere_forces)
 from .layout import (BUCKETS_PER_SPHERE, CPU_LAYOUT, FLAGS, GENERAL,  # noqa: F401
                      chunk_spans, cpu_scratch, fit_grid, grid_table, kernel_flags,
                      scene_features, static_extent)
@@ -37,7 +38,7 @@ from .cpu_device import (  # noqa: F401
     cell_key, contact_coefficients, entry_range, history_recall, history_store, owns,
     pair_count, pair_mirror, pair_slots, pairs_to_rows, quat_rotate, rest_steps, rows_to_pairs,
     slot_store, sphere_kinematics, sphere_pair_force, sphere_wall_force, sqrt, static_body,
-    wall_reach)
+    wall_reach, closing)
 from .cpu_grid import (  # noqa: F401
     stage_grid_gather, stage_grid_sort, stage_history_to_slots, stage_history_to_spheres,
     stage_neighbours, stage_pairs, stage_pairs_to_rows, stage_rows_to_pairs, stage_unsort,
@@ -252,7 +253,7 @@ def stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still, 
 def stage_contacts(diameter, nbr, nbr_n, pidx, pair_start, pair_t, sorted_idx, sorted_x,
                    sorted_v,
                    sorted_body, body_w, body_inv_mass, body_material,
-                   pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
+                   pair_k, pair_damp, pair_mu, kt_ratio, ks_ratio, friction, dt, onset_speed, parity,
                    hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                    wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                    wall_mask, pair_f, wall_f, wall_start, wall_s, spans, n_spans,
@@ -276,15 +277,15 @@ def stage_contacts(diameter, nbr, nbr_n, pidx, pair_start, pair_t, sorted_idx, s
                     diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s,
                     sorted_idx, sorted_x, sorted_v,
                     sorted_body, body_w, body_inv_mass, body_material,
-                    pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
+                    pair_k, pair_damp, pair_mu, kt_ratio, ks_ratio, friction, dt, onset_speed, parity,
                     hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                     wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                     wall_mask, pair_f, wall_f, wall_motion, motion_now)
 
 
 def stage_sums(diameter, nbr, nbr_n, pidx, list_start, list_e, sorted_idx, sorted_x,
-               sorted_body, body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
-               sphere_f, sphere_t, sphere_overlap, spans, n_spans):
+               sorted_v, dt, onset_speed, sorted_body, body_inv_mass, sleep_steps, body_rest,
+               wall_mask, pair_f, wall_f, sphere_f, sphere_t, sphere_overlap, spans, n_spans):
     """Stage 4, second pass (contacts.sphere_forces): each sphere gathers the
     forces on itself, in its list's order (its partners' index order), then its
     walls'; writes sphere_f, sphere_t (torque about the sphere's centre) and
@@ -293,9 +294,8 @@ def stage_sums(diameter, nbr, nbr_n, pidx, list_start, list_e, sorted_idx, sorte
     for c in prange(n_spans):
         sphere_forces(spans[c, 0], spans[c, 1],
                       diameter, nbr, nbr_n, pidx, list_start, list_e, sorted_idx, sorted_x,
-                      sorted_body,
-                      body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
-                      sphere_f, sphere_t, sphere_overlap)
+                      sorted_v, dt, onset_speed, sorted_body, body_inv_mass, sleep_steps,
+                      body_rest, wall_mask, pair_f, wall_f, sphere_f, sphere_t, sphere_overlap)
 
 
 def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
@@ -363,8 +363,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
     """
     # the structured arguments (layout.StepModel, StepState, Scratch; control.Drive),
     # under the names the stages take them by
-    (dt, diameter, n_bodies, gravity, sphere_body, sphere_offset, body_sphere_start,
-     body_mass, body_inv_mass, body_inv_inertia, body_material, pair_k, pair_zeta, pair_mu,
+    (dt, onset_speed, diameter, n_bodies, gravity, sphere_body, sphere_offset, body_sphere_start,
+     body_mass, body_inv_mass, body_inv_inertia, body_material, pair_k, pair_damp, pair_mu,
      kt_ratio, ks_ratio, friction, sleep_steps, v_sleep, w_sleep, wall_normal, wall_offset,
      wall_lo, wall_hi, wall_depth, wall_material) = model
     (body_x, body_q, body_P, body_L, body_rest, contact_partner, contact_spring) = state
@@ -464,13 +464,14 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
             span_ctl[0] += 1
         stage_contacts(diameter, nbr, nbr_n, pidx, pair_start, pair_t, sorted_idx, sorted_x,
                        sorted_v, sorted_body, body_w, body_inv_mass, body_material,
-                       pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, step & 1,
+                       pair_k, pair_damp, pair_mu, kt_ratio, ks_ratio, friction, dt, onset_speed,
+                       step & 1,
                        hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
                        wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                        wall_mask, pair_f, wall_f, wall_start, wall_s, work, n_work,
                        drive.wall_motion, drive.motion_now)
         stage_sums(diameter, nbr, nbr_n, pidx, list_start, list_e, sorted_idx, sorted_x,
-                   sorted_body, body_inv_mass,
+                   sorted_v, dt, onset_speed, sorted_body, body_inv_mass,
                    sleep_steps, body_rest, wall_mask, pair_f, wall_f, sphere_f, sphere_t,
                    sphere_overlap, work, n_work)
         awake, woke, quiet, calmed = stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start,
@@ -521,7 +522,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
 _STAGES = (stage_body_velocities, motion_row, driven_row, stage_motion, stage_driven,
            sphere_state, stage_spheres,
            stage_spheres_sorted,
-           contacts.wall_gap, contacts.pair_forces, contacts.sphere_forces,
+           contacts.wall_gap, contacts.pair_ended, contacts.pair_forces, contacts.sphere_forces,
            stage_contacts, stage_sums, body_update,
            stage_bodies, run_steps)
 _JITS = {
@@ -534,6 +535,7 @@ _JITS = {
     "stage_spheres": numba.njit(parallel=True, cache=True),
     "stage_spheres_sorted": numba.njit(parallel=True, cache=True),
     "wall_gap": numba.njit(inline="always", cache=True),
+    "pair_ended": numba.njit(inline="always", cache=True),
     "pair_forces": numba.njit(cache=True),
     "sphere_forces": numba.njit(cache=True),
     "stage_contacts": numba.njit(parallel=True, cache=True),
@@ -545,16 +547,24 @@ _JITS = {
 _VARIANTS: dict = {}
 
 
-def kernels(flags) -> "types.SimpleNamespace":
-    """The stage drivers compiled for ``flags`` (friction, rotation, sleeping, walls),
-    created on first use; numba compiles each (or loads it from its disk cache)
-    at its first call."""
+def kernels(flags, law: str = "linear") -> "types.SimpleNamespace":
+    """The stage drivers compiled for ``flags`` (friction, rotation, sleeping, walls)
+    and the contact ``law`` (laws.LAWS; the module's formulas are the linear law's,
+    another law's are compiled and overlaid), created on first use; numba compiles
+    each (or loads it from its disk cache) at its first call."""
     flags = tuple(bool(f) for f in flags)
-    if flags not in _VARIANTS:
+    key = flags if law == "linear" else (flags, law)
+    if key not in _VARIANTS:
         tag = "".join(f"{n[0].upper()}{int(f)}" for n, f in zip(FLAGS, flags))
-        _VARIANTS[flags] = specialize(
-            _STAGES, _JITS, {n.upper(): f for n, f in zip(FLAGS, flags)}, tag, globals())
-    return _VARIANTS[flags]
+        consts = {n.upper(): f for n, f in zip(FLAGS, flags)}
+        if law != "linear":
+            tag += f"_{law}"
+            fl = compile_formulas(numba.njit(inline="always", cache=False), law)
+            consts.update(sphere_pair_force=fl.sphere_pair_force,
+                          sphere_wall_force=fl.sphere_wall_force,
+                          contact_coefficients=fl.contact_coefficients, closing=fl.closing)
+        _VARIANTS[key] = specialize(_STAGES, _JITS, consts, tag, globals())
+    return _VARIANTS[key]
 
 
 # The backend (host side) lives beside: kernels/cpu_backend.py.

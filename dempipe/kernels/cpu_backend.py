@@ -32,7 +32,7 @@ class CpuBackend:
         self.steps_skipped = 0
         self.features = scene_features(model, features)
         self.flags = kernel_flags(self.features) if specialize else GENERAL
-        self.k = kernels(self.flags)
+        self.k = kernels(self.flags, model.contact_law)
         # every array, by name (layout.cpu_scratch: what memory_estimate counts and a
         # checkpoint walks), zeroed; then the ones that start otherwise
         for name, (shape, dtype) in cpu_scratch(model, self.features.friction).items():
@@ -184,8 +184,9 @@ class CpuBackend:
         self.k.stage_contacts(m.diameter, self.nbr, self.nbr_n, self.pidx, self.pair_start,
                               self.pair_t, self.sorted_idx, self.sorted_x,
                               self.sorted_v, self.sorted_body, self.body_w, m.body_inv_mass,
-                              m.body_material, m.pair_k, m.pair_zeta, m.pair_mu, m.kt_ratio,
-                              m.ks_ratio, self.features.friction, m.dt, state.step & 1,
+                              m.body_material, m.pair_k, m.pair_damp, m.pair_mu, m.kt_ratio,
+                              m.ks_ratio, self.features.friction, m.dt, m.onset_speed,
+                              state.step & 1,
                               partner, spring, m.sleep_steps, self.rest(state),
                               self.body_wake.copy(), m.wall_normal, m.wall_offset, m.wall_lo,
                               m.wall_hi, m.wall_depth, m.wall_material, self.wall_mask,
@@ -194,7 +195,7 @@ class CpuBackend:
                               self.drive.motion_now)
         self.k.stage_sums(m.diameter, self.nbr, self.nbr_n, self.pidx, self.list_start,
                           self.list_e, self.sorted_idx,
-                          self.sorted_x, self.sorted_body, m.body_inv_mass, m.sleep_steps,
+                          self.sorted_x, self.sorted_v, m.dt, m.onset_speed, self.sorted_body, m.body_inv_mass, m.sleep_steps,
                           self.rest(state), self.wall_mask, self.pair_f, self.wall_f,
                           self.sphere_f, self.sphere_t, self.sphere_overlap, self.chunks,
                           self.chunks.shape[0])

@@ -27,6 +27,7 @@ history_recall = F.history_recall
 history_store = F.history_store
 rest_steps = F.rest_steps
 contact_coefficients = F.contact_coefficients
+closing = F.closing
 static_body = F.static_body
 anchor_state = F.anchor_state
 carried_state = F.carried_state

@@ -41,8 +41,9 @@ from numba import cuda
 
 from ..control import drive, split_at
 from ..errors import DeviceError
+from ..laws.linear import DAMP_TERMS
 from ..state import CONTACT_SLOTS
-from .compile import compile_contacts
+from .compile import compile_contacts, compile_formulas
 from .contacts import PAIR_COLS, WALL_SLACK
 from .layout import (BUCKETS_PER_SPHERE, CUDA_LAYOUT, FLAGS, GENERAL, fit_grid,  # noqa: F401
                      grid_table, kernel_flags, scene_features, static_extent)
@@ -77,19 +78,23 @@ def variant_tag(flags) -> str:
     return "".join(f"{n[0].upper()}{int(f)}" for n, f in zip(FLAGS, flags))
 
 
-def kernels(flags) -> types.SimpleNamespace:
+def kernels(flags, law: str = "linear") -> types.SimpleNamespace:
     """The SPECIALIZED kernels compiled for ``flags`` (friction, rotation, sleeping,
     walls), created on first use (numba-cuda compiles each at its first launch):
     contacts.pair_forces / sphere_forces compiled with those flags as constants,
     and the kernels re-created with their modules' globals overlaid by them and by
     the flags (compile.specialize's rebinding, for cuda.jit). ``GENERAL`` gives
-    the module's own kernels."""
+    the module's own kernels; a ``law`` other than the linear one (laws.LAWS) has its
+    formulas compiled into the contact passes."""
     flags = tuple(bool(f) for f in flags)
-    if flags == GENERAL:
+    if flags == GENERAL and law == "linear":
         return types.SimpleNamespace(**{n: globals()[n] for n in SPECIALIZED})
-    if flags not in _VARIANTS:
+    key = flags if law == "linear" else (flags, law)
+    if key not in _VARIANTS:
         consts = {n.upper(): f for n, f in zip(FLAGS, flags)}
-        c = compile_contacts(_device_jit(), F, P, dict(consts, sqrt=math.sqrt, **CUDA_LAYOUT))
+        formulas = F if law == "linear" else compile_formulas(_device_jit(), law)
+        c = compile_contacts(_device_jit(), formulas, P,
+                             dict(consts, sqrt=math.sqrt, **CUDA_LAYOUT))
         body_update, _, _ = compile_body_stage(consts)
         out = {}
         for name in SPECIALIZED:
@@ -100,11 +105,12 @@ def kernels(flags) -> types.SimpleNamespace:
                        body_update=body_update)
             fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__,
                                     py.__closure__)
-            fn.__qualname__ = f"{name}__{variant_tag(flags)}"
+            fn.__qualname__ = f"{name}__{variant_tag(flags)}" + \
+                ("" if law == "linear" else f"_{law}")
             fn.__doc__ = py.__doc__
             out[name] = cuda.jit(fn)
-        _VARIANTS[flags] = types.SimpleNamespace(**out)
-    return _VARIANTS[flags]
+        _VARIANTS[key] = types.SimpleNamespace(**out)
+    return _VARIANTS[key]
 
 
 def _blocks(n: int, threads: int) -> int:
@@ -169,7 +175,8 @@ def scratch_layout(model, friction=None) -> dict:
         "sphere_body": ((ns,), i4), "sphere_offset": ((ns, 3), f8),
         "body_sphere_start": ((nb + 1,), i4), "body_mass": ((nb,), f8),
         "body_inv_mass": ((nb,), f8), "body_inv_inertia": ((nb, 6), f8),
-        "body_material": ((nb,), i4), "pair_k": ((nm, nm), f8), "pair_zeta": ((nm, nm), f8),
+        "body_material": ((nb,), i4), "pair_k": ((nm, nm), f8),
+        "pair_damp": ((nm, nm, DAMP_TERMS), f8),
         "pair_mu": ((nm, nm), f8), "wall_normal": ((nw, 3), f8), "wall_offset": ((nw,), f8),
         "wall_lo": ((nw, 3), f8), "wall_hi": ((nw, 3), f8), "wall_depth": ((nw,), f8),
         "wall_material": ((nw,), i4), "gravity": ((3,), f8), "grid": ((6,), i8),
@@ -257,7 +264,7 @@ class CudaBackend:
         self.features = scene_features(model, features)
         self.specialize = specialize
         self.flags = kernel_flags(self.features) if specialize else GENERAL
-        self.k = kernels(self.flags)
+        self.k = kernels(self.flags, model.contact_law)
         layout = scratch_layout(model, self.features.friction)
         ctx = cuda.current_context()
         free, total = ctx.get_memory_info()
@@ -269,7 +276,7 @@ class CudaBackend:
         d = {}
         model_fields = ("sphere_body", "sphere_offset", "body_sphere_start", "body_mass",
                         "body_inv_mass", "body_inv_inertia", "body_material", "pair_k",
-                        "pair_zeta", "pair_mu", "wall_normal", "wall_offset", "wall_lo",
+                        "pair_damp", "pair_mu", "wall_normal", "wall_offset", "wall_lo",
                         "wall_hi", "wall_depth", "wall_material", "gravity")
         for name in model_fields:
             shape, dt = layout[name]
@@ -449,8 +456,8 @@ class CudaBackend:
         self.k.k_pair_forces[blocks, CONTACT_THREADS](
             m.diameter, d["nbr"], d["nbr_n"], d["pidx"], d["sorted_idx"],
             d["sorted_x"], d["sorted_v"], d["sorted_body"], d["body_w"],
-            d["body_inv_mass"], d["body_material"], d["pair_k"], d["pair_zeta"], d["pair_mu"],
-            m.kt_ratio, m.ks_ratio, bool(self.features.friction), m.dt, parity,
+            d["body_inv_mass"], d["body_material"], d["pair_k"], d["pair_damp"], d["pair_mu"],
+            m.kt_ratio, m.ks_ratio, bool(self.features.friction), m.dt, m.onset_speed, parity,
             d["contact_partner"] if partner is None else partner,
             d["contact_spring"] if spring is None else spring,
             m.sleep_steps, d["body_rest"], d["body_wake"] if wake is None else wake,
@@ -459,8 +466,8 @@ class CudaBackend:
             d["motion_now"], d["ctl"])
         self.k.k_sphere_forces[_blocks(m.n_spheres, THREADS), THREADS](
             m.diameter, d["nbr"], d["nbr_n"], d["pidx"], d["sorted_idx"], d["sorted_x"],
-            d["sorted_body"], d["body_inv_mass"], m.sleep_steps, d["body_rest"],
-            d["wall_mask"], d["pair_f"], d["wall_f"], d["sphere_f"], d["sphere_t"],
+            d["sorted_v"], m.dt, m.onset_speed, d["sorted_body"], d["body_inv_mass"], m.sleep_steps,
+            d["body_rest"], d["wall_mask"], d["pair_f"], d["wall_f"], d["sphere_f"], d["sphere_t"],
             d["sphere_overlap"], d["ctl"])
 
     def _bodies(self):

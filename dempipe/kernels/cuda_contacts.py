@@ -73,7 +73,8 @@ def k_load_pairs(friction, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_m
 @cuda.jit
 def k_pair_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
                   sorted_body, body_w, body_inv_mass, body_material,
-                  pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
+                  pair_k, pair_damp, pair_mu, kt_ratio, ks_ratio, friction, dt, onset_speed,
+                  parity,
                   contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
                   wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                   wall_mask, pair_f, wall_f, wall_motion, motion_now, ctl):
@@ -89,14 +90,16 @@ def k_pair_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
     pair_forces(s, s + 1, diameter, nbr, nbr_n, pidx, nbr_n, nbr_n, nbr_n, pair_f, sorted_idx,
                 sorted_x, sorted_v,
                 sorted_body, body_w, body_inv_mass, body_material,
-                pair_k, pair_zeta, pair_mu, kt_ratio, ks_ratio, friction, dt, parity,
+                pair_k, pair_damp, pair_mu, kt_ratio, ks_ratio, friction, dt, onset_speed,
+                parity,
                 contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
                 wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                 wall_mask, pair_f, wall_f, wall_motion, motion_now)
 
 
 @cuda.jit
-def k_sphere_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_body,
+def k_sphere_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v, dt, onset_speed,
+                    sorted_body,
                     body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
                     sphere_f, sphere_t, sphere_overlap, ctl):
     """Stage 4, second pass (contacts.sphere_forces): each sphere's sum over its list
@@ -106,5 +109,6 @@ def k_sphere_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_bod
         return
     # list_start, list_e: the CPU's packed lists, unread here (LIST_ROWS is off)
     sphere_forces(s, s + 1, diameter, nbr, nbr_n, pidx, nbr_n, nbr, sorted_idx, sorted_x,
-                  sorted_body, body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
+                  sorted_v, dt, onset_speed, sorted_body, body_inv_mass, sleep_steps, body_rest,
+                  wall_mask, pair_f, wall_f,
                   sphere_f, sphere_t, sphere_overlap)

@@ -226,6 +226,7 @@ class StepModel(NamedTuple):
     ``step_model`` takes them from a Model (see Model's docstring for units)."""
 
     dt: Any
+    onset_speed: Any
     diameter: Any
     n_bodies: Any
     gravity: Any
@@ -237,7 +238,7 @@ class StepModel(NamedTuple):
     body_inv_inertia: Any
     body_material: Any
     pair_k: Any
-    pair_zeta: Any
+    pair_damp: Any
     pair_mu: Any
     kt_ratio: Any
     ks_ratio: Any
@@ -320,11 +321,12 @@ def step_model(model, friction: bool) -> StepModel:
     """The StepModel of ``model``; ``friction``: the backend's feature (its
     histories are kept)."""
     return StepModel(
-        dt=float(model.dt), diameter=float(model.diameter), n_bodies=int(model.n_bodies),
+        dt=float(model.dt), onset_speed=float(model.onset_speed),
+        diameter=float(model.diameter), n_bodies=int(model.n_bodies),
         gravity=model.gravity, sphere_body=model.sphere_body, sphere_offset=model.sphere_offset,
         body_sphere_start=model.body_sphere_start, body_mass=model.body_mass,
         body_inv_mass=model.body_inv_mass, body_inv_inertia=model.body_inv_inertia,
-        body_material=model.body_material, pair_k=model.pair_k, pair_zeta=model.pair_zeta,
+        body_material=model.body_material, pair_k=model.pair_k, pair_damp=model.pair_damp,
         pair_mu=model.pair_mu, kt_ratio=float(model.kt_ratio), ks_ratio=float(model.ks_ratio),
         friction=bool(friction), sleep_steps=int(model.sleep_steps),
         v_sleep=float(model.sleep_linear), w_sleep=float(model.sleep_angular),

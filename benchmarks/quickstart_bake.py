@@ -1,0 +1,75 @@
+"""The quickstart's whole bake (stepping only, no USD) with two source trees.
+
+    git archive REV | tar -x -C /tmp/base
+    python benchmarks/quickstart_bake.py /tmp/base . --pairs 2
+
+Each run is a fresh interpreter with its tree first on sys.path: it builds
+examples/quickstart.toml, steps twice to compile (warm numba cache), then times
+``backend.step`` over every step of the bake from frame 0. The trees alternate
+(A B, B A, ...); printed per run: dt, steps per frame, steps, wall and CPU seconds,
+the final largest speed and mean height (the two piles should settle alike); then
+the median ratio of wall times A/B (above 1: B bakes faster). A whole bake, not
+ab_trees.py's few steps: the quickstart's first steps are free fall and cost
+nearly nothing, and a change of dt auto shows only per bake (docs/performance.md).
+"""
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import time
+
+
+def child(root: str) -> None:
+    sys.path[:0] = [root]
+    import numpy as np
+
+    from dempipe.build import build_model
+    from dempipe.scene import load_scene
+    from dempipe.simulator import Simulator
+
+    model = build_model(load_scene(root + "/examples/quickstart.toml"))
+    sim = Simulator(model)
+    st = model.initial_state()
+    sim.backend.step(st, 2)
+    st = model.initial_state()
+    n = model.steps_per_frame * (model.n_frames - 1)
+    t0 = time.perf_counter()
+    c0 = time.process_time()
+    sim.backend.step(st, n)
+    wall = time.perf_counter() - t0
+    cpu = time.process_time() - c0
+    v = np.asarray(st.body_P) * model.body_inv_mass[:, None]
+    print(json.dumps(dict(dt=model.dt, spf=model.steps_per_frame, steps=n, wall=wall, cpu=cpu,
+                          speed=float(np.abs(v).max()),
+                          height=float(np.asarray(st.body_x)[:, 2].mean()))))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("a")
+    ap.add_argument("b", nargs="?")
+    ap.add_argument("--pairs", type=int, default=2)
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        return child(args.a)
+    ratios = []
+    for k in range(args.pairs):
+        walls = {}
+        for root in ((args.a, args.b) if k % 2 == 0 else (args.b, args.a)):
+            r = subprocess.run([sys.executable, __file__, root, "--child"], check=True,
+                               capture_output=True, text=True)
+            res = json.loads(r.stdout.strip().splitlines()[-1])
+            walls[root] = res["wall"]
+            print(f"{root}: dt {res['dt']:.3e} s, {res['spf']} steps per frame, "
+                  f"{res['steps']} steps, wall {res['wall']:.2f} s, cpu {res['cpu']:.2f} s; "
+                  f"largest speed {res['speed']:.2e} m/s, mean height {res['height']:.5f} m")
+        ratios.append(walls[args.a] / walls[args.b])
+        print(f"pair {k}: A/B {ratios[-1]:.3f}")
+    print(f"median A/B: {statistics.median(ratios):.3f} over {args.pairs} pairs (whole bake)")
+
+
+if __name__ == "__main__":
+    main()
