@@ -29,8 +29,9 @@ def test_run_all_lists_every_script():
     finally:
         sys.path.remove(BENCH)
     # gpu_bench needs a CUDA GPU, perf_samples Linux perf, cuda_compile_table ptxas,
-    # ab_trees two source trees (tools, not benchmarks): run alone
-    helpers = {"run_all", "gpu_bench", "perf_samples", "cuda_compile_table", "ab_trees"}
+    # ab_trees and quickstart_bake two source trees (tools, not benchmarks): run alone
+    helpers = {"run_all", "gpu_bench", "perf_samples", "cuda_compile_table", "ab_trees",
+               "quickstart_bake"}
     missing = set(SCRIPTS) - set(run_all.BENCHMARKS) - helpers
     assert not missing, f"benchmarks not run by run_all.py: {sorted(missing)}"
     unknown = set(run_all.BENCHMARKS) - set(SCRIPTS)
