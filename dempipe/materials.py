@@ -50,7 +50,10 @@ class Material:
     density : [kg/m³] > 0
     restitution : e ∈ [0, 1], normal rebound speed / approach speed
     friction : Coulomb μ ≥ 0 (0 turns friction off)
-    stiffness : normal spring k [N/m], or None for "auto"
+    stiffness : normal spring k [N/m] (the Hertz law: its constant K [N/m^1.5]), or
+        None for "auto"
+    young_modulus : Young's modulus E [Pa] for the Hertz law, or None: K from E and
+        poisson_ratio ν (laws.hertz.stiffness_from_modulus) instead of "auto"
     """
 
     name: str
@@ -58,6 +61,8 @@ class Material:
     restitution: float = 0.5
     friction: float = 0.5
     stiffness: float | None = None
+    young_modulus: float | None = None
+    poisson_ratio: float = 0.3
 
 
 DEFAULT_MATERIAL = Material("default")

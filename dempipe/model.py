@@ -794,7 +794,14 @@ class ModelBuilder:
         k_auto_all = 0.0
         for mi, m in enumerate(self._materials):
             used = (dyn_mat == mi) & ~kin       # kinematic bodies: carried, infinite mass
-            if m.stiffness is None and used.any():
+            if m.young_modulus is not None:
+                if not hasattr(law, "stiffness_from_modulus"):
+                    raise SceneError(f"materials.{m.name}.young_modulus: applies to the Hertz "
+                                     f"law only (contact_law is {law_name!r}; give stiffness)")
+                # equal spheres of diameter d (R* = d/4); a sphere on a wall (R* = d/2)
+                # would be √2 stiffer: walls take the pair's K
+                stiffness.append(law.stiffness_from_modulus(m.young_modulus, m.poisson_ratio, d))
+            elif m.stiffness is None and used.any():
                 k = law.stiffness_for_overlap(float(m_corner[used].max()), v_imp, g, d,
                                               target_overlap)
                 k_auto_all = max(k_auto_all, k)

@@ -20,7 +20,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Union
+from typing import Any, Optional, Union
 
 import numpy as np
 
@@ -152,6 +152,11 @@ class MaterialSpec:
     """Coulomb friction coefficient μ [1], ≥ 0."""
     stiffness: Union[float, str] = "auto"
     """Normal contact stiffness [N/m] > 0, or "auto"."""
+    young_modulus: Optional[float] = None
+    """Young's modulus E [Pa] > 0 (contact_law = "hertz" only): the Hertz constant
+    from it instead of "auto"."""
+    poisson_ratio: float = 0.3
+    """Poisson's ratio ν [1], in [0, 0.5), with young_modulus."""
 
     def to_material(self):
         """The :class:`dempipe.materials.Material` (stiffness None for "auto")."""
@@ -159,7 +164,9 @@ class MaterialSpec:
 
         k = None if self.stiffness == "auto" else float(self.stiffness)
         return Material(self.name, float(self.density), float(self.restitution),
-                        float(self.friction), k)
+                        float(self.friction), k,
+                        None if self.young_modulus is None else float(self.young_modulus),
+                        float(self.poisson_ratio))
 
 
 @dataclass(frozen=True)
@@ -543,7 +550,8 @@ _LAWS = ("linear", "hertz")
 #: does not import the sphere builder).
 _SPHERE_MODES = ("lattice", "surface")
 _SLEEP_KEYS = ("linear_speed", "angular_speed", "time")
-_MATERIAL_KEYS = ("density", "restitution", "friction", "stiffness")
+_MATERIAL_KEYS = ("density", "restitution", "friction", "stiffness", "young_modulus",
+                  "poisson_ratio")
 _BODY_COMMON = ("name", "shape", "material", "count", "layout", "rotation", "velocity",
                 "angular_velocity", "kinematic", "motion", "start_time")
 _LAYOUT_KEYS = {
@@ -686,6 +694,18 @@ def _parse_materials(ctx: _Ctx, d: Any) -> dict[str, MaterialSpec]:
             else:
                 kw["stiffness"] = ctx.number(v, f"{key}.stiffness", lo=0.0, lo_open=True,
                                              unit='N/m, or "auto"')
+        if "young_modulus" in m:
+            kw["young_modulus"] = ctx.number(m["young_modulus"], f"{key}.young_modulus",
+                                             lo=0.0, lo_open=True, unit="Pa")
+            if kw.get("stiffness", "auto") != "auto":
+                raise ctx.error(key, "both stiffness and young_modulus are given",
+                                "keep one: young_modulus sets the Hertz constant K")
+        if "poisson_ratio" in m:
+            if "young_modulus" not in m:
+                raise ctx.error(f"{key}.poisson_ratio", "given without young_modulus",
+                                "add young_modulus in Pa, or remove poisson_ratio")
+            kw["poisson_ratio"] = ctx.number(m["poisson_ratio"], f"{key}.poisson_ratio",
+                                             lo=0.0, hi=0.4999)
         out[name] = MaterialSpec(name, **kw)
     return out
 
@@ -1122,6 +1142,12 @@ def _validate(ctx: _Ctx, data: dict) -> Scene:
                                 f"already used by colliders[{seen_c[col.name]}]")
             seen_c[col.name] = i
             colliders.append(col)
+    for name, m in materials.items():
+        if m.young_modulus is not None and simulation.contact_law != "hertz":
+            raise ctx.error(f"materials.{name}.young_modulus",
+                            f"applies to the Hertz law only, and the scene's contact_law is "
+                            f"{simulation.contact_law!r}",
+                            'set [simulation] contact_law = "hertz", or give stiffness in N/m')
     return Scene(path=ctx.path, output=output, simulation=simulation, materials=materials,
                  shapes=shapes, bodies=tuple(bodies), colliders=tuple(colliders))
 
