@@ -47,12 +47,15 @@ import click
               help="Largest incline rolling error (a ball of each run's resolution and "
                    "sphere mode against 5/7 g sin θ) a recommended setting may have "
                    "[default: not a condition; it is measured and shown].")
+@click.option("--laws", "contact_laws", default=None, metavar="LIST",
+              help="Contact laws to sweep, e.g. linear,hertz (the reference takes the "
+                   "last). Default: the scene's own, no law axis.")
 @click.option("--no-plots", is_flag=True, help="Skip the PNG plots (no matplotlib needed).")
 @click.option("--quiet", "-q", is_flag=True, help="No line per run.")
 @click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
 def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, horizon,
            tolerance, bodies, device, threads, workers, scheduler, cache_dir, no_plots, quiet,
-           debug, sphere_modes, rolling_tolerance):
+           debug, sphere_modes, rolling_tolerance, contact_laws):
     """Bake SCENE at every combination of resolution, dt and stiffness factors; write
     the error of each run against its run time to OUTPUT (report.md, report.csv, PNGs).
 
@@ -75,7 +78,9 @@ def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, 
         duration=duration, horizon=horizon, tolerance=tolerance, bodies=bodies, device=device,
         threads=threads, plots=not no_plots, rolling_tolerance=rolling_tolerance,
         sphere_modes=tuple(m.strip() for m in sphere_modes.split(",") if m.strip())
-        if sphere_modes else None)
+        if sphere_modes else None,
+        contact_laws=tuple(m.strip() for m in contact_laws.split(",") if m.strip())
+        if contact_laws else None)
     from dempipe.bake import check_writable
 
     check_writable(output, "report folder")     # before any bake, not after all of them

@@ -346,16 +346,19 @@ class DtRule:
 
     steps_per_contact : dt = (its own contact time) / this, as dt="auto" does
     dt : a fixed step [s] instead (a scene that gives simulation.dt)
+    law : the contact law of the run (laws.LAWS); a case's stiffness is that law's
     """
 
     steps_per_contact: float = mat.STEPS_PER_CONTACT
     dt: float | None = None
+    law: str = "linear"
 
     def finalize_args(self, fps: float) -> dict:
         if self.dt is None:
-            return dict(dt="auto", steps_per_contact=self.steps_per_contact)
+            return dict(dt="auto", steps_per_contact=self.steps_per_contact,
+                        contact_law=self.law)
         spf = max(1, round(1.0 / (fps * self.dt)))
-        return dict(dt=1.0 / (fps * spf))
+        return dict(dt=1.0 / (fps * spf), contact_law=self.law)
 
 
 def _ball(diameter: float):

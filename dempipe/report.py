@@ -91,6 +91,8 @@ class Sweep:
         own (no mode axis). The reference takes the last one given.
     rolling_tolerance : the incline rolling error (accuracy.incline_rolling_error) a
         recommended setting may have; None: not a condition (it is still measured).
+    contact_laws : contact laws to sweep ("linear", "hertz"; laws.LAWS); None: the
+        scene's own (no law axis). The reference takes the last one given.
     """
 
     resolutions: tuple | None = None
@@ -105,6 +107,7 @@ class Sweep:
     plots: bool = True
     sphere_modes: tuple | None = None
     rolling_tolerance: float | None = None
+    contact_laws: tuple | None = None
 
 
 @dataclass
@@ -133,6 +136,7 @@ class Run:
     model: object = None
     pile: object = None
     mode: str | None = None          # sphere-set mode of the sweep's mode axis (None: none)
+    law: str | None = None           # contact law of the sweep's law axis (None: none)
     envelope: dict = field(default_factory=dict)   # worst shape: hausdorff_d, bump_d
 
     @property
@@ -143,7 +147,9 @@ class Run:
     @property
     def label(self) -> str:
         mode = f" {self.mode}" if self.mode else ""
-        return f"r{self.resolution} dt×{self.dt_factor:g} k×{self.stiffness_factor:g}{mode}"
+        law = f" {self.law}" if self.law else ""
+        return (f"r{self.resolution} dt×{self.dt_factor:g} k×{self.stiffness_factor:g}"
+                f"{mode}{law}")
 
     @property
     def ok(self) -> bool:
@@ -214,15 +220,27 @@ def _first_bodies(scene, n: int):
 
 
 def _overrides(scene, res: int, dt_factor: float, k_factor: float, duration: float,
-               mode: str | None = None):
+               mode: str | None = None, law: str | None = None):
     from .build import Overrides
 
     dt = scene.simulation.dt
     if isinstance(dt, str):      # auto: more steps per contact
         return Overrides(resolution=res, dt_factor=dt_factor, stiffness_factor=k_factor,
-                         duration=duration, spheres=mode)
+                         duration=duration, spheres=mode, contact_law=law)
     return Overrides(resolution=res, dt=float(dt) * dt_factor, stiffness_factor=k_factor,
-                     duration=duration, spheres=mode)
+                     duration=duration, spheres=mode, contact_law=law)
+
+
+def _contact_laws(sweep) -> tuple:
+    """The law axis: (None,) without one, else the laws in the order given."""
+    if not sweep.contact_laws:
+        return (None,)
+    from .laws import LAWS
+
+    for name in sweep.contact_laws:
+        if name not in LAWS:
+            raise ReportError(f"--laws: unknown contact law {name!r} (use {', '.join(LAWS)})")
+    return tuple(dict.fromkeys(sweep.contact_laws))
 
 
 def _sphere_modes(sweep) -> tuple:
@@ -372,17 +390,20 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
     dts = tuple(sorted(sweep.dt_factors, reverse=True))
     ks = tuple(sorted(sweep.stiffness_factors))
     modes = _sphere_modes(sweep)
-    ref_key = (resolutions[-1], dts[-1], 1.0, modes[-1])
-    keys = [ref_key] + [(r, f, k, m) for r in resolutions for f in dts for k in ks
-                        for m in modes if (r, f, k, m) != ref_key]
+    law_axis = _contact_laws(sweep)
+    ref_key = (resolutions[-1], dts[-1], 1.0, modes[-1], law_axis[-1])
+    keys = [ref_key] + [(r, f, k, m, lw) for r in resolutions for f in dts for k in ks
+                        for m in modes for lw in law_axis
+                        if (r, f, k, m, lw) != ref_key]
     # cheapest first after the reference: a user watching sees results soon
-    keys[1:] = sorted(keys[1:], key=lambda x: (x[0], -x[1], x[2], modes.index(x[3])))
+    keys[1:] = sorted(keys[1:], key=lambda x: (x[0], -x[1], x[2], modes.index(x[3]),
+                                               law_axis.index(x[4])))
 
     _warm_voxelizer()
     runs, shapes, built, farmed = [], {}, {}, []
     envelopes = {}
-    for i, (r, f, k, mode) in enumerate(keys):
-        run = Run(r, f, k, reference=(i == 0), mode=mode)
+    for i, (r, f, k, mode, law) in enumerate(keys):
+        run = Run(r, f, k, reference=(i == 0), mode=mode, law=law)
         runs.append(run)
         try:
             if (r, mode) not in built:    # sphere sets once per resolution: cold, cached
@@ -400,7 +421,7 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
                         shapes[(s.name, r)] = acc.shape_geometry_error(s.sphere_set,
                                                                        s.vertices, s.faces)
             model = build_model(scene, cache=cache,
-                                overrides=_overrides(scene, r, f, k, duration, mode))
+                                overrides=_overrides(scene, r, f, k, duration, mode, law))
             run.model = model
             run.envelope = envelopes.get((r, mode), {})
             run.sphere_build_cold_s, run.sphere_build_cached_s = built[(r, mode)]
@@ -477,6 +498,8 @@ def scene_settings(u: Run, target_overlap: float) -> list:
     lines = [f"resolution = {u.resolution}"]
     if u.mode:
         lines.append(f'spheres = "{u.mode}"')
+    if u.law:
+        lines.append(f'contact_law = "{u.law}"')
     if u.dt_factor != 1.0:
         per_frame = u.steps // max(u.model_frames, 1)
         lines.append(f"dt = {u.dt:.6g}   # {per_frame} steps per frame")
@@ -532,20 +555,23 @@ def _measure_physics(runs, ref, fixed_dt: bool, scene_mode=None, cache=None):
     from .spheres import DEFAULT_MODE
 
     mi, material = _dominant_material(ref.model)
-    spc = laws.law(ref.model.contact_law).STEPS_PER_CONTACT   # dt="auto"'s
     memo = {}
     smallest = int(np.argmin([s.sphere_set.volume for s in ref.model.shapes]))
     for u in runs:
         if not u.ok:
             continue
         m = u.model
+        law = m.contact_law
+        spc = laws.law(law).STEPS_PER_CONTACT   # dt="auto"'s
+        # the stiffness in the run's law's units (a law axis: the reference's may differ)
+        base = ref.model if ref.model.contact_law == law else m
         if not fixed_dt:
-            key = ("auto", u.dt_factor)
-            rule = acc.DtRule(steps_per_contact=spc / u.dt_factor)
-            d, k = ref.model.diameter, float(ref.model.pair_k[mi, mi])
+            key = ("auto", u.dt_factor, law)
+            rule = acc.DtRule(steps_per_contact=spc / u.dt_factor, law=law)
+            d, k = base.diameter, float(base.pair_k[mi, mi])
         else:
-            key = (u.resolution, u.dt_factor, u.stiffness_factor)
-            rule = acc.DtRule(dt=m.dt)
+            key = (u.resolution, u.dt_factor, u.stiffness_factor, law)
+            rule = acc.DtRule(dt=m.dt, law=law)
             d, k = m.diameter, float(m.pair_k[mi, mi])
         if key not in memo:
             try:
@@ -557,12 +583,12 @@ def _measure_physics(runs, ref, fixed_dt: bool, scene_mode=None, cache=None):
         if spin_key not in memo:
             memo[spin_key] = acc.spin_drift(m.shapes[smallest], m.dt)
         mode = u.mode or scene_mode or DEFAULT_MODE
-        incline_key = ("incline", u.resolution, mode, u.dt_factor)
+        incline_key = ("incline", u.resolution, mode, u.dt_factor, law)
         if incline_key not in memo:
             try:
                 memo[incline_key] = acc.incline_rolling_error(
                     material, u.resolution, mode,
-                    acc.DtRule(steps_per_contact=spc / u.dt_factor), cache=cache)
+                    acc.DtRule(steps_per_contact=spc / u.dt_factor, law=law), cache=cache)
             except StabilityError:
                 memo[incline_key] = math.nan
         bounce, rolling = memo[key]
@@ -602,7 +628,7 @@ CSV_COLUMNS = (
     "position_end", "orientation_end_deg", "pile_height", "pile_com", "pile_spread",
     "settle_s", "at_rest", "bounce", "rolling", "incline", "spin_L", "spin_energy", "error",
     "pareto",
-    "sphere_mode", "envelope_hausdorff_d", "envelope_bump_d")
+    "sphere_mode", "envelope_hausdorff_d", "envelope_bump_d", "contact_law")
 
 
 def csv_row(u: Run) -> dict:
@@ -623,7 +649,7 @@ def csv_row(u: Run) -> dict:
                                            "spin_energy")},
         error=u.error, pareto=int(u.pareto), sphere_mode=u.mode or "",
         envelope_hausdorff_d=u.envelope.get("hausdorff_d", math.nan),
-        envelope_bump_d=u.envelope.get("bump_d", math.nan))
+        envelope_bump_d=u.envelope.get("bump_d", math.nan), contact_law=u.law or "")
 
 
 def write_csv(runs) -> str:
@@ -779,6 +805,21 @@ def format_markdown(r: ReportResult) -> str:
         L.append("Hausdorff and bump: the worst shape's spheres' envelope against its mesh "
                  "(docs/spheres.md, \"Surface mode\"), in sphere diameters. The geometry "
                  "table above is the first mode's.")
+        L.append("")
+    if any(u.law for u in r.runs):
+        L.append("## Contact laws")
+        L.append("")
+        L.append("| run | dt [s] | steps | bounce: error of e² | error | wall [s] |")
+        L.append("|---|---:|---:|---:|---:|---:|")
+        for u in ok:
+            L.append(f"| {u.label} | {_num(u.dt, '.3g')} | {u.steps:,} | "
+                     f"{_pct(u.physics.get('bounce', math.nan))} | {_pct(u.error)} | "
+                     f"{_num(u.wall_s, '.1f')} |")
+        L.append("")
+        L.append("Each law at its own automatic step (docs/physics.md, \"Contact laws\"): "
+                 "for the same error, the cheaper is the one with the smaller wall time. "
+                 "The motion error is against the reference, which takes the last law "
+                 "given; a law's own stiffness is in its own units (Hertz: N/m^1.5).")
         L.append("")
     L.append("## Physics: closed forms against dt")
     L.append("")

@@ -188,3 +188,28 @@ def test_point_mesh_distance_on_a_cube():
     pts = np.array([[0.0, 0.0, 3.0], [2.0, 2.0, 0.0], [0.0, 0.0, 0.5], [3.0, 3.0, 3.0]])
     want = [2.0, np.sqrt(2.0), 0.5, np.sqrt(12.0)]
     assert acc.point_mesh_distance(pts, cube.vertices, cube.faces) == pytest.approx(want)
+
+
+def test_laws_axis_bakes_each_law_at_its_own_step(tmp_path):
+    # --laws linear,hertz: every setting once per law, each at its law's automatic
+    # step (10 and 12 steps per contact), its bounce measured
+    # with its own law; the reference takes the last law; the CSV, the labels and the
+    # scene lines name the law. An unknown law is refused naming the choices.
+    res = run_report(write_scene(tmp_path, SCENE), tmp_path / "out",
+                     Sweep(resolutions=(4,), dt_factors=(1.0,), stiffness_factors=(1.0,),
+                           duration=0.2, plots=False, contact_laws=("linear", "hertz")))
+    runs = {u.law: u for u in res.runs}
+    assert set(runs) == {"linear", "hertz"} and runs["hertz"].reference
+    assert runs["hertz"].model.contact_law == "hertz"
+    assert runs["linear"].model.contact_law == "linear"
+    assert all(u.ok and u.label.endswith(u.law) for u in res.runs)
+    assert all(0 <= u.physics["bounce"] < 0.05 for u in res.runs)   # each law's own e²
+    table = rows(tmp_path / "out")
+    assert sorted(r["contact_law"] for r in table) == ["hertz", "linear"]
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "## Contact laws" in md
+    from dempipe.report import scene_settings
+    assert 'contact_law = "linear"' in scene_settings(runs["linear"], 0.02)
+    with pytest.raises(ReportError, match="--laws: unknown contact law 'hooke'"):
+        run_report(write_scene(tmp_path, SCENE), tmp_path / "out2",
+                   Sweep(plots=False, contact_laws=("hooke",)))
