@@ -450,7 +450,10 @@ def rolling_error(material, diameter: float, stiffness: float, rule: DtRule) -> 
     b, s, m = _ball_scene(material, diameter, stiffness)
     v0 = math.sqrt(2.0 * 9.81 * BOUNCE_HEIGHT * diameter)
     mass = material.density * math.pi / 6.0 * diameter ** 3
-    sink = min(mass * 9.81 / stiffness, 0.1 * diameter)       # start at the resting overlap
+    weight = mass * 9.81
+    # start at the resting overlap: w / k (linear), (w / K)^(2/3) (Hertz)
+    rest = (weight / stiffness) ** (2.0 / 3.0) if rule.law == "hertz" else weight / stiffness
+    sink = min(rest, 0.1 * diameter)
     b.add_bodies("ball", s, m, [[0.0, 0.0, 0.5 * diameter - sink]], velocities=[[v0, 0, 0]])
     b.add_plane([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], m)
     fps = 500.0

@@ -142,6 +142,8 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
         m = spec.to_material()
         if o.stiffness_factor != 1.0 and m.stiffness is not None:
             m = replace(m, stiffness=m.stiffness * o.stiffness_factor)
+        if o.stiffness_factor != 1.0 and m.young_modulus is not None:     # K ∝ E
+            m = replace(m, young_modulus=m.young_modulus * o.stiffness_factor)
         material_index[name] = b.add_material(m)
     shape_index = {}
     for n in names:

@@ -795,6 +795,11 @@ class ModelBuilder:
         for mi, m in enumerate(self._materials):
             used = (dyn_mat == mi) & ~kin       # kinematic bodies: carried, infinite mass
             if m.young_modulus is not None:
+                if not (m.young_modulus > 0 and math.isfinite(m.young_modulus)) \
+                        or m.stiffness is not None or not 0 <= m.poisson_ratio < 0.5:
+                    raise SceneError(f"materials.{m.name}: young_modulus must be a positive "
+                                     f"number in Pa, poisson_ratio in [0, 0.5), and stiffness "
+                                     f"not given with them")
                 if not hasattr(law, "stiffness_from_modulus"):
                     raise SceneError(f"materials.{m.name}.young_modulus: applies to the Hertz "
                                      f"law only (contact_law is {law_name!r}; give stiffness)")

@@ -376,6 +376,13 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
     scene = load_scene(scene_path)
     if sweep.bodies is not None:
         scene = _first_bodies(scene, int(sweep.bodies))
+    if any(lw != scene.simulation.contact_law for lw in _contact_laws(sweep) if lw):
+        for name, m in scene.materials.items():
+            if m.stiffness != "auto" or m.young_modulus is not None:
+                raise ReportError(
+                    f"--laws: materials.{name} gives its stiffness in the units of the "
+                    f"scene's law ({scene.simulation.contact_law}), which another law would "
+                    f"read in its own (N/m against N/m^1.5): leave it \"auto\" to compare laws")
     device = resolve_device(sweep.device or scene.simulation.device)
     cache = cache if cache is not None else SphereCache()
     duration = sweep.duration or min(scene.output.duration, DEFAULT_DURATION)
@@ -566,7 +573,9 @@ def _measure_physics(runs, ref, fixed_dt: bool, scene_mode=None, cache=None):
         # the stiffness in the run's law's units (a law axis: the reference's may differ)
         base = ref.model if ref.model.contact_law == law else m
         if not fixed_dt:
-            key = ("auto", u.dt_factor, law)
+            # a law other than the reference's: its own run's stiffness, so its own key
+            key = ("auto", u.dt_factor, law) + (() if base is ref.model else
+                                                 (u.resolution, u.stiffness_factor))
             rule = acc.DtRule(steps_per_contact=spc / u.dt_factor, law=law)
             d, k = base.diameter, float(base.pair_k[mi, mi])
         else:

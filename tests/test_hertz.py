@@ -183,3 +183,27 @@ def test_young_modulus_scene_keys():
         sc.parse_scene(hz + '[materials.r]\npoisson_ratio = 0.3\n' + base, "/nonexistent/s.toml")
     with pytest.raises(SceneError, match=r"materials\.r\.young_modulus"):
         sc.parse_scene(hz + '[materials.r]\nyoung_modulus = -1\n' + base, "/nonexistent/s.toml")
+
+
+def test_stiffness_factor_scales_the_young_modulus():
+    # the report's k× axis (build Overrides.stiffness_factor) scales K through E (K ∝ E),
+    # as it scales a given stiffness; a Material that gives both is refused
+    from dempipe.build import Overrides, build_model
+    from dempipe.errors import SceneError
+    from dempipe.scene import parse_scene
+
+    text = ('[simulation]\ncontact_law = "hertz"\nresolution = 2\n'
+            '[materials.r]\nyoung_modulus = 5e7\n[shapes.ball]\nbuiltin = "sphere"\n'
+            '[[bodies]]\nname = "b"\nshape = "ball"\nmaterial = "r"\n'
+            '[output]\nduration = 0.05\n')
+    scene = parse_scene(text, "/nonexistent/s.toml")
+    k1 = build_model(scene).pair_k[0, 0]
+    k2 = build_model(scene, overrides=Overrides(stiffness_factor=2.0)).pair_k[0, 0]
+    assert k2 == pytest.approx(2.0 * k1, rel=1e-12)
+    b = ModelBuilder(D, gravity=(0, 0, 0))
+    ss, mesh = ball_set(D)
+    s = b.add_shape("ball", mesh, ss)
+    m = b.add_material(Material("r", stiffness=1e6, young_modulus=5e7))
+    b.add_bodies("ball", s, m, [[0, 0, D]])
+    with pytest.raises(SceneError, match=r"materials\.r: young_modulus"):
+        b.finalize(fps=100, n_frames=2, contact_law="hertz")

@@ -213,3 +213,9 @@ def test_laws_axis_bakes_each_law_at_its_own_step(tmp_path):
     with pytest.raises(ReportError, match="--laws: unknown contact law 'hooke'"):
         run_report(write_scene(tmp_path, SCENE), tmp_path / "out2",
                    Sweep(plots=False, contact_laws=("hooke",)))
+    # a stiffness given in the scene's law's units would be read in the other's
+    stiff = SCENE.replace("friction = 0.4\n", "friction = 0.4\nstiffness = 2000.0\n")
+    assert "stiffness = 2000.0" in stiff
+    with pytest.raises(ReportError, match=r"--laws: materials\.rubber .*\"auto\""):
+        run_report(write_scene(tmp_path, stiff), tmp_path / "out3",
+                   Sweep(plots=False, contact_laws=("linear", "hertz")))
