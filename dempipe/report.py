@@ -231,28 +231,29 @@ def _overrides(scene, res: int, dt_factor: float, k_factor: float, duration: flo
                      duration=duration, spheres=mode, contact_law=law)
 
 
-def _contact_laws(sweep) -> tuple:
-    """The law axis: (None,) without one, else the laws in the order given."""
-    if not sweep.contact_laws:
+def _axis(values, known, option: str, what: str) -> tuple:
+    """A sweep axis of names: (None,) without one, else the names in the order given,
+    each checked against ``known`` (ReportError naming ``option`` and the choices)."""
+    if not values:
         return (None,)
+    for v in values:
+        if v not in known:
+            raise ReportError(f"{option}: unknown {what} {v!r} (use {', '.join(known)})")
+    return tuple(dict.fromkeys(values))
+
+
+def _contact_laws(sweep) -> tuple:
+    """The law axis (laws.LAWS)."""
     from .laws import LAWS
 
-    for name in sweep.contact_laws:
-        if name not in LAWS:
-            raise ReportError(f"--laws: unknown contact law {name!r} (use {', '.join(LAWS)})")
-    return tuple(dict.fromkeys(sweep.contact_laws))
+    return _axis(sweep.contact_laws, LAWS, "--laws", "contact law")
 
 
 def _sphere_modes(sweep) -> tuple:
-    """The mode axis: (None,) without one, else the modes in the order given."""
-    if not sweep.sphere_modes:
-        return (None,)
+    """The sphere-set mode axis (spheres.MODES)."""
     from .spheres import MODES
 
-    for m in sweep.sphere_modes:
-        if m not in MODES:
-            raise ReportError(f"--spheres: unknown mode {m!r} (use {', '.join(MODES)})")
-    return tuple(dict.fromkeys(sweep.sphere_modes))
+    return _axis(sweep.sphere_modes, MODES, "--spheres", "mode")
 
 
 def _envelope(model) -> dict:
