@@ -95,41 +95,21 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             lambda: (cpu.stage_neighbours(m.diameter, cpu.SKIN, b.grid, b.bucket_start,
                                           b.grid_idx, b.grid_x, b.grid_key, b.grid_body,
                                           b.grid_slot, b.sorted_idx, b.sorted_x, b.sorted_body,
-                                          m.body_inv_mass, b.built_x, b.nbr, b.nbr_n)
+                                          m.body_inv_mass, b.built_x, b.nbr, b.nbr_n,
+                                          b.drive.body_start, s)
                      or cpu.stage_pairs(b.nbr, b.nbr_n, b.sorted_idx, b.sorted_body,
                                         m.body_inv_mass, b.pair_start, b._pidx(), b.pair_t,
                                         b.pair_f.shape[0], b.list_start, b.list_e)
                      or cpu.stage_wall_reach(m.diameter, cpu.SKIN, b.sorted_x, m.wall_normal,
                                              m.wall_offset, m.wall_lo, m.wall_hi,
                                              m.wall_depth, b.wall_mask, b.wall_start,
-                                             hp.shape[1] if fr else 0, b.wall_s.shape[0])
+                                             hp.shape[1] if fr else 0, b.wall_s.shape[0],
+                                             b.drive.wall_motion, b.sorted_body,
+                                             b.drive.body_start, s)
                      or (fr and cpu.stage_rows_to_pairs(b.nbr, b.nbr_n, b.pidx, b.sorted_idx,
                                                         b.sorted_body, m.body_inv_mass,
                                                         b.wall_mask, hp, hs, b.pair_f,
                                                         b.wall_start, b.wall_s))),
-        )
-        after = (
-            lambda: k.stage_contacts(m.diameter, b.nbr, b.nbr_n, b.pidx, b.pair_start,
-                                     b.pair_t, b.sorted_idx,
-                                     b.sorted_x, b.sorted_v, b.sorted_body, b.body_w,
-                                     m.body_inv_mass, m.body_material, m.pair_k, m.pair_zeta,
-                                     m.pair_mu, m.kt_ratio, m.ks_ratio, b.features.friction,
-                                     m.dt, s & 1, hp, hs, m.sleep_steps, rest, b.body_wake,
-                                     m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi,
-                                     m.wall_depth, m.wall_material, b.wall_mask, b.pair_f,
-                                     b.wall_f, b.wall_start, b.wall_s, b.chunks,
-                                     b.chunks.shape[0]),
-            lambda: k.stage_sums(m.diameter, b.nbr, b.nbr_n, b.pidx, b.list_start, b.list_e,
-                                 b.sorted_idx, b.sorted_x,
-                                 b.sorted_body, m.body_inv_mass, m.sleep_steps, rest,
-                                 b.wall_mask, b.pair_f, b.wall_f, b.sphere_f, b.sphere_t,
-                                 b.sphere_overlap, b.chunks, b.chunks.shape[0]),
-            lambda: k.stage_bodies(m.n_bodies, m.dt, g[0], g[1], g[2], m.body_sphere_start,
-                                   b.sphere_f, b.sphere_t, b.sphere_r, m.body_mass,
-                                   m.body_inv_mass, m.body_inv_inertia, state.body_x,
-                                   state.body_q, state.body_P, state.body_L, m.sleep_steps,
-                                   m.sleep_linear, m.sleep_angular, rest, b.body_wake,
-                                   b.body_still),
         )
         t0 = time.perf_counter()
         every[0]()
@@ -154,6 +134,19 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             while over:          # a list overflowed: grow, as CpuBackend.step does
                 b.grow_neighbours()
                 over = rebuild[-1]()
+        # after any rebuild: a list that grew is a new array
+        cm, cs = b.contact_args(state, hist_partner=hp, hist_spring=hs)
+        after = (
+            lambda: k.stage_contacts(cm, cs, b.drive.motion_now, s & 1, b.chunks,
+                                     b.chunks.shape[0]),
+            lambda: k.stage_sums(cm, cs, b.chunks, b.chunks.shape[0]),
+            lambda: k.stage_bodies(m.n_bodies, m.dt, g[0], g[1], g[2], m.body_sphere_start,
+                                   b.sphere_f, b.sphere_t, b.sphere_r, m.body_mass,
+                                   m.body_inv_mass, m.body_inv_inertia, state.body_x,
+                                   state.body_q, state.body_P, state.body_L, m.sleep_steps,
+                                   m.sleep_linear, m.sleep_angular, rest, b.body_wake,
+                                   b.body_still, b.drive.body_start, s),
+        )
         for i, call in enumerate(after):
             t0 = time.perf_counter()
             call()

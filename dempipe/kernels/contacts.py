@@ -374,14 +374,7 @@ def pair_ended(dist2, d2, diameter, rx, ry, rz, dvx, dvy, dvz, dt, vc):
     return closing(diameter - dist, dvr / dist, dt)  # noqa: F821 (the law's)
 
 
-def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s,
-                sorted_idx, sorted_x, sorted_v,
-                sorted_body, body_w, body_inv_mass, body_material,
-                pair_k, pair_damp, pair_mu, kt_ratio, ks_ratio, friction, dt, onset_speed,
-                parity,
-                hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
-                wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                wall_mask, pair_f, wall_f, wall_motion, motion_now):
+def pair_forces(s0, s1, cm, cs, motion_now, parity):
     """Stage 4, first pass, for sorted slots s0 .. s1-1 (a chunk of the CPU's
     parallel loop; one slot on CUDA). For each slot s:
 
@@ -406,7 +399,17 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
     contact point y enters the dashpot and friction.
     pair_start, pair_t: slot s's rows and their partners' slots (PAIR_ROWS);
     wall_start, wall_s: its walls' packed rows, (stretch [m], 1 + parity or 0)
-    (WALL_ROWS); unread otherwise."""
+    (WALL_ROWS); unread otherwise.
+
+    cm: layout.ContactModel, cs: layout.ContactScratch (unpacked below under the
+    names the loop reads); motion_now: control.Drive's (M x 14); parity: the
+    step's (step & 1), which marks the histories touched this step."""
+    (diameter, dt, onset_speed, body_inv_mass, body_material, pair_k, pair_damp, pair_mu,
+     kt_ratio, ks_ratio, friction, sleep_steps, wall_normal, wall_offset, wall_lo, wall_hi,
+     wall_depth, wall_material, wall_motion) = cm
+    (nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s, _list_start, _list_e,
+     sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest, body_wake, wall_mask,
+     hist_partner, hist_spring, pair_f, wall_f, _sphere_f, _sphere_t, _sphere_overlap) = cs
     d2 = diameter * diameter
     radius = 0.5 * diameter
     n_walls = wall_normal.shape[0]
@@ -685,9 +688,7 @@ def pair_forces(s0, s1, diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_sta
                         pair_f[p, 9] = 0.0
 
 
-def sphere_forces(s0, s1, diameter, nbr, nbr_n, pidx, list_start, list_e, sorted_idx,
-                  sorted_x, sorted_v, dt, onset_speed, sorted_body, body_inv_mass, sleep_steps, body_rest, wall_mask,
-                  pair_f, wall_f, sphere_f, sphere_t, sphere_overlap):
+def sphere_forces(s0, s1, cm, cs):
     """Stage 4, second pass, for sorted slots s0 .. s1-1; for each slot s (sphere
     i = sorted_idx[s]): the sum of the forces on it from its touching partners
     in its list's order (its partners' index order; the pairs its partners own
@@ -696,7 +697,15 @@ def sphere_forces(s0, s1, diameter, nbr, nbr_n, pidx, list_start, list_e, sorted
     largest this step, [m], kept if larger). Static and sleeping spheres feel
     nothing. A pair apart that pair_ended finds touching a step ago is summed too
     (its dashpot's last impulse): the same test, so from either side, as the
-    owner's pair_forces made."""
+    owner's pair_forces made. cm, cs: as pair_forces takes them."""
+    diameter = cm.diameter
+    dt = cm.dt
+    onset_speed = cm.onset_speed
+    body_inv_mass = cm.body_inv_mass
+    sleep_steps = cm.sleep_steps
+    (nbr, nbr_n, pidx, _pair_start, _pair_t, _wall_start, _wall_s, list_start, list_e,
+     sorted_idx, sorted_x, sorted_v, sorted_body, _body_w, body_rest, _body_wake, wall_mask,
+     _hist_partner, _hist_spring, pair_f, wall_f, sphere_f, sphere_t, sphere_overlap) = cs
     d2 = diameter * diameter
     for s in range(s0, s1):
         i = sorted_idx[s]

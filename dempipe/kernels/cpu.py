@@ -27,7 +27,7 @@ from .contacts import (CONTACT_CHUNK, LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHE
                        UNPAIRED, WALL_SLACK)
 from .contacts import CLOSE_REACH2  # noqa: F401 (read by contacts.pair_forces, sphere_forces)
 from .layout import (BUCKETS_PER_SPHERE, CPU_LAYOUT, FLAGS, GENERAL,  # noqa: F401
-                     chunk_spans, cpu_scratch, fit_grid, grid_table, kernel_flags,
+                     ContactModel, ContactScratch, chunk_spans, cpu_scratch, fit_grid, grid_table, kernel_flags,
                      scene_features, static_extent)
 from .neighbours import NEIGHBOURS, SKIN, SKIN_MAX, SKIN_SHRINK_ABOVE, cell_size
 # the device functions and the rebuild stages, in modules of their own; the
@@ -250,14 +250,7 @@ def stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still, 
     return n
 
 
-def stage_contacts(diameter, nbr, nbr_n, pidx, pair_start, pair_t, sorted_idx, sorted_x,
-                   sorted_v,
-                   sorted_body, body_w, body_inv_mass, body_material,
-                   pair_k, pair_damp, pair_mu, kt_ratio, ks_ratio, friction, dt, onset_speed, parity,
-                   hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
-                   wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                   wall_mask, pair_f, wall_f, wall_start, wall_s, spans, n_spans,
-                   wall_motion, motion_now):
+def stage_contacts(cm, cs, motion_now, parity, spans, n_spans):
     """Stages 3-4, first pass: the force of each contact, computed once, by the
     sphere that owns it (kernels/contacts.py: pair_forces), and each sphere's
     walls, in parallel over the spans of sorted slots spans[:n_spans] (every
@@ -270,32 +263,21 @@ def stage_contacts(diameter, nbr, nbr_n, pidx, pair_start, pair_t, sorted_idx, s
     again keeps its stretch, a new one starts at zero, and one not touched this
     step (``parity``) is forgotten. Only a slot's own rows are written: gather.
     A sphere of a moving body (rest count 0) that touches a sleeping body flags
-    it to wake (body_wake).
+    it to wake (body_wake). cm, cs: layout.ContactModel, ContactScratch;
+    motion_now: control.Drive's; parity: step & 1.
     """
     for c in prange(n_spans):
-        pair_forces(spans[c, 0], spans[c, 1],
-                    diameter, nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s,
-                    sorted_idx, sorted_x, sorted_v,
-                    sorted_body, body_w, body_inv_mass, body_material,
-                    pair_k, pair_damp, pair_mu, kt_ratio, ks_ratio, friction, dt, onset_speed, parity,
-                    hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
-                    wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                    wall_mask, pair_f, wall_f, wall_motion, motion_now)
+        pair_forces(spans[c, 0], spans[c, 1], cm, cs, motion_now, parity)
 
 
-def stage_sums(diameter, nbr, nbr_n, pidx, list_start, list_e, sorted_idx, sorted_x,
-               sorted_v, dt, onset_speed, sorted_body, body_inv_mass, sleep_steps, body_rest,
-               wall_mask, pair_f, wall_f, sphere_f, sphere_t, sphere_overlap, spans, n_spans):
+def stage_sums(cm, cs, spans, n_spans):
     """Stage 4, second pass (contacts.sphere_forces): each sphere gathers the
     forces on itself, in its list's order (its partners' index order), then its
     walls'; writes sphere_f, sphere_t (torque about the sphere's centre) and
     sphere_overlap (largest overlap this step, [m]). Static and sleeping spheres
     feel no force. Over spans[:n_spans], as stage_contacts."""
     for c in prange(n_spans):
-        sphere_forces(spans[c, 0], spans[c, 1],
-                      diameter, nbr, nbr_n, pidx, list_start, list_e, sorted_idx, sorted_x,
-                      sorted_v, dt, onset_speed, sorted_body, body_inv_mass, sleep_steps,
-                      body_rest, wall_mask, pair_f, wall_f, sphere_f, sphere_t, sphere_overlap)
+        sphere_forces(spans[c, 0], spans[c, 1], cm, cs)
 
 
 def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
@@ -374,6 +356,15 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
      grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
      wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_overlap, skin_ctl,
      chunks, spans, span_ctl) = scratch
+    # what the contact passes take (layout.ContactModel, ContactScratch): the same arrays
+    cm = ContactModel(diameter, dt, onset_speed, body_inv_mass, body_material, pair_k,
+                      pair_damp, pair_mu, kt_ratio, ks_ratio, friction, sleep_steps,
+                      wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
+                      drive.wall_motion)
+    cs = ContactScratch(nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s, list_start,
+                        list_e, sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest,
+                        body_wake, wall_mask, hist_partner, hist_spring, pair_f, wall_f,
+                        sphere_f, sphere_t, sphere_overlap)
     if n_steps <= 0:
         return 0, 0  # nothing sorted yet: the unsort below would scramble the State's rows
     skin = skin_ctl[0]
@@ -462,18 +453,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
         n_work = n_spans if spans_ok else n_chunks
         if spans_ok:
             span_ctl[0] += 1
-        stage_contacts(diameter, nbr, nbr_n, pidx, pair_start, pair_t, sorted_idx, sorted_x,
-                       sorted_v, sorted_body, body_w, body_inv_mass, body_material,
-                       pair_k, pair_damp, pair_mu, kt_ratio, ks_ratio, friction, dt, onset_speed,
-                       step & 1,
-                       hist_partner, hist_spring, sleep_steps, body_rest, body_wake,
-                       wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                       wall_mask, pair_f, wall_f, wall_start, wall_s, work, n_work,
-                       drive.wall_motion, drive.motion_now)
-        stage_sums(diameter, nbr, nbr_n, pidx, list_start, list_e, sorted_idx, sorted_x,
-                   sorted_v, dt, onset_speed, sorted_body, body_inv_mass,
-                   sleep_steps, body_rest, wall_mask, pair_f, wall_f, sphere_f, sphere_t,
-                   sphere_overlap, work, n_work)
+        stage_contacts(cm, cs, drive.motion_now, step & 1, work, n_work)
+        stage_sums(cm, cs, work, n_work)
         awake, woke, quiet, calmed = stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start,
                                                   sphere_f, sphere_t, sphere_r, body_mass,
                                                   body_inv_mass, body_inv_inertia, body_x,

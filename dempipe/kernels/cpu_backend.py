@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..control import drive, split_at
-from .layout import StepState, scratch_of, step_model
+from .layout import ContactScratch, StepState, contact_model, scratch_of, step_model
 
 from .cpu import (GENERAL, PAIR_COLS, QUIET_SHARE, SKIN, SKIN_MAX, cell_size, chunk_spans,
                   cpu_scratch, fit_grid, grid_table, kernel_flags, kernels, scene_features,
@@ -181,24 +181,21 @@ class CpuBackend:
             stage_rows_to_pairs(self.nbr, self.nbr_n, self.pidx, self.sorted_idx,
                                 self.sorted_body, m.body_inv_mass, self.wall_mask, partner,
                                 spring, self.pair_f, self.wall_start, self.wall_s)
-        self.k.stage_contacts(m.diameter, self.nbr, self.nbr_n, self.pidx, self.pair_start,
-                              self.pair_t, self.sorted_idx, self.sorted_x,
-                              self.sorted_v, self.sorted_body, self.body_w, m.body_inv_mass,
-                              m.body_material, m.pair_k, m.pair_damp, m.pair_mu, m.kt_ratio,
-                              m.ks_ratio, self.features.friction, m.dt, m.onset_speed,
-                              state.step & 1,
-                              partner, spring, m.sleep_steps, self.rest(state),
-                              self.body_wake.copy(), m.wall_normal, m.wall_offset, m.wall_lo,
-                              m.wall_hi, m.wall_depth, m.wall_material, self.wall_mask,
-                              self.pair_f, self.wall_f, self.wall_start, self.wall_s,
-                              self.chunks, self.chunks.shape[0], self.drive.wall_motion,
-                              self.drive.motion_now)
-        self.k.stage_sums(m.diameter, self.nbr, self.nbr_n, self.pidx, self.list_start,
-                          self.list_e, self.sorted_idx,
-                          self.sorted_x, self.sorted_v, m.dt, m.onset_speed, self.sorted_body, m.body_inv_mass, m.sleep_steps,
-                          self.rest(state), self.wall_mask, self.pair_f, self.wall_f,
-                          self.sphere_f, self.sphere_t, self.sphere_overlap, self.chunks,
-                          self.chunks.shape[0])
+        # the copied histories, and a copy of the wake flags: a probe wakes nothing
+        cm, cs = self.contact_args(state, hist_partner=partner, hist_spring=spring,
+                                   body_wake=self.body_wake.copy())
+        self.k.stage_contacts(cm, cs, self.drive.motion_now, state.step & 1, self.chunks,
+                              self.chunks.shape[0])
+        self.k.stage_sums(cm, cs, self.chunks, self.chunks.shape[0])
+
+    def contact_args(self, state, **given):
+        """(layout.ContactModel, layout.ContactScratch) of the contact passes for
+        ``state``, as run_steps builds them: the backend's arrays and the State's rest
+        counts, but for the arrays ``given`` by name (the probe's copies)."""
+        given.setdefault("body_rest", self.rest(state))
+        cs = ContactScratch(*(given[n] if n in given else getattr(self, n)
+                              for n in ContactScratch._fields))
+        return contact_model(self.model, self.features.friction, self.drive.wall_motion), cs
 
     def velocities(self, state):
         """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""

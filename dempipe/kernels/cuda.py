@@ -45,7 +45,8 @@ from ..laws.linear import DAMP_TERMS
 from ..state import CONTACT_SLOTS
 from .compile import compile_contacts, compile_formulas
 from .contacts import PAIR_COLS, WALL_SLACK
-from .layout import (BUCKETS_PER_SPHERE, CUDA_LAYOUT, FLAGS, GENERAL, fit_grid,  # noqa: F401
+from .layout import (BUCKETS_PER_SPHERE, CUDA_LAYOUT, FLAGS, GENERAL, ContactScratch,  # noqa: F401
+                     contact_model, fit_grid,
                      grid_table, kernel_flags, scene_features, static_extent)
 from .neighbours import NEIGHBOURS, SKIN, cell_size
 # The device side, by stage (each module's docstring says what it holds); the kernels
@@ -452,23 +453,23 @@ class CudaBackend:
 
     def _contacts(self, parity: int = 0, partner=None, spring=None, wake=None):
         m, d = self.model, self.d
-        blocks = _blocks(m.n_spheres, CONTACT_THREADS)
-        self.k.k_pair_forces[blocks, CONTACT_THREADS](
-            m.diameter, d["nbr"], d["nbr_n"], d["pidx"], d["sorted_idx"],
-            d["sorted_x"], d["sorted_v"], d["sorted_body"], d["body_w"],
-            d["body_inv_mass"], d["body_material"], d["pair_k"], d["pair_damp"], d["pair_mu"],
-            m.kt_ratio, m.ks_ratio, bool(self.features.friction), m.dt, m.onset_speed, parity,
-            d["contact_partner"] if partner is None else partner,
-            d["contact_spring"] if spring is None else spring,
-            m.sleep_steps, d["body_rest"], d["body_wake"] if wake is None else wake,
-            d["wall_normal"], d["wall_offset"], d["wall_lo"], d["wall_hi"], d["wall_depth"],
-            d["wall_material"], d["wall_mask"], d["pair_f"], d["wall_f"], d["wall_motion"],
-            d["motion_now"], d["ctl"])
-        self.k.k_sphere_forces[_blocks(m.n_spheres, THREADS), THREADS](
-            m.diameter, d["nbr"], d["nbr_n"], d["pidx"], d["sorted_idx"], d["sorted_x"],
-            d["sorted_v"], m.dt, m.onset_speed, d["sorted_body"], d["body_inv_mass"], m.sleep_steps,
-            d["body_rest"], d["wall_mask"], d["pair_f"], d["wall_f"], d["sphere_f"], d["sphere_t"],
-            d["sphere_overlap"], d["ctl"])
+        cm = contact_model(m, self.features.friction, d["wall_motion"], arrays=d)
+        # the CPU's packed rows (PAIR_ROWS, WALL_ROWS, LIST_ROWS are off here): stand-ins
+        # of the same array kinds, unread, so that the kernels type either way
+        cs = ContactScratch(
+            nbr=d["nbr"], nbr_n=d["nbr_n"], pidx=d["pidx"], pair_start=d["nbr_n"],
+            pair_t=d["nbr_n"], wall_start=d["nbr_n"], wall_s=d["pair_f"],
+            list_start=d["nbr_n"], list_e=d["nbr"], sorted_idx=d["sorted_idx"],
+            sorted_x=d["sorted_x"], sorted_v=d["sorted_v"], sorted_body=d["sorted_body"],
+            body_w=d["body_w"], body_rest=d["body_rest"],
+            body_wake=d["body_wake"] if wake is None else wake, wall_mask=d["wall_mask"],
+            hist_partner=d["contact_partner"] if partner is None else partner,
+            hist_spring=d["contact_spring"] if spring is None else spring,
+            pair_f=d["pair_f"], wall_f=d["wall_f"], sphere_f=d["sphere_f"],
+            sphere_t=d["sphere_t"], sphere_overlap=d["sphere_overlap"])
+        self.k.k_pair_forces[_blocks(m.n_spheres, CONTACT_THREADS), CONTACT_THREADS](
+            cm, cs, d["motion_now"], parity, d["ctl"])
+        self.k.k_sphere_forces[_blocks(m.n_spheres, THREADS), THREADS](cm, cs, d["ctl"])
 
     def _bodies(self):
         m, d = self.model, self.d

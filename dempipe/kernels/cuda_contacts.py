@@ -71,44 +71,23 @@ def k_load_pairs(friction, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_m
 
 
 @cuda.jit
-def k_pair_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v,
-                  sorted_body, body_w, body_inv_mass, body_material,
-                  pair_k, pair_damp, pair_mu, kt_ratio, ks_ratio, friction, dt, onset_speed,
-                  parity,
-                  contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
-                  wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                  wall_mask, pair_f, wall_f, wall_motion, motion_now, ctl):
+def k_pair_forces(cm, cs, motion_now, parity, ctl):
     """Stages 3-4, first pass (contacts.pair_forces, one thread per sorted slot): each
     contact computed once, by its owner, and each sphere's walls. After an overflow
-    in this call (ctl[CTL_OVER]) or once every body sleeps it returns at once."""
+    in this call (ctl[CTL_OVER]) or once every body sleeps it returns at once.
+    cm, cs: layout.ContactModel, ContactScratch (the CPU's packed rows in cs are
+    stand-ins here: PAIR_ROWS, WALL_ROWS, LIST_ROWS are off)."""
     s = cuda.grid(1)
-    if s >= sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
+    if s >= cs.sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
-    # pair_start, pair_t, wall_start, wall_s: the CPU's packed rows, unread here
-    # (PAIR_ROWS, WALL_ROWS are off); stand-ins of the same array kinds, so the
-    # kernel types either way
-    pair_forces(s, s + 1, diameter, nbr, nbr_n, pidx, nbr_n, nbr_n, nbr_n, pair_f, sorted_idx,
-                sorted_x, sorted_v,
-                sorted_body, body_w, body_inv_mass, body_material,
-                pair_k, pair_damp, pair_mu, kt_ratio, ks_ratio, friction, dt, onset_speed,
-                parity,
-                contact_partner, contact_spring, sleep_steps, body_rest, body_wake,
-                wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                wall_mask, pair_f, wall_f, wall_motion, motion_now)
+    pair_forces(s, s + 1, cm, cs, motion_now, parity)
 
 
 @cuda.jit
-def k_sphere_forces(diameter, nbr, nbr_n, pidx, sorted_idx, sorted_x, sorted_v, dt, onset_speed,
-                    sorted_body,
-                    body_inv_mass, sleep_steps, body_rest, wall_mask, pair_f, wall_f,
-                    sphere_f, sphere_t, sphere_overlap, ctl):
+def k_sphere_forces(cm, cs, ctl):
     """Stage 4, second pass (contacts.sphere_forces): each sphere's sum over its list
     in its partners' index order, then its walls; the CPU's order and sums."""
     s = cuda.grid(1)
-    if s >= sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
+    if s >= cs.sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
-    # list_start, list_e: the CPU's packed lists, unread here (LIST_ROWS is off)
-    sphere_forces(s, s + 1, diameter, nbr, nbr_n, pidx, nbr_n, nbr, sorted_idx, sorted_x,
-                  sorted_v, dt, onset_speed, sorted_body, body_inv_mass, sleep_steps, body_rest,
-                  wall_mask, pair_f, wall_f,
-                  sphere_f, sphere_t, sphere_overlap)
+    sphere_forces(s, s + 1, cm, cs)

@@ -317,6 +317,92 @@ class Scratch(NamedTuple):
     span_ctl: Any
 
 
+class ContactModel(NamedTuple):
+    """What the contact passes (contacts.pair_forces, sphere_forces) read of the
+    Model (frozen) and the Control's layout: contact constants, the pair table,
+    the walls. Built once per call: on the CPU by run_steps from its StepModel,
+    on CUDA and in a probe by ``contact_model``.
+
+    diameter [m], dt [s], onset_speed [m/s] (laws.*.normal_force), body_inv_mass
+    [1/kg], body_material, the pair table pair_k / pair_damp / pair_mu (the law's
+    units), kt_ratio, ks_ratio, friction (the backend keeps histories),
+    sleep_steps, the walls (wall_normal, wall_offset [m], wall_lo, wall_hi [m],
+    wall_depth [m], wall_material) and each wall's motion (wall_motion, -1: fixed;
+    control.Drive)."""
+
+    diameter: Any
+    dt: Any
+    onset_speed: Any
+    body_inv_mass: Any
+    body_material: Any
+    pair_k: Any
+    pair_damp: Any
+    pair_mu: Any
+    kt_ratio: Any
+    ks_ratio: Any
+    friction: Any
+    sleep_steps: Any
+    wall_normal: Any
+    wall_offset: Any
+    wall_lo: Any
+    wall_hi: Any
+    wall_depth: Any
+    wall_material: Any
+    wall_motion: Any
+
+
+class ContactScratch(NamedTuple):
+    """The arrays the contact passes read and write, in sorted-slot order: the
+    lists and pair indices (nbr, nbr_n, pidx), the CPU's packed rows (pair_start,
+    pair_t, wall_start, wall_s, list_start, list_e: contacts.py PAIR_ROWS,
+    WALL_ROWS, LIST_ROWS; CUDA passes stand-ins of the same kinds, unread), the
+    slots' spheres (sorted_idx, sorted_x [m], sorted_v [m/s], sorted_body), the
+    bodies' spin body_w [rad/s] and rest counts, the wake flags, the walls in
+    reach, the contact histories (hist_partner, hist_spring) and what the passes
+    write: pair_f, wall_f, sphere_f [N], sphere_t [N m], sphere_overlap [m]."""
+
+    nbr: Any
+    nbr_n: Any
+    pidx: Any
+    pair_start: Any
+    pair_t: Any
+    wall_start: Any
+    wall_s: Any
+    list_start: Any
+    list_e: Any
+    sorted_idx: Any
+    sorted_x: Any
+    sorted_v: Any
+    sorted_body: Any
+    body_w: Any
+    body_rest: Any
+    body_wake: Any
+    wall_mask: Any
+    hist_partner: Any
+    hist_spring: Any
+    pair_f: Any
+    wall_f: Any
+    sphere_f: Any
+    sphere_t: Any
+    sphere_overlap: Any
+
+
+def contact_model(model, friction: bool, wall_motion, arrays=None) -> ContactModel:
+    """The ContactModel of ``model``; ``friction``: the backend's feature;
+    ``wall_motion``: control.Drive's; ``arrays``: where to take the Model's
+    arrays from by name (a CUDA backend's device copies), default the Model."""
+    a = (lambda n: getattr(model, n)) if arrays is None else arrays.__getitem__
+    return ContactModel(
+        diameter=float(model.diameter), dt=float(model.dt),
+        onset_speed=float(model.onset_speed), body_inv_mass=a("body_inv_mass"),
+        body_material=a("body_material"), pair_k=a("pair_k"), pair_damp=a("pair_damp"),
+        pair_mu=a("pair_mu"), kt_ratio=float(model.kt_ratio), ks_ratio=float(model.ks_ratio),
+        friction=bool(friction), sleep_steps=int(model.sleep_steps),
+        wall_normal=a("wall_normal"), wall_offset=a("wall_offset"), wall_lo=a("wall_lo"),
+        wall_hi=a("wall_hi"), wall_depth=a("wall_depth"), wall_material=a("wall_material"),
+        wall_motion=wall_motion)
+
+
 def step_model(model, friction: bool) -> StepModel:
     """The StepModel of ``model``; ``friction``: the backend's feature (its
     histories are kept)."""
