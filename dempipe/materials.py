@@ -43,6 +43,14 @@ TANGENTIAL_RATIO = 0.3
 TANGENTIAL_SPRING_RATIO = 2.0 / 7.0
 
 
+#: Default rolling-friction coefficient μ_r [1]: the rolling-resistance torque's
+#: lever arm as a fraction of the rolling radius (physics.rolling_torque). Small
+#: but not zero, so a ball on a plane comes to rest (after 7 v0² / (10 μ_r g): 7 m
+#: from 1 m/s) instead of rolling forever; a billiard ball on cloth is near 0.01,
+#: a steel ball on steel near 0.001 (the coefficient of rolling resistance).
+ROLLING_FRICTION = 0.01
+
+
 @dataclass(frozen=True)
 class Material:
     """A material as the user gives it.
@@ -54,6 +62,8 @@ class Material:
         None for "auto"
     young_modulus : Young's modulus E [Pa] for the Hertz law, or None: K from E and
         poisson_ratio ν (laws.hertz.stiffness_from_modulus) instead of "auto"
+    rolling_friction : rolling-resistance coefficient μ_r ≥ 0 [1] (0 turns it off;
+        physics.rolling_torque)
     """
 
     name: str
@@ -63,6 +73,7 @@ class Material:
     stiffness: float | None = None
     young_modulus: float | None = None
     poisson_ratio: float = 0.3
+    rolling_friction: float = ROLLING_FRICTION
 
 
 DEFAULT_MATERIAL = Material("default")
@@ -90,6 +101,12 @@ def mix(a: Material, b: Material) -> tuple[float | None, float, float]:
     return k, math.sqrt(a.restitution * b.restitution), math.sqrt(a.friction * b.friction)
 
 
+def mix_rolling(a: Material, b: Material) -> float:
+    """The pair's rolling-friction coefficient μ_r: the geometric mean, as friction's
+    (equal materials keep theirs; a partner without rolling resistance has none)."""
+    return math.sqrt(a.rolling_friction * b.rolling_friction)
+
+
 @dataclass(frozen=True)
 class PairTable:
     """Per material pair contact constants, indexed [material_i, material_j].
@@ -99,6 +116,7 @@ class PairTable:
     mu : (M, M) Coulomb friction [-]
     kt_ratio : tangential viscous coefficient as a multiple of √(k m_eff) [-]
     ks_ratio : tangential spring as a multiple of k [-] (static friction)
+    mu_r : (M, M) rolling-friction coefficient [-] (mix_rolling)
     """
 
     k: np.ndarray
@@ -106,6 +124,7 @@ class PairTable:
     mu: np.ndarray
     kt_ratio: float = TANGENTIAL_RATIO
     ks_ratio: float = TANGENTIAL_SPRING_RATIO
+    mu_r: np.ndarray = None
 
 
 def pair_table(materials: list[Material], stiffness: list[float], law=_law) -> PairTable:
@@ -115,6 +134,7 @@ def pair_table(materials: list[Material], stiffness: list[float], law=_law) -> P
     k = np.zeros((m, m))
     zeta = np.zeros((m, m))
     mu = np.zeros((m, m))
+    mu_r = np.zeros((m, m))
     for i, a in enumerate(materials):
         for j, b in enumerate(materials):
             ka, kb = stiffness[i], stiffness[j]
@@ -122,7 +142,8 @@ def pair_table(materials: list[Material], stiffness: list[float], law=_law) -> P
             _, e, f = mix(a, b)
             zeta[i, j] = law.damping_ratio(e)
             mu[i, j] = f
-    return PairTable(k, zeta, mu)
+            mu_r[i, j] = mix_rolling(a, b)
+    return PairTable(k, zeta, mu, mu_r=mu_r)
 
 
 #: Largest rotation per step dt "auto" allows a free spin [rad]: the midpoint

@@ -118,6 +118,8 @@ class Features:
     static_spheres: bool
     gravity: bool
     sleeping: bool = False
+    rolling: bool = False
+    """Rolling resistance (a pair with μ_r > 0, with friction and rotation)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -235,6 +237,17 @@ class Model:
     impact_speed: float = 1.0
     """The fastest impact the scene can produce [m/s] (auto stiffness; the Hertz
     law's contact frequency depends on it)."""
+    pair_rolling: np.ndarray = None
+    """(M, M): each material pair's rolling-friction coefficient μ_r [1]
+    (materials.mix_rolling; physics.rolling_torque)."""
+    body_inv_radius: np.ndarray = None
+    """(B,) [1/m]: 1 / each dynamic body's radius (its rolling radius; the pair's is
+    1 / (1/R_i + 1/R_j)); 0 for static and kinematic bodies, which roll as a wall."""
+    body_roll_gain: np.ndarray = None
+    """(B,) [1/(kg m²)]: the body's contact spheres × the largest eigenvalue of its
+    inverse inertia; 0 for static and kinematic bodies. Bounds what the rolling
+    torques of all its contacts can change its spin by in a step (the cap of
+    physics.rolling_torque)."""
 
     @property
     def onset_speed(self) -> float:
@@ -794,6 +807,9 @@ class ModelBuilder:
         k_auto_all = 0.0
         for mi, m in enumerate(self._materials):
             used = (dyn_mat == mi) & ~kin       # kinematic bodies: carried, infinite mass
+            if not (m.rolling_friction >= 0 and math.isfinite(m.rolling_friction)):
+                raise SceneError(f"materials.{m.name}: rolling_friction must be a number >= 0, "
+                                 f"got {m.rolling_friction!r}")
             if m.young_modulus is not None:
                 if not (m.young_modulus > 0 and math.isfinite(m.young_modulus)) \
                         or m.stiffness is not None or not 0 <= m.poisson_ratio < 0.5:
@@ -913,7 +929,20 @@ class ModelBuilder:
             sleep_lin, sleep_ang, sleep_time = sleep_defaults(
                 d, g, body_radius, *sleep)
             sleep_steps = max(1, math.ceil(sleep_time / float(dt_v) - 1e-9))
-        features = replace(features, sleeping=sleep_steps > 0)
+        features = replace(features, sleeping=sleep_steps > 0, rolling=(
+            features.friction and features.rotation
+            and bool(np.any([table.mu_r[a, b] > 0 for a in present for b in present]))))
+        # rolling resistance (physics.rolling_torque): each body's rolling radius, and
+        # its contact spheres times the largest eigenvalue of its inverse inertia
+        moves = np.concatenate([~np.asarray(kin, bool), np.zeros(n_static, bool)])
+        inv_radius = np.zeros(n_dyn + n_static)
+        inv_radius[:n_dyn][moves[:n_dyn]] = 1.0 / body_radius[moves[:n_dyn]]
+        ii = all_inv_inertia
+        full = np.stack([np.stack([ii[:, 0], ii[:, 3], ii[:, 4]], -1),
+                         np.stack([ii[:, 3], ii[:, 1], ii[:, 5]], -1),
+                         np.stack([ii[:, 4], ii[:, 5], ii[:, 2]], -1)], -2)
+        roll_gain = np.where(moves, np.diff(start) * (np.linalg.eigvalsh(full)[:, -1]
+                                                      if len(full) else 0.0), 0.0)
         return Model(
             diameter=d, sleep_steps=int(sleep_steps), sleep_linear=float(sleep_lin),
             sleep_angular=float(sleep_ang), n_bodies=n_dyn, n_static=n_static, shapes=tuple(self._shapes),
@@ -956,6 +985,8 @@ class ModelBuilder:
             body_start_time=_frozen(driven["start_time"]),
             body_kinematic=_frozen(kin, bool),
             collider_motions=tuple(driven["colliders"]), surface_speed=float(surface_speed),
+            pair_rolling=_frozen(table.mu_r), body_inv_radius=_frozen(inv_radius),
+            body_roll_gain=_frozen(roll_gain),
         )
 
     def _prescribed(self, groups, x0, q0, all_x, all_q, body_radius, n_dyn, n_static, fps,

@@ -157,16 +157,23 @@ class MaterialSpec:
     from it instead of "auto"."""
     poisson_ratio: float = 0.3
     """Poisson's ratio ν [1], in [0, 0.5), with young_modulus."""
+    rolling_friction: Optional[float] = None
+    """Rolling-resistance coefficient μ_r [1], ≥ 0 (0: off); None: the default
+    (materials.ROLLING_FRICTION). A ball rolling at v stops after 7 v² / (10 μ_r g)."""
 
     def to_material(self):
         """The :class:`dempipe.materials.Material` (stiffness None for "auto")."""
         from .materials import Material
 
+        from .materials import ROLLING_FRICTION
+
         k = None if self.stiffness == "auto" else float(self.stiffness)
         return Material(self.name, float(self.density), float(self.restitution),
                         float(self.friction), k,
                         None if self.young_modulus is None else float(self.young_modulus),
-                        float(self.poisson_ratio))
+                        float(self.poisson_ratio),
+                        ROLLING_FRICTION if self.rolling_friction is None
+                        else float(self.rolling_friction))
 
 
 @dataclass(frozen=True)
@@ -551,7 +558,7 @@ _LAWS = ("linear", "hertz")
 _SPHERE_MODES = ("lattice", "surface")
 _SLEEP_KEYS = ("linear_speed", "angular_speed", "time")
 _MATERIAL_KEYS = ("density", "restitution", "friction", "stiffness", "young_modulus",
-                  "poisson_ratio")
+                  "poisson_ratio", "rolling_friction")
 _BODY_COMMON = ("name", "shape", "material", "count", "layout", "rotation", "velocity",
                 "angular_velocity", "kinematic", "motion", "start_time")
 _LAYOUT_KEYS = {
@@ -687,6 +694,9 @@ def _parse_materials(ctx: _Ctx, d: Any) -> dict[str, MaterialSpec]:
                                            lo=0.0, hi=1.0)
         if "friction" in m:
             kw["friction"] = ctx.number(m["friction"], f"{key}.friction", lo=0.0)
+        if "rolling_friction" in m:
+            kw["rolling_friction"] = ctx.number(m["rolling_friction"],
+                                                f"{key}.rolling_friction", lo=0.0)
         if "stiffness" in m:
             v = m["stiffness"]
             if isinstance(v, str):
