@@ -266,6 +266,54 @@ def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz,
             sx, sy, sz)
 
 
+#: Most contacts one sphere can have at once, walls included: 12 equal spheres touch
+#: one (the kissing number; at equal overlaps the count is the same), and 3 walls
+#: meet at a box's corner, so 16 with margin. With it, rolling_torque's cap can
+#: never let a body's contacts reverse its spin within a step, however many touch.
+CONTACTS_PER_SPHERE = 16
+
+
+def rolling_torque(wx, wy, wz, nx, ny, nz, fn, mu_r, r_eff, gain, dt):
+    """Rolling resistance on a sphere of a contact: a constant torque against the
+    relative rolling, capped so that it never reverses it (the "constant directional
+    torque" model, Ai, Chen, Rotter and Ooi 2011, model A; LIGGGHTS' rolling_friction
+    cdt). Returns the torque [N m] on this side; the partner's is exactly its
+    negation (every input comes out the same or negated from its side).
+
+    w : relative angular velocity ω_self − ω_partner [rad/s] (a wall: minus its
+    own); n : the contact's unit normal (either sign). Rolling is w less its
+    component along n (a spin about the normal, twisting, is not resisted here).
+    fn : the contact's normal force |F·n| [N]; mu_r : the pair's coefficient [1];
+    r_eff : the rolling radius 1 / (1/R_i + 1/R_j) of the two bodies [m] (a wall,
+    static or kinematic partner: R_i); gain : roll_gain_i + roll_gain_j
+    (Model.body_roll_gain: contact spheres × the largest eigenvalue of the inverse
+    inertia) [1/(kg m²)]; dt [s].
+
+    The torque is μ_r r_eff fn against the rolling, but at most |w_roll| /
+    (CONTACTS_PER_SPHERE gain dt): all of a body's contacts together then change
+    its spin against a still partner by at most |w_roll| in a step. Why a constant
+    torque: it is the model with the closed form a user can check (a ball rolling
+    at v0 on a plane stops after 7 v0² / (10 μ_r g)) and, capped, it brings rolling
+    to rest without the oscillation of the uncapped model; the spring-dashpot
+    rolling models (Ai's model C) add a stiffness and a damping per contact that
+    the time step would have to resolve as well.
+    """
+    wn = wx * nx + wy * ny + wz * nz
+    rx = wx - wn * nx
+    ry = wy - wn * ny
+    rz = wz - wn * nz
+    w2 = rx * rx + ry * ry + rz * rz
+    if w2 == 0.0 or gain == 0.0:
+        return 0.0, 0.0, 0.0
+    w = sqrt(w2)
+    m = mu_r * r_eff * fn
+    cap = w / (CONTACTS_PER_SPHERE * gain * dt)
+    if cap < m:
+        m = cap
+    s = -m / w
+    return s * rx, s * ry, s * rz
+
+
 # ---------------------------------------------------------------------------
 # Contact history (static friction): each sphere remembers its own contacts
 # ---------------------------------------------------------------------------

@@ -13,7 +13,9 @@ spring's energy with it), which shrinks with stiffer, less damped contacts: at
 K = 2e5 N/m and e = 0.5 the 8-across ball rolled at 0.96 of 5/7 g sin θ, at K = 8e5
 and e = 0.8 at 0.98-1.00 (docs/spheres.md, "Rolling"). The lattice sets of the same
 bodies, same contacts, do not roll: that is what the surface mode fixes, and
-test_lattice_ball_does_not_roll keeps the comparison honest.
+test_lattice_ball_does_not_roll keeps the comparison honest. Rolling resistance
+(the material's rolling_friction) is off here: these are the sphere sets' own rolling;
+tests/test_rolling_resistance.py checks the coefficient's closed form.
 """
 
 import math
@@ -48,6 +50,7 @@ density = 1000.0
 restitution = {e}
 friction = {mu}
 stiffness = {k}
+rolling_friction = 0.0
 [shapes.body]
 {shape}
 [[bodies]]

@@ -28,6 +28,7 @@ FORMULAS = (
     "contact_force",
     "sphere_pair_force",
     "sphere_wall_force",
+    "rolling_torque",
     "body_step",
     "history_recall",
     "history_store",
@@ -100,6 +101,7 @@ def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNam
                  static_body=formulas.static_body,
                  sphere_pair_force=formulas.sphere_pair_force,
                  sphere_wall_force=formulas.sphere_wall_force,
+                 rolling_torque=formulas.rolling_torque,
                  anchor_local=formulas.anchor_local, anchor_surface=formulas.anchor_surface)
     given.update(constants)
     return compile_chain(contacts, ("wall_gap", "pair_ended", "pair_forces", "sphere_forces"), jit,

@@ -406,7 +406,8 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
     step's (step & 1), which marks the histories touched this step."""
     (diameter, dt, onset_speed, body_inv_mass, body_material, pair_k, pair_damp, pair_mu,
      kt_ratio, ks_ratio, friction, sleep_steps, wall_normal, wall_offset, wall_lo, wall_hi,
-     wall_depth, wall_material, wall_motion) = cm
+     wall_depth, wall_material, wall_motion, rolling, pair_rolling, body_inv_radius,
+     body_roll_gain) = cm
     (nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s, _list_start, _list_e,
      sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest, body_wake, wall_mask,
      hist_partner, hist_spring, pair_f, wall_f, _sphere_f, _sphere_t, _sphere_overlap) = cs
@@ -642,6 +643,20 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
                     tx += ptx
                     ty += pty
                     tz += ptz
+                if ROTATION and FRICTION and rolling and pair_rolling[mi, mj] > 0.0:  # noqa: F821
+                    rwx = wxi                   # the spin relative to the wall's
+                    rwy = wyi
+                    rwz = wzi
+                    if m >= 0 and inside:
+                        rwx -= motion_now[m, 10]
+                        rwy -= motion_now[m, 11]
+                        rwz -= motion_now[m, 12]
+                    rtx, rty, rtz = rolling_torque(  # noqa: F821 (a wall rolls as flat)
+                        rwx, rwy, rwz, nx, ny, nz, abs(pfx * nx + pfy * ny + pfz * nz),
+                        pair_rolling[mi, mj], 1.0 / body_inv_radius[bi], body_roll_gain[bi], dt)
+                    tx += rtx
+                    ty += rty
+                    tz += rtz
                 ov = radius - dist
                 if ov > max_ov:
                     max_ov = ov
@@ -703,8 +718,13 @@ def sphere_forces(s0, s1, cm, cs):
     onset_speed = cm.onset_speed
     body_inv_mass = cm.body_inv_mass
     sleep_steps = cm.sleep_steps
+    rolling = cm.rolling
+    body_material = cm.body_material
+    pair_rolling = cm.pair_rolling
+    body_inv_radius = cm.body_inv_radius
+    body_roll_gain = cm.body_roll_gain
     (nbr, nbr_n, pidx, _pair_start, _pair_t, _wall_start, _wall_s, list_start, list_e,
-     sorted_idx, sorted_x, sorted_v, sorted_body, _body_w, body_rest, _body_wake, wall_mask,
+     sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest, _body_wake, wall_mask,
      _hist_partner, _hist_spring, pair_f, wall_f, sphere_f, sphere_t, sphere_overlap) = cs
     d2 = diameter * diameter
     for s in range(s0, s1):
@@ -746,20 +766,42 @@ def sphere_forces(s0, s1, cm, cs):
                 continue
             p = list_e[e, 1] if LIST_ROWS else pidx[s, e]  # noqa: F821
             if p >= 0:
-                fx += pair_f[p, 0]
-                fy += pair_f[p, 1]
-                fz += pair_f[p, 2]
+                pfx = pair_f[p, 0]
+                pfy = pair_f[p, 1]
+                pfz = pair_f[p, 2]
             elif p != UNPAIRED:  # noqa: F821
                 p = -(p + 1)
-                fx -= pair_f[p, 0]
-                fy -= pair_f[p, 1]
-                fz -= pair_f[p, 2]
+                pfx = -pair_f[p, 0]         # (a - b is a + (-b) exactly: the same sums)
+                pfy = -pair_f[p, 1]
+                pfz = -pair_f[p, 2]
             else:
                 continue
+            fx += pfx
+            fy += pfy
+            fz += pfz
             if ROTATION and FRICTION:  # noqa: F821
                 tx += pair_f[p, 3]
                 ty += pair_f[p, 4]
                 tz += pair_f[p, 5]
+                if rolling:
+                    # computed from each side, not stored: every input is the same or
+                    # negated from the partner's, so its torque is exactly the negation
+                    bj = sorted_body[t]
+                    mu_r = pair_rolling[body_material[bi], body_material[bj]]
+                    if mu_r > 0.0:
+                        inv_dist = 1.0 / sqrt(dist2)  # noqa: F821
+                        nx = rx * inv_dist
+                        ny = ry * inv_dist
+                        nz = rz * inv_dist
+                        rtx, rty, rtz = rolling_torque(  # noqa: F821
+                            body_w[bi, 0] - body_w[bj, 0], body_w[bi, 1] - body_w[bj, 1],
+                            body_w[bi, 2] - body_w[bj, 2], nx, ny, nz,
+                            abs(pfx * nx + pfy * ny + pfz * nz), mu_r,
+                            1.0 / (body_inv_radius[bi] + body_inv_radius[bj]),
+                            body_roll_gain[bi] + body_roll_gain[bj], dt)
+                        tx += rtx
+                        ty += rty
+                        tz += rtz
             if dist2 < near2:
                 near2 = dist2
         max_ov = 0.0

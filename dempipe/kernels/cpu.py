@@ -37,7 +37,8 @@ from .cpu_device import (  # noqa: F401
     anchor_surface, angular_velocity, body_step, carried_state, cell_coord, cell_hash,
     cell_key, contact_coefficients, entry_range, history_recall, history_store, owns,
     pair_count, pair_mirror, pair_slots, pairs_to_rows, quat_rotate, rest_steps, rows_to_pairs,
-    slot_store, sphere_kinematics, sphere_pair_force, sphere_wall_force, sqrt, static_body,
+    rolling_torque, slot_store, sphere_kinematics, sphere_pair_force, sphere_wall_force, sqrt,
+    static_body,
     wall_reach, closing)
 from .cpu_grid import (  # noqa: F401
     stage_grid_gather, stage_grid_sort, stage_history_to_slots, stage_history_to_spheres,
@@ -348,7 +349,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
     (dt, onset_speed, diameter, n_bodies, gravity, sphere_body, sphere_offset, body_sphere_start,
      body_mass, body_inv_mass, body_inv_inertia, body_material, pair_k, pair_damp, pair_mu,
      kt_ratio, ks_ratio, friction, sleep_steps, v_sleep, w_sleep, wall_normal, wall_offset,
-     wall_lo, wall_hi, wall_depth, wall_material) = model
+     wall_lo, wall_hi, wall_depth, wall_material, rolling, pair_rolling, body_inv_radius,
+     body_roll_gain) = model
     (body_x, body_q, body_P, body_L, body_rest, contact_partner, contact_spring) = state
     (hist_partner, hist_spring, body_wake, body_still, body_v, body_w, sphere_x, sphere_v,
      sphere_r, sphere_key, sphere_hash, bucket_start, bucket_fill, body_key, grid_slot,
@@ -360,7 +362,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
     cm = ContactModel(diameter, dt, onset_speed, body_inv_mass, body_material, pair_k,
                       pair_damp, pair_mu, kt_ratio, ks_ratio, friction, sleep_steps,
                       wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                      drive.wall_motion)
+                      drive.wall_motion, rolling, pair_rolling, body_inv_radius,
+                      body_roll_gain)
     cs = ContactScratch(nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s, list_start,
                         list_e, sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest,
                         body_wake, wall_mask, hist_partner, hist_spring, pair_f, wall_f,

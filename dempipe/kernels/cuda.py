@@ -178,7 +178,9 @@ def scratch_layout(model, friction=None) -> dict:
         "body_inv_mass": ((nb,), f8), "body_inv_inertia": ((nb, 6), f8),
         "body_material": ((nb,), i4), "pair_k": ((nm, nm), f8),
         "pair_damp": ((nm, nm, DAMP_TERMS), f8),
-        "pair_mu": ((nm, nm), f8), "wall_normal": ((nw, 3), f8), "wall_offset": ((nw,), f8),
+        "pair_mu": ((nm, nm), f8), "pair_rolling": ((nm, nm), f8),
+        "body_inv_radius": ((nb,), f8), "body_roll_gain": ((nb,), f8),
+        "wall_normal": ((nw, 3), f8), "wall_offset": ((nw,), f8),
         "wall_lo": ((nw, 3), f8), "wall_hi": ((nw, 3), f8), "wall_depth": ((nw,), f8),
         "wall_material": ((nw,), i4), "gravity": ((3,), f8), "grid": ((6,), i8),
         # State
@@ -277,7 +279,8 @@ class CudaBackend:
         d = {}
         model_fields = ("sphere_body", "sphere_offset", "body_sphere_start", "body_mass",
                         "body_inv_mass", "body_inv_inertia", "body_material", "pair_k",
-                        "pair_damp", "pair_mu", "wall_normal", "wall_offset", "wall_lo",
+                        "pair_damp", "pair_mu", "pair_rolling", "body_inv_radius",
+                        "body_roll_gain", "wall_normal", "wall_offset", "wall_lo",
                         "wall_hi", "wall_depth", "wall_material", "gravity")
         for name in model_fields:
             shape, dt = layout[name]

@@ -252,6 +252,10 @@ class StepModel(NamedTuple):
     wall_hi: Any
     wall_depth: Any
     wall_material: Any
+    rolling: Any
+    pair_rolling: Any
+    body_inv_radius: Any
+    body_roll_gain: Any
 
 
 class StepState(NamedTuple):
@@ -328,7 +332,9 @@ class ContactModel(NamedTuple):
     units), kt_ratio, ks_ratio, friction (the backend keeps histories),
     sleep_steps, the walls (wall_normal, wall_offset [m], wall_lo, wall_hi [m],
     wall_depth [m], wall_material) and each wall's motion (wall_motion, -1: fixed;
-    control.Drive)."""
+    control.Drive); rolling resistance (rolling: Features.rolling and friction, the
+    pair table pair_rolling [1], body_inv_radius [1/m], body_roll_gain
+    [1/(kg m²)]: physics.rolling_torque)."""
 
     diameter: Any
     dt: Any
@@ -349,6 +355,10 @@ class ContactModel(NamedTuple):
     wall_depth: Any
     wall_material: Any
     wall_motion: Any
+    rolling: Any
+    pair_rolling: Any
+    body_inv_radius: Any
+    body_roll_gain: Any
 
 
 class ContactScratch(NamedTuple):
@@ -400,7 +410,9 @@ def contact_model(model, friction: bool, wall_motion, arrays=None) -> ContactMod
         friction=bool(friction), sleep_steps=int(model.sleep_steps),
         wall_normal=a("wall_normal"), wall_offset=a("wall_offset"), wall_lo=a("wall_lo"),
         wall_hi=a("wall_hi"), wall_depth=a("wall_depth"), wall_material=a("wall_material"),
-        wall_motion=wall_motion)
+        wall_motion=wall_motion, rolling=bool(model.features.rolling and friction),
+        pair_rolling=a("pair_rolling"), body_inv_radius=a("body_inv_radius"),
+        body_roll_gain=a("body_roll_gain"))
 
 
 def step_model(model, friction: bool) -> StepModel:
@@ -417,7 +429,9 @@ def step_model(model, friction: bool) -> StepModel:
         friction=bool(friction), sleep_steps=int(model.sleep_steps),
         v_sleep=float(model.sleep_linear), w_sleep=float(model.sleep_angular),
         wall_normal=model.wall_normal, wall_offset=model.wall_offset, wall_lo=model.wall_lo,
-        wall_hi=model.wall_hi, wall_depth=model.wall_depth, wall_material=model.wall_material)
+        wall_hi=model.wall_hi, wall_depth=model.wall_depth, wall_material=model.wall_material,
+        rolling=bool(model.features.rolling and friction), pair_rolling=model.pair_rolling,
+        body_inv_radius=model.body_inv_radius, body_roll_gain=model.body_roll_gain)
 
 
 def scratch_of(backend) -> Scratch:
