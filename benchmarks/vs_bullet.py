@@ -279,6 +279,18 @@ def run_dempipe(model, pieces: Pieces, threads: int) -> dict:
     Simulator(model, device="cpu", threads=threads).backend.step(model.initial_state(), 1)
     warm = time.perf_counter() - t0
     sim = Simulator(model, device="cpu", threads=threads)
+    # The largest sphere overlap of each frame: the Simulator keeps only the run's
+    # largest (RunStats.max_overlap, since its per-frame list went with issue 22's
+    # streamed bakes), so collect what it takes from the backend once per frame.
+    overlaps = []
+    take = sim.backend.take_max_overlap
+
+    def take_and_keep():
+        overlap = take()
+        overlaps.append(overlap)
+        return overlap
+
+    sim.backend.take_max_overlap = take_and_keep
     state = model.initial_state()
     n_frames = model.n_frames
     every = max(1, (n_frames - 1) // 10)
@@ -305,7 +317,6 @@ def run_dempipe(model, pieces: Pieces, threads: int) -> dict:
         frames = exc.frames
     sim_seconds = (frames.n_frames - 1) / model.fps
     f = frames.n_frames - 1
-    overlaps = sim.stats.frame_overlap
     pen_end = overlaps[-1] if overlaps and failure is None else math.inf
     out = judge(pieces, model.boxes[0], frames.x[f], frames.q[f], frames.v[f], frames.w[f],
                 "mesh", pen_end)
