@@ -244,7 +244,7 @@ class Model:
     """(B,) [1/m]: 1 / each dynamic body's radius (its rolling radius; the pair's is
     1 / (1/R_i + 1/R_j)); 0 for static and kinematic bodies, which roll as a wall."""
     body_roll_gain: np.ndarray = None
-    """(B,) [1/(kg m²)]: the body's contact spheres × the largest eigenvalue of its
+    """(B,) [1/(kg m²)]: the spheres of the body's set × the largest eigenvalue of its
     inverse inertia; 0 for static and kinematic bodies. Bounds what the rolling
     torques of all its contacts can change its spin by in a step (the cap of
     physics.rolling_torque)."""
@@ -933,7 +933,7 @@ class ModelBuilder:
             features.friction and features.rotation
             and bool(np.any([table.mu_r[a, b] > 0 for a in present for b in present]))))
         # rolling resistance (physics.rolling_torque): each body's rolling radius, and
-        # its contact spheres times the largest eigenvalue of its inverse inertia
+        # its spheres times the largest eigenvalue of its inverse inertia
         moves = np.concatenate([~np.asarray(kin, bool), np.zeros(n_static, bool)])
         inv_radius = np.zeros(n_dyn + n_static)
         inv_radius[:n_dyn][moves[:n_dyn]] = 1.0 / body_radius[moves[:n_dyn]]
@@ -941,7 +941,11 @@ class ModelBuilder:
         full = np.stack([np.stack([ii[:, 0], ii[:, 3], ii[:, 4]], -1),
                          np.stack([ii[:, 3], ii[:, 1], ii[:, 5]], -1),
                          np.stack([ii[:, 4], ii[:, 5], ii[:, 2]], -1)], -2)
-        roll_gain = np.where(moves, np.diff(start) * (np.linalg.eigvalsh(full)[:, -1]
+        # (every sphere of the set, not the contact ones only: a bound all the same, and
+        # the motion then does not depend on contact_layers)
+        n_set = np.array([self._shapes[s].sphere_set.centers.shape[0] for s in body_shape]
+                         + [0] * n_static, dtype=np.float64)
+        roll_gain = np.where(moves, n_set * (np.linalg.eigvalsh(full)[:, -1]
                                                       if len(full) else 0.0), 0.0)
         return Model(
             diameter=d, sleep_steps=int(sleep_steps), sleep_linear=float(sleep_lin),

@@ -286,7 +286,7 @@ def rolling_torque(wx, wy, wz, nx, ny, nz, fn, mu_r, r_eff, gain, dt):
     fn : the contact's normal force |F·n| [N]; mu_r : the pair's coefficient [1];
     r_eff : the rolling radius 1 / (1/R_i + 1/R_j) of the two bodies [m] (a wall,
     static or kinematic partner: R_i); gain : roll_gain_i + roll_gain_j
-    (Model.body_roll_gain: contact spheres × the largest eigenvalue of the inverse
+    (Model.body_roll_gain: the set's spheres × the largest eigenvalue of the inverse
     inertia) [1/(kg m²)]; dt [s].
 
     The torque is μ_r r_eff fn against the rolling, but at most |w_roll| /

@@ -789,10 +789,14 @@ def sphere_forces(s0, s1, cm, cs):
                     bj = sorted_body[t]
                     mu_r = pair_rolling[body_material[bi], body_material[bj]]
                     if mu_r > 0.0:
-                        inv_dist = 1.0 / sqrt(dist2)  # noqa: F821
-                        nx = rx * inv_dist
-                        ny = ry * inv_dist
-                        nz = rz * inv_dist
+                        nx = 0.0                # coincident centres: +z from either side,
+                        ny = 0.0                # as physics.sphere_pair_force
+                        nz = 1.0
+                        if dist2 > 0.0:
+                            inv_dist = 1.0 / sqrt(dist2)  # noqa: F821
+                            nx = rx * inv_dist
+                            ny = ry * inv_dist
+                            nz = rz * inv_dist
                         rtx, rty, rtz = rolling_torque(  # noqa: F821
                             body_w[bi, 0] - body_w[bj, 0], body_w[bi, 1] - body_w[bj, 1],
                             body_w[bi, 2] - body_w[bj, 2], nx, ny, nz,
