@@ -130,7 +130,7 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
 
     # sizes checked before anything is allocated: lattices, bodies (one line naming
     # the key that makes a scene too big for this machine)
-    from .stability import check_lattice, preflight_scene
+    from .sizes import check_lattice, preflight_scene
 
     preflight_scene(scene, meshes, d)
     t0 = time.perf_counter()

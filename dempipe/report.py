@@ -365,7 +365,7 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
     from .cache import SphereCache
     from .scene import load_scene
     from .simulator import BakeFailure, resolve_device
-    from .stability import memory_estimate
+    from .sizes import memory_estimate
 
     t_start = time.perf_counter()
     say = progress or (lambda line: None)
