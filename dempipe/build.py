@@ -106,7 +106,7 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
     force : accept a user dt above the critical step (see ModelBuilder.finalize).
     The returned Model's ``build_info`` holds sphere-set build time and cache hits.
     """
-    from .scene import collider_frame, expand_bodies, group_frame
+    from .placement import collider_frame, expand_bodies, group_frame
     from .spheres import build_sphere_set_with_info, diameter_for_resolution
 
     o = overrides or Overrides()

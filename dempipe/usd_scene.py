@@ -28,8 +28,8 @@ import numpy as np
 
 from .errors import SceneError
 from .motion import Key, Motion
-from .scene import (BodyGroup, MaterialSpec, MeshCollider, OutputSettings, PlaneCollider,
-                    Scene, ShapeSpec, SimulationSettings, STANDARD_GRAVITY)
+from .scene_data import (BodyGroup, MaterialSpec, MeshCollider, OutputSettings, PlaneCollider,
+                         Scene, ShapeSpec, SimulationSettings, STANDARD_GRAVITY)
 
 __all__ = ["UsdBody", "UsdShot", "load_usd_scene", "load_usd_settings", "polar"]
 
