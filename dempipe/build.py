@@ -15,7 +15,8 @@ import numpy as np
 
 from . import laws
 from .errors import SceneError
-from .model import Model, ModelBuilder, quat_to_matrix
+from .builder import ModelBuilder
+from .model import Model, quat_to_matrix
 
 
 @dataclass(frozen=True)
