@@ -130,7 +130,7 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
     for arg in inputs:
         name, mesh = _resolve_input(arg, scale)
         d = diameter if diameter is not None else diameter_for_resolution(mesh, resolution)
-        from dempipe.stability import check_lattice
+        from dempipe.sizes import check_lattice
 
         check_lattice(mesh, d, "--diameter" if diameter is not None else "--resolution",
                       "Fix: " + ("raise --diameter" if diameter is not None

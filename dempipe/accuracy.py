@@ -378,7 +378,7 @@ def _ball(diameter: float):
 def _ball_scene(material, diameter: float, stiffness: float, gravity: float = 9.81):
     from dataclasses import replace
 
-    from .model import ModelBuilder
+    from .builder import ModelBuilder
 
     b = ModelBuilder(diameter, gravity=(0.0, 0.0, -gravity))
     ss, mesh = _ball(diameter)
@@ -493,7 +493,7 @@ def incline_rolling_error(material, resolution: int, mode: str, rule: DtRule,
     """
     from dataclasses import replace
 
-    from .model import ModelBuilder
+    from .builder import ModelBuilder
     from .shapes import build_shape
     from .simulator import Simulator
     from .spheres import BuildOptions, build_sphere_set
@@ -536,7 +536,8 @@ def spin_drift(shape, dt: float, seconds: float = 0.2) -> tuple[float, float]:
     (the axis is not principal), so every term of the update is exercised.
     """
     from .materials import Material
-    from .model import ModelBuilder, _world_inertia
+    from .builder import ModelBuilder
+    from .model import _world_inertia
     from .simulator import Simulator, kinetic_energy
 
     ss = shape.sphere_set

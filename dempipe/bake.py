@@ -158,7 +158,8 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
     start, end = parse_frame_range(frames, model.n_frames, model.first_frame)
 
     src = Path(scene_path).name
-    from .stability import ERROR, check_run_time, expected_speeds, soft_contact, tunnelling
+    from .sizes import check_run_time
+    from .stability import ERROR, expected_speeds, soft_contact, tunnelling
 
     check_run_time(model, src, scene)
 

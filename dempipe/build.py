@@ -15,7 +15,8 @@ import numpy as np
 
 from . import laws
 from .errors import SceneError
-from .model import Model, ModelBuilder, quat_to_matrix
+from .builder import ModelBuilder
+from .model import Model, quat_to_matrix
 
 
 @dataclass(frozen=True)
@@ -106,7 +107,7 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
     force : accept a user dt above the critical step (see ModelBuilder.finalize).
     The returned Model's ``build_info`` holds sphere-set build time and cache hits.
     """
-    from .scene import collider_frame, expand_bodies, group_frame
+    from .placement import collider_frame, expand_bodies, group_frame
     from .spheres import build_sphere_set_with_info, diameter_for_resolution
 
     o = overrides or Overrides()
@@ -130,7 +131,7 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
 
     # sizes checked before anything is allocated: lattices, bodies (one line naming
     # the key that makes a scene too big for this machine)
-    from .stability import check_lattice, preflight_scene
+    from .sizes import check_lattice, preflight_scene
 
     preflight_scene(scene, meshes, d)
     t0 = time.perf_counter()

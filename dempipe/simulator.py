@@ -335,7 +335,8 @@ class Simulator:
 
     def _emission_check(self, state, k: int) -> str | None:
         """The frame-0 overlap check for the bodies an emitter starts at this step."""
-        from .stability import REFUSE_OVERLAP, emission_overlap
+        from .overlap import emission_overlap
+        from .stability import REFUSE_OVERLAP
 
         overlap, b = emission_overlap(self.model, state)
         if overlap <= REFUSE_OVERLAP:

@@ -28,8 +28,12 @@ import numpy as np
 
 from .errors import SceneError
 from .motion import Key, Motion
-from .scene import (BodyGroup, MaterialSpec, MeshCollider, OutputSettings, PlaneCollider,
-                    Scene, ShapeSpec, SimulationSettings, STANDARD_GRAVITY)
+from .scene_data import (BodyGroup, MaterialSpec, MeshCollider, OutputSettings, PlaneCollider,
+                         Scene, ShapeSpec, SimulationSettings, STANDARD_GRAVITY)
+# The matrix and gprim-geometry helpers live in usd_geometry.py; polar and
+# matrix_to_quat are re-exported here (polar is in __all__) so
+# `from dempipe.usd_scene import polar, matrix_to_quat` keeps working.
+from .usd_geometry import _gprim_mesh, _np, _quat_matrix, matrix_to_quat, polar  # noqa: F401
 
 __all__ = ["UsdBody", "UsdShot", "load_usd_scene", "load_usd_settings", "polar"]
 
@@ -45,9 +49,6 @@ PLANE_ALIGNMENT = 0.9999
 PLANE_WIDTH_BODIES = 10.0
 #: Duration baked when the stage has no time range [s].
 DEFAULT_DURATION = 4.0
-#: Segments of tessellated round gprims (Sphere: icosphere subdivisions instead).
-ROUND_SECTIONS = 48
-SPHERE_SUBDIVISIONS = 3
 
 _USD_SETTINGS_KEYS = ("stage",)
 _SIM_FROM_STAGE = ("gravity",)
@@ -101,114 +102,6 @@ class UsdShot:
     end: float
     tcps: float
     warnings: tuple = ()
-
-
-# ------------------------------------------------------------------------- matrices
-
-
-def polar(A: np.ndarray):
-    """(S, R) with ``A = S R``: S symmetric (the stretch), R a rotation (row convention).
-
-    A mirror (det A < 0) is put into S, so R is always a proper rotation.
-    """
-    U, sig, Vt = np.linalg.svd(A)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        D = np.diag([1.0, 1.0, -1.0])
-        R = U @ D @ Vt
-        S = U @ np.diag(sig) @ D @ U.T
-    else:
-        S = U @ np.diag(sig) @ U.T
-    return 0.5 * (S + S.T), R
-
-
-def matrix_to_quat(Rc: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of the column-convention rotation matrix Rc."""
-    m = Rc
-    t = m[0, 0] + m[1, 1] + m[2, 2]
-    if t > 0:
-        s = math.sqrt(t + 1.0) * 2
-        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
-        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
-        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
-    else:
-        s = math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
-        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return q if q[0] >= 0 else -q
-
-
-def _np(m) -> np.ndarray:
-    return np.array(m, dtype=np.float64).reshape(4, 4)
-
-
-# -------------------------------------------------------------------------- geometry
-
-
-def _axis_perm(axis: str) -> np.ndarray:
-    """Vertices built along +Z moved to ``axis`` by a cyclic permutation (a rotation)."""
-    if axis == "X":
-        return np.array([2, 0, 1])      # (z, x, y): z goes to x
-    if axis == "Y":
-        return np.array([1, 2, 0])      # (y, z, x): z goes to y
-    return np.array([0, 1, 2])
-
-
-def _gprim_mesh(prim, where: str):
-    """The collision geometry of a gprim in its own local coordinates [stage units],
-    as a trimesh (None for a type dempipe cannot read)."""
-    import trimesh
-    from pxr import UsdGeom
-
-    t = prim.GetTypeName()
-    if t == "Cube":
-        size = UsdGeom.Cube(prim).GetSizeAttr().Get()
-        return trimesh.creation.box(extents=[size] * 3)
-    if t == "Sphere":
-        r = UsdGeom.Sphere(prim).GetRadiusAttr().Get()
-        return trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=r)
-    if t in ("Capsule", "Cylinder", "Cone"):
-        g = getattr(UsdGeom, t)(prim)
-        r, h, axis = g.GetRadiusAttr().Get(), g.GetHeightAttr().Get(), g.GetAxisAttr().Get()
-        if t == "Capsule":
-            m = trimesh.creation.capsule(height=h, radius=r, count=[ROUND_SECTIONS, ROUND_SECTIONS])
-        elif t == "Cylinder":
-            m = trimesh.creation.cylinder(radius=r, height=h, sections=ROUND_SECTIONS)
-        else:
-            m = trimesh.creation.cone(radius=r, height=h, sections=ROUND_SECTIONS)
-            m.apply_translation([0.0, 0.0, -0.5 * h])     # USD cones are centred
-        v = np.asarray(m.vertices)[:, _axis_perm(axis)]
-        return trimesh.Trimesh(v, m.faces, process=False)
-    if t == "Mesh":
-        mesh = UsdGeom.Mesh(prim)
-        pts = mesh.GetPointsAttr().Get()
-        counts = mesh.GetFaceVertexCountsAttr().Get()
-        idx = mesh.GetFaceVertexIndicesAttr().Get()
-        if not pts or not counts or not idx:
-            raise SceneError(f"{where}: mesh has no points or faces (author points, "
-                             "faceVertexCounts and faceVertexIndices)")
-        pts = np.asarray(pts, dtype=np.float64)
-        counts = np.asarray(counts, dtype=np.int64)
-        idx = np.asarray(idx, dtype=np.int64)
-        if counts.sum() != len(idx) or idx.max() >= len(pts) or idx.min() < 0:
-            raise SceneError(f"{where}: faceVertexCounts/faceVertexIndices do not match the "
-                             f"{len(pts)} points")
-        tris = []
-        start = 0
-        for c in counts:                  # fan triangulation of each polygon
-            for k in range(1, c - 1):
-                tris.append((idx[start], idx[start + k], idx[start + k + 1]))
-            start += c
-        faces = np.array(tris, dtype=np.int64).reshape(-1, 3)
-        if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
-            faces = faces[:, ::-1]
-        return trimesh.Trimesh(pts, faces, process=False)
-    return None
 
 
 # ---------------------------------------------------------------------------- reader
@@ -729,13 +622,6 @@ class _Reader:
         self.notes.append(f"{self.where(prim)}: a flat cube {wide.min():.3g} m wide taken as "
                           "an infinite ground plane at its top face")
         return True
-
-
-def _quat_matrix(q) -> np.ndarray:
-    from .model import quat_to_matrix
-
-    q = np.asarray(q, float)
-    return quat_to_matrix(q / np.linalg.norm(q))
 
 
 # ------------------------------------------------------------------------------ API

@@ -47,7 +47,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 from .. import __version__
 from ..errors import ExportError
 from ..model import quat_to_matrix
-from ..usd_scene import matrix_to_quat, polar
+from ..usd_geometry import matrix_to_quat, polar
 from .usd import EXTENSIONS, ExportInfo, _save_atomically
 
 __all__ = ["OverlayWriter", "write_overlay"]

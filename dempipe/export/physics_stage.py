@@ -99,7 +99,7 @@ def _kinematic(prim):
 def write_physics_stage(scene, path) -> Path:
     """Write the TOML ``scene`` (a dempipe.scene.Scene) as a UsdPhysics stage at ``path``."""
     from ..build import _collider_mesh, _shape_mesh
-    from ..scene import collider_frame, expand_bodies, group_frame
+    from ..placement import collider_frame, expand_bodies, group_frame
 
     path = Path(path)
     if path.suffix.lower() not in EXTENSIONS:

@@ -4,7 +4,7 @@ assembled from chunks of frames on disk without holding every frame in memory.
 ``FrameSource`` gives the frames in blocks, as often as asked (an in-memory
 Frames is one block; ``ChunkSource`` reads a bake's chunk files one at a time).
 ``SparseTrack`` decides which samples to write as the frames stream past, by the
-rule of export/usd.py's ``_kept_samples`` and ``_constant`` (an attribute that
+rule of export/authoring.py's ``_kept_samples`` and ``_constant`` (an attribute that
 never changes gets a default value only; inside a run of identical samples only
 its first and last are kept), so the file is the same whatever the blocks.
 """
@@ -114,7 +114,7 @@ class Scan:
         any frame farthest from frame 0's centroid within that plane. The quad's
         centre (frame 0) and half size (the largest in-plane distance) are those of
         all frames."""
-        from .usd import _tangent_basis
+        from .colliders import _tangent_basis
 
         x0 = self.x0
         out = [x0]

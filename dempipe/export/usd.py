@@ -19,8 +19,13 @@ moved over it with :func:`os.replace`, so a failed export never leaves a
 half-written file behind.
 
 Conventions: dempipe quaternions are (w, x, y, z); GfQuat memory layout is
-(x, y, z, w), and the conversion happens here only. USD angular velocities are
-in degrees per second. Lengths are divided by ``model.meters_per_unit``.
+(x, y, z, w), and the conversion happens in the writers only (export/authoring.py's
+``_quat_xyzw``). USD angular velocities are in degrees per second. Lengths are
+divided by ``model.meters_per_unit``.
+
+This module lays out the bodies (the two layouts) and saves; the shapes' meshes
+and materials are authored by export/meshes.py, the colliders by
+export/colliders.py, with the Sdf helpers of export/authoring.py.
 """
 
 from __future__ import annotations
@@ -31,33 +36,23 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Sdf, Tf, Vt
+from pxr import Sdf, Vt
 
 from .. import __version__
 from ..errors import ExportError
-from .prescribed import collider_xforms, first_shown_frame, plane_xforms
+from .authoring import _CLASS, _DEF, _T, _TINY, _attr, _flush_tiny, _quat_xyzw, _unique_names
+from .colliders import _author_colliders
+from .meshes import _PALETTE, _author_mesh, _shape_materials, _shape_points
+from .prescribed import first_shown_frame
 from .samples import Scan, SparseTrack, as_source
+# Re-exported, not used here: imported from export.usd before they moved (issue 21).
+from .authoring import _constant, _kept_samples  # noqa: F401
+from .meshes import _COLLIDER_COLOR, CREASE_ANGLE_DEG, corner_normals  # noqa: F401
 
 __all__ = ["ExportInfo", "write_usd", "LAYOUTS", "EXTENSIONS"]
 
 LAYOUTS = ("instancer", "xforms")
 EXTENSIONS = (".usd", ".usdc", ".usda")
-
-_T = Sdf.ValueTypeNames
-_DEF = Sdf.SpecifierDef
-_CLASS = Sdf.SpecifierClass
-_UNIFORM = Sdf.VariabilityUniform
-
-# Display colours: bodies cycle through a palette by shape, colliders are grey.
-_PALETTE = np.array(
-    [
-        [0.85, 0.33, 0.10], [0.00, 0.45, 0.74], [0.47, 0.67, 0.19],
-        [0.93, 0.69, 0.13], [0.49, 0.18, 0.56], [0.30, 0.75, 0.93],
-        [0.64, 0.08, 0.18], [0.90, 0.90, 0.85],
-    ],
-    dtype=np.float32,
-)
-_COLLIDER_COLOR = (0.55, 0.55, 0.55)
 
 
 @dataclass(frozen=True)
@@ -220,194 +215,6 @@ def _author_metadata(layer, scan, model, layout) -> None:
         f"Rigid-body animation baked by dempipe {__version__} ({layout} layout)"
     )
     layer.customLayerData = {"dempipe": {"version": __version__, "layout": layout}}
-
-
-# ---------------------------------------------------------------------- helpers
-
-
-def _unique_names(names) -> list[str]:
-    """Valid, unique prim names, in order (``Tf.MakeValidIdentifier`` + suffixes)."""
-    out, seen = [], set()
-    for name in names:
-        base = Tf.MakeValidIdentifier(str(name)) or "_"
-        cand, k = base, 1
-        while cand in seen:
-            cand = f"{base}_{k}"
-            k += 1
-        seen.add(cand)
-        out.append(cand)
-    return out
-
-
-def _attr(prim, name, type_name, default=None, *, uniform=False):
-    spec = Sdf.AttributeSpec(prim, name, type_name, _UNIFORM if uniform else Sdf.VariabilityVarying)
-    if default is not None:
-        spec.default = default
-    return spec
-
-
-def _kept_samples(values: np.ndarray) -> np.ndarray:
-    """(F, K...) samples -> (F, K) bool: which to write so that linear
-    interpolation reproduces every sample. Inside a run of equal consecutive
-    samples only the first and the last are kept. Comparison is exact."""
-    n = values.shape[0]
-    keep = np.ones(values.shape[:2], dtype=bool)
-    if n > 2:
-        same = np.all(values[1:] == values[:-1], axis=tuple(range(2, values.ndim)))
-        keep[1:-1] = ~(same[:-1] & same[1:])
-    return keep
-
-
-def _constant(values: np.ndarray) -> np.ndarray:
-    """(F, K...) -> (K,) bool: True where all samples equal the first."""
-    return np.all(values == values[:1], axis=(0,) + tuple(range(2, values.ndim)))
-
-
-#: float32's resolution, 2^-24. Written as 0: a component of a position or a
-#: quaternion below this fraction of the vector's largest component (_flush_tiny),
-#: a velocity that moves a body by less than this fraction of the scene's largest
-#: coordinate in one frame, an angular velocity that turns it by less than this
-#: many radians in one frame. What is left out is float noise of bodies at rest.
-_TINY = 2.0**-24
-
-
-def _flush_tiny(a: np.ndarray) -> np.ndarray:
-    """(..., K) float64 -> the same with every component below ``_TINY`` times its
-    vector's largest component set to 0 (in place).
-
-    A body at rest still carries float noise around zero: a quaternion component
-    of 1e-18 on a box lying flat, a coordinate of 1e-22 m on a body placed on an
-    axis. Written as is, that noise makes every sample differ from the previous
-    one and sparse output keeps them all. Each vector changes by less than
-    float32's rounding of its largest component.
-    """
-    big = np.abs(a).max(axis=-1, keepdims=True)
-    a[np.abs(a) < _TINY * big] = 0.0
-    return a
-
-
-def _quat_xyzw(q_wxyz: np.ndarray, dtype) -> np.ndarray:
-    """dempipe (w, x, y, z) -> GfQuat memory layout (x, y, z, w), unit length."""
-    q = np.asarray(q_wxyz, dtype=np.float64)
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    q = _flush_tiny(q / np.where(norm > 0, norm, 1.0))
-    return np.ascontiguousarray(q[..., [1, 2, 3, 0]], dtype=dtype)
-
-
-def _author_mesh(prim, vertices, faces, color, material=None) -> None:
-    """Points, topology, extent, normals, displayColor and material of a polygon mesh prim.
-
-    ``material``: the path of a ``UsdShade.Material`` to bind (``material:binding``),
-    so that DCC tools show ``color`` by default: most ignore ``displayColor`` unless a
-    material reads it (Blender, Maya, Omniverse), and usdview draws the material too.
-    """
-    pts = np.ascontiguousarray(vertices, dtype=np.float32)
-    faces = np.asarray(faces, dtype=np.int32)
-    _attr(prim, "points", _T.Point3fArray, Vt.Vec3fArray.FromNumpy(pts))
-    _attr(prim, "faceVertexCounts", _T.IntArray,
-          Vt.IntArray.FromNumpy(np.full(len(faces), faces.shape[1] if faces.ndim == 2 else 3,
-                                        dtype=np.int32)))
-    _attr(prim, "faceVertexIndices", _T.IntArray,
-          Vt.IntArray.FromNumpy(np.ascontiguousarray(faces.reshape(-1))))
-    if len(pts):
-        ext = np.stack([pts.min(axis=0), pts.max(axis=0)])
-    else:
-        ext = np.zeros((2, 3), np.float32)
-    _attr(prim, "extent", _T.Float3Array, Vt.Vec3fArray.FromNumpy(ext))
-    _attr(prim, "subdivisionScheme", _T.Token, "none", uniform=True)
-    if len(faces):
-        normals = _attr(prim, "normals", _T.Normal3fArray, Vt.Vec3fArray.FromNumpy(
-            np.ascontiguousarray(corner_normals(vertices, faces), dtype=np.float32)))
-        normals.SetInfo("interpolation", "faceVarying")
-    col = _attr(prim, "primvars:displayColor", _T.Color3fArray,
-                Vt.Vec3fArray([Gf.Vec3f(*map(float, color))]))
-    col.SetInfo("interpolation", "constant")
-    if material is not None:
-        prim.SetInfo("apiSchemas", Sdf.TokenListOp.CreateExplicit(["MaterialBindingAPI"]))
-        rel = Sdf.RelationshipSpec(prim, "material:binding", custom=False)
-        rel.targetPathList.explicitItems = [material]
-
-
-#: Faces meeting at a smaller angle than this share their normals at a corner
-#: (smooth shading); at a larger one the edge stays sharp. Blender's default
-#: "auto smooth" angle: a box stays faceted, a revolved chess piece is smooth
-#: between its 11.25-degree segments and sharp at the rim of its base.
-CREASE_ANGLE_DEG = 30.0
-
-
-def corner_normals(vertices, faces, crease_deg: float = CREASE_ANGLE_DEG) -> np.ndarray:
-    """Face-varying normals (F * K, 3) of a polygon mesh (K corners a face).
-
-    At each corner, the area-weighted mean of the normals of the faces that share
-    its vertex and lie within ``crease_deg`` of the corner's own face: faceted
-    where faces meet at a sharp angle, smooth across shallow ones (what Houdini's
-    cusp angle and Blender's auto smooth do). Without authored normals every DCC
-    smooths the whole mesh, so a box looks like a pillow. Deterministic (sums in a
-    fixed order).
-    """
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    k = f.shape[1]
-    # Polygon normal by Newell's method (area-weighted; exact for triangles).
-    p = v[f]
-    q = np.roll(p, -1, axis=1)
-    fn = np.stack([((p[..., 1] - q[..., 1]) * (p[..., 2] + q[..., 2])).sum(1),
-                   ((p[..., 2] - q[..., 2]) * (p[..., 0] + q[..., 0])).sum(1),
-                   ((p[..., 0] - q[..., 0]) * (p[..., 1] + q[..., 1])).sum(1)], axis=1)
-    length = np.linalg.norm(fn, axis=1, keepdims=True)
-    unit = fn / np.where(length > 0, length, 1.0)
-    corner_v = f.reshape(-1)
-    corner_f = np.repeat(np.arange(len(f)), k)
-    # Every (corner, face at the corner's vertex) pair, grouped by vertex.
-    order = np.argsort(corner_v, kind="stable")
-    count = np.bincount(corner_v, minlength=len(v))
-    start = np.concatenate([[0], np.cumsum(count)[:-1]])
-    n_at = count[corner_v[order]]                      # faces at each sorted corner's vertex
-    i = np.repeat(np.arange(len(order)), n_at)         # sorted corner of each pair
-    first = start[corner_v[order]]
-    run = np.repeat(np.cumsum(n_at) - n_at, n_at)
-    j = first[i] + (np.arange(len(i)) - run)           # sorted corner giving the face
-    c, g = order[i], corner_f[order[j]]
-    near = (unit[g] * unit[corner_f[c]]).sum(1) >= np.cos(np.radians(crease_deg)) - 1e-9
-    c, g = c[near], g[near]
-    out = np.stack([np.bincount(c, weights=fn[g, a], minlength=len(corner_v))
-                    for a in range(3)], axis=1)
-    norm = np.linalg.norm(out, axis=1, keepdims=True)
-    flat = unit[corner_f]
-    return np.where(norm > 0, out / np.where(norm > 0, norm, 1.0), flat)
-
-
-def _author_material(looks, name, color):
-    """A ``UsdPreviewSurface`` material of diffuse ``color`` under ``looks``; its path.
-
-    Every renderer and DCC importer reads UsdPreviewSurface; the diffuse colour
-    also reads as the object's colour in viewports. Authored with Sdf like the rest.
-    """
-    mat = Sdf.PrimSpec(looks, name, _DEF, "Material")
-    shader = Sdf.PrimSpec(mat, "PreviewSurface", _DEF, "Shader")
-    _attr(shader, "info:id", _T.Token, "UsdPreviewSurface", uniform=True)
-    _attr(shader, "inputs:diffuseColor", _T.Color3f, Gf.Vec3f(*map(float, color)))
-    _attr(shader, "inputs:roughness", _T.Float, 0.6)
-    _attr(shader, "inputs:metallic", _T.Float, 0.0)
-    out = _attr(shader, "outputs:surface", _T.Token)
-    surface = _attr(mat, "outputs:surface", _T.Token)
-    surface.connectionPathList.explicitItems = [out.path]
-    return mat.path
-
-
-def _shape_materials(world, model):
-    """One material per shape (its palette colour), and one for the colliders:
-    ``(shape material paths, collider material path)`` under ``/World/Looks``."""
-    looks = Sdf.PrimSpec(world, "Looks", _DEF, "Scope")
-    names = _unique_names([f"{s.name}_mat" for s in model.shapes] + ["collider_mat"])
-    paths = [_author_material(looks, n, _PALETTE[i % len(_PALETTE)])
-             for i, n in enumerate(names[:-1])]
-    return paths, _author_material(looks, names[-1], _COLLIDER_COLOR)
-
-
-def _shape_points(model, mpu):
-    """Body-frame prototype points in stage units, one array per shape."""
-    return [np.asarray(s.vertices, dtype=np.float64) / mpu for s in model.shapes]
 
 
 # -------------------------------------------------------------------- instancer
@@ -701,156 +508,6 @@ class _BodySamples:
             for b, value in zip(idx.tolist(), vt):
                 self.layer.GetAttributeAtPath(self.paths[b]).default = value
         return self.n
-
-
-# -------------------------------------------------------------------- colliders
-
-
-def _tangent_basis(n: np.ndarray):
-    """Orthonormal u, v with u × v = n."""
-    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = np.cross(n, a)
-    u /= np.linalg.norm(u)
-    v = np.cross(n, u)
-    return u, v
-
-
-def _plane_quad(point, normal, positions):
-    """Quad vertices (4, 3) [m] of a finite stand-in for an infinite plane:
-    centred at the projection of the bodies' frame-0 centroid onto the plane,
-    half size max(1 m, 2 × the largest in-plane distance of any position from
-    that centre)."""
-    n = np.asarray(normal, dtype=np.float64)
-    n = n / np.linalg.norm(n)
-    p = np.asarray(point, dtype=np.float64)
-    u, v = _tangent_basis(n)
-    if positions.shape[1]:
-        c0 = positions[0].mean(axis=0)
-        centre = c0 - np.dot(c0 - p, n) * n
-        d = positions.reshape(-1, 3) - centre
-        spread = float(np.sqrt(np.max((d @ u) ** 2 + (d @ v) ** 2)))
-    else:
-        centre, spread = p, 0.0
-    h = max(1.0, 2.0 * spread)
-    return np.array([centre - h * u - h * v, centre + h * u - h * v,
-                     centre + h * u + h * v, centre - h * u + h * v])
-
-
-_CUBE_FACES = np.array(  # outward quads of the cuboid with corners indexed by bits (x, y, z)
-    [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]],
-    dtype=np.int32,
-)
-
-
-def _cuboid(lo, hi):
-    bits = np.array([[(k >> 0) & 1, (k >> 1) & 1, (k >> 2) & 1] for k in range(8)])
-    return np.where(bits == 1, hi, lo).astype(np.float64)
-
-
-def _box_walls(box, up: int):
-    """Vertices (8S, 3) and quad faces (6S, 4) of the slabs around a box collider:
-    the walls and floor outside [lo, hi] with the box's thickness, and a lid
-    unless the box is open at the top."""
-    lo = np.asarray(box.lo, dtype=np.float64)
-    hi = np.asarray(box.hi, dtype=np.float64)
-    t = getattr(box, "thickness", None)
-    t = float(t) if t is not None and float(t) > 0 else max(0.01, 0.02 * float(np.min(hi - lo)))
-    open_top = bool(getattr(box, "open_top", False))
-    outer_lo, outer_hi = lo - t, hi + t
-    if open_top:
-        outer_hi[up] = hi[up]
-    verts, faces = [], []
-    for axis in range(3):
-        for side in (0, 1):
-            if open_top and axis == up and side == 1:
-                continue
-            s_lo, s_hi = outer_lo.copy(), outer_hi.copy()
-            if side == 0:
-                s_hi[axis] = lo[axis]
-            else:
-                s_lo[axis] = hi[axis]
-            faces.append(_CUBE_FACES + 8 * len(verts))
-            verts.append(_cuboid(s_lo, s_hi))
-    return np.concatenate(verts), np.concatenate(faces)
-
-
-def _author_colliders(layer, world, source, scan, model, material, sparse=True) -> int:
-    """The colliders under /World/Colliders (geometry in world coordinates); the
-    animated ones (``model.collider_motions``) with time-sampled xformOps.
-    Returns the time samples written."""
-    mpu = float(model.meters_per_unit)
-    up = {"Y": 1, "Z": 2}[str(model.up_axis).upper()]
-    plane_point = np.asarray(getattr(model, "plane_point", np.zeros((0, 3)))).reshape(-1, 3)
-    plane_normal = np.asarray(getattr(model, "plane_normal", np.zeros((0, 3)))).reshape(-1, 3)
-    boxes = tuple(getattr(model, "boxes", ()) or ())
-    statics = tuple(getattr(model, "static_meshes", ()) or ())
-    if not (len(plane_point) or boxes or statics):
-        return 0
-    moving = {(str(m.kind), int(m.index)): m for m in getattr(model, "collider_motions", ()) or ()}
-    times, numbers = scan.times, scan.numbers
-    n = 0
-    col = Sdf.PrimSpec(world, "Colliders", _DEF, "Xform")
-    # frame 0 and, per plane, the farthest position of all frames (samples.Scan)
-    positions = scan.plane_positions(source, list(zip(plane_point, plane_normal))) \
-        if len(plane_point) else None
-    quad = np.array([[0, 1, 2, 3]], dtype=np.int32)
-    for i, (p, nrm) in enumerate(zip(plane_point, plane_normal)):
-        prim = Sdf.PrimSpec(col, f"plane_{i}", _DEF, "Mesh")
-        verts = _plane_quad(p, nrm, positions)
-        _author_mesh(prim, verts / mpu, quad, _COLLIDER_COLOR, material)
-        m = moving.get(("plane", i))
-        if m is not None:
-            tr, ori = plane_xforms(m.motion, (m.ref_p, m.ref_q), m.origin, nrm,
-                                   verts.mean(axis=0), times)
-            n += _author_collider_motion(layer, prim, tr / mpu, ori, numbers, sparse)
-    for i, box in enumerate(boxes):
-        prim = Sdf.PrimSpec(col, f"box_{i}", _DEF, "Mesh")
-        verts, faces = _box_walls(box, up)
-        _author_mesh(prim, verts / mpu, faces, _COLLIDER_COLOR, material)
-        n += _moving_collider(layer, prim, moving.get(("box", i)), times, numbers, mpu, sparse)
-    reserved = {f"plane_{i}" for i in range(len(plane_point))} | {f"box_{i}" for i in range(len(boxes))}
-    names = _unique_names(list(reserved) + [m.name for m in statics])[len(reserved):]
-    for i, (name, mesh) in enumerate(zip(names, statics)):
-        prim = Sdf.PrimSpec(col, name, _DEF, "Mesh")
-        _author_mesh(prim, np.asarray(mesh.vertices, dtype=np.float64) / mpu, mesh.faces,
-                     _COLLIDER_COLOR, material)
-        n += _moving_collider(layer, prim, moving.get(("mesh", i)), times, numbers, mpu, sparse)
-    return n
-
-
-def _moving_collider(layer, prim, m, times, numbers, mpu, sparse) -> int:
-    """A box's or mesh's prim transform D(t) from its ColliderMotion ``m`` (None:
-    static, nothing written)."""
-    if m is None:
-        return 0
-    tr, ori = collider_xforms(m.motion, (m.ref_p, m.ref_q), m.origin, m.rotation, times)
-    return _author_collider_motion(layer, prim, tr / mpu, ori, numbers, sparse)
-
-
-def _author_collider_motion(layer, prim, translate, orient, numbers, sparse) -> int:
-    """``xformOp:translate`` (F, 3) [stage units] and ``xformOp:orient`` (F, 4)
-    (w, x, y, z), double precision, at time codes ``numbers`` (F,); sparse: the
-    kept samples of _kept_samples, a default only where nothing changes.
-    Returns the time samples written."""
-    t_spec = _attr(prim, "xformOp:translate", _T.Double3)
-    o_spec = _attr(prim, "xformOp:orient", _T.Quatd)
-    _attr(prim, "xformOpOrder", _T.TokenArray,
-          Vt.TokenArray(["xformOp:translate", "xformOp:orient"]), uniform=True)
-    orient = _flush_tiny(np.array(orient, dtype=np.float64))
-    values = np.concatenate([translate, orient], axis=1)
-
-    def quat(q):
-        return Gf.Quatd(float(q[0]), Gf.Vec3d(float(q[1]), float(q[2]), float(q[3])))
-
-    if sparse and bool(_constant(values[:, None])[0]):
-        t_spec.default = Gf.Vec3d(*map(float, translate[0]))
-        o_spec.default = quat(orient[0])
-        return 0
-    keep = _kept_samples(values[:, None])[:, 0] if sparse else np.ones(len(values), bool)
-    for f in np.flatnonzero(keep):
-        layer.SetTimeSample(t_spec.path, float(numbers[f]), Gf.Vec3d(*map(float, translate[f])))
-        layer.SetTimeSample(o_spec.path, float(numbers[f]), quat(orient[f]))
-    return 2 * int(keep.sum())
 
 
 # ------------------------------------------------------------------ atomic save
