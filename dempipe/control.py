@@ -117,7 +117,7 @@ class Drive(NamedTuple):
 def drive(model) -> Drive:
     """The Drive of ``model`` (ModelBuilder.finalize's prescription), with a fresh
     motion_now (host arrays)."""
-    from .kernels.contacts import WALL_BITS
+    from .kernels.pairing import WALL_BITS
 
     t = model.motion_table
     wall_motion = np.ascontiguousarray(model.wall_motion, dtype=np.int32)

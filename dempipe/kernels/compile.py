@@ -72,13 +72,13 @@ def compile_slot_store(jit):
 
 
 def compile_pairing(jit, formulas) -> types.SimpleNamespace:
-    """contacts.py's bookkeeping (entry_range, wall_reach, owns, pair_count,
+    """pairing.py's bookkeeping (entry_range, wall_reach, owns, pair_count,
     pair_slots, pair_mirror, walls_to_front, wall_column, rows_to_pairs,
     pairs_to_rows), each compiled with ``jit``, calling ``formulas`` (the target's
     compile_formulas); they read no flags, so they need no variants."""
-    from . import contacts
+    from . import pairing
 
-    return compile_chain(contacts, ("entry_range", "wall_reach", "owns", "pair_count",
+    return compile_chain(pairing, ("entry_range", "wall_reach", "owns", "pair_count",
                                     "pair_slots",
                                     "pair_mirror", "walls_to_front", "wall_column",
                                     "rows_to_pairs", "pairs_to_rows"), jit,

@@ -23,11 +23,13 @@ from .prescribed import driven_row, motion_row
 from .compile import compile_formulas, invalidate_stale_cache, specialize
 from ..state import CONTACT_SLOTS
 # UNPAIRED: read by contacts.sphere_forces, which is compiled with this module's globals
-from .contacts import (CONTACT_CHUNK, LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE,  # noqa: F401
-                       UNPAIRED, WALL_SLACK)
+from .contacts import CONTACT_CHUNK  # noqa: F401
 from .contacts import CLOSE_REACH2  # noqa: F401 (read by contacts.pair_forces, sphere_forces)
+from .pairing import (LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE, UNPAIRED,  # noqa: F401
+                      WALL_SLACK)
 from .layout import (BUCKETS_PER_SPHERE, CPU_LAYOUT, FLAGS, GENERAL,  # noqa: F401
-                     ContactModel, ContactScratch, chunk_spans, cpu_scratch, fit_grid, grid_table, kernel_flags,
+                     ContactModel, ContactScratch, chunk_spans, cpu_scratch, fit_grid,
+                     grid_table, kernel_flags,
                      scene_features, static_extent)
 from .neighbours import NEIGHBOURS, SKIN, SKIN_MAX, SKIN_SHRINK_ABOVE, cell_size
 # the device functions and the rebuild stages, in modules of their own; the

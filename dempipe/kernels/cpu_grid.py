@@ -13,7 +13,8 @@ import numpy as np
 from numba import prange
 
 from .compile import invalidate_stale_cache
-from .contacts import (CONTACT_CHUNK, WALL_SLACK)
+from .contacts import CONTACT_CHUNK
+from .pairing import WALL_SLACK
 from .cpu_device import (LIST_ROWS, WALL_ROWS, cell_coord, morton_key, neighbour_list, owns,
                          pair_count, pair_mirror, pair_slots, pairs_to_rows, rows_to_pairs,
                          wall_reach)

@@ -44,7 +44,7 @@ from ..errors import DeviceError
 from ..laws.linear import DAMP_TERMS
 from ..state import CONTACT_SLOTS
 from .compile import compile_contacts, compile_formulas
-from .contacts import PAIR_COLS, WALL_SLACK
+from .pairing import PAIR_COLS, WALL_SLACK
 from .layout import (BUCKETS_PER_SPHERE, CUDA_LAYOUT, FLAGS, GENERAL, ContactScratch,  # noqa: F401
                      contact_model, fit_grid,
                      grid_table, kernel_flags, scene_features, static_extent)

@@ -20,7 +20,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ..state import CONTACT_SLOTS
-from .contacts import CONTACT_CHUNK, LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE
+from .contacts import CONTACT_CHUNK
+from .pairing import LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE
 from .neighbours import NEIGHBOURS, cell_size
 
 #: Most buckets per sphere the grid may use: its table has 2^k >= this × spheres
