@@ -273,7 +273,7 @@ def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz,
 CONTACTS_PER_SPHERE = 16
 
 
-def rolling_torque(wx, wy, wz, nx, ny, nz, fn, mu_r, r_eff, gain, dt):
+def rolling_torque(wx, wy, wz, nx, ny, nz, n2, fn, mu_r, inv_r, gain, dt):
     """Rolling resistance on a sphere of a contact: a constant torque against the
     relative rolling, capped so that it never reverses it (the "constant directional
     torque" model, Ai, Chen, Rotter and Ooi 2011, model A; LIGGGHTS' rolling_friction
@@ -281,37 +281,40 @@ def rolling_torque(wx, wy, wz, nx, ny, nz, fn, mu_r, r_eff, gain, dt):
     negation (every input comes out the same or negated from its side).
 
     w : relative angular velocity ω_self − ω_partner [rad/s] (a wall: minus its
-    own); n : the contact's unit normal (either sign). Rolling is w less its
-    component along n (a spin about the normal, twisting, is not resisted here).
-    fn : the contact's normal force |F·n| [N]; mu_r : the pair's coefficient [1];
-    r_eff : the rolling radius 1 / (1/R_i + 1/R_j) of the two bodies [m] (a wall,
-    static or kinematic partner: R_i); gain : roll_gain_i + roll_gain_j
-    (Model.body_roll_gain: the set's spheres × the largest eigenvalue of the inverse
-    inertia) [1/(kg m²)]; dt [s].
+    own); n : the contact's normal, either sign, of squared length n2 > 0 (the line
+    of centres as it is, or a wall's unit normal). Rolling is w less its component
+    along n (a spin about the normal, twisting, is not resisted). fn : F·n, the
+    contact force along n [N m] (|F·n̂| |n|); mu_r : the pair's coefficient [1];
+    inv_r : 1/R_i + 1/R_j, the inverse rolling radius of the two bodies [1/m] (a
+    wall, static or kinematic partner: 1/R_i); gain : roll_gain_i + roll_gain_j
+    (Model.body_roll_gain: the set's spheres × the largest eigenvalue of the
+    inverse inertia) [1/(kg m²)]; dt [s].
 
-    The torque is μ_r r_eff fn against the rolling, but at most |w_roll| /
+    The torque is μ_r R* |F·n̂| against the rolling, but at most |w_r| /
     (CONTACTS_PER_SPHERE gain dt): all of a body's contacts together then change
-    its spin against a still partner by at most |w_roll| in a step. Why a constant
+    its spin against a still partner by at most |w_r| in a step. Why a constant
     torque: it is the model with the closed form a user can check (a ball rolling
     at v0 on a plane stops after 7 v0² / (10 μ_r g)) and, capped, it brings rolling
     to rest without the oscillation of the uncapped model; the spring-dashpot
     rolling models (Ai's model C) add a stiffness and a damping per contact that
     the time step would have to resolve as well.
     """
+    # u = n2 w_r (w_r = w less its part along n), so that no division is needed for it
     wn = wx * nx + wy * ny + wz * nz
-    rx = wx - wn * nx
-    ry = wy - wn * ny
-    rz = wz - wn * nz
-    w2 = rx * rx + ry * ry + rz * rz
-    if w2 == 0.0 or gain == 0.0:
+    ux = n2 * wx - wn * nx
+    uy = n2 * wy - wn * ny
+    uz = n2 * wz - wn * nz
+    u2 = ux * ux + uy * uy + uz * uz
+    if u2 == 0.0 or gain == 0.0:
         return 0.0, 0.0, 0.0
-    w = sqrt(w2)
-    m = mu_r * r_eff * fn
-    cap = w / (CONTACTS_PER_SPHERE * gain * dt)
-    if cap < m:
-        m = cap
-    s = -m / w
-    return s * rx, s * ry, s * rz
+    # the cap's torque, -w_r / (16 gain dt), where it is the smaller (compared squared:
+    # mu_r R* |F.n^| |w_r|^-1 > 1 / (16 gain dt)), else mu_r R* |F.n^| along -w_r^
+    a = mu_r * fn * (CONTACTS_PER_SPHERE * gain * dt) * n2
+    if a * a > inv_r * inv_r * n2 * u2:
+        c = -1.0 / (CONTACTS_PER_SPHERE * gain * dt * n2)
+    else:
+        c = -mu_r * abs(fn) / (inv_r * sqrt(n2 * u2))
+    return c * ux, c * uy, c * uz
 
 
 # ---------------------------------------------------------------------------

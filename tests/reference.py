@@ -30,13 +30,13 @@ def wall_closing(n, dist, v, d, dt, vc):
 
 def rolling(model, w_rel, n, out, mi, mj, inv_radius, gain):
     """The rolling-resistance torque on a sphere of a contact (physics.rolling_torque),
-    from the contact's force ``out[0:3]`` and normal ``n``; zero without it."""
+    from the contact's force ``out[0:3]`` and normal ``n`` (any length); zero without it."""
     mu_r = model.pair_rolling[mi, mj]
     if not (model.features.rolling and mu_r > 0.0):
         return np.zeros(3)
-    fn = abs(out[0] * n[0] + out[1] * n[1] + out[2] * n[2])
-    return np.array(physics.rolling_torque(*w_rel, *n, fn, mu_r, 1.0 / inv_radius, gain,
-                                           model.dt))
+    fn = out[0] * n[0] + out[1] * n[1] + out[2] * n[2]
+    return np.array(physics.rolling_torque(*w_rel, *n, float(n @ n), fn, mu_r, inv_radius,
+                                           gain, model.dt))
 
 
 def reference_step(model, state):
@@ -94,7 +94,7 @@ def reference_step(model, state):
                                             k, eta, kt, ks, mu, *s0, model.dt,
                                             model.onset_speed)
             f[i] += out[0:3]; t[i] += out[3:6]
-            n = rij / dist if dist > 0 else np.array([0.0, 0.0, 1.0])
+            n = rij if dist > 0 else np.array([0.0, 0.0, 1.0])
             t[i] += rolling(model, W[bi] - W[bj], n, out, mi, mj,
                             model.body_inv_radius[bi] + model.body_inv_radius[bj],
                             model.body_roll_gain[bi] + model.body_roll_gain[bj])

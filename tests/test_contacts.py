@@ -128,10 +128,10 @@ def own_forces(model, state, be):
                 tz += out[5]
             mu_r = model.pair_rolling[mi, mj]
             if model.features.rolling and mu_r > 0.0:     # its own side of the couple
-                n = r * (1.0 / np.sqrt(dist2)) if dist2 > 0 else np.array([0.0, 0.0, 1.0])
+                n, n2 = (r, dist2) if dist2 > 0 else (np.array([0.0, 0.0, 1.0]), 1.0)
                 rt = physics.rolling_torque(
-                    *(W[bi] - W[bj]), *n, abs(out[0] * n[0] + out[1] * n[1] + out[2] * n[2]),
-                    mu_r, 1.0 / (model.body_inv_radius[bi] + model.body_inv_radius[bj]),
+                    *(W[bi] - W[bj]), *n, n2, out[0] * n[0] + out[1] * n[1] + out[2] * n[2],
+                    mu_r, model.body_inv_radius[bi] + model.body_inv_radius[bj],
                     model.body_roll_gain[bi] + model.body_roll_gain[bj], model.dt)
                 tx += rt[0]
                 ty += rt[1]
@@ -159,8 +159,8 @@ def own_forces(model, state, be):
                     wf[3 + c] += out[3 + c]
             if model.features.rolling and model.pair_rolling[mi, mj] > 0.0:
                 rt = physics.rolling_torque(
-                    *W[bi], *n, abs(out[0] * n[0] + out[1] * n[1] + out[2] * n[2]),
-                    model.pair_rolling[mi, mj], 1.0 / model.body_inv_radius[bi],
+                    *W[bi], *n, 1.0, out[0] * n[0] + out[1] * n[1] + out[2] * n[2],
+                    model.pair_rolling[mi, mj], model.body_inv_radius[bi],
                     model.body_roll_gain[bi], model.dt)
                 for c in range(3):
                     wf[3 + c] += rt[c]

@@ -411,8 +411,8 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
                         rwy -= motion_now[m, 11]
                         rwz -= motion_now[m, 12]
                     rtx, rty, rtz = rolling_torque(  # noqa: F821 (a wall rolls as flat)
-                        rwx, rwy, rwz, nx, ny, nz, abs(pfx * nx + pfy * ny + pfz * nz),
-                        pair_rolling[mi, mj], 1.0 / body_inv_radius[bi], body_roll_gain[bi], dt)
+                        rwx, rwy, rwz, nx, ny, nz, 1.0, pfx * nx + pfy * ny + pfz * nz,
+                        pair_rolling[mi, mj], body_inv_radius[bi], body_roll_gain[bi], dt)
                     tx += rtx
                     ty += rty
                     tz += rtz
@@ -505,6 +505,19 @@ def sphere_forces(s0, s1, cm, cs):
         vxi = sorted_v[s, 0]
         vyi = sorted_v[s, 1]
         vzi = sorted_v[s, 2]
+        mi = 0                              # this sphere's side of rolling resistance
+        rwx = 0.0
+        rwy = 0.0
+        rwz = 0.0
+        inv_ri = 0.0
+        gain_i = 0.0
+        if ROTATION and FRICTION and rolling:  # noqa: F821
+            mi = body_material[bi]
+            rwx = body_w[bi, 0]
+            rwy = body_w[bi, 1]
+            rwz = body_w[bi, 2]
+            inv_ri = body_inv_radius[bi]
+            gain_i = body_roll_gain[bi]
         fx = 0.0
         fy = 0.0
         fz = 0.0
@@ -546,22 +559,19 @@ def sphere_forces(s0, s1, cm, cs):
                     # computed from each side, not stored: every input is the same or
                     # negated from the partner's, so its torque is exactly the negation
                     bj = sorted_body[t]
-                    mu_r = pair_rolling[body_material[bi], body_material[bj]]
+                    mu_r = pair_rolling[mi, body_material[bj]]
                     if mu_r > 0.0:
-                        nx = 0.0                # coincident centres: +z from either side,
-                        ny = 0.0                # as physics.sphere_pair_force
-                        nz = 1.0
-                        if dist2 > 0.0:
-                            inv_dist = 1.0 / sqrt(dist2)  # noqa: F821
-                            nx = rx * inv_dist
-                            ny = ry * inv_dist
-                            nz = rz * inv_dist
+                        nx = rx                 # the line of centres, as it is; coincident
+                        ny = ry                 # centres: +z from either side (as
+                        nz = rz                 # physics.sphere_pair_force)
+                        n2 = dist2
+                        if dist2 == 0.0:
+                            nz = 1.0
+                            n2 = 1.0
                         rtx, rty, rtz = rolling_torque(  # noqa: F821
-                            body_w[bi, 0] - body_w[bj, 0], body_w[bi, 1] - body_w[bj, 1],
-                            body_w[bi, 2] - body_w[bj, 2], nx, ny, nz,
-                            abs(pfx * nx + pfy * ny + pfz * nz), mu_r,
-                            1.0 / (body_inv_radius[bi] + body_inv_radius[bj]),
-                            body_roll_gain[bi] + body_roll_gain[bj], dt)
+                            rwx - body_w[bj, 0], rwy - body_w[bj, 1], rwz - body_w[bj, 2],
+                            nx, ny, nz, n2, pfx * nx + pfy * ny + pfz * nz, mu_r,
+                            inv_ri + body_inv_radius[bj], gain_i + body_roll_gain[bj], dt)
                         tx += rtx
                         ty += rty
                         tz += rtz

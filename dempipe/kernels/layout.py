@@ -1,7 +1,7 @@
 """Host-side layout of the kernels' data, for both targets; imports no numba.
 
 What the backends allocate and how the grid is sized, in one place, so that
-what is allocated and what is estimated (``stability.memory_estimate``, `dempipe
+what is allocated and what is estimated (``sizes.memory_estimate``, `dempipe
 check`) cannot drift apart:
 
 * ``grid_table`` / ``fit_grid``: the wrapped grid's bits (kernels/neighbours.py);
