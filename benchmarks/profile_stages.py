@@ -41,6 +41,7 @@ sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 from cpu_bench import dense_pile  # noqa: E402
 
 from dempipe.kernels import cpu  # noqa: E402
+from dempipe.kernels.layout import BodyScratch, body_model  # noqa: E402
 from dempipe.kernels.neighbours import cell_size  # noqa: E402
 from dempipe.simulator import Simulator  # noqa: E402
 
@@ -136,16 +137,14 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                 over = rebuild[-1]()
         # after any rebuild: a list that grew is a new array
         cm, cs = b.contact_args(state, hist_partner=hp, hist_spring=hs)
+        bm = body_model(m, b.drive.body_start)
+        bs = BodyScratch(b.sphere_f, b.sphere_t, b.sphere_r, state.body_x, state.body_q,
+                         state.body_P, state.body_L, rest, b.body_wake, b.body_still)
         after = (
             lambda: k.stage_contacts(cm, cs, b.drive.motion_now, s & 1, b.chunks,
                                      b.chunks.shape[0]),
             lambda: k.stage_sums(cm, cs, b.chunks, b.chunks.shape[0]),
-            lambda: k.stage_bodies(m.n_bodies, m.dt, g[0], g[1], g[2], m.body_sphere_start,
-                                   b.sphere_f, b.sphere_t, b.sphere_r, m.body_mass,
-                                   m.body_inv_mass, m.body_inv_inertia, state.body_x,
-                                   state.body_q, state.body_P, state.body_L, m.sleep_steps,
-                                   m.sleep_linear, m.sleep_angular, rest, b.body_wake,
-                                   b.body_still, b.drive.body_start, s),
+            lambda: k.stage_bodies(m.n_bodies, bm, bs, s),
         )
         for i, call in enumerate(after):
             t0 = time.perf_counter()

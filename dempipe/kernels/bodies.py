@@ -11,10 +11,7 @@ targets run the one body stage and stay bit-identical.
 # its compiled formulas and feature flags, given when it is compiled.
 
 
-def body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
-                body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
-                sleep_steps, v_sleep, w_sleep, body_rest, body_wake, body_still, body_start,
-                step):
+def body_update(b, bm, bs, step):
     """Stages 5-8 for body b (the body of stage_bodies' loop), with sleeping.
 
     Returns awake + 2 woke + 4 quiet + 8 calmed: awake (1) when the body will
@@ -25,7 +22,13 @@ def body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere
     from the last step. A kinematic body (static: its motion carries it,
     stage_driven) and a body not yet emitted (body_start) are left alone; a
     kinematic body that moves counts as awake. A body flagged by the contact pass
-    while awake (it touches a moving surface) keeps a rest count of 0."""
+    while awake (it touches a moving surface) keeps a rest count of 0.
+    bm: layout.BodyModel, bs: layout.BodyScratch (unpacked below under the names
+    the stage reads); step: this step's number."""
+    (dt, gravity, body_sphere_start, body_mass, body_inv_mass, body_inv_inertia, sleep_steps,
+     v_sleep, w_sleep, body_start) = bm
+    (sphere_f, sphere_t, sphere_r, body_x, body_q, body_P, body_L, body_rest, body_wake,
+     body_still) = bs
     if static_body(body_inv_mass[b]):
         return 1 if body_rest[b] < 0 else 0
     if body_start[b] > step:
@@ -41,9 +44,9 @@ def body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere
         body_still[b] = 1
         return 4 + (0 if was_quiet else 8)
     m = body_mass[b]
-    FX = m * gx
-    FY = m * gy
-    FZ = m * gz
+    FX = m * gravity[0]
+    FY = m * gravity[1]
+    FZ = m * gravity[2]
     TX = 0.0
     TY = 0.0
     TZ = 0.0

@@ -28,7 +28,7 @@ from .contacts import CLOSE_REACH2  # noqa: F401 (read by contacts.pair_forces, 
 from .pairing import (LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE, UNPAIRED,  # noqa: F401
                       WALL_SLACK)
 from .layout import (BUCKETS_PER_SPHERE, CPU_LAYOUT, FLAGS, GENERAL,  # noqa: F401
-                     ContactModel, ContactScratch, chunk_spans, cpu_scratch, fit_grid,
+                     BodyModel, BodyScratch, ContactModel, ContactScratch, chunk_spans, cpu_scratch, fit_grid,
                      grid_table, kernel_flags,
                      scene_features, static_extent)
 from .neighbours import NEIGHBOURS, SKIN, SKIN_MAX, SKIN_SHRINK_ABOVE, cell_size
@@ -283,10 +283,7 @@ def stage_sums(cm, cs, spans, n_spans):
         sphere_forces(spans[c, 0], spans[c, 1], cm, cs)
 
 
-def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t, sphere_r,
-                 body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
-                 sleep_steps, v_sleep, w_sleep, body_rest, body_wake, body_still, body_start,
-                 step):
+def stage_bodies(n_bodies, bm, bs, step):
     """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10).
 
     With sleeping (sleep_steps > 0): a body slower than (v_sleep, w_sleep) for
@@ -294,16 +291,14 @@ def stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t
     moving body touches it (body_wake, set by the contact stage). Returns (bodies
     awake for the next step, bodies that woke from quiet, bodies quiet, bodies
     that became quiet: body_update), integer sums: the same for any thread count.
+    bm, bs: layout.BodyModel, BodyScratch.
     """
     awake = 0
     woke = 0
     quiet = 0
     calmed = 0
     for b in prange(n_bodies):
-        r = body_update(b, dt, gx, gy, gz, body_sphere_start, sphere_f, sphere_t,
-                        sphere_r, body_mass, body_inv_mass, body_inv_inertia, body_x,
-                        body_q, body_P, body_L, sleep_steps, v_sleep, w_sleep, body_rest,
-                        body_wake, body_still, body_start, step)
+        r = body_update(b, bm, bs, step)
         awake += r & 1
         woke += (r >> 1) & 1
         quiet += (r >> 2) & 1
@@ -370,14 +365,15 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
                         list_e, sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest,
                         body_wake, wall_mask, hist_partner, hist_spring, pair_f, wall_f,
                         sphere_f, sphere_t, sphere_overlap)
+    bm = BodyModel(dt, gravity, body_sphere_start, body_mass, body_inv_mass, body_inv_inertia,
+                   sleep_steps, v_sleep, w_sleep, drive.body_start)
+    bs = BodyScratch(sphere_f, sphere_t, sphere_r, body_x, body_q, body_P, body_L, body_rest,
+                     body_wake, body_still)
     if n_steps <= 0:
         return 0, 0  # nothing sorted yet: the unsort below would scramble the State's rows
     skin = skin_ctl[0]
     since = skin_ctl[1]
     inv_cell = 1.0 / ((1.0 + skin) * diameter)     # neighbours.cell_size, at this skin
-    gx = gravity[0]
-    gy = gravity[1]
-    gz = gravity[2]
     half_skin = 0.5 * skin * diameter
     rebuild = True
     moved = False
@@ -460,12 +456,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
             span_ctl[0] += 1
         stage_contacts(cm, cs, drive.motion_now, step & 1, work, n_work)
         stage_sums(cm, cs, work, n_work)
-        awake, woke, quiet, calmed = stage_bodies(n_bodies, dt, gx, gy, gz, body_sphere_start,
-                                                  sphere_f, sphere_t, sphere_r, body_mass,
-                                                  body_inv_mass, body_inv_inertia, body_x,
-                                                  body_q, body_P, body_L, sleep_steps, v_sleep,
-                                                  w_sleep, body_rest, body_wake, body_still,
-                                                  body_start, step)
+        awake, woke, quiet, calmed = stage_bodies(n_bodies, bm, bs, step)
         since_search += 1
         calmed_since += calmed
         if rebuilt or woke > 0:

@@ -46,7 +46,7 @@ from ..state import CONTACT_SLOTS
 from .compile import compile_contacts, compile_formulas
 from .pairing import PAIR_COLS, WALL_SLACK
 from .layout import (BUCKETS_PER_SPHERE, CUDA_LAYOUT, FLAGS, GENERAL, ContactScratch,  # noqa: F401
-                     contact_model, fit_grid,
+                     BodyScratch, body_model, contact_model, fit_grid,
                      grid_table, kernel_flags, scene_features, static_extent)
 from .neighbours import NEIGHBOURS, SKIN, cell_size
 # The device side, by stage (each module's docstring says what it holds); the kernels
@@ -476,12 +476,9 @@ class CudaBackend:
 
     def _bodies(self):
         m, d = self.model, self.d
+        bs = BodyScratch(*(d[n] for n in BodyScratch._fields))
         self.k.k_bodies[_blocks(m.n_bodies, THREADS), THREADS](
-            m.n_bodies, m.dt, d["gravity"], d["body_sphere_start"], d["sphere_f"], d["sphere_t"],
-            d["sphere_r"], d["body_mass"], d["body_inv_mass"], d["body_inv_inertia"],
-            d["body_x"], d["body_q"], d["body_P"], d["body_L"],
-            m.sleep_steps, m.sleep_linear, m.sleep_angular, d["body_rest"], d["body_wake"],
-            d["body_still"], d["body_start"], d["ctl"])
+            m.n_bodies, body_model(m, d["body_start"], arrays=d), bs, d["ctl"])
 
     def _unsort(self):
         d = self.d

@@ -86,9 +86,7 @@ def k_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_
 
 
 @cuda.jit
-def k_bodies(n_bodies, dt, gravity, body_sphere_start, sphere_f, sphere_t, sphere_r,
-             body_mass, body_inv_mass, body_inv_inertia, body_x, body_q, body_P, body_L,
-             sleep_steps, v_sleep, w_sleep, body_rest, body_wake, body_still, body_start, ctl):
+def k_bodies(n_bodies, bm, bs, ctl):
     """Stages 5-8 with sleeping, a thread per body: kernels/bodies.py's body_update,
     the CPU's own; each body awake for the next step adds 1 to ctl[CTL_AWAKE].
 
@@ -110,10 +108,7 @@ def k_bodies(n_bodies, dt, gravity, body_sphere_start, sphere_f, sphere_t, spher
             ctl[CTL_IDLE_STEPS] += 1
     if b >= n_bodies or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
-    r = body_update(b, dt, gravity[0], gravity[1], gravity[2], body_sphere_start, sphere_f,
-                    sphere_t, sphere_r, body_mass, body_inv_mass, body_inv_inertia, body_x,
-                    body_q, body_P, body_L, sleep_steps, v_sleep, w_sleep, body_rest,
-                    body_wake, body_still, body_start, ctl[CTL_STEP])
+    r = body_update(b, bm, bs, ctl[CTL_STEP])
     if r & 1:
         cuda.atomic.add(ctl, CTL_AWAKE, 1)
 

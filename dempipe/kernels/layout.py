@@ -398,6 +398,52 @@ class ContactScratch(NamedTuple):
     sphere_overlap: Any
 
 
+class BodyModel(NamedTuple):
+    """What the body stage (bodies.body_update) reads of the Model: dt [s], gravity
+    (3,) [m/s²], body_sphere_start, body_mass [kg], body_inv_mass [1/kg],
+    body_inv_inertia (B, 6) [1/(kg m²)], sleeping (sleep_steps, v_sleep [m/s],
+    w_sleep [rad/s]) and each body's start step (body_start: control.Drive's)."""
+
+    dt: Any
+    gravity: Any
+    body_sphere_start: Any
+    body_mass: Any
+    body_inv_mass: Any
+    body_inv_inertia: Any
+    sleep_steps: Any
+    v_sleep: Any
+    w_sleep: Any
+    body_start: Any
+
+
+class BodyScratch(NamedTuple):
+    """What the body stage reads and writes: the spheres' forces [N], torques about
+    their centres [N m] and offsets from the centre of mass in the world [m]
+    (sphere_r), the State's x, q, P, L and rest counts, the wake flags and
+    body_still (the backend's)."""
+
+    sphere_f: Any
+    sphere_t: Any
+    sphere_r: Any
+    body_x: Any
+    body_q: Any
+    body_P: Any
+    body_L: Any
+    body_rest: Any
+    body_wake: Any
+    body_still: Any
+
+
+def body_model(model, body_start, arrays=None) -> BodyModel:
+    """The BodyModel of ``model`` (``arrays``: as contact_model)."""
+    a = (lambda n: getattr(model, n)) if arrays is None else arrays.__getitem__
+    return BodyModel(dt=float(model.dt), gravity=a("gravity"),
+                     body_sphere_start=a("body_sphere_start"), body_mass=a("body_mass"),
+                     body_inv_mass=a("body_inv_mass"), body_inv_inertia=a("body_inv_inertia"),
+                     sleep_steps=int(model.sleep_steps), v_sleep=float(model.sleep_linear),
+                     w_sleep=float(model.sleep_angular), body_start=body_start)
+
+
 def contact_model(model, friction: bool, wall_motion, arrays=None) -> ContactModel:
     """The ContactModel of ``model``; ``friction``: the backend's feature;
     ``wall_motion``: control.Drive's; ``arrays``: where to take the Model's
