@@ -252,6 +252,8 @@ def _sim_main() -> dict:
         out["memory_error"] = str(exc)
 
     # stage by stage: stages 1-4 from the same state
+    out["features"] = {"rolling": bool(model.features.rolling),
+                       "friction": bool(model.features.friction)}
     st0 = model.initial_state()
     cpu = kcpu.CpuBackend(model)
     cpu.probe(st0)
@@ -476,6 +478,8 @@ def test_sim_is_bit_identical_to_cpu(sim):
     # Same formulas, same order of summation, float64, and the simulator runs the
     # same IEEE operations as the compiled CPU code (no FMA contraction on either,
     # libm's sin/cos/sqrt): bit for bit. A real GPU is not (FMA), see docs/cuda.md.
+    # (the scene has friction and rolling resistance: both passes' torques compared)
+    assert sim["features"] == {"rolling": True, "friction": True}
     assert all(sim["probe"]["identical"].values()), sim["probe"]["identical"]
     assert sim["step1"]["identical"] and sim["step20"]["identical"]
     assert sim["new_state_identical"] and sim["simulator"]["identical"]
