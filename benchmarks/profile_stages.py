@@ -137,9 +137,10 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                 over = rebuild[-1]()
         # after any rebuild: a list that grew is a new array
         cm, cs = b.contact_args(state, hist_partner=hp, hist_spring=hs)
-        bm = body_model(m, b.drive.body_start)
-        bs = BodyScratch(b.sphere_f, b.sphere_t, b.sphere_r, state.body_x, state.body_q,
-                         state.body_P, state.body_L, rest, b.body_wake, b.body_still)
+        bm = body_model(m, b.drive.body_start, fr)
+        bs = BodyScratch(b.sphere_f, b.sphere_t, b.sphere_tr, b.sphere_r, state.body_x,
+                         state.body_q, state.body_P, state.body_L, rest, b.body_wake,
+                         b.body_still)
         after = (
             lambda: k.stage_contacts(cm, cs, b.drive.motion_now, s & 1, b.chunks,
                                      b.chunks.shape[0]),

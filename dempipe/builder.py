@@ -475,21 +475,10 @@ class ModelBuilder:
         features = replace(features, sleeping=sleep_steps > 0, rolling=(
             features.friction and features.rotation
             and bool(np.any([table.mu_r[a, b] > 0 for a in present for b in present]))))
-        # rolling resistance (physics.rolling_torque): each body's rolling radius, and
-        # its spheres times the largest eigenvalue of its inverse inertia
+        # rolling resistance (physics.rolling_torque): each body's rolling radius
         moves = np.concatenate([~np.asarray(kin, bool), np.zeros(n_static, bool)])
         inv_radius = np.zeros(n_dyn + n_static)
         inv_radius[:n_dyn][moves[:n_dyn]] = 1.0 / body_radius[moves[:n_dyn]]
-        ii = all_inv_inertia
-        full = np.stack([np.stack([ii[:, 0], ii[:, 3], ii[:, 4]], -1),
-                         np.stack([ii[:, 3], ii[:, 1], ii[:, 5]], -1),
-                         np.stack([ii[:, 4], ii[:, 5], ii[:, 2]], -1)], -2)
-        # (every sphere of the set, not the contact ones only: a bound all the same, and
-        # the motion then does not depend on contact_layers)
-        n_set = np.array([self._shapes[s].sphere_set.centers.shape[0] for s in body_shape]
-                         + [0] * n_static, dtype=np.float64)
-        roll_gain = np.where(moves, n_set * (np.linalg.eigvalsh(full)[:, -1]
-                                                      if len(full) else 0.0), 0.0)
         return Model(
             diameter=d, sleep_steps=int(sleep_steps), sleep_linear=float(sleep_lin),
             sleep_angular=float(sleep_ang), n_bodies=n_dyn, n_static=n_static, shapes=tuple(self._shapes),
@@ -533,7 +522,6 @@ class ModelBuilder:
             body_kinematic=_frozen(kin, bool),
             collider_motions=tuple(driven["colliders"]), surface_speed=float(surface_speed),
             pair_rolling=_frozen(table.mu_r), body_inv_radius=_frozen(inv_radius),
-            body_roll_gain=_frozen(roll_gain),
         )
 
     def _prescribed(self, groups, x0, q0, all_x, all_q, body_radius, n_dyn, n_static, fps,

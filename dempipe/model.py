@@ -241,11 +241,6 @@ class Model:
     body_inv_radius: np.ndarray = None
     """(B,) [1/m]: 1 / each dynamic body's radius (its rolling radius; the pair's is
     1 / (1/R_i + 1/R_j)); 0 for static and kinematic bodies, which roll as a wall."""
-    body_roll_gain: np.ndarray = None
-    """(B,) [1/(kg m²)]: the spheres of the body's set × the largest eigenvalue of its
-    inverse inertia; 0 for static and kinematic bodies. Bounds what the rolling
-    torques of all its contacts can change its spin by in a step (the cap of
-    physics.rolling_torque)."""
 
     @property
     def onset_speed(self) -> float:

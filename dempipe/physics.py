@@ -266,19 +266,14 @@ def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz,
             sx, sy, sz)
 
 
-#: Most contacts one sphere can have at once, walls included: 12 equal spheres touch
-#: one (the kissing number; at equal overlaps the count is the same), and 3 walls
-#: meet at a box's corner, so 16 with margin. With it, rolling_torque's cap can
-#: never let a body's contacts reverse its spin within a step, however many touch.
-CONTACTS_PER_SPHERE = 16
-
-
-def rolling_torque(wx, wy, wz, nx, ny, nz, n2, fn, mu_r, inv_r, gain, dt):
-    """Rolling resistance on a sphere of a contact: a constant torque against the
-    relative rolling, capped so that it never reverses it (the "constant directional
-    torque" model, Ai, Chen, Rotter and Ooi 2011, model A; LIGGGHTS' rolling_friction
-    cdt). Returns the torque [N m] on this side; the partner's is exactly its
-    negation (every input comes out the same or negated from its side).
+def rolling_torque(wx, wy, wz, nx, ny, nz, n2, fn, mu_r, inv_r):
+    """Rolling resistance on a sphere of a contact: a constant torque μ_r R* |F·n̂|
+    against the relative rolling (the "constant directional torque" model, Ai, Chen,
+    Rotter and Ooi 2011, model A; LIGGGHTS' rolling_friction cdt). Returns the
+    torque [N m] on this side; the partner's is exactly its negation (every input
+    comes out the same or negated from its side). The body stage limits the sum of
+    a body's rolling torques so that it never more than stops the body's spin in a
+    step (rolling_scale).
 
     w : relative angular velocity ω_self − ω_partner [rad/s] (a wall: minus its
     own); n : the contact's normal, either sign, of squared length n2 > 0 (the line
@@ -286,18 +281,13 @@ def rolling_torque(wx, wy, wz, nx, ny, nz, n2, fn, mu_r, inv_r, gain, dt):
     along n (a spin about the normal, twisting, is not resisted). fn : F·n, the
     contact force along n [N m] (|F·n̂| |n|); mu_r : the pair's coefficient [1];
     inv_r : 1/R_i + 1/R_j, the inverse rolling radius of the two bodies [1/m] (a
-    wall, static or kinematic partner: 1/R_i); gain : roll_gain_i + roll_gain_j
-    (Model.body_roll_gain: the set's spheres × the largest eigenvalue of the
-    inverse inertia) [1/(kg m²)]; dt [s].
+    wall, static or kinematic partner: 1/R_i).
 
-    The torque is μ_r R* |F·n̂| against the rolling, but at most |w_r| /
-    (CONTACTS_PER_SPHERE gain dt): all of a body's contacts together then change
-    its spin against a still partner by at most |w_r| in a step. Why a constant
-    torque: it is the model with the closed form a user can check (a ball rolling
-    at v0 on a plane stops after 7 v0² / (10 μ_r g)) and, capped, it brings rolling
-    to rest without the oscillation of the uncapped model; the spring-dashpot
-    rolling models (Ai's model C) add a stiffness and a damping per contact that
-    the time step would have to resolve as well.
+    Why a constant torque: it is the model with the closed form a user can check (a
+    ball rolling at v0 on a plane stops after 7 v0² / (10 μ_r g)) and, limited, it
+    brings rolling to rest without the oscillation of the unlimited model; the
+    spring-dashpot rolling models (Ai's model C) add a stiffness and a damping per
+    contact that the time step would have to resolve as well.
     """
     # u = n2 w_r (w_r = w less its part along n), so that no division is needed for it
     wn = wx * nx + wy * ny + wz * nz
@@ -305,16 +295,27 @@ def rolling_torque(wx, wy, wz, nx, ny, nz, n2, fn, mu_r, inv_r, gain, dt):
     uy = n2 * wy - wn * ny
     uz = n2 * wz - wn * nz
     u2 = ux * ux + uy * uy + uz * uz
-    if u2 == 0.0 or gain == 0.0:
+    if u2 == 0.0:
         return 0.0, 0.0, 0.0
-    # the cap's torque, -w_r / (16 gain dt), where it is the smaller (compared squared:
-    # mu_r R* |F.n^| |w_r|^-1 > 1 / (16 gain dt)), else mu_r R* |F.n^| along -w_r^
-    a = mu_r * fn * (CONTACTS_PER_SPHERE * gain * dt) * n2
-    if a * a > inv_r * inv_r * n2 * u2:
-        c = -1.0 / (CONTACTS_PER_SPHERE * gain * dt * n2)
-    else:
-        c = -mu_r * abs(fn) / (inv_r * sqrt(n2 * u2))
+    c = -mu_r * abs(fn) / (inv_r * sqrt(n2 * u2))
     return c * ux, c * uy, c * uz
+
+
+def rolling_scale(wx, wy, wz, dwx, dwy, dwz, tx, ty, tz):
+    """The share s in [0, 1] of a body's summed rolling torque T [N m] that it takes
+    this step: s = 1, or the share that leaves it the least spin energy where the
+    whole would overshoot, -(ω·T) / (Δω·T), with Δω = I⁻¹ T dt the spin change the
+    whole would make [rad/s] and ω the body's spin [rad/s]. So rolling resistance
+    never adds spin energy to a body, and against still partners it stops a
+    rolling body instead of reversing it, whatever the number of its contacts."""
+    wt = wx * tx + wy * ty + wz * tz
+    dt_ = dwx * tx + dwy * ty + dwz * tz        # = dt Tᵀ I⁻¹ T > 0 for T ≠ 0
+    if dt_ <= 0.0:
+        return 1.0
+    if wt >= 0.0:
+        return 0.0                              # it would only add spin: none
+    s = -wt / dt_
+    return 1.0 if s > 1.0 else s
 
 
 # ---------------------------------------------------------------------------

@@ -28,15 +28,14 @@ def wall_closing(n, dist, v, d, dt, vc):
     return un > vc and linear.closing(0.5 * d - dist, un, dt)
 
 
-def rolling(model, w_rel, n, out, mi, mj, inv_radius, gain):
+def rolling(model, w_rel, n, out, mi, mj, inv_radius):
     """The rolling-resistance torque on a sphere of a contact (physics.rolling_torque),
     from the contact's force ``out[0:3]`` and normal ``n`` (any length); zero without it."""
     mu_r = model.pair_rolling[mi, mj]
     if not (model.features.rolling and mu_r > 0.0):
         return np.zeros(3)
     fn = out[0] * n[0] + out[1] * n[1] + out[2] * n[2]
-    return np.array(physics.rolling_torque(*w_rel, *n, float(n @ n), fn, mu_r, inv_radius,
-                                           gain, model.dt))
+    return np.array(physics.rolling_torque(*w_rel, *n, float(n @ n), fn, mu_r, inv_radius))
 
 
 def reference_step(model, state):
@@ -63,7 +62,7 @@ def reference_step(model, state):
     if model.features.friction and st.contact_partner is not None:
         for i, h in zip(*np.nonzero(st.contact_partner)):
             spring[(int(i), int(st.contact_partner[i, h]) >> 1)] = st.contact_spring[i, h]
-    f = np.zeros((S, 3)); t = np.zeros((S, 3))
+    f = np.zeros((S, 3)); t = np.zeros((S, 3)); tr = np.zeros((S, 3))
     for i in range(S):
         bi = model.sphere_body[i]
         if model.body_inv_mass[bi] == 0.0:
@@ -95,9 +94,8 @@ def reference_step(model, state):
                                             model.onset_speed)
             f[i] += out[0:3]; t[i] += out[3:6]
             n = rij if dist > 0 else np.array([0.0, 0.0, 1.0])
-            t[i] += rolling(model, W[bi] - W[bj], n, out, mi, mj,
-                            model.body_inv_radius[bi] + model.body_inv_radius[bj],
-                            model.body_roll_gain[bi] + model.body_roll_gain[bj])
+            tr[i] += rolling(model, W[bi] - W[bj], n, out, mi, mj,
+                             model.body_inv_radius[bi] + model.body_inv_radius[bj])
         if model.body_inv_mass[bi] > 0:
             for w in range(model.n_walls):
                 n = model.wall_normal[w]
@@ -118,12 +116,17 @@ def reference_step(model, state):
                                                 k, eta, kt, ks, mu, *s0, model.dt,
                                             model.onset_speed)
                 f[i] += out[0:3]; t[i] += out[3:6]
-                t[i] += rolling(model, W[bi], n, out, mi, mj, model.body_inv_radius[bi],
-                                model.body_roll_gain[bi])
+                tr[i] += rolling(model, W[bi], n, out, mi, mj, model.body_inv_radius[bi])
     for b in range(model.n_bodies):
         sl = slice(model.body_sphere_start[b], model.body_sphere_start[b + 1])
         F = model.body_mass[b] * model.gravity + f[sl].sum(axis=0)
         T = (np.cross(r[sl], f[sl]) + t[sl]).sum(axis=0)
+        TR = tr[sl].sum(axis=0)
+        if np.any(TR != 0):             # limited per body (physics.rolling_scale)
+            ii, q, L = model.body_inv_inertia[b], st.body_q[b], st.body_L[b]
+            w = physics.angular_velocity(*q, *ii, *L)
+            dw = physics.angular_velocity(*q, *ii, *(TR * model.dt))
+            T = T + physics.rolling_scale(*w, *dw, *TR) * TR
         out = physics.body_step(*st.body_x[b], *st.body_q[b], *st.body_P[b], *st.body_L[b], *F, *T,
                                 model.body_inv_mass[b], *model.body_inv_inertia[b], model.dt)
         st.body_x[b], st.body_q[b], st.body_P[b], st.body_L[b] = out[0:3], out[3:7], out[7:10], out[10:13]

@@ -95,11 +95,12 @@ def own_forces(model, state, be):
     asleep = (rest >= model.sleep_steps) if model.sleep_steps > 0 else np.zeros_like(rest, bool)
     f = np.zeros((ns, 3))
     t = np.zeros((ns, 3))
+    tr = np.zeros((ns, 3))
     for i in range(ns):
         bi = model.sphere_body[i]
         if model.body_inv_mass[bi] == 0.0 or asleep[bi]:
             continue
-        fx = fy = fz = tx = ty = tz = 0.0
+        fx = fy = fz = tx = ty = tz = qx = qy = qz = 0.0
         for j in range(ns):
             bj = model.sphere_body[j]
             if bj == bi:
@@ -131,12 +132,12 @@ def own_forces(model, state, be):
                 n, n2 = (r, dist2) if dist2 > 0 else (np.array([0.0, 0.0, 1.0]), 1.0)
                 rt = physics.rolling_torque(
                     *(W[bi] - W[bj]), *n, n2, out[0] * n[0] + out[1] * n[1] + out[2] * n[2],
-                    mu_r, model.body_inv_radius[bi] + model.body_inv_radius[bj],
-                    model.body_roll_gain[bi] + model.body_roll_gain[bj], model.dt)
-                tx += rt[0]
-                ty += rt[1]
-                tz += rt[2]
+                    mu_r, model.body_inv_radius[bi] + model.body_inv_radius[bj])
+                qx += rt[0]
+                qy += rt[1]
+                qz += rt[2]
         wf = [0.0] * 6
+        wq = [0.0] * 3
         for w in range(model.n_walls):
             n = model.wall_normal[w]
             dist = n[0] * x[i, 0] + n[1] * x[i, 1] + n[2] * x[i, 2] - model.wall_offset[w]
@@ -160,13 +161,14 @@ def own_forces(model, state, be):
             if model.features.rolling and model.pair_rolling[mi, mj] > 0.0:
                 rt = physics.rolling_torque(
                     *W[bi], *n, 1.0, out[0] * n[0] + out[1] * n[1] + out[2] * n[2],
-                    model.pair_rolling[mi, mj], model.body_inv_radius[bi],
-                    model.body_roll_gain[bi], model.dt)
+                    model.pair_rolling[mi, mj], model.body_inv_radius[bi])
                 for c in range(3):
-                    wf[3 + c] += rt[c]
+                    wq[c] += rt[c]
         f[i] = (fx + wf[0], fy + wf[1], fz + wf[2])
         t[i] = (tx + wf[3], ty + wf[4], tz + wf[5])
-    return f, t
+        if model.features.rolling:
+            tr[i] = (qx + wq[0], qy + wq[1], qz + wq[2])
+    return f, t, tr
 
 
 @pytest.mark.parametrize("case", range(5))
@@ -177,10 +179,12 @@ def test_each_contact_once_gives_the_forces_of_each_sphere_computing_its_own(cas
     be.step(st, steps)
     assert (st.contact_partner != 0).sum() >= 4, name        # stretches in use
     be.probe(st)
-    f, t = own_forces(model, st, be)
+    f, t, tr = own_forces(model, st, be)
     assert np.abs(f).max() > 0, name
     np.testing.assert_array_equal(be.sphere_f, f, err_msg=name)     # bit for bit
     np.testing.assert_array_equal(be.sphere_t, t, err_msg=name)
+    if model.features.rolling:                      # rolling torques, limited per body later
+        np.testing.assert_array_equal(be.sphere_tr, tr, err_msg=name)
     if case in (2, 4):
         asleep = st.asleep(model.sleep_steps)[: model.n_bodies]
         assert 0 < asleep.sum(), "no body asleep: the sleeping paths were not exercised"

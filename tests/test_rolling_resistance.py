@@ -66,7 +66,10 @@ def test_ball_stops_after_the_closed_form_distance(law, mu_r, v0):
     assert stopped.size, "never stopped"
     assert abs(fr.times[stopped[0]] - t_pred) <= 1.0 / FPS + 0.01 * t_pred
     # the cap: the torque never reverses the rolling, and the ball stays put after
-    assert (w >= 0.0).all() and (v >= -1e-9 * v0).all()
+    # (to 1e-3 of the start: where the spin stops, the tangential spring lets go of
+    # its stretch, a recoil that dies within frames: measured -2e-8 of v0 with the
+    # linear law, -2.4e-4 with Hertz-Mindlin's softer spring)
+    assert (w >= -1e-3 * w[0]).all() and (v >= -1e-3 * v0).all()
     assert abs(x[-1] - x[stopped[0]]) < 1e-3 * s_pred
     # energy only leaves: kinetic energy never grows from frame to frame (beyond the
     # contact's elastic energy at rest, ~ m g δ/2 ≈ 1e-9 J, stated as 1e-6 of E0)
@@ -74,6 +77,57 @@ def test_ball_stops_after_the_closed_form_distance(law, mu_r, v0):
     inertia = 0.4 * mass * (0.5 * D) ** 2
     ke = 0.5 * mass * (fr.v[:, 0] ** 2).sum(1) + 0.5 * inertia * (fr.w[:, 0] ** 2).sum(1)
     assert (np.diff(ke) <= 1e-6 * ke[0]).all()
+
+
+SURFACE_BALL = """
+[output]
+fps = 100
+duration = {duration}
+[simulation]
+sphere_diameter = 0.0125
+dt = 1e-4
+sleeping = false
+spheres = "surface"
+[materials.hard]
+density = 1000.0
+restitution = 0.8
+friction = 0.9
+stiffness = 8e5
+rolling_friction = {mu_r}
+[shapes.ball]
+builtin = "sphere"
+diameter = 0.1
+[[bodies]]
+name = "ball"
+shape = "ball"
+material = "hard"
+position = [0.0, 0.0, 0.05]
+velocity = [{v0}, 0.0, 0.0]
+angular_velocity = [0.0, {w0}, 0.0]
+[[colliders]]
+type = "plane"
+material = "hard"
+"""
+
+
+def test_surface_ball_of_many_spheres_stops_after_the_closed_form_distance(tmp_path):
+    # A ball 8 spheres across (surface mode: a few hundred spheres, several touching
+    # the plane at once): the cap is per body (physics.rolling_scale), so the torque
+    # is mu_r R m g whatever the number of contacts and spheres, and the closed form
+    # holds with R the body's radius. Tolerance 3 %: the surface set's own rolling
+    # loss (docs/spheres.md, "Rolling": 0-2 % of 5/7 g sin θ on an incline at this
+    # stiffness) and its radius (the set's, 0.2 % short of the mesh's); measured -0.3 %.
+    from dempipe.build import build_model
+
+    mu_r, v0, r = 0.2, 0.3, 0.05
+    s_pred = 7.0 * v0 * v0 / (10.0 * mu_r * G)
+    text = SURFACE_BALL.format(duration=7.0 * v0 / (5.0 * mu_r * G) + 0.1, mu_r=mu_r, v0=v0,
+                               w0=v0 / r)
+    model = build_model(parse_scene(text, tmp_path / "ball.toml"), force=True)
+    assert model.n_spheres > 100
+    fr = Simulator(model).advance(model.initial_state())
+    assert fr.x[-1, 0, 0] - fr.x[0, 0, 0] == pytest.approx(s_pred, rel=0.03)
+    assert abs(fr.v[-1, 0, 0]) < 0.01 * v0
 
 
 def test_without_rolling_resistance_the_ball_rolls_on():

@@ -7,7 +7,8 @@ targets run the one body stage and stay bit-identical.
 """
 
 # The names this module reads but does not define (static_body, body_step,
-# angular_velocity, rest_steps, ROTATION, FRICTION, SLEEPING) are the target's:
+# angular_velocity, rest_steps, rolling_scale, ROTATION, FRICTION, SLEEPING) are the
+# target's:
 # its compiled formulas and feature flags, given when it is compiled.
 
 
@@ -26,9 +27,9 @@ def body_update(b, bm, bs, step):
     bm: layout.BodyModel, bs: layout.BodyScratch (unpacked below under the names
     the stage reads); step: this step's number."""
     (dt, gravity, body_sphere_start, body_mass, body_inv_mass, body_inv_inertia, sleep_steps,
-     v_sleep, w_sleep, body_start) = bm
-    (sphere_f, sphere_t, sphere_r, body_x, body_q, body_P, body_L, body_rest, body_wake,
-     body_still) = bs
+     v_sleep, w_sleep, body_start, rolling) = bm
+    (sphere_f, sphere_t, sphere_tr, sphere_r, body_x, body_q, body_P, body_L, body_rest,
+     body_wake, body_still) = bs
     if static_body(body_inv_mass[b]):
         return 1 if body_rest[b] < 0 else 0
     if body_start[b] > step:
@@ -50,6 +51,9 @@ def body_update(b, bm, bs, step):
     TX = 0.0
     TY = 0.0
     TZ = 0.0
+    RX = 0.0                        # the rolling torques, limited below (rolling_scale)
+    RY = 0.0
+    RZ = 0.0
     for i in range(body_sphere_start[b], body_sphere_start[b + 1]):
         fx = sphere_f[i, 0]
         fy = sphere_f[i, 1]
@@ -65,6 +69,10 @@ def body_update(b, bm, bs, step):
                 TX += (ry * fz - rz * fy) + sphere_t[i, 0]
                 TY += (rz * fx - rx * fz) + sphere_t[i, 1]
                 TZ += (rx * fy - ry * fx) + sphere_t[i, 2]
+                if rolling:
+                    RX += sphere_tr[i, 0]
+                    RY += sphere_tr[i, 1]
+                    RZ += sphere_tr[i, 2]
             else:
                 TX += ry * fz - rz * fy
                 TY += rz * fx - rx * fz
@@ -75,6 +83,17 @@ def body_update(b, bm, bs, step):
     P = body_P[b]
     L = body_L[b]
     im = body_inv_mass[b]
+    if ROTATION and FRICTION and rolling and (RX != 0.0 or RY != 0.0 or RZ != 0.0):
+        # rolling resistance may at most stop the body's spin this step, never
+        # reverse it, however many contacts it has (physics.rolling_scale)
+        wx, wy, wz = angular_velocity(q[0], q[1], q[2], q[3], ii[0], ii[1], ii[2], ii[3],
+                                      ii[4], ii[5], L[0], L[1], L[2])
+        dwx, dwy, dwz = angular_velocity(q[0], q[1], q[2], q[3], ii[0], ii[1], ii[2], ii[3],
+                                         ii[4], ii[5], RX * dt, RY * dt, RZ * dt)
+        sr = rolling_scale(wx, wy, wz, dwx, dwy, dwz, RX, RY, RZ)
+        TX += sr * RX
+        TY += sr * RY
+        TZ += sr * RZ
     if ROTATION:
         (x[0], x[1], x[2], q[0], q[1], q[2], q[3], P[0], P[1], P[2], L[0], L[1], L[2]) = \
             body_step(x[0], x[1], x[2], q[0], q[1], q[2], q[3], P[0], P[1], P[2],

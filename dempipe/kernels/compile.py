@@ -29,6 +29,7 @@ FORMULAS = (
     "sphere_pair_force",
     "sphere_wall_force",
     "rolling_torque",
+    "rolling_scale",
     "body_step",
     "history_recall",
     "history_store",

@@ -165,11 +165,11 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
     step's (step & 1), which marks the histories touched this step."""
     (diameter, dt, onset_speed, body_inv_mass, body_material, pair_k, pair_damp, pair_mu,
      kt_ratio, ks_ratio, friction, sleep_steps, wall_normal, wall_offset, wall_lo, wall_hi,
-     wall_depth, wall_material, wall_motion, rolling, pair_rolling, body_inv_radius,
-     body_roll_gain) = cm
+     wall_depth, wall_material, wall_motion, rolling, pair_rolling, body_inv_radius) = cm
     (nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s, _list_start, _list_e,
      sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest, body_wake, wall_mask,
-     hist_partner, hist_spring, pair_f, wall_f, _sphere_f, _sphere_t, _sphere_overlap) = cs
+     hist_partner, hist_spring, pair_f, wall_f, _sphere_f, _sphere_t, _sphere_tr,
+     _sphere_overlap) = cs
     d2 = diameter * diameter
     radius = 0.5 * diameter
     n_walls = wall_normal.shape[0]
@@ -304,6 +304,9 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
             ty = 0.0
             tz = 0.0
             max_ov = 0.0
+            qx = 0.0                        # the walls' rolling torques
+            qy = 0.0
+            qz = 0.0
             col = -1                        # the wall's column in s's history row
             n_wall_on = 0
             qw = wall_start[s] if WALL_ROWS else 0  # noqa: F821 (its packed rows)
@@ -412,10 +415,10 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
                         rwz -= motion_now[m, 12]
                     rtx, rty, rtz = rolling_torque(  # noqa: F821 (a wall rolls as flat)
                         rwx, rwy, rwz, nx, ny, nz, 1.0, pfx * nx + pfy * ny + pfz * nz,
-                        pair_rolling[mi, mj], body_inv_radius[bi], body_roll_gain[bi], dt)
-                    tx += rtx
-                    ty += rty
-                    tz += rtz
+                        pair_rolling[mi, mj], body_inv_radius[bi])
+                    qx += rtx
+                    qy += rty
+                    qz += rtz
                 ov = radius - dist
                 if ov > max_ov:
                     max_ov = ov
@@ -426,6 +429,9 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
             wall_f[s, 4] = ty
             wall_f[s, 5] = tz
             wall_f[s, 6] = max_ov
+            wall_f[s, 7] = qx
+            wall_f[s, 8] = qy
+            wall_f[s, 9] = qz
             if FRICTION and friction and walls == -1:  # noqa: F821 (forget the walls not
                 n_wall_on = -1                              # touched at this parity)
                 for c in range(hist_partner.shape[1]):
@@ -481,10 +487,10 @@ def sphere_forces(s0, s1, cm, cs):
     body_material = cm.body_material
     pair_rolling = cm.pair_rolling
     body_inv_radius = cm.body_inv_radius
-    body_roll_gain = cm.body_roll_gain
     (nbr, nbr_n, pidx, _pair_start, _pair_t, _wall_start, _wall_s, list_start, list_e,
      sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest, _body_wake, wall_mask,
-     _hist_partner, _hist_spring, pair_f, wall_f, sphere_f, sphere_t, sphere_overlap) = cs
+     _hist_partner, _hist_spring, pair_f, wall_f, sphere_f, sphere_t, sphere_tr,
+     sphere_overlap) = cs
     d2 = diameter * diameter
     for s in range(s0, s1):
         i = sorted_idx[s]
@@ -498,6 +504,10 @@ def sphere_forces(s0, s1, cm, cs):
             sphere_t[i, 0] = 0.0
             sphere_t[i, 1] = 0.0
             sphere_t[i, 2] = 0.0
+            if ROTATION and FRICTION and rolling:  # noqa: F821
+                sphere_tr[i, 0] = 0.0
+                sphere_tr[i, 1] = 0.0
+                sphere_tr[i, 2] = 0.0
             continue
         xi = sorted_x[s, 0]
         yi = sorted_x[s, 1]
@@ -510,14 +520,15 @@ def sphere_forces(s0, s1, cm, cs):
         rwy = 0.0
         rwz = 0.0
         inv_ri = 0.0
-        gain_i = 0.0
         if ROTATION and FRICTION and rolling:  # noqa: F821
             mi = body_material[bi]
             rwx = body_w[bi, 0]
             rwy = body_w[bi, 1]
             rwz = body_w[bi, 2]
             inv_ri = body_inv_radius[bi]
-            gain_i = body_roll_gain[bi]
+        qx = 0.0                            # its rolling torques (sphere_tr)
+        qy = 0.0
+        qz = 0.0
         fx = 0.0
         fy = 0.0
         fz = 0.0
@@ -571,10 +582,10 @@ def sphere_forces(s0, s1, cm, cs):
                         rtx, rty, rtz = rolling_torque(  # noqa: F821
                             rwx - body_w[bj, 0], rwy - body_w[bj, 1], rwz - body_w[bj, 2],
                             nx, ny, nz, n2, pfx * nx + pfy * ny + pfz * nz, mu_r,
-                            inv_ri + body_inv_radius[bj], gain_i + body_roll_gain[bj], dt)
-                        tx += rtx
-                        ty += rty
-                        tz += rtz
+                            inv_ri + body_inv_radius[bj])
+                        qx += rtx
+                        qy += rty
+                        qz += rtz
             if dist2 < near2:
                 near2 = dist2
         max_ov = 0.0
@@ -589,6 +600,10 @@ def sphere_forces(s0, s1, cm, cs):
             tz += wall_f[s, 5]
             if wall_f[s, 6] > max_ov:
                 max_ov = wall_f[s, 6]
+            if ROTATION and FRICTION and rolling:  # noqa: F821
+                qx += wall_f[s, 7]
+                qy += wall_f[s, 8]
+                qz += wall_f[s, 9]
         sphere_f[i, 0] = fx
         sphere_f[i, 1] = fy
         sphere_f[i, 2] = fz
@@ -596,5 +611,9 @@ def sphere_forces(s0, s1, cm, cs):
             sphere_t[i, 0] = tx
             sphere_t[i, 1] = ty
             sphere_t[i, 2] = tz
+            if rolling:
+                sphere_tr[i, 0] = qx
+                sphere_tr[i, 1] = qy
+                sphere_tr[i, 2] = qz
         if max_ov > sphere_overlap[i]:
             sphere_overlap[i] = max_ov

@@ -39,8 +39,8 @@ from .cpu_device import (  # noqa: F401
     anchor_surface, angular_velocity, body_step, carried_state, cell_coord, cell_hash,
     cell_key, contact_coefficients, entry_range, history_recall, history_store, owns,
     pair_count, pair_mirror, pair_slots, pairs_to_rows, quat_rotate, rest_steps, rows_to_pairs,
-    rolling_torque, slot_store, sphere_kinematics, sphere_pair_force, sphere_wall_force, sqrt,
-    static_body,
+    rolling_scale, rolling_torque, slot_store, sphere_kinematics, sphere_pair_force,
+    sphere_wall_force, sqrt, static_body,
     wall_reach, closing)
 from .cpu_grid import (  # noqa: F401
     stage_grid_gather, stage_grid_sort, stage_history_to_slots, stage_history_to_spheres,
@@ -346,29 +346,28 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
     (dt, onset_speed, diameter, n_bodies, gravity, sphere_body, sphere_offset, body_sphere_start,
      body_mass, body_inv_mass, body_inv_inertia, body_material, pair_k, pair_damp, pair_mu,
      kt_ratio, ks_ratio, friction, sleep_steps, v_sleep, w_sleep, wall_normal, wall_offset,
-     wall_lo, wall_hi, wall_depth, wall_material, rolling, pair_rolling, body_inv_radius,
-     body_roll_gain) = model
+     wall_lo, wall_hi, wall_depth, wall_material, rolling, pair_rolling,
+     body_inv_radius) = model
     (body_x, body_q, body_P, body_L, body_rest, contact_partner, contact_spring) = state
     (hist_partner, hist_spring, body_wake, body_still, body_v, body_w, sphere_x, sphere_v,
      sphere_r, sphere_key, sphere_hash, bucket_start, bucket_fill, body_key, grid_slot,
      sorted_idx, slot_of, sorted_x, sorted_v, sorted_body, grid_idx, grid_x, grid_key,
      grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
-     wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_overlap, skin_ctl,
-     chunks, spans, span_ctl) = scratch
+     wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_tr, sphere_overlap,
+     skin_ctl, chunks, spans, span_ctl) = scratch
     # what the contact passes take (layout.ContactModel, ContactScratch): the same arrays
     cm = ContactModel(diameter, dt, onset_speed, body_inv_mass, body_material, pair_k,
                       pair_damp, pair_mu, kt_ratio, ks_ratio, friction, sleep_steps,
                       wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                      drive.wall_motion, rolling, pair_rolling, body_inv_radius,
-                      body_roll_gain)
+                      drive.wall_motion, rolling, pair_rolling, body_inv_radius)
     cs = ContactScratch(nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s, list_start,
                         list_e, sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest,
                         body_wake, wall_mask, hist_partner, hist_spring, pair_f, wall_f,
-                        sphere_f, sphere_t, sphere_overlap)
+                        sphere_f, sphere_t, sphere_tr, sphere_overlap)
     bm = BodyModel(dt, gravity, body_sphere_start, body_mass, body_inv_mass, body_inv_inertia,
-                   sleep_steps, v_sleep, w_sleep, drive.body_start)
-    bs = BodyScratch(sphere_f, sphere_t, sphere_r, body_x, body_q, body_P, body_L, body_rest,
-                     body_wake, body_still)
+                   sleep_steps, v_sleep, w_sleep, drive.body_start, rolling)
+    bs = BodyScratch(sphere_f, sphere_t, sphere_tr, sphere_r, body_x, body_q, body_P, body_L,
+                     body_rest, body_wake, body_still)
     if n_steps <= 0:
         return 0, 0  # nothing sorted yet: the unsort below would scramble the State's rows
     skin = skin_ctl[0]

@@ -23,6 +23,7 @@ sphere_kinematics = F.sphere_kinematics
 sphere_pair_force = F.sphere_pair_force
 sphere_wall_force = F.sphere_wall_force
 rolling_torque = F.rolling_torque
+rolling_scale = F.rolling_scale
 body_step = F.body_step
 history_recall = F.history_recall
 history_store = F.history_store

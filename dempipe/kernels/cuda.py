@@ -179,7 +179,7 @@ def scratch_layout(model, friction=None) -> dict:
         "body_material": ((nb,), i4), "pair_k": ((nm, nm), f8),
         "pair_damp": ((nm, nm, DAMP_TERMS), f8),
         "pair_mu": ((nm, nm), f8), "pair_rolling": ((nm, nm), f8),
-        "body_inv_radius": ((nb,), f8), "body_roll_gain": ((nb,), f8),
+        "body_inv_radius": ((nb,), f8),
         "wall_normal": ((nw, 3), f8), "wall_offset": ((nw,), f8),
         "wall_lo": ((nw, 3), f8), "wall_hi": ((nw, 3), f8), "wall_depth": ((nw,), f8),
         "wall_material": ((nw,), i4), "gravity": ((3,), f8), "grid": ((6,), i8),
@@ -197,9 +197,10 @@ def scratch_layout(model, friction=None) -> dict:
         "built_x": ((ns, 3), f8), "nbr": ((ns, NEIGHBOURS), i4), "nbr_n": ((ns,), i4),
         # each contact computed once (kernels/contacts.py): a row of pair_f per list entry
         "pidx": ((ns, NEIGHBOURS), i4), "pair_f": ((ns * NEIGHBOURS, PAIR_COLS), f8),
-        "wall_mask": ((ns,), i8), "wall_f": ((ns, 7), f8),
+        "wall_mask": ((ns,), i8), "wall_f": ((ns, 10), f8),
         "ctl": ((CTL_SIZE,), i4),
         "sphere_f": ((ns, 3), f8), "sphere_t": ((ns, 3), f8), "sphere_overlap": ((ns,), f8),
+        "sphere_tr": ((ns, 3), f8),
         "max_out": ((1,), f8),
     }
     # contact histories (static friction) live only on the device, and only with friction
@@ -280,7 +281,7 @@ class CudaBackend:
         model_fields = ("sphere_body", "sphere_offset", "body_sphere_start", "body_mass",
                         "body_inv_mass", "body_inv_inertia", "body_material", "pair_k",
                         "pair_damp", "pair_mu", "pair_rolling", "body_inv_radius",
-                        "body_roll_gain", "wall_normal", "wall_offset", "wall_lo",
+                        "wall_normal", "wall_offset", "wall_lo",
                         "wall_hi", "wall_depth", "wall_material", "gravity")
         for name in model_fields:
             shape, dt = layout[name]
@@ -469,7 +470,8 @@ class CudaBackend:
             hist_partner=d["contact_partner"] if partner is None else partner,
             hist_spring=d["contact_spring"] if spring is None else spring,
             pair_f=d["pair_f"], wall_f=d["wall_f"], sphere_f=d["sphere_f"],
-            sphere_t=d["sphere_t"], sphere_overlap=d["sphere_overlap"])
+            sphere_t=d["sphere_t"], sphere_tr=d["sphere_tr"],
+            sphere_overlap=d["sphere_overlap"])
         self.k.k_pair_forces[_blocks(m.n_spheres, CONTACT_THREADS), CONTACT_THREADS](
             cm, cs, d["motion_now"], parity, d["ctl"])
         self.k.k_sphere_forces[_blocks(m.n_spheres, THREADS), THREADS](cm, cs, d["ctl"])
@@ -478,7 +480,8 @@ class CudaBackend:
         m, d = self.model, self.d
         bs = BodyScratch(*(d[n] for n in BodyScratch._fields))
         self.k.k_bodies[_blocks(m.n_bodies, THREADS), THREADS](
-            m.n_bodies, body_model(m, d["body_start"], arrays=d), bs, d["ctl"])
+            m.n_bodies, body_model(m, d["body_start"], self.features.friction, arrays=d), bs,
+            d["ctl"])
 
     def _unsort(self):
         d = self.d

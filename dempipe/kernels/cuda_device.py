@@ -36,6 +36,7 @@ sphere_kinematics = F.sphere_kinematics
 sphere_pair_force = F.sphere_pair_force
 sphere_wall_force = F.sphere_wall_force
 rolling_torque = F.rolling_torque
+rolling_scale = F.rolling_scale
 body_step = F.body_step
 history_recall = F.history_recall
 history_store = F.history_store
@@ -147,6 +148,7 @@ def compile_body_stage(consts: dict):
 
     given = dict(consts, static_body=F.static_body, body_step=F.body_step,
                  angular_velocity=F.angular_velocity, rest_steps=F.rest_steps,
+                 rolling_scale=F.rolling_scale,
                  anchor_state=F.anchor_state, carried_state=F.carried_state)
     b = compile_chain(bodies, ("body_update",), _device_jit(), given)
     r = compile_chain(prescribed, ("motion_row", "driven_row"), _device_jit(), given)

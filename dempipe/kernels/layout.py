@@ -135,8 +135,10 @@ def cpu_scratch(model, friction: bool) -> dict:
         # an eighth of the spheres to start with (a pile in a box: 15 % touch a wall)
         "wall_start": ((ns + 1,), i8),
         "wall_s": (((max(ns // 8, 1) if friction else 1), 4), f8),
-        "wall_f": ((ns, 7), f8),                 # each slot's walls: force, torque, overlap
+        # each slot's walls: force, torque, overlap, rolling torque
+        "wall_f": ((ns, 10), f8),
         "sphere_f": ((ns, 3), f8), "sphere_t": ((ns, 3), f8), "sphere_overlap": ((ns,), f8),
+        "sphere_tr": ((ns, 3), f8),              # rolling torques (bodies.body_update)
         "body_wake": ((nb,), i4),
         "body_still": ((nb,), i4),               # static colliders: stage 1 keeps them
         # the contact passes' work: every chunk of slots, or a sleeping pile's
@@ -256,7 +258,6 @@ class StepModel(NamedTuple):
     rolling: Any
     pair_rolling: Any
     body_inv_radius: Any
-    body_roll_gain: Any
 
 
 class StepState(NamedTuple):
@@ -315,6 +316,7 @@ class Scratch(NamedTuple):
     wall_f: Any
     sphere_f: Any
     sphere_t: Any
+    sphere_tr: Any
     sphere_overlap: Any
     skin_ctl: Any
     chunks: Any
@@ -334,8 +336,7 @@ class ContactModel(NamedTuple):
     sleep_steps, the walls (wall_normal, wall_offset [m], wall_lo, wall_hi [m],
     wall_depth [m], wall_material) and each wall's motion (wall_motion, -1: fixed;
     control.Drive); rolling resistance (rolling: Features.rolling and friction, the
-    pair table pair_rolling [1], body_inv_radius [1/m], body_roll_gain
-    [1/(kg m²)]: physics.rolling_torque)."""
+    pair table pair_rolling [1], body_inv_radius [1/m]: physics.rolling_torque)."""
 
     diameter: Any
     dt: Any
@@ -359,7 +360,6 @@ class ContactModel(NamedTuple):
     rolling: Any
     pair_rolling: Any
     body_inv_radius: Any
-    body_roll_gain: Any
 
 
 class ContactScratch(NamedTuple):
@@ -395,6 +395,7 @@ class ContactScratch(NamedTuple):
     wall_f: Any
     sphere_f: Any
     sphere_t: Any
+    sphere_tr: Any
     sphere_overlap: Any
 
 
@@ -402,7 +403,8 @@ class BodyModel(NamedTuple):
     """What the body stage (bodies.body_update) reads of the Model: dt [s], gravity
     (3,) [m/s²], body_sphere_start, body_mass [kg], body_inv_mass [1/kg],
     body_inv_inertia (B, 6) [1/(kg m²)], sleeping (sleep_steps, v_sleep [m/s],
-    w_sleep [rad/s]) and each body's start step (body_start: control.Drive's)."""
+    w_sleep [rad/s]), each body's start step (body_start: control.Drive's) and
+    whether rolling resistance runs (rolling: ContactModel's)."""
 
     dt: Any
     gravity: Any
@@ -414,16 +416,19 @@ class BodyModel(NamedTuple):
     v_sleep: Any
     w_sleep: Any
     body_start: Any
+    rolling: Any
 
 
 class BodyScratch(NamedTuple):
     """What the body stage reads and writes: the spheres' forces [N], torques about
     their centres [N m] and offsets from the centre of mass in the world [m]
-    (sphere_r), the State's x, q, P, L and rest counts, the wake flags and
-    body_still (the backend's)."""
+    (sphere_r), their rolling torques [N m] (sphere_tr: summed, then limited per
+    body), the State's x, q, P, L and rest counts, the wake flags and body_still
+    (the backend's)."""
 
     sphere_f: Any
     sphere_t: Any
+    sphere_tr: Any
     sphere_r: Any
     body_x: Any
     body_q: Any
@@ -434,14 +439,15 @@ class BodyScratch(NamedTuple):
     body_still: Any
 
 
-def body_model(model, body_start, arrays=None) -> BodyModel:
-    """The BodyModel of ``model`` (``arrays``: as contact_model)."""
+def body_model(model, body_start, friction: bool, arrays=None) -> BodyModel:
+    """The BodyModel of ``model`` (``friction``, ``arrays``: as contact_model)."""
     a = (lambda n: getattr(model, n)) if arrays is None else arrays.__getitem__
     return BodyModel(dt=float(model.dt), gravity=a("gravity"),
                      body_sphere_start=a("body_sphere_start"), body_mass=a("body_mass"),
                      body_inv_mass=a("body_inv_mass"), body_inv_inertia=a("body_inv_inertia"),
                      sleep_steps=int(model.sleep_steps), v_sleep=float(model.sleep_linear),
-                     w_sleep=float(model.sleep_angular), body_start=body_start)
+                     w_sleep=float(model.sleep_angular), body_start=body_start,
+                     rolling=bool(model.features.rolling and friction))
 
 
 def contact_model(model, friction: bool, wall_motion, arrays=None) -> ContactModel:
@@ -458,8 +464,7 @@ def contact_model(model, friction: bool, wall_motion, arrays=None) -> ContactMod
         wall_normal=a("wall_normal"), wall_offset=a("wall_offset"), wall_lo=a("wall_lo"),
         wall_hi=a("wall_hi"), wall_depth=a("wall_depth"), wall_material=a("wall_material"),
         wall_motion=wall_motion, rolling=bool(model.features.rolling and friction),
-        pair_rolling=a("pair_rolling"), body_inv_radius=a("body_inv_radius"),
-        body_roll_gain=a("body_roll_gain"))
+        pair_rolling=a("pair_rolling"), body_inv_radius=a("body_inv_radius"))
 
 
 def step_model(model, friction: bool) -> StepModel:
@@ -478,7 +483,7 @@ def step_model(model, friction: bool) -> StepModel:
         wall_normal=model.wall_normal, wall_offset=model.wall_offset, wall_lo=model.wall_lo,
         wall_hi=model.wall_hi, wall_depth=model.wall_depth, wall_material=model.wall_material,
         rolling=bool(model.features.rolling and friction), pair_rolling=model.pair_rolling,
-        body_inv_radius=model.body_inv_radius, body_roll_gain=model.body_roll_gain)
+        body_inv_radius=model.body_inv_radius)
 
 
 def scratch_of(backend) -> Scratch:
