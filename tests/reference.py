@@ -122,9 +122,9 @@ def reference_step(model, state):
         F = model.body_mass[b] * model.gravity + f[sl].sum(axis=0)
         T = (np.cross(r[sl], f[sl]) + t[sl]).sum(axis=0)
         TR = tr[sl].sum(axis=0)
-        if np.any(TR != 0):             # limited per body (physics.rolling_scale)
+        if np.any(TR != 0):             # limited per body (physics.rolling_scale),
             ii, q, L = model.body_inv_inertia[b], st.body_q[b], st.body_L[b]
-            w = physics.angular_velocity(*q, *ii, *L)
+            w = physics.angular_velocity(*q, *ii, *(L + T * model.dt))   # after T
             dw = physics.angular_velocity(*q, *ii, *(TR * model.dt))
             T = T + physics.rolling_scale(*w, *dw, *TR) * TR
         out = physics.body_step(*st.body_x[b], *st.body_q[b], *st.body_P[b], *st.body_L[b], *F, *T,

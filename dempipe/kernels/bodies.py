@@ -84,10 +84,12 @@ def body_update(b, bm, bs, step):
     L = body_L[b]
     im = body_inv_mass[b]
     if ROTATION and FRICTION and rolling and (RX != 0.0 or RY != 0.0 or RZ != 0.0):
-        # rolling resistance may at most stop the body's spin this step, never
-        # reverse it, however many contacts it has (physics.rolling_scale)
+        # rolling resistance may at most stop the spin the body would have after
+        # this step's other torques, never reverse it, however many contacts it has
+        # (physics.rolling_scale)
         wx, wy, wz = angular_velocity(q[0], q[1], q[2], q[3], ii[0], ii[1], ii[2], ii[3],
-                                      ii[4], ii[5], L[0], L[1], L[2])
+                                      ii[4], ii[5], L[0] + TX * dt, L[1] + TY * dt,
+                                      L[2] + TZ * dt)
         dwx, dwy, dwz = angular_velocity(q[0], q[1], q[2], q[3], ii[0], ii[1], ii[2], ii[3],
                                          ii[4], ii[5], RX * dt, RY * dt, RZ * dt)
         sr = rolling_scale(wx, wy, wz, dwx, dwy, dwz, RX, RY, RZ)
