@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import laws
 from . import materials as mat
 
 #: Points sampled on the mesh surface (area-weighted, seeded) for the Hausdorff estimate.
@@ -351,7 +352,7 @@ class DtRule:
 
     steps_per_contact: float = mat.STEPS_PER_CONTACT
     dt: float | None = None
-    law: str = "linear"
+    law: str = laws.DEFAULT
 
     def finalize_args(self, fps: float) -> dict:
         if self.dt is None:

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Union
 
+from . import laws
+
 #: Spheres across the longest extent of the smallest shape when neither
 #: ``sphere_diameter`` nor ``resolution`` is given.
 DEFAULT_RESOLUTION = 12
@@ -106,7 +108,7 @@ class SimulationSettings:
     spheres: str | None = None
     """Sphere-set mode of every shape that names none: "lattice" or "surface"
     (docs/spheres.md); None: the library's default (spheres.DEFAULT_MODE)."""
-    contact_law: str = "linear"
+    contact_law: str = laws.DEFAULT
     """Contact force law (laws.LAWS): "linear" (the paper's spring-dashpot) or "hertz"
     (Hertz-Mindlin with Tsuji's damping); docs/physics.md."""
 
