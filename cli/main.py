@@ -14,7 +14,6 @@ from dempipe import interrupt as _interrupt  # noqa: I001  (cheap: no numpy, no 
 _interrupt.install()
 _interrupt.hold()       # until main() can catch the stop: recorded, raised there
 
-import logging
 import sys
 import warnings
 

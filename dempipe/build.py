@@ -14,7 +14,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import laws
-from .errors import SceneError
 from .builder import ModelBuilder
 from .model import Model, quat_to_matrix
 

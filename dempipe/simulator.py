@@ -84,6 +84,11 @@ class RunStats:
     steps: int = 0
     #: Of ``steps``, those the backend skipped because every body slept (exact: such
     #: a step changes nothing; the CPU target skips them, the CUDA one computes them).
+    #: A count of work, not of the result: each call of the backend computes its
+    #: first step, and the bake splits its steps into calls by wall time
+    #: (CALL_SECONDS), so two runs of one bake may skip a few dozen steps more or
+    #: less for the same State bit for bit (test_sleeping: one call against calls
+    #: of one step).
     steps_skipped: int = 0
     wall_seconds: float = 0.0
     max_overlap: float = 0.0          # [m]

@@ -364,7 +364,7 @@ class _Reader:
         (``W`` its world matrix, ``velocity``/``angular`` in world units [stage units/s,
         deg/s])."""
         import trimesh
-        from pxr import UsdGeom, UsdPhysics
+        from pxr import UsdPhysics
 
         where = self.where(prim) if instancer is None else f"{self.src}: {instancer}[{instance}]"
         self._proto_root = prim if instancer is not None else None
@@ -540,7 +540,6 @@ class _Reader:
         ang = pi.GetAngularVelocitiesAttr().Get(self.t0)
         n = len(proto_idx)
         proto_local = np.zeros((n, 4, 4))
-        from pxr import Usd
 
         for i in range(n):
             k = int(proto_idx[i])

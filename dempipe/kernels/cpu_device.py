@@ -10,7 +10,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from . import contacts, neighbours
+from . import neighbours
 from .compile import (compile_chain, compile_formulas, compile_pairing, compile_slot_store,
                       compile_walk, invalidate_stale_cache)
 from .layout import CPU_LAYOUT
