@@ -266,6 +266,15 @@ def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz,
             sx, sy, sz)
 
 
+#: Relative rolling speed [rad/s] below which the rolling-resistance torque falls off
+#: linearly to zero instead of keeping its full size: a body that slides without
+#: rolling has a relative spin of round-off, whose direction is noise; at full size it
+#: would turn that noise into a spin about any axis (a box on a conveyor drifted
+#: across the belt at 6e-7 m/s). 1e-3 rad/s is a turn in 100 minutes; the ball's
+#: stopping distance changes by (floor/ω0)², below 1e-9 for the tests' 10-100 rad/s.
+ROLLING_SPIN_FLOOR = 1e-3
+
+
 def rolling_torque(wx, wy, wz, nx, ny, nz, n2, fn, mu_r, inv_r):
     """Rolling resistance on a sphere of a contact: a constant torque μ_r R* |F·n̂|
     against the relative rolling (the "constant directional torque" model, Ai, Chen,
@@ -297,7 +306,10 @@ def rolling_torque(wx, wy, wz, nx, ny, nz, n2, fn, mu_r, inv_r):
     u2 = ux * ux + uy * uy + uz * uz
     if u2 == 0.0:
         return 0.0, 0.0, 0.0
-    c = -mu_r * abs(fn) / (inv_r * sqrt(n2 * u2))
+    # below ROLLING_SPIN_FLOOR the torque falls off in proportion to the rolling
+    # (|u| = n2 |w_r|): where the relative rolling is round-off, so is its direction
+    floor = n2 * n2 * (ROLLING_SPIN_FLOOR * ROLLING_SPIN_FLOOR)
+    c = -mu_r * abs(fn) / (inv_r * sqrt(n2 * (u2 if u2 > floor else floor)))
     return c * ux, c * uy, c * uz
 
 
