@@ -434,14 +434,34 @@ def bounce_error(material, diameter: float, stiffness: float, rule: DtRule) -> f
     return float(np.mean(errs))
 
 
-def rolling_error(material, diameter: float, stiffness: float, rule: DtRule) -> float:
-    """A ball launched sliding at v0 on a plane ends rolling at 5/7 v0 (I = 2/5 m r²).
+def sliding_ball(v0: float, mu: float, mu_r: float, t: float, g: float = 9.81):
+    """Speed [m/s] and distance [m] at time t [s] of a ball (I = 2/5 m r²) launched
+    sliding at v0 without spin on a level plane of friction μ and rolling
+    friction μ_r (physics.rolling_torque; μ_r < μ): it slides, slowing at μ g and
+    spinning up at (5/2)(μ − μ_r) g / r, until it rolls at
+    t_r = v0 / (g (μ + (5/2)(μ − μ_r))), then rolls slowing at (5/7) μ_r g until it
+    stops. With μ_r = 0 it ends rolling at 5/7 v0."""
+    t_r = v0 / (g * (mu + 2.5 * (mu - mu_r)))
+    ts = min(t, t_r)
+    v = v0 - mu * g * ts
+    x = v0 * ts - 0.5 * mu * g * ts * ts
+    if t > t_r:
+        a = 5.0 / 7.0 * mu_r * g
+        tt = t - t_r if a == 0.0 else min(t - t_r, v / a)
+        x += v * tt - 0.5 * a * tt * tt
+        v -= a * tt
+    return v, x
 
-    Returns the larger of |v_end / (5/7 v0) − 1| and the error of the distance
-    travelled against the closed form (slide under μ g until t_r = 2 v0 / (7 μ g),
-    then roll), relative to that distance. The end speed alone cannot show dt: the
-    angular momentum about the contact point is conserved through the slide
-    whatever the friction law, so it comes out exact. NaN for a frictionless material.
+
+def rolling_error(material, diameter: float, stiffness: float, rule: DtRule) -> float:
+    """A ball launched sliding at v0 on a plane ends rolling at 5/7 v0 (I = 2/5 m r²),
+    then slows under the material's rolling friction (:func:`sliding_ball`).
+
+    Returns the larger of |v_end / v_closed − 1| and the error of the distance
+    travelled against the closed form, relative to that distance. The end speed
+    alone cannot show dt: the angular momentum about the contact point is conserved
+    through the slide whatever the friction law, so it comes out exact. NaN for a
+    frictionless material.
     """
     from .simulator import Simulator
 
@@ -461,10 +481,8 @@ def rolling_error(material, diameter: float, stiffness: float, rule: DtRule) -> 
     t_end = 3.0 * 2.0 * v0 / (7.0 * mu * 9.81) + 0.02        # three times the slide
     model = b.finalize(fps=fps, n_frames=int(t_end * fps) + 2, **rule.finalize_args(fps))
     fr = Simulator(model).advance(model.initial_state())
-    t, a = fr.times[-1], mu * 9.81
-    t_r = 2.0 * v0 / (7.0 * a)
-    travel = v0 * t_r - 0.5 * a * t_r ** 2 + 5.0 / 7.0 * v0 * (t - t_r)
-    speed_err = abs(fr.v[-1, 0, 0] / (5.0 / 7.0 * v0) - 1.0)
+    v_end, travel = sliding_ball(v0, mu, min(material.rolling_friction, mu), fr.times[-1])
+    speed_err = abs(fr.v[-1, 0, 0] / v_end - 1.0)
     return float(max(speed_err, abs((fr.x[-1, 0, 0] - fr.x[0, 0, 0]) / travel - 1.0)))
 
 
@@ -482,8 +500,9 @@ def incline_rolling_error(material, resolution: int, mode: str, rule: DtRule,
     """A ball of ``resolution`` spheres across, built in sphere-set ``mode``
     ("lattice" or "surface"), released on an incline (tilted gravity over a plane)
     in ``material``: |a / a_closed − 1| for its acceleration down the slope, fitted
-    to x(t). The closed form is rolling, 5/7 g sin θ (I = 2/5 m r²), when the
-    friction holds it (μ ≥ 2/7 tan θ), else sliding, g (sin θ − μ cos θ).
+    to x(t). The closed form is rolling, 5/7 g (sin θ − μ_r cos θ) (I = 2/5 m r², μ_r
+    the material's rolling friction), when the friction holds it
+    (μ ≥ 2/7 tan θ + 5/7 μ_r), else sliding, g (sin θ − μ cos θ).
 
     Unlike :func:`rolling_error` (one sphere, the contact law alone), this measures
     what the sphere set does to rolling: a lattice ball is a polyhedron that tips from
@@ -521,8 +540,10 @@ def incline_rolling_error(material, resolution: int, mode: str, rule: DtRule,
     t = fr.times
     sel = t >= INCLINE_FIT_FROM
     a = 2.0 * float(np.polyfit(t[sel], fr.x[sel, 0, 0], 2)[0])
-    if mu >= 2.0 / 7.0 * math.tan(theta):
-        closed = 5.0 / 7.0 * g * math.sin(theta)
+    mu_r = material.rolling_friction
+    if mu >= 2.0 / 7.0 * math.tan(theta) + 5.0 / 7.0 * mu_r:
+        # rolling, held back by the rolling friction's torque μ_r r m g cos θ
+        closed = 5.0 / 7.0 * g * (math.sin(theta) - mu_r * math.cos(theta))
     else:
         closed = g * (math.sin(theta) - mu * math.cos(theta))
     return abs(a / closed - 1.0)

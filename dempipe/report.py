@@ -553,12 +553,13 @@ def _measure_motion(runs, ref, horizon: float) -> None:
 def _measure_physics(runs, ref, fixed_dt: bool, scene_mode=None, cache=None):
     """Closed-form cases per dt rule, in the scene's dominant material.
 
-    With dt="auto" a ball's own contact is resolved in 16/dt_factor steps whatever
-    its size and stiffness, so the cases run once per dt factor (at the reference's
-    diameter and stiffness); with a fixed scene dt they run per run. The spin runs at
+    With dt="auto" a ball's own contact is resolved in S/dt_factor steps (S: the
+    law's STEPS_PER_CONTACT, 10 linear, 12 Hertz) whatever its size and stiffness,
+    so the cases run once per dt factor (at the reference's diameter and
+    stiffness); with a fixed scene dt they run per run. The spin runs at
     each run's own dt. The incline (a ball of the run's resolution and sphere-set
     mode rolling down a slope) runs once per resolution, mode and dt factor, at its
-    own automatic contact resolved in 16/dt_factor steps.
+    own automatic contact resolved in S/dt_factor steps.
     """
     from .spheres import DEFAULT_MODE
 
