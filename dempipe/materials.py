@@ -116,7 +116,7 @@ class PairTable:
     mu : (M, M) Coulomb friction [-]
     kt_ratio : tangential viscous coefficient as a multiple of √(k m_eff) [-]
     ks_ratio : tangential spring as a multiple of k [-] (static friction)
-    mu_r : (M, M) rolling-friction coefficient [-] (mix_rolling)
+    mu_r : (M, M) rolling-friction coefficient [-] (mix_rolling; 0 for a frictionless pair)
     """
 
     k: np.ndarray
@@ -142,7 +142,9 @@ def pair_table(materials: list[Material], stiffness: list[float], law=_law) -> P
             _, e, f = mix(a, b)
             zeta[i, j] = law.damping_ratio(e)
             mu[i, j] = f
-            mu_r[i, j] = mix_rolling(a, b)
+            # a frictionless contact takes no tangential force: it cannot roll a body,
+            # so it resists no rolling either (friction 0 means no grip of any kind)
+            mu_r[i, j] = mix_rolling(a, b) if f > 0.0 else 0.0
     return PairTable(k, zeta, mu, mu_r=mu_r)
 
 

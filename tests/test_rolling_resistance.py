@@ -189,6 +189,33 @@ def test_ball_on_ball_couples_are_equal_and_opposite():
     assert 0.0 < w[0, 2] < 50.0                    # the couple acted, never reversed
 
 
+def test_a_frictionless_pair_resists_no_rolling():
+    """Friction 0 means no grip of any kind: a ball spinning on an ice plane (the
+    ice frictionless, the ball's own material with friction and μ_r = 0.2) keeps
+    its spin exactly, while the same ball on a plane of its own material is
+    slowed by the rolling torque (the negative control)."""
+    def spin_after(plane_friction):
+        b = ModelBuilder(D, gravity=(0.0, 0.0, -G))
+        ss, mesh = ball_set(D)
+        s = b.add_shape("ball", mesh, ss)
+        rubber = b.add_material(Material("rubber", density=1000.0, restitution=0.5,
+                                         friction=0.8, rolling_friction=0.2))
+        ice = b.add_material(Material("ice", density=1000.0, restitution=0.5,
+                                      friction=plane_friction, rolling_friction=0.2))
+        b.add_bodies("ball", s, rubber, [[0.0, 0.0, 0.5 * D]],
+                     angular_velocities=[[0.0, 20.0, 0.0]])
+        b.add_plane([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], ice)
+        model = b.finalize(fps=FPS, n_frames=11)
+        return model, Simulator(model).advance(model.initial_state()), rubber, ice
+    model, fr, rubber, ice = spin_after(0.0)
+    assert model.features.rolling                   # the rubber pair has it
+    assert model.pair_rolling[rubber, rubber] == 0.2
+    assert model.pair_rolling[rubber, ice] == model.pair_rolling[ice, rubber] == 0.0
+    assert (fr.w[:, 0, 1] == 20.0).all()
+    _, fr, _, _ = spin_after(0.8)
+    assert fr.w[-1, 0, 1] < 19.0
+
+
 def test_scene_key_and_its_errors(tmp_path):
     base = """
 [simulation]
