@@ -266,16 +266,19 @@ def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz,
             sx, sy, sz)
 
 
-#: Relative rolling speed [rad/s] below which the rolling-resistance torque falls off
-#: linearly to zero instead of keeping its full size: a body that slides without
-#: rolling has a relative spin of round-off, whose direction is noise; at full size it
-#: would turn that noise into a spin about any axis (a box on a conveyor drifted
-#: across the belt at 6e-7 m/s). 1e-3 rad/s is a turn in 100 minutes; the ball's
-#: stopping distance changes by (floor/ω0)², below 1e-9 for the tests' 10-100 rad/s.
-ROLLING_SPIN_FLOOR = 1e-3
+#: Below a relative rolling of ROLLING_FLOOR × vc × (1/R_i + 1/R_j) [rad/s] (its rim
+#: speed a thousandth of the onset speed vc, the speed below which a contact counts as
+#: resting: Model.onset_speed) the rolling-resistance torque falls off in proportion to
+#: the rolling instead of keeping its full size. A body that slides without rolling has
+#: a relative spin of round-off, whose direction is noise; at full size the torque
+#: turned that noise into a spin about any axis (a box on a conveyor drifted across the
+#: belt at 6e-7 m/s). Relative to the scene's own speeds and sizes, so a scene scaled
+#: in size moves the same (tests/test_extremes.py); a ball's stopping distance changes
+#: by (floor / ω0)², below 1e-9 in the tests.
+ROLLING_FLOOR = 1e-3
 
 
-def rolling_torque(wx, wy, wz, nx, ny, nz, n2, fn, mu_r, inv_r):
+def rolling_torque(wx, wy, wz, nx, ny, nz, n2, fn, mu_r, inv_r, vc):
     """Rolling resistance on a sphere of a contact: a constant torque μ_r R* |F·n̂|
     against the relative rolling (the "constant directional torque" model, Ai, Chen,
     Rotter and Ooi 2011, model A; LIGGGHTS' rolling_friction cdt). Returns the
@@ -290,7 +293,8 @@ def rolling_torque(wx, wy, wz, nx, ny, nz, n2, fn, mu_r, inv_r):
     along n (a spin about the normal, twisting, is not resisted). fn : F·n, the
     contact force along n [N m] (|F·n̂| |n|); mu_r : the pair's coefficient [1];
     inv_r : 1/R_i + 1/R_j, the inverse rolling radius of the two bodies [1/m] (a
-    wall, static or kinematic partner: 1/R_i).
+    wall, static or kinematic partner: 1/R_i); vc : the onset speed [m/s], which
+    sets the spin below which the torque fades (ROLLING_FLOOR).
 
     Why a constant torque: it is the model with the closed form a user can check (a
     ball rolling at v0 on a plane stops after 7 v0² / (10 μ_r g)) and, limited, it
@@ -306,9 +310,10 @@ def rolling_torque(wx, wy, wz, nx, ny, nz, n2, fn, mu_r, inv_r):
     u2 = ux * ux + uy * uy + uz * uz
     if u2 == 0.0:
         return 0.0, 0.0, 0.0
-    # below ROLLING_SPIN_FLOOR the torque falls off in proportion to the rolling
-    # (|u| = n2 |w_r|): where the relative rolling is round-off, so is its direction
-    floor = n2 * n2 * (ROLLING_SPIN_FLOOR * ROLLING_SPIN_FLOOR)
+    # below the floor the torque falls off in proportion to the rolling (|u| =
+    # n2 |w_r|): where the relative rolling is round-off, so is its direction
+    wf = ROLLING_FLOOR * vc * inv_r
+    floor = n2 * n2 * (wf * wf)
     c = -mu_r * abs(fn) / (inv_r * sqrt(n2 * (u2 if u2 > floor else floor)))
     return c * ux, c * uy, c * uz
 

@@ -35,7 +35,8 @@ def rolling(model, w_rel, n, out, mi, mj, inv_radius):
     if not (model.features.rolling and mu_r > 0.0):
         return np.zeros(3)
     fn = out[0] * n[0] + out[1] * n[1] + out[2] * n[2]
-    return np.array(physics.rolling_torque(*w_rel, *n, float(n @ n), fn, mu_r, inv_radius))
+    return np.array(physics.rolling_torque(*w_rel, *n, float(n @ n), fn, mu_r, inv_radius,
+                                           model.onset_speed))
 
 
 def reference_step(model, state):

@@ -132,7 +132,8 @@ def own_forces(model, state, be):
                 n, n2 = (r, dist2) if dist2 > 0 else (np.array([0.0, 0.0, 1.0]), 1.0)
                 rt = physics.rolling_torque(
                     *(W[bi] - W[bj]), *n, n2, out[0] * n[0] + out[1] * n[1] + out[2] * n[2],
-                    mu_r, model.body_inv_radius[bi] + model.body_inv_radius[bj])
+                    mu_r, model.body_inv_radius[bi] + model.body_inv_radius[bj],
+                    model.onset_speed)
                 qx += rt[0]
                 qy += rt[1]
                 qz += rt[2]
@@ -161,7 +162,7 @@ def own_forces(model, state, be):
             if model.features.rolling and model.pair_rolling[mi, mj] > 0.0:
                 rt = physics.rolling_torque(
                     *W[bi], *n, 1.0, out[0] * n[0] + out[1] * n[1] + out[2] * n[2],
-                    model.pair_rolling[mi, mj], model.body_inv_radius[bi])
+                    model.pair_rolling[mi, mj], model.body_inv_radius[bi], model.onset_speed)
                 for c in range(3):
                     wq[c] += rt[c]
         f[i] = (fx + wf[0], fy + wf[1], fz + wf[2])

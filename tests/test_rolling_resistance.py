@@ -140,22 +140,30 @@ def test_without_rolling_resistance_the_ball_rolls_on():
 
 def test_torque_is_full_above_the_spin_floor_and_fades_below_it():
     """physics.rolling_torque in plain Python: μ_r R* |F_n| against the rolling at
-    any spin above ROLLING_SPIN_FLOOR, whatever the normal's length; below it the
-    torque shrinks in proportion to the spin, so a round-off spin (a box sliding on
-    a belt) gets a round-off torque, not a full one in a random direction."""
+    any spin above the floor ROLLING_FLOOR vc / R*, whatever the normal's length;
+    below it the torque shrinks in proportion to the spin, so a round-off spin (a
+    box sliding on a belt) gets a round-off torque, not a full one in a random
+    direction. The floor scales with the scene's speeds and sizes."""
     from dempipe import physics
-    mu_r, fn, inv_r = 0.1, 2.0, 1.0 / 0.05          # full size: 0.1 · 0.05 · 2 N m
+    mu_r, fn, inv_r, vc = 0.1, 2.0, 1.0 / 0.05, 0.02  # full size: 0.1 · 0.05 · 2 N m
     full = mu_r * fn / inv_r
+    floor = physics.ROLLING_FLOOR * vc * inv_r        # 4e-4 rad/s
     for n2 in (1.0, 4e-4):                          # a wall's unit normal; a pair's d²
         n = math.sqrt(n2)
-        for w in (10.0, 2.0 * physics.ROLLING_SPIN_FLOOR):
-            t = physics.rolling_torque(0.0, w, 0.3, 0.0, 0.0, n, n2, fn * n, mu_r, inv_r)
+        for w in (10.0, 2.0 * floor):
+            t = physics.rolling_torque(0.0, w, 0.3, 0.0, 0.0, n, n2, fn * n, mu_r, inv_r, vc)
             assert t[1] == pytest.approx(-full, rel=1e-12) and t[0] == 0.0 and t[2] == 0.0
-        for w in (0.5 * physics.ROLLING_SPIN_FLOOR, 1e-15):
-            t = physics.rolling_torque(0.0, w, 0.3, 0.0, 0.0, n, n2, fn * n, mu_r, inv_r)
-            assert t[1] == pytest.approx(-full * w / physics.ROLLING_SPIN_FLOOR, rel=1e-9)
+        for w in (0.5 * floor, 1e-15):
+            t = physics.rolling_torque(0.0, w, 0.3, 0.0, 0.0, n, n2, fn * n, mu_r, inv_r, vc)
+            assert t[1] == pytest.approx(-full * w / floor, rel=1e-9)
+            # the same contact 100 times larger and 10 times faster (a similar scene:
+            # spins 10 times slower) fades at the same scaled spin
+            t = physics.rolling_torque(0.0, 0.1 * w, 0.0, 0.0, 0.0, n, n2, fn * n, mu_r,
+                                       0.01 * inv_r, 10.0 * vc)
+            assert t[1] == pytest.approx(-100.0 * full * w / floor, rel=1e-9)
     # a pure spin about the normal (twisting) is not resisted
-    assert physics.rolling_torque(0.0, 0.0, 5.0, 0.0, 0.0, 1.0, 1.0, fn, mu_r, inv_r) == (0.0, 0.0, 0.0)
+    assert physics.rolling_torque(0.0, 0.0, 5.0, 0.0, 0.0, 1.0, 1.0, fn, mu_r, inv_r, vc) \
+        == (0.0, 0.0, 0.0)
 
 
 def test_the_default_is_small_but_not_zero():

@@ -415,7 +415,7 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
                         rwz -= motion_now[m, 12]
                     rtx, rty, rtz = rolling_torque(  # noqa: F821 (a wall rolls as flat)
                         rwx, rwy, rwz, nx, ny, nz, 1.0, pfx * nx + pfy * ny + pfz * nz,
-                        pair_rolling[mi, mj], body_inv_radius[bi])
+                        pair_rolling[mi, mj], body_inv_radius[bi], onset_speed)
                     qx += rtx
                     qy += rty
                     qz += rtz
@@ -582,7 +582,7 @@ def sphere_forces(s0, s1, cm, cs):
                         rtx, rty, rtz = rolling_torque(  # noqa: F821
                             rwx - body_w[bj, 0], rwy - body_w[bj, 1], rwz - body_w[bj, 2],
                             nx, ny, nz, n2, pfx * nx + pfy * ny + pfz * nz, mu_r,
-                            inv_ri + body_inv_radius[bj])
+                            inv_ri + body_inv_radius[bj], onset_speed)
                         qx += rtx
                         qy += rty
                         qz += rtz
