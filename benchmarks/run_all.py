@@ -1,6 +1,6 @@
 """Run every CPU benchmark in one command, each in its quick form, one after another.
 
-    python benchmarks/run_all.py             # quick forms, about 3.5 minutes on 2 cores
+    python benchmarks/run_all.py             # quick forms, about 5.5 minutes on 2 cores
     python benchmarks/run_all.py --full      # the sizes docs/performance.md quotes (long)
     python benchmarks/run_all.py --only cpu_bench,startup
 
@@ -36,6 +36,7 @@ BENCHMARKS = {
     "sleeping": (["--duration", "2"], []),
     "sleeping_pile": (["--spheres", "25000", "--steps", "300"], []),
     "restitution_vs_dt": ([], []),
+    "steps_per_contact": (["--quick", "--steps", "10"], []),
     "vs_bullet": (["--n", "256", "--duration", "1"], ["--n", "256,1024,4096"]),
     "two_bakes": ([], []),
     "sphere_table": (["--resolutions", "8", "--repeat", "1"], []),
