@@ -89,6 +89,21 @@ def app(ctx, debug):
     warnings.showwarning = _show_warning
 
 
+def _exit_if_stopped(exc: BaseException, debug: bool) -> None:
+    """A failure while a stop is pending is the stop's doing (interrupt.stop_behind):
+    report the stop and exit 128 + its number, the traceback only with --debug."""
+    from dempipe import interrupt
+
+    stop = interrupt.stop_behind(exc)
+    if stop is None:
+        return
+    if debug:
+        import traceback
+        traceback.print_exception(exc)
+    click.echo(f"stopped by {interrupt.signal_name(stop.signum)}", err=True)
+    sys.exit(stop.exit_code)
+
+
 def main(argv=None):
     """Console entry point: run the app, turn DempipeError into one line + exit code.
 
@@ -124,6 +139,7 @@ def main(argv=None):
         click.echo("Interrupted.", err=True)
         sys.exit(130)
     except Exception as exc:  # a bug: still one line unless --debug
+        _exit_if_stopped(exc, debug)
         if debug:
             raise
         click.echo(

@@ -117,11 +117,19 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
     from . import interrupt
 
     with interrupt.installed_for_call():
-        return _bake(scene_path, out_path, device=device, layout=layout, frames=frames,
-                     threads=threads, cache=cache, progress=progress, warn=warn, force=force,
-                     resume=resume, chunk_frames=chunk_frames,
-                     checkpoint_seconds=checkpoint_seconds, checkpoints=checkpoints,
-                     simulation=simulation)
+        try:
+            return _bake(scene_path, out_path, device=device, layout=layout, frames=frames,
+                         threads=threads, cache=cache, progress=progress, warn=warn,
+                         force=force, resume=resume, chunk_frames=chunk_frames,
+                         checkpoint_seconds=checkpoint_seconds, checkpoints=checkpoints,
+                         simulation=simulation)
+        except BakeInterrupted:
+            raise                       # the stop, with the frames it kept
+        except Exception as exc:        # a stop a library swallowed, failing later
+            stop = interrupt.stop_behind(exc)
+            if stop is None:
+                raise
+            raise stop from exc
 
 
 def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progress, warn,

@@ -117,6 +117,20 @@ def check() -> None:
         raise StopRequested(_pending)
 
 
+def stop_behind(exc: BaseException) -> StopRequested | None:
+    """The stop that a failure is the consequence of, or None: while a stop is
+    pending, any exception but a StopRequested is taken as the stop's doing. A
+    library that swallows the KeyboardInterrupt goes on half-imported and fails
+    later with an unrelated error (``import trimesh`` interrupted in its optional
+    imports stores a stand-in for a class, then fails with a TypeError on
+    ``Path3D | None``); the user pressed Ctrl-C, and that is what to report."""
+    if _pending is None or isinstance(exc, StopRequested):
+        return None
+    stop = StopRequested(_pending)
+    stop.__cause__ = exc
+    return stop
+
+
 def reset() -> None:
     """Forget a pending stop (tests, or a caller that handled it)."""
     global _pending
