@@ -324,6 +324,44 @@ def test_stop_swallowed_by_a_library_is_still_a_stop(reference, tmp_path):
         assert not out.exists()
 
 
+#: A child that sends itself SIGINT as importlib starts manifold3d's native init
+#: (the first call under its ExtensionFileLoader.exec_module); Python handles it
+#: inside that init, which calls back into Python (nanobind makes its enums through
+#: enum.py). Raised there, the stop crashed the interpreter (SIGSEGV, as
+#: test_stop_early_in_startup did now and then in CI; SIGABRT too).
+STOP_IN_NATIVE_INIT = """
+import os, signal, sys
+from importlib.machinery import ExtensionFileLoader
+def prof(frame, event, arg):
+    if event != "call":
+        return
+    f = frame.f_back
+    while f is not None:
+        if (f.f_code.co_name == "exec_module" and isinstance(f.f_locals.get("self"),
+                ExtensionFileLoader) and f.f_locals["self"].name.startswith("manifold3d")):
+            sys.setprofile(None)
+            sys.stderr.write("signal sent in " + frame.f_code.co_name + "\\n")
+            os.kill(os.getpid(), signal.SIGINT)
+            return
+        f = f.f_back
+sys.setprofile(prof)
+from dempipe_cli.main import main
+main(["bake", sys.argv[1], "-o", sys.argv[2], "--device", "cpu"])
+"""
+
+
+def test_stop_inside_a_native_module_init(reference, tmp_path):
+    scene, _, cache = reference
+    out = tmp_path / "native.usda"
+    p = subprocess.run([sys.executable, "-c", STOP_IN_NATIVE_INIT, str(scene), str(out)],
+                       capture_output=True, text=True, env=env(cache), timeout=300)
+    if "signal sent" not in p.stderr:
+        pytest.skip("manifold3d's init calls no Python function here: nothing to interrupt")
+    assert p.returncode == 128 + signal.SIGINT, (p.returncode, p.stderr)
+    assert "stopped by SIGINT" in p.stderr and "Traceback" not in p.stderr, p.stderr
+    assert not out.exists()
+
+
 def test_second_signal_exits_at_once(reference, tmp_path):
     scene, _, cache = reference
     out = tmp_path / "twice.usda"
