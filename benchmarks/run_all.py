@@ -1,6 +1,6 @@
 """Run every CPU benchmark in one command, each in its quick form, one after another.
 
-    python benchmarks/run_all.py             # quick forms, about 5.5 minutes on 2 cores
+    python benchmarks/run_all.py             # quick forms, about 4 minutes on 2 cores
     python benchmarks/run_all.py --full      # the sizes docs/performance.md quotes (long)
     python benchmarks/run_all.py --only cpu_bench,startup
 
