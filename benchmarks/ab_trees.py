@@ -11,7 +11,7 @@ ms per step (with --cpu: CPU time of one thread) and ratio A/B (above 1: B is
 faster), their median, and whether the
 final States (x, q, P, L, rest counts, contact histories) are identical bit for
 bit. Exit status 1 when they differ. For a refactor that must keep the State and
-the speed (docs/performance.md, "One step, two targets").
+the speed (docs/performance.md, "Comparing two source trees").
 """
 
 from __future__ import annotations
@@ -36,13 +36,13 @@ def _child(root: str, scene: str, spheres: int, steps: int, out: str) -> None:
     sys.path[:0] = [root, os.path.join(root, "benchmarks"), os.path.join(root, "tests")]
     import time
 
-    from dempipe.simulator import Simulator
+    from dempipe.sim.simulator import Simulator
     if scene == "pile":
         from cpu_bench import dense_pile
         model = dense_pile(spheres)
     else:
-        from dempipe.build import build_model
-        from dempipe.scene import load_scene
+        from dempipe.scene.build import build_model
+        from dempipe.scene.load import load_scene
         model = build_model(load_scene(os.path.join(root, "examples", "quickstart.toml")))
     sim = Simulator(model)
     st = model.initial_state()

@@ -115,8 +115,8 @@ def main(argv=None) -> None:
         print(f"| {duration:g} | {frames} | {rss / 2**20:.0f} | {rss / first:.2f} | "
               f"{wall:.1f} |", flush=True)
     if a.overhead:
-        from dempipe.bake import bake
-        from dempipe.cache import SphereCache
+        from dempipe.pipeline.bake import bake
+        from dempipe.spheres.cache import SphereCache
 
         scene = write_scene(tmp, a.balls, a.durations[0])
         cache = SphereCache(tmp / "cache")

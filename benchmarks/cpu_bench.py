@@ -28,9 +28,9 @@ from bodies import box_set  # noqa: E402
 
 import numba  # noqa: E402
 
-from dempipe.materials import Material  # noqa: E402
-from dempipe.model import ModelBuilder  # noqa: E402
-from dempipe.simulator import Simulator  # noqa: E402
+from dempipe.sim.materials import Material  # noqa: E402
+from dempipe.sim.builder import ModelBuilder  # noqa: E402
+from dempipe.sim.simulator import Simulator  # noqa: E402
 
 D = 0.01
 

@@ -17,8 +17,8 @@ its first import of ``numba.cuda``):
    ``numba.cuda.compile_ptx`` with NVVM, then assembled by ``ptxas -arch=sm_XX
    -v``, whose report gives the registers, the stack frame (local memory) and
    the spill stores/loads of each kernel. The kernels specialized to the scene
-   (``kernels.cuda.SPECIALIZED``) are compiled for every one of the 16 feature
-   sets a scene can need (``kernels.cuda.kernels(flags)``), with the general
+   (``kernels.cuda.backend.SPECIALIZED``) are compiled for every one of the 16 feature
+   sets a scene can need (``kernels.cuda.backend.kernels(flags)``), with the general
    kernel's signature (the same arrays). The jobs are shared among up to
    ``os.cpu_count()`` processes.
 
@@ -30,7 +30,7 @@ which ptxas 13.0 refuses.
 Results are cached in ``cuda_compile/`` of dempipe's cache folder
 (``$DEMPIPE_CACHE_DIR``, else ``~/.cache/dempipe``), keyed by the source of the package and of this
 script and by the tools' versions: a second run on unchanged code assembles
-nothing. ``--no-cache`` compiles anyway. tests/test_cuda_compile.py runs this.
+nothing. ``--no-cache`` compiles anyway. tests/sim/test_cuda_compile.py runs this.
 """
 
 from __future__ import annotations
@@ -69,8 +69,8 @@ def _scenes():
 
     import numpy as np
     from bodies import ball_set, box_set
-    from dempipe.materials import Material
-    from dempipe.model import ModelBuilder
+    from dempipe.sim.materials import Material
+    from dempipe.sim.builder import ModelBuilder
 
     d = 0.01
 
@@ -103,7 +103,7 @@ def _scenes():
     ball = build(0.4, True, False, shape="ball")
     out.append(("one-sphere bodies (no rotation)", ball, None))
     # prescribed motion: a belt, a moving box, a kinematic body, an emitter
-    from dempipe.motion import Motion
+    from dempipe.sim.motion import Motion
 
     b = ModelBuilder(d)
     ss, mesh = box_set(2, 1, 1, d)
@@ -135,7 +135,7 @@ def record(steps: int = 3) -> dict:
     """{kernel name: [argument types, ...]} of every launch of the scenes' steps,
     probes and overlap reads (call with the CUDA simulator on)."""
     import numba
-    from dempipe.kernels import cuda as kc
+    from dempipe.sim.kernels.cuda import backend as kc
 
     seen: dict[str, dict[str, tuple]] = {}
 
@@ -258,8 +258,8 @@ def jobs(records: dict) -> list[tuple]:
     with every feature on (its most demanding variant: the others are subsets)."""
     import itertools
 
-    from dempipe import laws
-    from dempipe.kernels import cuda as kc
+    from dempipe.sim import laws
+    from dempipe.sim.kernels.cuda import backend as kc
     out = []
     for name, sigs in records.items():
         for i in range(len(sigs)):
@@ -275,7 +275,7 @@ def jobs(records: dict) -> list[tuple]:
 
 def compile_jobs(records: dict, todo: list, cc=(9, 0)) -> list[dict]:
     """One row per job (see ``jobs``): its ptxas resources."""
-    from dempipe.kernels import cuda as kc
+    from dempipe.sim.kernels.cuda import backend as kc
     ptxas = ptxas_path()
     if ptxas is None:
         raise RuntimeError("ptxas not found (install the CUDA toolkit, or put it on PATH)")
@@ -322,7 +322,7 @@ def _cache_key(cc, ptxas) -> str:
 
 
 def _cache_dir() -> Path:
-    from dempipe.cache import default_cache_dir
+    from dempipe.spheres.cache import default_cache_dir
     return default_cache_dir() / "cuda_compile"
 
 

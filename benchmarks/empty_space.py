@@ -34,8 +34,8 @@ PILE_SPHERES = 8 * 27
 def piles_model(n_piles: int, spread: float | None, seed: int = 0):
     """``n_piles`` piles of 2×2×2 touching cubes on the plane z = 0; pile anchors on
     a 0.2 m lattice (spread None) or uniform over spread × spread metres."""
-    from dempipe.materials import Material
-    from dempipe.model import ModelBuilder
+    from dempipe.sim.materials import Material
+    from dempipe.sim.builder import ModelBuilder
 
     if spread is None:
         side = int(np.ceil(np.sqrt(n_piles)))
@@ -72,7 +72,7 @@ def main(argv=None) -> int:
 
     import numba
 
-    from dempipe.simulator import Simulator
+    from dempipe.sim.simulator import Simulator
 
     n_piles = max(1, round((8_000 if args.quick else args.spheres) / PILE_SPHERES))
     scenes = {"compact": piles_model(n_piles, None), "spread": piles_model(n_piles, args.spread)}

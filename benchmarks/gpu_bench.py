@@ -108,8 +108,8 @@ material = "rubber"
 
 
 def chess_model(count: int, cache):
-    from dempipe.build import build_model
-    from dempipe.scene import parse_scene
+    from dempipe.scene.build import build_model
+    from dempipe.scene.load import parse_scene
 
     n = 32 if count <= 16384 else int(np.ceil(np.sqrt(count / 16)))
     nz = int(np.ceil(count / (n * n)))
@@ -120,8 +120,8 @@ def chess_model(count: int, cache):
 
 
 def tori_model(count: int, cache):
-    from dempipe.build import build_model
-    from dempipe.scene import parse_scene
+    from dempipe.scene.build import build_model
+    from dempipe.scene.load import parse_scene
 
     n = 32 if count <= 11264 else int(np.ceil(np.sqrt(count / 11)))
     nz = int(np.ceil(count / (n * n)))
@@ -131,8 +131,8 @@ def tori_model(count: int, cache):
 
 def balls_model(count: int):
     """``count`` one-sphere balls (1 cm) on a lattice over a plane, randomly moving."""
-    from dempipe.materials import Material
-    from dempipe.model import ModelBuilder
+    from dempipe.sim.materials import Material
+    from dempipe.sim.builder import ModelBuilder
     from types import SimpleNamespace
 
     d = 0.01
@@ -173,7 +173,7 @@ def gpu_message() -> str | None:
 
 def time_cpu(model, steps: int) -> float:
     """Seconds per step of the CPU backend (after a compile/warm-up step)."""
-    from dempipe.kernels.cpu import CpuBackend
+    from dempipe.sim.kernels.cpu.backend import CpuBackend
 
     be = CpuBackend(model)
     st = model.initial_state()
@@ -194,7 +194,7 @@ def time_gpu(model, steps: int):
     """(seconds per step, {stage: share}) of the CUDA backend."""
     from numba import cuda
 
-    from dempipe.kernels.cuda import CudaBackend
+    from dempipe.sim.kernels.cuda.backend import CudaBackend
 
     be = CudaBackend(model)
     st = model.initial_state()
@@ -217,7 +217,7 @@ def time_gpu(model, steps: int):
         events[-1].synchronize()
         for k, name in enumerate(be.STAGES):
             total[name] += cuda.event_elapsed_time(events[k], events[k + 1])
-    from dempipe.kernels.cuda import CTL_OVER
+    from dempipe.sim.kernels.cuda.device import CTL_OVER
 
     if be.d["ctl"].copy_to_host()[CTL_OVER]:   # contacts and bodies froze: shares skewed
         print(f"# warning: a neighbour list overflowed during the stage timing of "
@@ -244,7 +244,7 @@ def main(argv=None) -> int:
     import numba
     from numba import cuda
 
-    from dempipe.cache import SphereCache
+    from dempipe.spheres.cache import SphereCache
 
     steps = args.steps or (20 if args.quick else 100)
     cache = SphereCache()

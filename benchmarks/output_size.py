@@ -36,10 +36,10 @@ SCENES = {"quickstart": 2.0, "chess": 1.0, "tori": 0.5}
 
 def simulate(name: str, duration: float, frames_dir: Path | None):
     """(model, frames, simulate seconds) of examples/<name>.toml cut to ``duration``."""
-    from dempipe.build import Overrides, build_model
-    from dempipe.frames import Frames
-    from dempipe.scene import load_scene
-    from dempipe.simulator import Simulator
+    from dempipe.scene.build import Overrides, build_model
+    from dempipe.sim.frames import Frames
+    from dempipe.scene.load import load_scene
+    from dempipe.sim.simulator import Simulator
 
     model = build_model(load_scene(ROOT / "examples" / f"{name}.toml"),
                         overrides=Overrides(duration=duration))
@@ -73,7 +73,7 @@ def main(argv=None) -> int:
 
     import numba
 
-    from dempipe.export.usd import write_usd
+    from dempipe.usd.animation import write_usd
 
     scenes = args.scenes or (["quickstart"] if args.quick else list(SCENES))
     print(f"<!-- {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "

@@ -17,7 +17,7 @@ its hottest instructions (objdump), and writes code/<name>_<address>.annot (ever
 with its sample count). ``-e cpu-clock`` is a timer: it needs no hardware counters
 (this machine's VM has none), but a sample lands on the instruction that was waiting,
 often one after a slow load or a division: read the hot spots with that in mind, and
-measure any change against the code without it (docs/performance.md, "Packed rows").
+measure any change against the code without it (docs/performance.md, "Where a step goes").
 Not part of run_all: it needs perf and is a tool, not a benchmark.
 """
 
@@ -101,7 +101,7 @@ def run(args):
     import numba
     from cpu_bench import dense_pile
 
-    from dempipe.simulator import Simulator
+    from dempipe.sim.simulator import Simulator
 
     model = dense_pile(args.spheres)
     sim = Simulator(model)

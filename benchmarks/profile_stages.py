@@ -7,7 +7,7 @@
 The backend's own compiled stage functions (the ones ``run_steps`` calls in
 a loop) are called one at a time from Python on a scene, ``--steps`` times
 each, and timed with perf_counter. Stage order and arguments are
-``kernels.cpu.run_steps``'s (the rebuild stages only when run_steps would rebuild
+``kernels.cpu.stages.run_steps``'s (the rebuild stages only when run_steps would rebuild
 the neighbour lists, at the fixed skin SKIN: run_steps' adaptive skin is held
 there for the profile), so the state advances as in a bake. Printed per
 scene: microseconds per step of each stage averaged over all steps (a rebuild
@@ -40,10 +40,10 @@ sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 
 from cpu_bench import dense_pile  # noqa: E402
 
-from dempipe.kernels import cpu  # noqa: E402
-from dempipe.kernels.layout import BodyScratch, body_model  # noqa: E402
-from dempipe.kernels.neighbours import cell_size  # noqa: E402
-from dempipe.simulator import Simulator  # noqa: E402
+from dempipe.sim.kernels.cpu import stages as cpu  # noqa: E402
+from dempipe.sim.kernels.layout import BodyScratch, body_model  # noqa: E402
+from dempipe.sim.kernels.neighbours import cell_size  # noqa: E402
+from dempipe.sim.simulator import Simulator  # noqa: E402
 
 STAGES = ("1 body velocities (eq. 5-6)", "1 sphere positions into sorted slots (eq. 19-21)",
           "2 rebuild: sphere positions + cell keys", "2 rebuild: counting sort (serial)",
@@ -199,7 +199,7 @@ def profile(name: str, model, warm_steps: int, steps: int) -> None:
 def candidates(sim, state, sample: int = 2000) -> tuple[float, float]:
     """(spheres visited per sphere by the neighbour search, of them in the 27 cells),
     averaged over the first ``sample`` spheres: the buckets of the 27 cells as
-    kernels.cpu.cell_hash lays them out, counted from the grid the last step built."""
+    kernels.cpu.device.cell_hash lays them out, counted from the grid the last step built."""
     b = sim.backend
     b.probe(state)
     g = b.grid
@@ -233,13 +233,13 @@ def main() -> int:
     print(f"# {platform.machine()}, {os.cpu_count()} cores, numba {numba.__version__}, "
           f"{numba.get_num_threads()} threads, {args.steps} steps per scene")
 
-    from dempipe.build import build_model
-    from dempipe.scene import load_scene
+    from dempipe.scene.build import build_model
+    from dempipe.scene.load import load_scene
 
     if args.chess:
         from vs_bullet import dempipe_model
 
-        from dempipe.cache import SphereCache
+        from dempipe.spheres.cache import SphereCache
 
         model = dempipe_model(args.chess, args.at + 1.0, SphereCache())
         warm = int(round(args.at / model.dt))

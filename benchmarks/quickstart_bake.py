@@ -25,9 +25,9 @@ def child(root: str) -> None:
     sys.path[:0] = [root]
     import numpy as np
 
-    from dempipe.build import build_model
-    from dempipe.scene import load_scene
-    from dempipe.simulator import Simulator
+    from dempipe.scene.build import build_model
+    from dempipe.scene.load import load_scene
+    from dempipe.sim.simulator import Simulator
 
     model = build_model(load_scene(root + "/examples/quickstart.toml"))
     sim = Simulator(model)

@@ -18,9 +18,9 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tests"))
 from bodies import ball_set  # noqa: E402
 
-from dempipe.materials import Material  # noqa: E402
-from dempipe.model import ModelBuilder  # noqa: E402
-from dempipe.simulator import Simulator  # noqa: E402
+from dempipe.sim.materials import Material  # noqa: E402
+from dempipe.sim.builder import ModelBuilder  # noqa: E402
+from dempipe.sim.simulator import Simulator  # noqa: E402
 
 D = 0.01
 

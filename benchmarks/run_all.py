@@ -10,7 +10,7 @@ fresh interpreters (so one's compiled kernels or threads do not colour the next)
 and stops with a non-zero status if any of them failed. vs_bullet needs pybullet
 (``pip install 'dempipe[bench]'``); without it that row says so and is skipped.
 gpu_bench.py is left out: it needs a CUDA GPU (run it alone where there is one);
-cuda_compile_table.py too: it times nothing (tests/test_cuda_compile.py runs it); and
+cuda_compile_table.py too: it times nothing (tests/sim/test_cuda_compile.py runs it); and
 ab_trees.py and quickstart_bake.py, which compare two source trees.
 """
 

@@ -31,10 +31,10 @@ def main():
 
     import numba
 
-    from dempipe.build import Overrides, build_model
-    from dempipe.cache import SphereCache
-    from dempipe.scene import load_scene
-    from dempipe.simulator import Simulator
+    from dempipe.scene.build import Overrides, build_model
+    from dempipe.spheres.cache import SphereCache
+    from dempipe.scene.load import load_scene
+    from dempipe.sim.simulator import Simulator
 
     scene = load_scene(args.scene)
     cache = SphereCache()

@@ -10,7 +10,7 @@ nudged sideways (5 cm/s), and steps are timed from that same start twice,
 alternated, REPEATS times:
 
 * the baseline: the contact passes visit every chunk of sorted slots
-  (``CpuBackend.quiet_share`` above 1), as before kernels.cpu.stage_active;
+  (``CpuBackend.quiet_share`` above 1), as before kernels.cpu.stages.stage_active;
 * the default: once half the bodies are quiet, they visit only the chunks
   with a slot that is awake or touches an awake body (stage_active).
 
@@ -34,7 +34,7 @@ from cpu_bench import dense_pile  # noqa: E402
 
 import numba  # noqa: E402
 
-from dempipe.simulator import Simulator  # noqa: E402
+from dempipe.sim.simulator import Simulator  # noqa: E402
 
 REPEATS = 3
 #: How long a body must be at rest before it sleeps here [s]: short, so the pile

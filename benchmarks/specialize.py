@@ -1,4 +1,4 @@
-"""Specialized vs general CPU kernels (issue 8.1): ms per step, same run.
+"""Specialized vs general CPU kernels: ms per step, same run.
 
     python benchmarks/specialize.py [--balls 3000] [--boxes 400] [--steps 400] [--repeat 3]
 
@@ -22,9 +22,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from bodies import ball_set, box_set  # noqa: E402
 
-from dempipe.materials import Material  # noqa: E402
-from dempipe.model import ModelBuilder  # noqa: E402
-from dempipe.kernels.cpu import CpuBackend  # noqa: E402
+from dempipe.sim.materials import Material  # noqa: E402
+from dempipe.sim.builder import ModelBuilder  # noqa: E402
+from dempipe.sim.kernels.cpu.backend import CpuBackend  # noqa: E402
 
 D = 0.01
 

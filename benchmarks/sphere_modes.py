@@ -7,7 +7,7 @@
 Resolution = spheres across the shape's longest bounding-box extent. For each shape,
 resolution and mode ("lattice", "surface"): the sphere count; the Hausdorff distance
 between the mesh and the spheres' envelope and the bump height
-(surface_spheres.envelope_errors), as fractions of the diameter d; the build time
+(spheres.surface.envelope_errors), as fractions of the diameter d; the build time
 cold (no cache; kernels compiled or loaded before timing) and cached (a hit in a
 fresh SphereCache in a temporary folder). Prints a markdown table.
 
@@ -29,10 +29,10 @@ import time
 
 
 def scene_cost(paths, steps, repeat):
-    from dempipe.build import Overrides, build_model
-    from dempipe.cache import SphereCache
-    from dempipe.scene import load_scene
-    from dempipe.simulator import Simulator
+    from dempipe.scene.build import Overrides, build_model
+    from dempipe.spheres.cache import SphereCache
+    from dempipe.scene.load import load_scene
+    from dempipe.sim.simulator import Simulator
 
     cache = SphereCache()
     print("| scene | mode | bodies | spheres | dt [s] | steps per simulated s | "
@@ -74,11 +74,13 @@ def main(argv=None) -> int:
 
     import numba
 
-    from dempipe import shapes
-    from dempipe.cache import SphereCache
-    from dempipe.spheres import (BuildOptions, build_sphere_set, build_sphere_set_with_info,
-                                 diameter_for_resolution, mesh_for_errors)
-    from dempipe.surface_spheres import envelope_errors
+    from dempipe.mesh import shapes
+    from dempipe.spheres.cache import SphereCache
+    from dempipe.spheres.options import BuildOptions
+    from dempipe.spheres.sphere_set import (
+        build_sphere_set, build_sphere_set_with_info, diameter_for_resolution,
+        mesh_for_errors)
+    from dempipe.spheres.surface import envelope_errors
 
     box = shapes.build_shape("box")
     for mode in ("lattice", "surface"):               # compile / load the kernels

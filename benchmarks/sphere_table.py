@@ -25,8 +25,8 @@ def main(argv=None) -> int:
 
     import numba
 
-    from dempipe import shapes
-    from dempipe.spheres import build_sphere_set, diameter_for_resolution
+    from dempipe.mesh import shapes
+    from dempipe.spheres.sphere_set import build_sphere_set, diameter_for_resolution
 
     t0 = time.perf_counter()
     build_sphere_set(shapes.build_shape("box"), 0.01)  # compile / load the kernel

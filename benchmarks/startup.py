@@ -46,10 +46,10 @@ CLI = [sys.executable, "-m", "dempipe_cli.main"]
 BAKE_STEP = """
 import json, sys, time
 t0 = time.perf_counter()
-from dempipe.build import build_model
-from dempipe.cache import SphereCache
-from dempipe.scene import load_scene
-from dempipe.simulator import Simulator
+from dempipe.scene.build import build_model
+from dempipe.spheres.cache import SphereCache
+from dempipe.scene.load import load_scene
+from dempipe.sim.simulator import Simulator
 t1 = time.perf_counter()
 model = build_model(load_scene(sys.argv[1]), cache=SphereCache())
 t2 = time.perf_counter()
@@ -142,7 +142,7 @@ def main(argv=None) -> int:
     print()
     print("| phase | cold [s] | warm [s] |")
     print("|---|---:|---:|")
-    for phase, label in (("imports", "imports (dempipe.build, .scene, .simulator)"),
+    for phase, label in (("imports", "imports (dempipe.scene.build, .scene, .simulator)"),
                          ("build", "load scene + build Model (sphere sets cached)"),
                          ("first_step", "Simulator + first step (compile or cache load)"),
                          ("second_step", "second step")):

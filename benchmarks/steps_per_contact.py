@@ -47,10 +47,10 @@ from restitution_vs_dt import rebound  # noqa: E402
 
 import numba  # noqa: E402
 
-from dempipe import accuracy as acc  # noqa: E402
-from dempipe.builder import ModelBuilder  # noqa: E402
-from dempipe.materials import Material  # noqa: E402
-from dempipe.simulator import Simulator  # noqa: E402
+from dempipe.report import accuracy as acc  # noqa: E402
+from dempipe.sim.builder import ModelBuilder  # noqa: E402
+from dempipe.sim.materials import Material  # noqa: E402
+from dempipe.sim.simulator import Simulator  # noqa: E402
 
 D = 0.01
 G = 9.81

@@ -61,8 +61,9 @@ material = "wood"
 
 
 def counts_table(resolutions, cache):
-    from dempipe.shapes import SHAPES, build_shape
-    from dempipe.spheres import build_sphere_set, diameter_for_resolution, surface_mask
+    from dempipe.mesh.shapes import SHAPES, build_shape
+    from dempipe.spheres.sphere_set import (
+        build_sphere_set, diameter_for_resolution, surface_mask)
 
     print("| shape | spheres across | all spheres | contact_layers = 1 | kept | "
           "contact_layers = 2 | kept |")
@@ -78,7 +79,7 @@ def counts_table(resolutions, cache):
 
 
 def build(scene, layers, res, cache):
-    from dempipe.build import Overrides, build_model
+    from dempipe.scene.build import Overrides, build_model
 
     return build_model(scene, cache=cache, overrides=Overrides(
         resolution=res, contact_layers=layers, sleeping=False))
@@ -87,7 +88,7 @@ def build(scene, layers, res, cache):
 def speed(name, scene, steps, res, cache, repeat):
     """Best of ``repeat`` timings of ``steps`` steps from frame 0, baseline and
     thinned alternating (so both see the same machine load)."""
-    from dempipe.simulator import Simulator
+    from dempipe.sim.simulator import Simulator
 
     models = {layers: build(scene, layers, res, cache) for layers in (0, 1)}
     sims = {layers: Simulator(m) for layers, m in models.items()}
@@ -123,8 +124,8 @@ def main():
 
     import numba
 
-    from dempipe.cache import SphereCache
-    from dempipe.scene import load_scene, parse_scene
+    from dempipe.spheres.cache import SphereCache
+    from dempipe.scene.load import load_scene, parse_scene
 
     cache = SphereCache()
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "

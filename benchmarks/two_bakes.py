@@ -25,7 +25,7 @@ CHILD = r"""
 import sys, time
 sys.path.insert(0, {here!r}); sys.path.insert(0, {tests!r})
 from cpu_bench import dense_pile
-from dempipe.kernels.cpu import CpuBackend
+from dempipe.sim.kernels.cpu.backend import CpuBackend
 model = dense_pile(30000)
 be = CpuBackend(model); st = model.initial_state(); be.step(st, 60)
 best = min(((lambda t0: (be.step(st, 60), time.perf_counter() - t0)[1])(time.perf_counter())

@@ -260,8 +260,8 @@ def dempipe_model(count: int, duration: float, cache):
     """examples/chess.toml with ``count`` pieces, ``duration`` seconds long."""
     import re
 
-    from dempipe.build import Overrides, build_model
-    from dempipe.scene import parse_scene
+    from dempipe.scene.build import Overrides, build_model
+    from dempipe.scene.load import parse_scene
 
     with open(CHESS) as f:
         text, n = re.subn(r"(?m)^count = \d+", f"count = {count}", f.read())
@@ -272,7 +272,7 @@ def dempipe_model(count: int, duration: float, cache):
 
 
 def run_dempipe(model, pieces: Pieces, threads: int) -> dict:
-    from dempipe.simulator import Simulator
+    from dempipe.sim.simulator import Simulator
 
     # load (or compile) the kernels on a throw-away state, outside the timing
     t0 = time.perf_counter()
@@ -280,8 +280,7 @@ def run_dempipe(model, pieces: Pieces, threads: int) -> dict:
     warm = time.perf_counter() - t0
     sim = Simulator(model, device="cpu", threads=threads)
     # The largest sphere overlap of each frame: the Simulator keeps only the run's
-    # largest (RunStats.max_overlap, since its per-frame list went with issue 22's
-    # streamed bakes), so collect what it takes from the backend once per frame.
+    # largest (RunStats.max_overlap: a streamed bake keeps no per-frame list), so collect what it takes from the backend once per frame.
     overlaps = []
     take = sim.backend.take_max_overlap
 
@@ -307,7 +306,7 @@ def run_dempipe(model, pieces: Pieces, threads: int) -> dict:
                 f"~{eta:.0f} s left; {per:.1f} s per frame since the last line, "
                 f"{asleep:,} of {model.n_bodies:,} pieces asleep")
 
-    from dempipe.simulator import BakeFailure
+    from dempipe.sim.simulator import BakeFailure
 
     failure = None
     try:
@@ -613,7 +612,7 @@ def main(argv=None) -> int:
         parser.error(f"--threads must be 1..{numba.config.NUMBA_NUM_THREADS} "
                      "(NUMBA_NUM_THREADS)")
 
-    from dempipe.cache import SphereCache
+    from dempipe.spheres.cache import SphereCache
 
     info = machine(threads)
     load_start = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan

@@ -4,12 +4,12 @@
     python benchmarks/wedge.py --quick          # 0.125 s each
     python benchmarks/wedge.py --workers 2 --threads 1 --serial-threads 2 --repeat 2
 
-The wedge: `dempipe.wedge.wedge(scene, seeds=N)` on a LocalCluster of --workers
+The wedge: `dempipe.farm.wedge.wedge(scene, seeds=N)` on a LocalCluster of --workers
 processes of --threads numba threads each (OMP_WAIT_POLICY=PASSIVE, as dempipe
 starts it), timed from the call to its return: starting the cluster, loading the
 kernels in each worker, the bakes and the table. Baseline, measured in the same
 run: the same variants' scene files baked one after the other by
-`dempipe.bake.bake` in this process with --serial-threads threads, after one
+`dempipe.pipeline.bake.bake` in this process with --serial-threads threads, after one
 warm-up bake (so the baseline pays no kernel loading; the wedge does). Printed:
 both wall times, the sum of the bakes' own times on each side, and the ratio
 (baseline / wedge: above 1, the wedge is faster). With --repeat the two alternate.
@@ -30,7 +30,7 @@ ROOT = os.path.dirname(HERE)
 
 def scene_copy(src: Path, folder: Path, duration: float) -> Path:
     """``src`` with output.duration set (and relative meshes made absolute)."""
-    from dempipe.wedge import _absolute_meshes, _toml_loads, dumps_toml, set_key
+    from dempipe.farm.wedge import _absolute_meshes, _toml_loads, dumps_toml, set_key
 
     data = _toml_loads(src.read_text(encoding="utf-8"))
     set_key(data, ("output", "duration"), duration)
@@ -42,8 +42,8 @@ def scene_copy(src: Path, folder: Path, duration: float) -> Path:
 
 def serial(scene: Path, folder: Path, seeds: int, threads: int, cache) -> tuple[float, float]:
     """The wedge's variants baked in a row here: (wall seconds, sum of the bakes' seconds)."""
-    from dempipe.bake import bake
-    from dempipe.wedge import plan
+    from dempipe.pipeline.bake import bake
+    from dempipe.farm.wedge import plan
 
     folder.mkdir(parents=True, exist_ok=True)
     _, variants = plan(scene, folder, seeds=seeds)
@@ -60,7 +60,7 @@ def serial(scene: Path, folder: Path, seeds: int, threads: int, cache) -> tuple[
 
 def farmed(scene: Path, folder: Path, seeds: int, workers: int, threads: int,
            cache_dir) -> tuple[float, float]:
-    from dempipe.wedge import wedge
+    from dempipe.farm.wedge import wedge
 
     t0 = time.perf_counter()
     r = wedge(scene, folder, seeds=seeds, workers=workers, threads=threads, device="cpu",
@@ -89,8 +89,8 @@ def main(argv=None) -> int:
         return 2
     import numba
 
-    from dempipe.bake import bake
-    from dempipe.cache import SphereCache
+    from dempipe.pipeline.bake import bake
+    from dempipe.spheres.cache import SphereCache
 
     duration = 0.125 if args.quick else args.duration
     with tempfile.TemporaryDirectory(prefix="dempipe-wedge-bench-") as tmp:

@@ -103,8 +103,8 @@ def bake(scene, output, device, layout, frames, threads, report_path, cache_dir,
     OUTPUT. SIGINT, SIGTERM or SIGHUP stop the bake within about a second: the
     frames done are written to OUTPUT's .partial file and `--resume` goes on from
     the last checkpoint (docs/faults.md)."""
-    from dempipe.bake import bake as run_bake, write_report
-    from dempipe.cache import SphereCache
+    from dempipe.pipeline.bake import bake as run_bake, write_report
+    from dempipe.spheres.cache import SphereCache
     from dempipe.errors import DempipeError
 
     def warn(msg):
@@ -113,7 +113,7 @@ def bake(scene, output, device, layout, frames, threads, report_path, cache_dir,
     if report_path:
         from pathlib import Path
 
-        from dempipe.bake import check_writable
+        from dempipe.pipeline.bake import check_writable
 
         check_writable(Path(report_path).parent, "report folder")
     cache = SphereCache(cache_dir, strict=True) if cache_dir else None

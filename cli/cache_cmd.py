@@ -30,7 +30,7 @@ def cache():
 @click.option("--json", "as_json", is_flag=True, help="Print as JSON.")
 def info(cache_dir, as_json):
     """Show the cache folder, its number of entries and their size."""
-    from dempipe.cache import SphereCache
+    from dempipe.spheres.cache import SphereCache
 
     data = SphereCache(cache_dir).info()
     if as_json:
@@ -45,7 +45,7 @@ def info(cache_dir, as_json):
 @_cache_dir_option
 def clear(cache_dir):
     """Remove every cached sphere set."""
-    from dempipe.cache import SphereCache
+    from dempipe.spheres.cache import SphereCache
 
     c = SphereCache(cache_dir)
     n = c.clear()

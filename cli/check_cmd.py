@@ -1,6 +1,6 @@
 """`dempipe check SCENE`: predict stability problems of a scene without simulating.
 
-Prints dempipe.stability's report (text, or ``--json``) on stdout. Exit 0 when the
+Prints dempipe.check.stability's report (text, or ``--json``) on stdout. Exit 0 when the
 scene is safe to bake, 1 when bake would refuse it or the bake would fail (an
 error finding); scene and mesh errors are one line and exit 2 (cli/main.py).
 Imports neither pxr nor numba.cuda; numba itself only to voxelize a shape that
@@ -23,8 +23,8 @@ import click
 def check(scene, as_json, cache_dir):
     """Check SCENE (a .toml scene file): time step against the critical step, speeds
     against the sphere size, frame-0 overlaps, mass ratios, tiny shapes."""
-    from dempipe.cache import SphereCache
-    from dempipe.stability import analyze_scene
+    from dempipe.spheres.cache import SphereCache
+    from dempipe.pipeline.check import analyze_scene
 
     from dempipe.errors import DempipeError
 

@@ -66,8 +66,9 @@ def preview(bake, output, frame, frames, camera, size, fps, msaa, quiet, debug):
     displayColor), the colliders or a ground grid, sun shadows. Needs the extra:
     pip install 'dempipe[preview]'.
     """
-    from dempipe.preview import (MOVIE_EXTENSIONS, STILL_EXTENSIONS, PreviewError,
-                                 parse_size, render_frame, render_movie, require)
+    from dempipe.preview import (
+        MOVIE_EXTENSIONS, STILL_EXTENSIONS, parse_size, render_frame, render_movie, require)
+    from dempipe.preview.reader import PreviewError
 
     out = Path(output)
     ext = out.suffix.lower()

@@ -1,6 +1,6 @@
 """`dempipe report SCENE -o DIR`: error against run time over a sweep of settings.
 
-Parses the sweep, calls dempipe.report.run_report, prints a line per run. The
+Parses the sweep, calls dempipe.report.runs.run_report, prints a line per run. The
 sweep lists are checked by the library (one-line errors, cli/main.py).
 """
 
@@ -62,8 +62,9 @@ def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, 
     Errors: geometry (sphere sets against meshes), motion (against the finest run),
     physics (closed-form bounce, rolling, spin against dt). See docs/accuracy.md.
     """
-    from dempipe.cache import SphereCache
-    from dempipe.report import ReportError, Sweep, parse_values, run_report
+    from dempipe.spheres.cache import SphereCache
+    from dempipe.report.results import ReportError
+    from dempipe.report.runs import Sweep, parse_values, run_report
 
     if duration is not None and not duration > 0:
         raise ReportError(f"--duration: {duration:g} must be greater than 0")
@@ -81,7 +82,7 @@ def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, 
         if sphere_modes else None,
         contact_laws=tuple(m.strip() for m in contact_laws.split(",") if m.strip())
         if contact_laws else None)
-    from dempipe.bake import check_writable
+    from dempipe.pipeline.bake import check_writable
 
     check_writable(output, "report folder")     # before any bake, not after all of them
     cache = SphereCache(cache_dir, strict=True) if cache_dir else None
@@ -91,7 +92,7 @@ def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, 
     else:
         # Run times measured side by side share the machine's memory bandwidth: compare
         # them with each other, not with a lone bake (docs/farm.md).
-        from dempipe.farm import connect
+        from dempipe.farm.cluster import connect
 
         with connect(workers=workers, scheduler=scheduler, threads=threads,
                      what="dempipe report --workers/--scheduler") as farm:

@@ -18,8 +18,8 @@ def scene():
 def export(scene_file, output, debug):
     """Write SCENE_FILE (a .toml scene) as a UsdPhysics stage a DCC opens; bake the
     stage with `dempipe bake` (docs/usd-input.md)."""
-    from dempipe.export.physics_stage import write_physics_stage
-    from dempipe.scene import load_scene
+    from dempipe.usd.physics_stage import write_physics_stage
+    from dempipe.scene.load import load_scene
 
     path = write_physics_stage(load_scene(scene_file), output)
     click.echo(f"wrote {path}")

@@ -13,7 +13,7 @@ from dempipe.errors import ShapeError
 
 def _resolve_input(arg: str, scale: float):
     """(name, mesh) of a mesh file path or a built-in shape name."""
-    from dempipe import shapes
+    from dempipe.mesh import shapes
 
     path = Path(arg)
     if path.is_file():
@@ -46,7 +46,7 @@ def _output_path(out: str, name: str) -> str:
 
 
 def _list_shapes() -> None:
-    from dempipe import shapes
+    from dempipe.mesh import shapes
 
     for spec in shapes.list_shapes():
         params = ", ".join(f"{k}={p.default}" for k, p in spec.params.items())
@@ -113,11 +113,12 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
             raise click.UsageError("with --mode both, -o must contain {mode} "
                                    "(e.g. -o {name}_{mode}.npz)")
 
-    from dempipe.cache import SphereCache
-    from dempipe.spheres import (DEFAULT_MODE, BuildOptions, build_sphere_set_with_info,
-                                 diameter_for_resolution, mesh_for_errors, save_sphere_set,
-                                 surface_mask)
-    from dempipe.surface_spheres import envelope_errors
+    from dempipe.spheres.cache import SphereCache
+    from dempipe.spheres.options import DEFAULT_MODE, BuildOptions
+    from dempipe.spheres.sphere_set import (
+        build_sphere_set_with_info, diameter_for_resolution, mesh_for_errors, surface_mask)
+    from dempipe.usd.sphere_set import save_sphere_set
+    from dempipe.spheres.surface import envelope_errors
 
     cache = None
     if not no_cache:
@@ -130,7 +131,7 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
     for arg in inputs:
         name, mesh = _resolve_input(arg, scale)
         d = diameter if diameter is not None else diameter_for_resolution(mesh, resolution)
-        from dempipe.sizes import check_lattice
+        from dempipe.check.sizes import check_lattice
 
         check_lattice(mesh, d, "--diameter" if diameter is not None else "--resolution",
                       "Fix: " + ("raise --diameter" if diameter is not None

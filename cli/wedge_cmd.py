@@ -1,6 +1,6 @@
 """`dempipe wedge SCENE -o DIR`: variants of a bake (seeds, any scene key) as Dask tasks.
 
-Parses the options, calls dempipe.wedge.wedge, prints a line per finished variant
+Parses the options, calls dempipe.farm.wedge.wedge, prints a line per finished variant
 and the total on stderr. Dask is imported by the library only when the wedge runs,
 so `dempipe wedge --help` works without it.
 """
@@ -54,8 +54,8 @@ def wedge(scene, output, seeds, vary, workers, threads, scheduler, device, layou
     its row only; run again, the wedge skips the variants already done.
     Needs Dask: pip install "dempipe[farm]". Farms: docs/farm.md.
     """
-    from dempipe.wedge import WedgeFailed, wedge as run_wedge
-    from dempipe.wedge import contact_sheet as draw_sheet
+    from dempipe.farm.wedge import WedgeFailed, wedge as run_wedge
+    from dempipe.farm.wedge import contact_sheet as draw_sheet
 
     if contact_sheet:       # before any bake: a missing extra is said at once
         from dempipe.preview import require

@@ -2,44 +2,52 @@
 Harada, Tanaka, Koshizuka and Kawaguchi (2007), baked to USD.
 
 The public API is re-exported here lazily: ``import dempipe`` imports neither
-pxr nor numba.cuda and compiles no kernel.
+pxr nor numba and compiles no kernel.
 """
 
 from importlib import import_module as _import_module
 
-__version__ = "0.1.0"
-
-from .errors import (  # noqa: F401  (cheap, no heavy imports)
-    DempipeError,
-    ShapeError,
-    MeshError,
-    SceneError,
+from dempipe.errors import (
     CacheError,
-    StabilityError,
+    DempipeError,
     DeviceError,
     ExportError,
+    MeshError,
+    SceneError,
+    ShapeError,
+    StabilityError,
 )
+
+from .version import __version__
 
 # name -> module that defines it; resolved on first attribute access (PEP 562).
 _LAZY = {
-    "SphereSet": "spheres",
-    "build_sphere_set": "spheres",
-    "SphereCache": "cache",
-    "build_shape": "shapes",
-    "load_mesh": "shapes",
-    "Scene": "scene",
-    "load_scene": "scene",
-    "Material": "materials",
-    "Model": "model",
-    "build_model": "build",
-    "State": "state",
-    "Simulator": "simulator",
-    "Frames": "frames",
-    "write_usd": "export.usd",
-    "load_usd_scene": "usd_scene",
-    "write_overlay": "export.overlay",
-    "write_physics_stage": "export.physics_stage",
+    "bake": "pipeline.bake",
+    "BakeResult": "pipeline.bake",
+    "analyze_scene": "pipeline.check",
+    "SphereSet": "spheres.sphere_set",
+    "build_sphere_set": "spheres.sphere_set",
+    "SphereCache": "spheres.cache",
+    "build_shape": "mesh.shapes",
+    "load_mesh": "mesh.shapes",
+    "Scene": "scene.data",
+    "load_scene": "scene.load",
+    "load_usd_scene": "scene.usd_reader",
+    "build_model": "scene.build",
+    "Material": "sim.materials",
+    "Model": "sim.model",
+    "ModelBuilder": "sim.builder",
+    "State": "sim.state",
+    "Control": "sim.control",
+    "Simulator": "sim.simulator",
+    "Frames": "sim.frames",
+    "write_usd": "usd.animation",
+    "write_overlay": "usd.overlay",
+    "write_physics_stage": "usd.physics_stage",
 }
+
+__all__ = ["__version__", "DempipeError", "ShapeError", "MeshError", "SceneError", "CacheError",
+           "StabilityError", "DeviceError", "ExportError", *_LAZY]
 
 
 def __getattr__(name):

@@ -6,9 +6,9 @@ is the oracle the fast kernels (CPU and CUDA) are compared against.
 
 import numpy as np
 
-from dempipe import physics
-from dempipe.kernels.contacts import CLOSE_REACH2
-from dempipe.laws import law, linear
+from dempipe.sim import physics
+from dempipe.sim.kernels.contacts import CLOSE_REACH2
+from dempipe.sim.laws import law, linear
 
 
 def pair_closing(r, dist2, dv, d, dt, vc):

@@ -1,7 +1,10 @@
-"""The README's Quick start holds exactly two commands, and .ci/run runs both."""
+"""The README's Quick start holds exactly two commands, .ci/run runs both, and its Python
+examples run."""
 
 import re
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -34,3 +37,28 @@ def test_every_example_is_listed_in_the_readme():
     text = (ROOT / "README.md").read_text()
     for example in [*(ROOT / "examples").glob("*.toml"), *(ROOT / "examples").glob("*.usd*")]:
         assert f"examples/{example.name}" in text
+
+
+@pytest.mark.slow
+def test_readme_python_runs_and_writes_the_quickstart(tmp_path):
+    """Each ```python block of the README, run as a user would from a clone (here: in a
+    copy of examples/), writes quickstart.usdc with the tray's 196 bodies and 37 frames."""
+    import shutil
+    import subprocess
+    import sys
+
+    from pxr import Usd, UsdGeom
+
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    assert len(blocks) >= 2 and "dempipe.bake(" in blocks[0]
+    shutil.copytree(ROOT / "examples", tmp_path / "examples")
+    for i, code in enumerate(blocks):
+        out = tmp_path / "quickstart.usdc"
+        out.unlink(missing_ok=True)
+        proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
+                              text=True, timeout=900)
+        assert proc.returncode == 0, (i, proc.stderr[-3000:])
+        stage = Usd.Stage.Open(str(out))
+        ids = UsdGeom.PointInstancer(stage.GetPrimAtPath("/World/Bodies")).GetProtoIndicesAttr()
+        assert len(ids.Get()) == 196
+        assert stage.GetEndTimeCode() - stage.GetStartTimeCode() + 1 == 37

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import PRESETS, Camera, frame_box
-from .reader import PreviewError, StageReader, batch_bounds
+from dempipe.preview.camera import PRESETS, Camera, frame_box
+from dempipe.preview.reader import PreviewError, StageReader, batch_bounds
 
 __all__ = ["Preview", "PreviewError", "render_frame", "render_movie", "contact_sheet",
            "parse_size", "parse_frames", "CAMERAS", "require"]
@@ -124,7 +124,7 @@ class Preview:
     @property
     def renderer(self):
         if self._renderer is None:
-            from .gl import Renderer
+            from dempipe.preview.gl import Renderer
 
             self._renderer = Renderer(self.width, self.height, samples=self.samples)
         return self._renderer
@@ -142,7 +142,7 @@ class Preview:
 
     def image(self, frame: int | None = None) -> np.ndarray:
         """The picture of time code ``frame`` (default: the last frame)."""
-        from .gl import ground_grid
+        from dempipe.preview.gl import ground_grid
 
         frame = self.frames[-1] if frame is None else int(frame)
         self.reader.check_frame(frame)
@@ -233,8 +233,9 @@ def render_movie(path, out, *, frames: str | None = None, camera: str = "three-q
 
 
 def _write_mp4(tmp: Path, pictures, fps: float) -> None:
-    import av
     from fractions import Fraction
+
+    import av
 
     with av.open(str(tmp), mode="w", format="mp4") as container:
         stream = None

@@ -18,8 +18,8 @@ import sys
 
 import numpy as np
 
-from .camera import Camera, _to_stage
-from .reader import PreviewError
+from dempipe.preview.camera import Camera, _to_stage
+from dempipe.preview.reader import Batch, Geometry, PreviewError
 
 INSTALL_HINT = ("pip install 'dempipe[preview]'")
 
@@ -260,8 +260,6 @@ class Renderer:
         return np.ascontiguousarray(img[::-1])
 
     def _draw_ground(self, prog, up_axis, height, step, half, centre):
-        from .reader import Batch, Geometry
-
         gx = _to_stage((1, 0, 0), up_axis)
         gy = _to_stage((0, 1, 0), up_axis)
         up = _to_stage((0, 0, 1), up_axis)

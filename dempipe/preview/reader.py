@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DempipeError
+from dempipe.errors import DempipeError
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
 

@@ -1,0 +1,1 @@
+"""Predictions without simulating: stable steps, soft contacts, overlaps, memory and run size."""

@@ -1,0 +1,110 @@
+"""The [output] and [simulation] tables, read for a TOML scene and for the settings file
+of a USD stage alike."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from dempipe.scene.data import (
+    STANDARD_GRAVITY,
+    OutputSettings,
+    SimulationSettings,
+    SleepSettings,
+)
+from dempipe.scene.keys import _Ctx
+from dempipe.sim.laws import LAWS
+from dempipe.spheres.options import MODES
+
+#: The keys of [output] and of [simulation] (and its [simulation.sleep]).
+_OUTPUT_KEYS = ("fps", "duration", "up_axis", "meters_per_unit", "start_frame")
+_SIM_KEYS = ("sphere_diameter", "resolution", "gravity", "dt", "device", "seed",
+             "stiffness_target_overlap", "dt_safety", "sleeping", "sleep", "contact_layers",
+             "spheres", "contact_law")
+_SLEEP_KEYS = ("linear_speed", "angular_speed", "time")
+
+
+def parse_output(ctx: _Ctx, d: Any) -> OutputSettings:
+    d = ctx.table(d, "output")
+    ctx.check_keys(d, "output", _OUTPUT_KEYS)
+    kw: dict[str, Any] = {}
+    if "fps" in d:
+        kw["fps"] = ctx.integer(d["fps"], "output.fps", lo=1, what="a positive integer")
+    if "duration" in d:
+        kw["duration"] = ctx.number(d["duration"], "output.duration", lo=0.0, lo_open=True,
+                                    unit="seconds")
+    if "up_axis" in d:
+        up = ctx.string(d["up_axis"], "output.up_axis", ("Z", "Y", "z", "y"))
+        kw["up_axis"] = up.upper()
+    if "meters_per_unit" in d:
+        kw["meters_per_unit"] = ctx.number(d["meters_per_unit"], "output.meters_per_unit",
+                                           lo=0.0, lo_open=True)
+    if "start_frame" in d:
+        kw["start_frame"] = ctx.integer(d["start_frame"], "output.start_frame")
+    return OutputSettings(**kw)
+
+
+def parse_simulation(ctx: _Ctx, d: Any, up_axis: str) -> SimulationSettings:
+    d = ctx.table(d, "simulation")
+    ctx.check_keys(d, "simulation", _SIM_KEYS)
+    kw: dict[str, Any] = {}
+    if "sphere_diameter" in d and "resolution" in d:
+        raise ctx.error("simulation.resolution", "both sphere_diameter and resolution are given",
+                        "give only one of them")
+    if "sphere_diameter" in d:
+        kw["sphere_diameter"] = ctx.number(d["sphere_diameter"], "simulation.sphere_diameter",
+                                           lo=0.0, lo_open=True, unit="metres")
+        kw["resolution"] = None
+    elif "resolution" in d:
+        kw["resolution"] = ctx.integer(d["resolution"], "simulation.resolution", lo=1,
+                                       what="a positive integer")
+    if "gravity" in d:
+        kw["gravity"] = ctx.vector(d["gravity"], "simulation.gravity")
+    else:
+        g = [0.0, 0.0, 0.0]
+        g[2 if up_axis == "Z" else 1] = -STANDARD_GRAVITY
+        kw["gravity"] = tuple(g)
+    if "dt" in d:
+        v = d["dt"]
+        if isinstance(v, str):
+            kw["dt"] = ctx.string(v, "simulation.dt", ("auto",))
+        else:
+            kw["dt"] = ctx.number(v, "simulation.dt", lo=0.0, lo_open=True,
+                                  unit='seconds, or "auto"')
+    if "device" in d:
+        kw["device"] = ctx.string(d["device"], "simulation.device", ("auto", "cpu", "cuda"))
+    if "seed" in d:
+        kw["seed"] = ctx.integer(d["seed"], "simulation.seed", lo=0,
+                                 what="a non-negative integer")
+    if "stiffness_target_overlap" in d:
+        kw["stiffness_target_overlap"] = ctx.number(
+            d["stiffness_target_overlap"], "simulation.stiffness_target_overlap",
+            lo=0.0, hi=0.5, lo_open=True)
+    if "dt_safety" in d:
+        kw["dt_safety"] = ctx.number(d["dt_safety"], "simulation.dt_safety", lo=0.0, hi=1.0,
+                                     lo_open=True)
+    if "sleeping" in d:
+        kw["sleeping"] = ctx.boolean(d["sleeping"], "simulation.sleeping")
+    if "contact_layers" in d:
+        v = d["contact_layers"]
+        if isinstance(v, str):
+            ctx.string(v, "simulation.contact_layers", ("all",))
+            kw["contact_layers"] = 0
+        else:
+            what = 'an integer >= 0 (layers of surface spheres kept for contacts) or "all"'
+            n = ctx.integer(v, "simulation.contact_layers", what=what)
+            if n < 0:
+                raise ctx.error("simulation.contact_layers", f"{n} is out of range",
+                                f'expected {what}; 0 or "all" keeps every sphere')
+            kw["contact_layers"] = n
+    if "spheres" in d:
+        kw["spheres"] = ctx.string(d["spheres"], "simulation.spheres", MODES)
+    if "contact_law" in d:
+        kw["contact_law"] = ctx.string(d["contact_law"], "simulation.contact_law", tuple(LAWS))
+    if "sleep" in d:
+        s = ctx.table(d["sleep"], "simulation.sleep")
+        ctx.check_keys(s, "simulation.sleep", _SLEEP_KEYS)
+        units = {"linear_speed": "m/s", "angular_speed": "rad/s", "time": "seconds"}
+        kw["sleep"] = SleepSettings(**{
+            k: ctx.number(s[k], f"simulation.sleep.{k}", lo=0.0, lo_open=True, unit=units[k])
+            for k in _SLEEP_KEYS if k in s})
+    return SimulationSettings(**kw)

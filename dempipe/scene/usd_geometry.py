@@ -1,0 +1,144 @@
+"""Matrices and collision geometry of a USD stage, as NumPy and trimesh (no stage logic).
+
+    S, R = polar(W[:3, :3])             # W: a prim's row-vector world matrix
+    q = matrix_to_quat(R.T)             # (w, x, y, z) of the column-convention R.T
+    mesh = _gprim_mesh(prim, where)     # Cube/Sphere/Capsule/Cylinder/Cone/Mesh
+
+Conventions are USD's: matrices are row-vector 4 × 4 (``p_world = p_local · M``), so
+a rotation R here acts as ``p · R`` and its column-convention matrix is ``R.T``;
+quaternions are (w, x, y, z) with w >= 0. ``polar`` splits ``A = S R`` (S the
+stretch a body keeps, R proper). Gprim meshes are in the prim's own local
+coordinates [stage units]: scene/usd_reader.py moves them into the body's stretched frame
+and to metres. pxr and trimesh are imported inside ``_gprim_mesh`` only, so this
+module (like scene/usd_reader.py) imports neither until a stage is read.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from dempipe.errors import SceneError
+from dempipe.sim.model import quat_to_matrix
+
+__all__ = ["polar", "matrix_to_quat"]
+
+#: Segments of tessellated round gprims (Sphere: icosphere subdivisions instead).
+ROUND_SECTIONS = 48
+SPHERE_SUBDIVISIONS = 3
+
+
+# ------------------------------------------------------------------------- matrices
+
+
+def polar(A: np.ndarray):
+    """(S, R) with ``A = S R``: S symmetric (the stretch), R a rotation (row convention).
+
+    A mirror (det A < 0) is put into S, so R is always a proper rotation.
+    """
+    U, sig, Vt = np.linalg.svd(A)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        D = np.diag([1.0, 1.0, -1.0])
+        R = U @ D @ Vt
+        S = U @ np.diag(sig) @ D @ U.T
+    else:
+        S = U @ np.diag(sig) @ U.T
+    return 0.5 * (S + S.T), R
+
+
+def matrix_to_quat(Rc: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of the column-convention rotation matrix Rc."""
+    m = Rc
+    t = m[0, 0] + m[1, 1] + m[2, 2]
+    if t > 0:
+        s = math.sqrt(t + 1.0) * 2
+        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+    else:
+        s = math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def _np(m) -> np.ndarray:
+    return np.array(m, dtype=np.float64).reshape(4, 4)
+
+
+# -------------------------------------------------------------------------- geometry
+
+
+def _axis_perm(axis: str) -> np.ndarray:
+    """Vertices built along +Z moved to ``axis`` by a cyclic permutation (a rotation)."""
+    if axis == "X":
+        return np.array([2, 0, 1])      # (z, x, y): z goes to x
+    if axis == "Y":
+        return np.array([1, 2, 0])      # (y, z, x): z goes to y
+    return np.array([0, 1, 2])
+
+
+def _gprim_mesh(prim, where: str):
+    """The collision geometry of a gprim in its own local coordinates [stage units],
+    as a trimesh (None for a type dempipe cannot read)."""
+    import trimesh
+    from pxr import UsdGeom
+
+    t = prim.GetTypeName()
+    if t == "Cube":
+        size = UsdGeom.Cube(prim).GetSizeAttr().Get()
+        return trimesh.creation.box(extents=[size] * 3)
+    if t == "Sphere":
+        r = UsdGeom.Sphere(prim).GetRadiusAttr().Get()
+        return trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=r)
+    if t in ("Capsule", "Cylinder", "Cone"):
+        g = getattr(UsdGeom, t)(prim)
+        r, h, axis = g.GetRadiusAttr().Get(), g.GetHeightAttr().Get(), g.GetAxisAttr().Get()
+        if t == "Capsule":
+            m = trimesh.creation.capsule(height=h, radius=r, count=[ROUND_SECTIONS, ROUND_SECTIONS])
+        elif t == "Cylinder":
+            m = trimesh.creation.cylinder(radius=r, height=h, sections=ROUND_SECTIONS)
+        else:
+            m = trimesh.creation.cone(radius=r, height=h, sections=ROUND_SECTIONS)
+            m.apply_translation([0.0, 0.0, -0.5 * h])     # USD cones are centred
+        v = np.asarray(m.vertices)[:, _axis_perm(axis)]
+        return trimesh.Trimesh(v, m.faces, process=False)
+    if t == "Mesh":
+        mesh = UsdGeom.Mesh(prim)
+        pts = mesh.GetPointsAttr().Get()
+        counts = mesh.GetFaceVertexCountsAttr().Get()
+        idx = mesh.GetFaceVertexIndicesAttr().Get()
+        if not pts or not counts or not idx:
+            raise SceneError(f"{where}: mesh has no points or faces (author points, "
+                             "faceVertexCounts and faceVertexIndices)")
+        pts = np.asarray(pts, dtype=np.float64)
+        counts = np.asarray(counts, dtype=np.int64)
+        idx = np.asarray(idx, dtype=np.int64)
+        if counts.sum() != len(idx) or idx.max() >= len(pts) or idx.min() < 0:
+            raise SceneError(f"{where}: faceVertexCounts/faceVertexIndices do not match the "
+                             f"{len(pts)} points")
+        tris = []
+        start = 0
+        for c in counts:                  # fan triangulation of each polygon
+            for k in range(1, c - 1):
+                tris.append((idx[start], idx[start + k], idx[start + k + 1]))
+            start += c
+        faces = np.array(tris, dtype=np.int64).reshape(-1, 3)
+        if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
+            faces = faces[:, ::-1]
+        return trimesh.Trimesh(pts, faces, process=False)
+    return None
+
+
+def _quat_matrix(q) -> np.ndarray:
+    """Column-convention rotation matrix of the quaternion (w, x, y, z), normalised
+    first: an authored quatf (MassAPI principalAxes) need not be exactly unit."""
+    q = np.asarray(q, float)
+    return quat_to_matrix(q / np.linalg.norm(q))

@@ -1,0 +1,615 @@
+"""ModelBuilder: shapes, materials, bodies and colliders in, a frozen Model out.
+
+    b = ModelBuilder(diameter=0.01)
+    steel = b.add_material(materials.Material("steel", density=7800.0, restitution=0.6))
+    rook = b.add_shape("rook", mesh, sphere_set)
+    b.add_bodies("rooks", rook, steel, positions)
+    b.add_plane((0, 0, 0), (0, 0, 1), steel)
+    model = b.finalize(fps=24, n_frames=97)
+
+``finalize`` derives what the contacts need from the scene (stiffness, damping,
+time step, the features the kernels specialize on; docs/stability.md), and packs
+prescribed motion (``_prescribed``: moving colliders, kinematic and emitted
+bodies). The Model and its records are in model.py; model.py still answers
+``ModelBuilder`` for code that imports it from there.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from dempipe.errors import SceneError, StabilityError
+from dempipe.sim import laws
+from dempipe.sim import materials as mat
+from dempipe.sim import motion as mo
+from dempipe.sim.model import (
+    CONTACT_LAYERS,
+    PLANE_DEPTH_DIAMETERS,
+    BoxCollider,
+    ColliderMotion,
+    Features,
+    Model,
+    ShapeInstance,
+    StaticMesh,
+    _frozen,
+    flat_face_spheres,
+    quat_to_matrix,
+    rotational_mass_factor,
+    sleep_defaults,
+)
+from dempipe.spheres.sphere_set import surface_mask
+
+if TYPE_CHECKING:  # spheres imports numba; the model only needs the type
+    from dempipe.spheres.sphere_set import SphereSet
+
+
+class ModelBuilder:
+    """Collects shapes, materials, bodies and colliders, then ``finalize()`` → Model.
+
+    All lengths in metres, in the simulation's world frame.
+    contact_layers : keep for contacts only the spheres within this many lattice
+        layers of each sphere set's surface (0: all); default CONTACT_LAYERS.
+    """
+
+    def __init__(self, diameter: float, gravity=(0.0, 0.0, -9.81),
+                 contact_layers: int = CONTACT_LAYERS):
+        if not (diameter > 0 and math.isfinite(diameter)):
+            raise SceneError(f"sphere diameter must be positive and finite, got {diameter!r}")
+        if (isinstance(contact_layers, bool) or not isinstance(contact_layers, (int, np.integer))
+                or contact_layers < 0):
+            raise SceneError(f"contact_layers must be an integer >= 0 (0: every sphere), "
+                             f"got {contact_layers!r}")
+        self.contact_layers = int(contact_layers)
+        self.diameter = float(diameter)
+        self.gravity = np.asarray(gravity, dtype=np.float64)
+        self._shapes: list[ShapeInstance] = []
+        self._materials: list[mat.Material] = [mat.DEFAULT_MATERIAL]
+        self._groups: list[dict] = []
+        self._walls: list[tuple] = []
+        self._planes: list[tuple] = []
+        self._boxes: list[BoxCollider] = []
+        self._static: list[tuple] = []
+        self._moving: list[tuple] = []      # (kind, index, motion, origin, rotation, walls)
+
+    # -- inputs ---------------------------------------------------------------
+    def add_material(self, material: mat.Material) -> int:
+        for i, m in enumerate(self._materials):
+            if m.name == material.name:
+                self._materials[i] = material
+                return i
+        self._materials.append(material)
+        return len(self._materials) - 1
+
+    def _contact_centers(self, sphere_set) -> np.ndarray:
+        c = np.asarray(sphere_set.centers, dtype=np.float64).reshape(-1, 3)
+        if self.contact_layers == 0:
+            return _frozen(c)
+        return _frozen(c[surface_mask(c, self.diameter, self.contact_layers)])
+
+    def add_shape(self, name: str, mesh, sphere_set: "SphereSet") -> int:
+        """Register a shape: its mesh (mesh coordinates) and its full sphere set;
+        the contact spheres are chosen by the builder's ``contact_layers``."""
+        com = np.asarray(sphere_set.com, dtype=np.float64)
+        verts = np.asarray(mesh.vertices, dtype=np.float64) - com
+        self._shapes.append(ShapeInstance(name, _frozen(verts), _frozen(mesh.faces, np.int32),
+                                          _frozen(com), sphere_set,
+                                          self._contact_centers(sphere_set)))
+        return len(self._shapes) - 1
+
+    def add_bodies(self, group: str, shape, material: int, positions, rotations=None,
+                   velocities=None, angular_velocities=None, *, masses=None, inertias=None,
+                   asleep=None, kinematic: bool = False, motion=None, start_time: float = 0.0,
+                   group_frame: bool = False, frame=None) -> None:
+        """Add a group of bodies.
+
+        shape : a shape index for all, or one per body (a mixed group)
+        positions : (n, 3) where each body's *mesh origin* goes [m] (as a DCC places it)
+        rotations : (n, 4) unit quaternions (w, x, y, z); identity if None
+        velocities, angular_velocities : (n, 3) [m/s], [rad/s], world frame
+        masses : (n,) [kg] given masses, or None: material density × shape volume
+        inertias : (n, 3, 3) [kg m²] given inertias about the centre of mass in the
+            body frame, or None: the shape's, scaled to the mass
+        asleep : (n,) bool, bodies that start asleep (None: all awake)
+        kinematic : the bodies follow ``motion`` (a dempipe.sim.motion.Motion) and are
+            never pushed (1/m = 0); ``group_frame``: its keys move the group rigidly
+            (motion.reference_anchor's ``group``), else each body's mesh origin;
+            ``frame`` = (origin (3,) [m], rotation (4,)): the frame the motion moves
+            (scene.group_frame: its rates' default pivot; default the first body's
+            pose, or for a group frame the mean of its mesh origins)
+        start_time : the bodies enter the simulation at this time [s] (an emitter), one
+            for all or (n,) one per body
+        """
+        if kinematic and motion is None:
+            raise SceneError(f"{group}: a kinematic group needs a motion")
+        p = np.atleast_2d(np.asarray(positions, dtype=np.float64))
+        n = p.shape[0]
+        q = np.tile([1.0, 0, 0, 0], (n, 1)) if rotations is None else np.atleast_2d(
+            np.asarray(rotations, dtype=np.float64))
+        q = q / np.linalg.norm(q, axis=1, keepdims=True)
+        v = np.zeros((n, 3)) if velocities is None else np.broadcast_to(
+            np.asarray(velocities, dtype=np.float64), (n, 3))
+        w = np.zeros((n, 3)) if angular_velocities is None else np.broadcast_to(
+            np.asarray(angular_velocities, dtype=np.float64), (n, 3))
+        shapes = np.broadcast_to(np.asarray(shape, dtype=np.int64), (n,)).copy()
+        self._groups.append(dict(
+            name=group, shapes=shapes, material=material, p=p, q=q, v=np.array(v),
+            w=np.array(w), asleep=np.zeros(n, bool) if asleep is None else np.array(asleep, bool),
+            masses=None if masses is None else np.array(masses, dtype=np.float64).reshape(n),
+            inertias=None if inertias is None else np.array(inertias, np.float64).reshape(n, 3, 3),
+            kinematic=bool(kinematic), motion=motion,
+            start_time=np.broadcast_to(np.asarray(start_time, dtype=np.float64), (n,)).copy(),
+            group_frame=bool(group_frame), frame=frame))
+
+    def add_plane(self, point, normal, material: int = 0, motion=None) -> None:
+        """An infinite plane through ``point`` facing ``normal``; ``motion`` (a
+        dempipe.sim.motion.Motion) moves it (a belt: a velocity along itself)."""
+        n = np.asarray(normal, dtype=np.float64)
+        n = n / np.linalg.norm(n)
+        p = np.asarray(point, dtype=np.float64)
+        self._planes.append((p, n))
+        depth = PLANE_DEPTH_DIAMETERS * self.diameter
+        self._walls.append((n, float(n @ p), np.full(3, -np.inf), np.full(3, np.inf), depth,
+                            material))
+        if motion is not None:
+            self._moving.append(("plane", len(self._planes) - 1, motion, p,
+                                 np.array([1.0, 0.0, 0.0, 0.0]), [len(self._walls) - 1]))
+
+    def add_box(self, lo, hi, open_top: bool = True, material: int = 0,
+                thickness: float | None = None, up: int = 2, motion=None) -> None:
+        """Axis-aligned container with inward walls; ``up`` is the up axis index;
+        ``motion`` (a dempipe.sim.motion.Motion) moves it, its frame at the box's centre."""
+        first_wall = len(self._walls)
+        lo = np.asarray(lo, dtype=np.float64)
+        hi = np.asarray(hi, dtype=np.float64)
+        t = float(thickness) if thickness else PLANE_DEPTH_DIAMETERS * self.diameter
+        self._boxes.append(BoxCollider(_frozen(lo), _frozen(hi), open_top, t, material))
+        r = 0.5 * self.diameter
+        for axis in range(3):
+            for sign in (+1.0, -1.0):
+                if axis == up and sign < 0 and open_top:
+                    continue  # no lid
+                n = np.zeros(3)
+                n[axis] = sign                      # inward: +x on the lo side, -x on hi
+                surface = lo[axis] if sign > 0 else hi[axis]
+                wlo = lo - r
+                whi = hi + r
+                wlo[axis] = -np.inf
+                whi[axis] = np.inf
+                if axis != up:                       # side walls reach up over an open top
+                    whi[up] = np.inf if open_top else whi[up]
+                self._walls.append((n, sign * surface, wlo, whi, t, material))
+        if motion is not None:
+            self._moving.append(("box", len(self._boxes) - 1, motion, 0.5 * (lo + hi),
+                                 np.array([1.0, 0.0, 0.0, 0.0]),
+                                 list(range(first_wall, len(self._walls)))))
+
+    def add_static_mesh(self, name: str, mesh, sphere_set: "SphereSet", material: int = 0,
+                        motion=None, frame=None) -> None:
+        """A static mesh collider given in world coordinates, with its sphere set
+        (its buried spheres are left out like a shape's, by ``contact_layers``).
+        ``motion`` (a dempipe.sim.motion.Motion) moves it; ``frame`` = (origin (3,),
+        rotation (4,)): its authored mesh origin [m], the frame keys are poses of."""
+        self._static.append((name, mesh, sphere_set, material,
+                             self._contact_centers(sphere_set)))
+        if motion is not None:
+            o, r = frame if frame is not None else ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0))
+            self._moving.append(("mesh", len(self._static) - 1, motion,
+                                 np.asarray(o, dtype=np.float64),
+                                 np.asarray(r, dtype=np.float64), []))
+
+    # -- derived --------------------------------------------------------------
+    def finalize(self, *, fps: float = 24.0, n_frames: int = 97, first_frame: int = 0,
+                 dt: float | str = "auto", target_overlap: float = 0.02,
+                 steps_per_contact: float | None = None,
+                 up_axis: str = "Z", meters_per_unit: float = 1.0,
+                 where: str = "simulation.dt", force: bool = False,
+                 sleep: tuple | None = None, contact_law: str = laws.DEFAULT) -> Model:
+        """Derive contact constants, dt and features; freeze everything into a Model.
+
+        A user dt at or above the critical step of the stiffest contact raises
+        StabilityError, unless ``force`` (the bake's --force: the user takes the risk).
+        sleep : None (off) or (linear [m/s] | None, angular [rad/s] | None,
+                time [s] | None); None entries take the defaults of ``sleep_defaults``.
+        contact_law : the registered law (``laws.LAWS``) every contact follows.
+        steps_per_contact : dt="auto"'s steps per contact (None: the law's
+        STEPS_PER_CONTACT).
+        """
+        law_name = contact_law
+        law = laws.law(law_name)
+        if steps_per_contact is None:
+            steps_per_contact = law.STEPS_PER_CONTACT
+        d = self.diameter
+        groups = self._groups
+        # bodies
+        body_shape, body_group, body_gidx, body_mat, xs, qs, vs, ws = [], [], [], [], [], [], [], []
+        for gi, g in enumerate(groups):
+            n = g["p"].shape[0]
+            com = np.array([self._shapes[s].com for s in g["shapes"]]).reshape(n, 3)
+            body_shape.append(g["shapes"])
+            body_group.append(np.full(n, gi))
+            body_gidx.append(np.arange(n))
+            body_mat.append(np.full(n, g["material"]))
+            # position places the mesh origin: the centre of mass is at p + R com
+            R = np.stack([quat_to_matrix(q) for q in g["q"]]) if n else np.zeros((0, 3, 3))
+            xs.append(g["p"] + np.einsum("nij,nj->ni", R, com))
+            qs.append(g["q"])
+            vs.append(g["v"])
+            ws.append(g["w"])
+        n_dyn = int(sum(len(a) for a in body_shape))
+        cat = lambda parts, shape: np.concatenate(parts) if parts else np.zeros(shape)
+        body_shape = cat(body_shape, (0,)).astype(np.int32)
+        body_group = cat(body_group, (0,)).astype(np.int32)
+        body_gidx = cat(body_gidx, (0,)).astype(np.int32)
+        dyn_mat = cat(body_mat, (0,)).astype(np.int32)
+        x0 = cat(xs, (0, 3))
+        q0 = cat(qs, (0, 4))
+        v0 = cat(vs, (0, 3))
+        w0 = cat(ws, (0, 3))
+
+        mass = np.zeros(n_dyn)
+        inv_inertia = np.zeros((n_dyn, 6))
+        shape_inv = []
+        shape_rot = []
+        for s in self._shapes:
+            ss = s.sphere_set
+            inv = np.linalg.inv(np.asarray(ss.inertia, dtype=np.float64))  # per unit density
+            shape_inv.append(np.array([inv[0, 0], inv[1, 1], inv[2, 2], inv[0, 1], inv[0, 2],
+                                       inv[1, 2]]))
+            # per unit mass: I/m = inertia/volume. This, body_radius and the flat-face
+            # count are decided by outermost spheres, which are always contact
+            # spheres: full set and contact set give the same values
+            shape_rot.append(rotational_mass_factor(np.asarray(ss.centers),
+                                                    np.asarray(ss.inertia) / ss.volume))
+        for b in range(n_dyn):
+            s = self._shapes[body_shape[b]]
+            rho = self._materials[dyn_mat[b]].density
+            mass[b] = rho * s.sphere_set.volume
+            inv_inertia[b] = shape_inv[body_shape[b]] / rho
+        # given masses and inertias (UsdPhysics MassAPI): a given mass alone scales the
+        # shape's inertia (its density becomes mass / volume)
+        b0 = 0
+        given_inertia = {}      # body -> inertia per unit mass, for its rotational mode
+        for g in groups:
+            n = g["p"].shape[0]
+            for k in range(n):
+                b = b0 + k
+                if g["masses"] is not None:
+                    m_b = float(g["masses"][k])
+                    if not (m_b > 0 and math.isfinite(m_b)):
+                        raise SceneError(f"{g['name']}: mass must be positive, got {m_b!r}")
+                    inv_inertia[b] *= mass[b] / m_b
+                    mass[b] = m_b
+                if g["inertias"] is not None:
+                    inv = np.linalg.inv(g["inertias"][k])
+                    inv_inertia[b] = [inv[0, 0], inv[1, 1], inv[2, 2], inv[0, 1], inv[0, 2],
+                                      inv[1, 2]]
+                    given_inertia[b] = g["inertias"][k] / mass[b]
+            b0 += n
+        asleep0 = (np.concatenate([g["asleep"] for g in groups]) if groups
+                   else np.zeros(0, bool))
+
+        # static pseudo-bodies
+        static_meshes = []
+        st_x, st_mat = [], []
+        for k, (name, mesh, ss, m, _) in enumerate(self._static):
+            st_x.append(np.asarray(ss.com, dtype=np.float64))
+            st_mat.append(m)
+            static_meshes.append(StaticMesh(name, _frozen(mesh.vertices), _frozen(mesh.faces,
+                                            np.int32), n_dyn + k))
+        n_static = len(static_meshes)
+        kin = (np.concatenate([np.full(g["p"].shape[0], g["kinematic"]) for g in groups])
+               if groups else np.zeros(0, bool))
+        inv_inertia[kin] = 0.0      # carried by their motion: never pushed
+        all_x = np.concatenate([x0, np.array(st_x).reshape(-1, 3)])
+        all_q = np.concatenate([q0, np.tile([1.0, 0, 0, 0], (n_static, 1))])
+        all_mass = np.concatenate([mass, np.full(n_static, np.inf)])
+        all_inv_mass = np.concatenate([np.where(kin, 0.0, 1.0 / np.where(mass > 0, mass, np.inf)),
+                                       np.zeros(n_static)])
+        all_inv_inertia = np.concatenate([inv_inertia, np.zeros((n_static, 6))])
+        all_mat = np.concatenate([dyn_mat, np.array(st_mat, dtype=np.int32)]).astype(np.int32)
+
+        # contact spheres (the surface layers of each set), contiguous per body
+        offsets = [self._shapes[s].contact_centers for s in body_shape]
+        offsets += [c for (_, _, _, _, c) in self._static]
+        counts = [c.shape[0] for c in offsets]
+        start = np.zeros(len(counts) + 1, dtype=np.int32)
+        start[1:] = np.cumsum(counts) if counts else []
+        sphere_offset = np.concatenate(offsets) if offsets else np.zeros((0, 3))
+        sphere_body = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
+        body_radius = np.array([np.linalg.norm(self._shapes[s].sphere_set.centers, axis=1).max()
+                                + 0.5 * d for s in body_shape]) if n_dyn else np.zeros(0)
+
+        driven = self._prescribed(groups, x0, q0, all_x, all_q, body_radius, n_dyn, n_static,
+                                  fps, n_frames)
+        surface_speed = driven["surface_speed"]
+
+        # materials: auto stiffness from impact speed and weight (the law's
+        # stiffness_for_overlap)
+        g = float(np.linalg.norm(self.gravity))
+        up = -self.gravity / g if g > 0 else np.array([0.0, 0.0, 1.0])
+        falls = ~kin                    # kinematic bodies do not fall: their motion is given
+        heights = x0[falls] @ up if falls.any() else np.zeros(1)
+        floors = [heights.min() - (body_radius[falls].max() if falls.any() else 0.0)]
+        floors += [float(p @ up) for (p, n) in self._planes if n @ up > 0.5]  # ground-like
+        floors += [float(b.lo @ up) for b in self._boxes]
+        floors += [float((np.asarray(mesh.vertices) @ up).min()) for (_, mesh, _, _, _) in self._static]
+        floor = min(floors)
+        launch = np.linalg.norm(v0, axis=1) + np.linalg.norm(w0, axis=1) * body_radius
+        if falls.any():
+            fall = np.sqrt(2.0 * g * np.maximum(heights - floor, 0.0))
+            # the fastest body meets a static wall, or a partner launched towards it
+            v_imp = float((fall + launch[falls]).max() + launch.max())
+        else:
+            v_imp = 0.0
+        v_imp += surface_speed      # a moving surface meets a falling body head on
+        # scenes at rest still feel their weight settling one sphere deep
+        v_imp = max(v_imp, math.sqrt(2.0 * g * d) if g > 0 else 0.01)
+        # corner-contact effective mass m / (1 + m (r×n)ᵀ I⁻¹ (r×n)): a falling body
+        # first touches with one outer sphere; a flat landing shares the load
+        body_rot = np.array([shape_rot[s] for s in body_shape]) if n_dyn else np.zeros(0)
+        for b, i_per_m in given_inertia.items():
+            body_rot[b] = rotational_mass_factor(
+                np.asarray(self._shapes[body_shape[b]].sphere_set.centers), i_per_m)
+        m_corner = mass / (1.0 + body_rot) if n_dyn else mass
+        stiffness = []
+        auto_notes = []
+        k_auto_all = 0.0
+        for mi, m in enumerate(self._materials):
+            used = (dyn_mat == mi) & ~kin       # kinematic bodies: carried, infinite mass
+            if not (m.rolling_friction >= 0 and math.isfinite(m.rolling_friction)):
+                raise SceneError(f"materials.{m.name}: rolling_friction must be a number >= 0, "
+                                 f"got {m.rolling_friction!r}")
+            if m.young_modulus is not None:
+                if not (m.young_modulus > 0 and math.isfinite(m.young_modulus)) \
+                        or m.stiffness is not None or not 0 <= m.poisson_ratio < 0.5:
+                    raise SceneError(f"materials.{m.name}: young_modulus must be a positive "
+                                     f"number in Pa, poisson_ratio in [0, 0.5), and stiffness "
+                                     f"not given with them")
+                if not hasattr(law, "stiffness_from_modulus"):
+                    raise SceneError(f"materials.{m.name}.young_modulus: applies to the Hertz "
+                                     f"law only (contact_law is {law_name!r}; give stiffness)")
+                # equal spheres of diameter d (R* = d/4); a sphere on a wall (R* = d/2)
+                # would be √2 stiffer: walls take the pair's K
+                stiffness.append(law.stiffness_from_modulus(m.young_modulus, m.poisson_ratio, d))
+            elif m.stiffness is None and used.any():
+                k = law.stiffness_for_overlap(float(m_corner[used].max()), v_imp, g, d,
+                                              target_overlap)
+                k_auto_all = max(k_auto_all, k)
+                stiffness.append(k)
+                auto_notes.append((m.name, k))
+            else:
+                stiffness.append(m.stiffness)
+        # materials used only by colliders (or unused) take the stiffest auto value
+        fallback = k_auto_all or max([s for s in stiffness if s] or [1e4])
+        stiffness = [s if s is not None else fallback for s in stiffness]
+        table = mat.pair_table(self._materials, stiffness, law)
+
+        # stiffest mode: ω = √(k / m_eff) over every body, translation and rotation
+        # (effective mass m / (1 + m (r×n)ᵀ I⁻¹ (r×n))), halved for body-body contacts
+        contacts = []       # (k, m_eff, ζ) of each kind of contact (laws.stiffest)
+        wall_mats = {w[5] for w in self._walls} | {s[3] for s in self._static}
+        present = set(np.unique(dyn_mat).tolist()) | wall_mats
+        has_contacts = n_dyn > 1 or bool(self._walls) or bool(self._static)
+        if has_contacts:
+            for gi, gdict in enumerate(groups):
+                if gdict["p"].shape[0] == 0 or gdict["kinematic"]:
+                    continue
+                mi = gdict["material"]
+                in_group = body_group == gi
+                m_eff = float((mass[in_group] / (1.0 + body_rot[in_group])).min())
+                partners = present if n_dyn > 1 else wall_mats
+                dyn_present = set(np.unique(dyn_mat).tolist())
+                for mj in partners:
+                    k = table.k[mi, mj]
+                    half = 0.5 if (n_dyn > 1 and mj in dyn_present) else 1.0
+                    contacts.append((k, m_eff * half, table.zeta[mi, mj]))
+        omega_max, zeta_min, zeta_max = laws.stiffest(contacts, law_name, v_imp)
+        # flat landings (n spheres of a face at once) and free spin bound dt further
+        dt_max = math.inf
+        flat_crit = math.inf        # the same without the safety: a user dt's limit
+        if has_contacts:
+            dyn_present = set(np.unique(dyn_mat).tolist())
+            for gi, gdict in enumerate(groups):
+                if gdict["p"].shape[0] == 0 or gdict["kinematic"]:
+                    continue
+                mi = gdict["material"]
+                in_group = body_group == gi
+                m_flat = float(mass[in_group].min())
+                m_deep = float(mass[in_group].max())    # the heaviest sinks deepest
+                for mj in (present if n_dyn > 1 else wall_mats):
+                    half = 0.5 if (n_dyn > 1 and mj in dyn_present) else 1.0
+                    # the spheres a plane presses at once in the deepest landing
+                    n_face = max(flat_face_spheres(
+                        np.asarray(self._shapes[sj].sphere_set.centers), d,
+                        float(table.k[mi, mj]), m_deep * half, v_imp, g)
+                        for sj in np.unique(gdict["shapes"]))
+                    flat = mat.flat_face_critical_step(n_face, table.k[mi, mj],
+                                                       m_flat * half, table.zeta[mi, mj],
+                                                       law, v_imp)
+                    flat_crit = min(flat_crit, flat)
+                    dt_max = min(dt_max, mat.FLAT_FACE_SAFETY * flat)
+        if n_dyn and np.any(w0):
+            dt_max = min(dt_max, mat.MAX_SPIN_STEP / float(np.linalg.norm(w0, axis=1).max()))
+        if surface_speed > 0.0:
+            # a moving surface's fastest point crosses at most AUTO_TRAVEL d per step
+            dt_max = min(dt_max, mat.AUTO_TRAVEL * d / surface_speed)
+        if n_dyn and float(launch.max()) > 0.0:
+            # a launched or spinning body's fastest point (|v| + |w| r) crosses at most
+            # AUTO_TRAVEL of a diameter per step, in free flight too (the travel guard)
+            dt_max = min(dt_max, mat.AUTO_TRAVEL * d / float(launch.max()))
+        if isinstance(dt, str):
+            if dt != "auto":
+                raise SceneError(f"{where}: expected \"auto\" or seconds, got {dt!r}")
+            dt_v, spf = mat.auto_dt(omega_max, fps, steps_per_contact,
+                                    law.duration_zeta(zeta_max), dt_max)
+        else:
+            if not (dt > 0 and math.isfinite(dt)):
+                raise SceneError(f"{where}: dt must be positive seconds, got {dt!r}")
+            if not force:
+                mat.check_dt(float(dt), omega_max, zeta_min, where, law)
+                if float(dt) >= flat_crit:
+                    raise StabilityError(
+                        f"{where}: dt = {dt:.3g} s is above the critical step {flat_crit:.3g} s "
+                        f"of a body resting flat on a face of its spheres (its contacts act "
+                        f"in parallel); use dt = \"auto\", a dt below {flat_crit / 2:.3g} s, "
+                        f"or softer materials")
+            spf = max(1, round((1.0 / fps) / dt))
+            dt_v = 1.0 / fps / spf
+            if abs(dt_v - dt) > 1e-9 * dt and abs(dt_v - dt) / dt > 0.01:
+                raise StabilityError(
+                    f"{where}: dt = {dt:g} s does not divide a frame (1/{fps:g} s) into whole "
+                    f"steps; use {dt_v:.6g} s ({spf} steps per frame)")
+
+        walls = driven["walls"]
+        wall_arr = lambda i, shape: (np.array([w[i] for w in walls], dtype=np.float64)
+                                     if walls else np.zeros(shape))
+        friction = bool((table.mu > 0).any()) and bool(np.any(
+            [table.mu[a, b] > 0 for a in present for b in present]))
+        multi = any(s.sphere_set.centers.shape[0] > 1 for s in self._shapes)
+        features = Features(
+            friction=friction,
+            rotation=multi or friction or bool(np.any(w0)) or bool(driven["motions"]),
+            walls=bool(walls),
+            static_spheres=n_static > 0,
+            gravity=g > 0,
+        )
+        sleep_steps, sleep_lin, sleep_ang = 0, 0.0, 0.0
+        if sleep is not None and n_dyn > 0:
+            sleep_lin, sleep_ang, sleep_time = sleep_defaults(
+                d, g, body_radius, *sleep)
+            sleep_steps = max(1, math.ceil(sleep_time / float(dt_v) - 1e-9))
+        features = replace(features, sleeping=sleep_steps > 0, rolling=(
+            features.friction and features.rotation
+            and bool(np.any([table.mu_r[a, b] > 0 for a in present for b in present]))))
+        # rolling resistance (physics.rolling_torque): each body's rolling radius
+        moves = np.concatenate([~np.asarray(kin, bool), np.zeros(n_static, bool)])
+        inv_radius = np.zeros(n_dyn + n_static)
+        inv_radius[:n_dyn][moves[:n_dyn]] = 1.0 / body_radius[moves[:n_dyn]]
+        return Model(
+            diameter=d, sleep_steps=int(sleep_steps), sleep_linear=float(sleep_lin),
+            sleep_angular=float(sleep_ang), n_bodies=n_dyn, n_static=n_static, shapes=tuple(self._shapes),
+            materials=tuple(self._materials), group_names=tuple(g["name"] for g in groups),
+            body_mass=_frozen(all_mass), body_inv_mass=_frozen(all_inv_mass),
+            body_inv_inertia=_frozen(all_inv_inertia), body_material=_frozen(all_mat, np.int32),
+            body_sphere_start=_frozen(start, np.int32), body_shape=_frozen(body_shape, np.int32),
+            body_group=_frozen(body_group, np.int32), body_group_index=_frozen(body_gidx, np.int32),
+            body_radius=_frozen(body_radius),
+            sphere_body=_frozen(sphere_body, np.int32), sphere_offset=_frozen(sphere_offset),
+            wall_normal=_frozen(wall_arr(0, (0, 3)).reshape(-1, 3)),
+            wall_offset=_frozen(wall_arr(1, (0,))),
+            wall_lo=_frozen(wall_arr(2, (0, 3)).reshape(-1, 3)),
+            wall_hi=_frozen(wall_arr(3, (0, 3)).reshape(-1, 3)),
+            wall_depth=_frozen(wall_arr(4, (0,))),
+            wall_material=_frozen(np.array([w[5] for w in walls], dtype=np.int32), np.int32),
+            plane_point=_frozen(np.array([p for p, _ in self._planes]).reshape(-1, 3)),
+            plane_normal=_frozen(np.array([n for _, n in self._planes]).reshape(-1, 3)),
+            boxes=tuple(self._boxes), static_meshes=tuple(static_meshes),
+            pair_k=_frozen(table.k), pair_zeta=_frozen(table.zeta),
+            pair_damp=_frozen(law.damping_table(table.zeta)), pair_mu=_frozen(table.mu),
+            kt_ratio=table.kt_ratio, ks_ratio=table.ks_ratio, gravity=_frozen(self.gravity), dt=float(dt_v),
+            steps_per_frame=int(spf), fps=float(fps), n_frames=int(n_frames),
+            first_frame=int(first_frame), up_axis=up_axis, meters_per_unit=float(meters_per_unit),
+            omega_max=float(omega_max), features=features,
+            initial_x=_frozen(all_x), initial_q=_frozen(all_q),
+            initial_v=_frozen(np.concatenate([v0, np.zeros((n_static, 3))])),
+            initial_w=_frozen(np.concatenate([w0, np.zeros((n_static, 3))])),
+            stiffness_auto=tuple(auto_notes), contact_layers=self.contact_layers,
+            initial_asleep=_frozen(asleep0, bool) if asleep0.any() else None,
+            contact_law=law_name, impact_speed=float(v_imp),
+            motions=driven["motions"], motion_table=driven["table"],
+            body_motion=_frozen(driven["body_motion"], np.int32),
+            body_anchor_c=_frozen(driven["anchor_c"]), body_anchor_q=_frozen(driven["anchor_q"]),
+            driven_body=_frozen(np.flatnonzero(driven["body_motion"] >= 0), np.int32),
+            wall_motion=_frozen(driven["wall_motion"], np.int32),
+            body_start=_frozen(np.concatenate([
+                np.ceil(driven["start_time"] / float(dt_v) - 1e-9).astype(np.int64),
+                np.zeros(n_static, np.int64)]), np.int64),
+            body_start_time=_frozen(driven["start_time"]),
+            body_kinematic=_frozen(kin, bool),
+            collider_motions=tuple(driven["colliders"]), surface_speed=float(surface_speed),
+            pair_rolling=_frozen(table.mu_r), body_inv_radius=_frozen(inv_radius),
+        )
+
+    def _prescribed(self, groups, x0, q0, all_x, all_q, body_radius, n_dyn, n_static, fps,
+                    n_frames) -> dict:
+        """The motions of kinematic groups and moving colliders, each body's and
+        wall's place in its motion's anchor frame, the start times, and the fastest
+        prescribed surface speed over the bake [m/s]."""
+        B = n_dyn + n_static
+        motions, colliders = [], []
+        body_motion = np.full(B, -1, dtype=np.int32)
+        anchor_c = np.zeros((B, 3))
+        anchor_q = np.tile([1.0, 0.0, 0.0, 0.0], (B, 1))
+        walls = [list(w) for w in self._walls]
+        wall_motion = np.full(len(walls), -1, dtype=np.int32)
+        start_time = np.zeros(n_dyn)
+        t_end = (n_frames - 1) / fps
+        speed = 0.0
+        # where contacts can happen: the bodies' reach from their initial places
+        pts = [x0] if n_dyn else []
+        pts += [np.asarray(m.vertices, dtype=np.float64) for (_, m, _, _, _) in self._static]
+        reach = np.concatenate(pts) if pts else np.zeros((1, 3))
+        r_body = float(body_radius.max()) if n_dyn else 0.0
+
+        b0 = 0
+        for g in groups:
+            n = g["p"].shape[0]
+            start_time[b0:b0 + n] = g["start_time"]
+            if g["kinematic"]:
+                m = g["motion"]
+                frame = g["frame"]
+                if frame is None:
+                    frame = ((g["p"].mean(axis=0), (1.0, 0.0, 0.0, 0.0)) if g["group_frame"]
+                             else (g["p"][0], g["q"][0]))
+                ref = mo.reference_anchor(m, frame[0], frame[1], group=g["group_frame"])
+                m = m.with_pivot(ref[0])
+                c, a = mo.relative_pose(ref[0], ref[1], x0[b0:b0 + n], q0[b0:b0 + n])
+                body_motion[b0:b0 + n] = len(motions)
+                anchor_c[b0:b0 + n] = c
+                anchor_q[b0:b0 + n] = a
+                motions.append(m)
+                # each body's centre, out by its radius along the way from the anchor
+                dist = np.linalg.norm(c, axis=1, keepdims=True)
+                pts = c * (1.0 + body_radius[b0:b0 + n, None] / np.maximum(dist, 1e-300))
+                speed = max(speed, m.max_speed(pts, 0.0, t_end))
+            b0 += n
+        for kind, index, m, origin, rotation, wall_ids in self._moving:
+            ref = mo.reference_anchor(m, origin, rotation)
+            m = m.with_pivot(ref[0])
+            k = len(motions)
+            motions.append(m)
+            colliders.append(ColliderMotion(kind, index, m, _frozen(ref[0]), _frozen(ref[1]),
+                                            _frozen(origin), _frozen(rotation)))
+            # the farthest point of it a body can touch, from its anchor: a mesh's or a
+            # box's own extent; anywhere a body may be on a plane
+            if kind == "mesh":
+                body = n_dyn + index
+                c, a = mo.relative_pose(ref[0], ref[1], all_x[body], all_q[body])
+                body_motion[body] = k
+                anchor_c[body] = c[0]
+                anchor_q[body] = a[0]
+                pts = np.asarray(self._static[index][1].vertices, dtype=np.float64)
+            elif kind == "box":
+                bx = self._boxes[index]
+                pts = np.array([[(bx.lo, bx.hi)[i >> j & 1][j] for j in range(3)]
+                                for i in range(8)])
+            else:                       # a plane: wherever a body may meet it
+                pts = reach + r_body * (reach - ref[0]) / np.maximum(
+                    np.linalg.norm(reach - ref[0], axis=1, keepdims=True), 1e-300)
+            # in the anchor frame (ref_q is the identity for planes and boxes)
+            pts, _ = mo.relative_pose(ref[0], ref[1], pts, np.tile([1.0, 0, 0, 0], (len(pts), 1)))
+            # the walls in the anchor frame (ref_q is the identity for planes and boxes)
+            for w in wall_ids:
+                n_w, off, lo, hi, depth, mat_w = walls[w]
+                walls[w] = [n_w, off - float(n_w @ ref[0]), lo - ref[0], hi - ref[0], depth,
+                            mat_w]
+                wall_motion[w] = k
+            speed = max(speed, m.max_speed(pts, 0.0, t_end))
+        return dict(motions=tuple(motions), table=mo.pack(motions), body_motion=body_motion,
+                    anchor_c=anchor_c, anchor_q=anchor_q, wall_motion=wall_motion,
+                    walls=[tuple(w) for w in walls], colliders=colliders,
+                    start_time=start_time, surface_speed=float(speed))

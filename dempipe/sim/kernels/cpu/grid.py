@@ -1,0 +1,309 @@
+"""The CPU target's rebuild stages (stages 2-3 and the pairing): the grid's
+counting sort and gather, the 27-cell neighbour lists, pair rows, walls in reach,
+and the contact histories between sphere order and sorted-slot order. They run
+only at a neighbour-list rebuild (kernels/cpu/stages.py run_steps); each is compiled
+once (they read no feature flag). The CUDA target's twins: kernels/cuda/grid.py,
+kernels/cuda/stages.py.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numba import prange
+
+from dempipe.sim.kernels.compile import invalidate_stale_cache
+from dempipe.sim.kernels.contacts import CONTACT_CHUNK
+from dempipe.sim.kernels.cpu.device import (
+    WALL_ROWS,
+    cell_coord,
+    morton_key,
+    neighbour_list,
+    pair_count,
+    pair_mirror,
+    pair_slots,
+    pairs_to_rows,
+    rows_to_pairs,
+    wall_reach,
+)
+from dempipe.sim.kernels.pairing import WALL_SLACK
+
+invalidate_stale_cache(__file__)
+
+
+@numba.njit(cache=True)
+def stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start, bucket_start,
+                    bucket_fill, body_key, sorted_idx, slot_of, grid_idx, grid_slot):
+    """Stage 2 at a rebuild: the slots, and the grid (serial, stable).
+
+    Slots in body order: the bodies sorted by the bucket of the cell their
+    centre is in (stable: ties in body order), each body's spheres in
+    consecutive slots in their own order; sorted_idx[s] is the sphere at slot s,
+    slot_of[i] the slot of sphere i. Bodies near each other in space get slots
+    near each other, and a body's spheres are one run of slots, so stage 1
+    stores, the second contact pass writes and the body stage reads each body's
+    spheres in order (docs/performance.md, "Where a step goes").
+
+    The grid: a counting sort of the spheres by bucket, as CUDA's (k_scatter,
+    k_bucket_sort). bucket_start[h]:bucket_start[h+1] are the grid positions of
+    bucket h, grid_idx[g] the sphere at position g and grid_slot[g] its slot; within a bucket
+    the spheres stay in index order, which keeps everything downstream
+    independent of the thread count. Only the first grid[5] buckets are in use.
+    """
+    nb = body_sphere_start.shape[0] - 1
+    for b in range(nb):
+        body_key[b] = morton_key(cell_coord(body_x[b, 0], inv_cell),
+                                 cell_coord(body_x[b, 1], inv_cell),
+                                 cell_coord(body_x[b, 2], inv_cell))
+    order = np.argsort(body_key[:nb], kind="mergesort")
+    s = 0
+    for k in range(nb):
+        b = order[k]
+        for i in range(body_sphere_start[b], body_sphere_start[b + 1]):
+            sorted_idx[s] = i
+            slot_of[i] = s
+            s += 1
+    nbk = grid[5]
+    for h in range(nbk + 1):
+        bucket_start[h] = 0
+    for i in range(sphere_hash.shape[0]):
+        bucket_start[sphere_hash[i] + 1] += 1
+    for h in range(nbk):
+        bucket_start[h + 1] += bucket_start[h]
+    for h in range(nbk):
+        bucket_fill[h] = bucket_start[h]
+    for i in range(sphere_hash.shape[0]):
+        h = sphere_hash[i]
+        grid_idx[bucket_fill[h]] = i
+        grid_slot[bucket_fill[h]] = slot_of[i]
+        bucket_fill[h] += 1
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_grid_gather(sorted_idx, grid_idx, sphere_x, sphere_v, sphere_key, sphere_body,
+                      sorted_x, sorted_v, sorted_body, grid_x, grid_key, grid_body):
+    """Copy sphere data into slot order (what each step reads: a body's spheres,
+    and bodies near each other, from contiguous memory), and what the neighbour
+    search reads into grid order (a row of three cells from contiguous memory)."""
+    for s in prange(sorted_idx.shape[0]):
+        i = sorted_idx[s]
+        sorted_x[s, 0] = sphere_x[i, 0]
+        sorted_x[s, 1] = sphere_x[i, 1]
+        sorted_x[s, 2] = sphere_x[i, 2]
+        sorted_v[s, 0] = sphere_v[i, 0]
+        sorted_v[s, 1] = sphere_v[i, 1]
+        sorted_v[s, 2] = sphere_v[i, 2]
+        sorted_body[s] = sphere_body[i]
+    for g in prange(grid_idx.shape[0]):
+        i = grid_idx[g]
+        grid_x[g, 0] = sphere_x[i, 0]
+        grid_x[g, 1] = sphere_x[i, 1]
+        grid_x[g, 2] = sphere_x[i, 2]
+        grid_key[g] = sphere_key[i]
+        grid_body[g] = sphere_body[i]
+
+
+@numba.njit(cache=True)
+def sphere_neighbours(s0, s1, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x,
+                      grid_key, grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
+                      body_inv_mass, built_x, nbr, nbr_n, body_start, step):
+    """Stages 2-3 for sorted slots s0 .. s1-1: each slot's neighbour list
+    (neighbours.neighbour_list); returns how many lists overflowed."""
+    cap = nbr.shape[1]
+    over = 0
+    for s in range(s0, s1):
+        if neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x,
+                          grid_key, grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
+                          body_inv_mass, built_x, nbr, nbr_n, body_start, step) > cap:
+            over += 1
+    return over
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_key, grid_body,
+                     grid_slot, sorted_idx, sorted_x, sorted_body, body_inv_mass, built_x,
+                     nbr, nbr_n, body_start, step):
+    """Stages 2-3 at a rebuild: every sorted slot's neighbour list (sphere_neighbours)
+    of reach (1 + skin) d, from the grid just sorted (cells of that edge). Returns how
+    many lists overflowed (0: all fit)."""
+    n = sorted_idx.shape[0]
+    n_chunks = (n + CONTACT_CHUNK - 1) // CONTACT_CHUNK
+    cutoff = (1.0 + skin) * diameter
+    over = 0
+    for c in prange(n_chunks):
+        over += sphere_neighbours(c * CONTACT_CHUNK, min(n, (c + 1) * CONTACT_CHUNK),
+                                  cutoff * cutoff, 1.0 / cutoff, grid, bucket_start,
+                                  grid_idx, grid_x, grid_key, grid_body, grid_slot,
+                                  sorted_idx, sorted_x, sorted_body,
+                                  body_inv_mass, built_x, nbr, nbr_n, body_start, step)
+    return over
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, pidx, pair_t,
+                rows, list_start, list_e):
+    """At a rebuild, after stage_neighbours: each list entry's pair index
+    (contacts.py). The pairs a slot owns get consecutive rows of pair_f, slot
+    after slot: pair_start[s] is slot s's first (a prefix sum of the owners'
+    counts, serial: a fixed order), and pair_t[p] is row p's partner slot.
+    Returns 0, or the rows needed when that is more than ``rows`` (pair_start
+    has the counts; the caller grows pair_f and pair_t). Then each slot's list
+    entries packed, (partner slot, pair index), into list_e[list_start[s] ..]
+    (contacts.py LIST_ROWS; a serial prefix sum), or a return of the rows needed
+    when list_e is too short."""
+    n = sorted_idx.shape[0]
+    for s in prange(n):
+        pair_start[s + 1] = pair_count(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass)
+    pair_start[0] = 0
+    for s in range(n):
+        pair_start[s + 1] += pair_start[s]
+    if pair_start[n] > rows:
+        return pair_start[n]
+    for s in prange(n):
+        pair_slots(s, pair_start[s], nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
+    for s in prange(n):
+        pair_mirror(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
+        for e in range(nbr_n[s]):        # (pair_mirror has set every entry of s's row)
+            if pidx[s, e] >= 0:
+                pair_t[pidx[s, e]] = nbr[s, e]
+    list_start[0] = 0
+    for s in range(n):
+        list_start[s + 1] = list_start[s] + nbr_n[s]
+    if list_start[n] > list_e.shape[0]:
+        return list_start[n]
+    for s in prange(n):
+        q = list_start[s]
+        for e in range(nbr_n[s]):
+            list_e[q + e, 0] = nbr[s, e]
+            list_e[q + e, 1] = pidx[s, e]
+    return 0
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_wall_reach(diameter, skin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
+                     wall_depth, wall_mask, wall_start, cap, rows, wall_motion, sorted_body,
+                     body_start, step):
+    """At a rebuild: each slot's walls within reach until the next (contacts.wall_reach),
+    for lists of reach (1 + skin) d, and its packed wall rows (contacts.py WALL_ROWS):
+    wall_start[s] .. wall_start[s + 1] - 1, one per marked wall up to the ``cap``
+    columns of a history row (none for a mask of -1: those search the row). A
+    prefix sum, serial: a fixed order. Returns 0, or the rows needed when that is
+    more than ``rows`` (the caller grows wall_s)."""
+    margin = WALL_SLACK * 0.5 * skin * diameter
+    n = sorted_x.shape[0]
+    for s in prange(n):
+        wall_reach(s, 0.5 * diameter, margin, sorted_x, wall_normal, wall_offset, wall_lo,
+                   wall_hi, wall_depth, wall_motion, wall_mask)
+        if body_start[sorted_body[s]] > step:
+            wall_mask[s] = 0                # not emitted yet: no wall either
+    wall_start[0] = 0
+    for s in range(n):
+        m = wall_mask[s]
+        c = 0
+        if m != -1:
+            while m != 0 and c < cap:
+                m &= m - 1                  # one marked wall fewer
+                c += 1
+        wall_start[s + 1] = wall_start[s] + c
+    return wall_start[n] if wall_start[n] > rows else 0
+
+
+@numba.njit(inline="always", cache=True)
+def nth_wall(walls, j):
+    """The wall whose bit is the j-th set one of the mask ``walls`` (the inverse of
+    contacts.wall_column)."""
+    w = 0
+    while True:
+        if (walls >> w) & 1:
+            if j == 0:
+                return w
+            j -= 1
+        w += 1
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass, wall_mask,
+                        hist_partner, hist_spring, pair_f, wall_start, wall_s):
+    """At a rebuild, with friction: the owned pairs' stretches from the history rows
+    (sorted-slot order) into pair_f; the rows keep the walls in reach
+    (contacts.rows_to_pairs), whose columns are then copied into the packed wall
+    rows wall_s (stretch, 1 + parity or 0), where the steps keep them: the rows'
+    copies go stale until stage_pairs_to_rows puts the packed ones back."""
+    n = sorted_idx.shape[0]
+    for s in prange(n):
+        rows_to_pairs(s, s, n, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
+                      wall_mask, hist_partner, hist_spring, pair_f)
+        q = wall_start[s]
+        for j in range(wall_start[s + 1] - q if WALL_ROWS else 0):
+            code = hist_partner[s, j]
+            wall_s[q + j, 0] = hist_spring[s, j, 0]
+            wall_s[q + j, 1] = hist_spring[s, j, 1]
+            wall_s[q + j, 2] = hist_spring[s, j, 2]
+            wall_s[q + j, 3] = 1.0 + (code & 1) if code != 0 else 0.0
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f,
+                        wall_mask, wall_start, wall_s):
+    """Before a re-sort and at the end of a call, with friction: the packed wall rows
+    back into their columns of the history rows (the inverse of stage_rows_to_pairs'
+    copy), then the touching pairs' stretches (contacts.pairs_to_rows)."""
+    n = sorted_idx.shape[0]
+    for s in prange(n):
+        q = wall_start[s]
+        for j in range(wall_start[s + 1] - q if WALL_ROWS else 0):
+            if wall_s[q + j, 3] != 0.0:
+                code = n + nth_wall(wall_mask[s], j) + 1
+                hist_partner[s, j] = (code << 1) | (int(wall_s[q + j, 3]) - 1)
+                hist_spring[s, j, 0] = wall_s[q + j, 0]
+                hist_spring[s, j, 1] = wall_s[q + j, 1]
+                hist_spring[s, j, 2] = wall_s[q + j, 2]
+            else:
+                hist_partner[s, j] = 0
+                hist_spring[s, j, 0] = 0.0
+                hist_spring[s, j, 1] = 0.0
+                hist_spring[s, j, 2] = 0.0
+        pairs_to_rows(s, s, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f)
+
+
+@numba.njit(inline="always", cache=True)
+def history_row_copy(src_partner, src_spring, a, dst_partner, dst_spring, b):
+    """Row a of a contact history (partners and stretches) into row b of another."""
+    for h in range(src_partner.shape[1]):
+        dst_partner[b, h] = src_partner[a, h]
+        dst_spring[b, h, 0] = src_spring[a, h, 0]
+        dst_spring[b, h, 1] = src_spring[a, h, 1]
+        dst_spring[b, h, 2] = src_spring[a, h, 2]
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_history_to_slots(sorted_idx, contact_partner, contact_spring, hist_partner,
+                           hist_spring):
+    """Contact histories from sphere order (the State's) into sorted-slot order.
+
+    Between rebuilds the contact stage reads and writes sphere s's history at row
+    s, next to its position, so that friction walks memory in order instead of
+    jumping to each sphere's own index (measured: docs/performance.md)."""
+    for s in prange(sorted_idx.shape[0]):
+        history_row_copy(contact_partner, contact_spring, sorted_idx[s], hist_partner,
+                         hist_spring, s)
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_history_to_spheres(sorted_idx, hist_partner, hist_spring, contact_partner,
+                             contact_spring):
+    """The inverse of stage_history_to_slots (before a re-sort, and at the end of a call)."""
+    for s in prange(sorted_idx.shape[0]):
+        history_row_copy(hist_partner, hist_spring, s, contact_partner, contact_spring,
+                         sorted_idx[s])
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_unsort(sorted_idx, sorted_x, sphere_x):
+    """sphere_x in sphere order from the sorted slots (where the spheres were at
+    the last step's contact search), for callers that look at them."""
+    for s in prange(sorted_idx.shape[0]):
+        i = sorted_idx[s]
+        sphere_x[i, 0] = sorted_x[s, 0]
+        sphere_x[i, 1] = sorted_x[s, 1]
+        sphere_x[i, 2] = sorted_x[s, 2]

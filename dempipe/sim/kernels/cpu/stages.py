@@ -1,0 +1,538 @@
+"""CPU target: the paper's eight stages as numba njit/prange drivers.
+
+Each stage is one parallel loop; the formulas come from physics.py compiled
+with ``numba.njit(inline="always")``. ``run_steps`` loops over steps inside
+compiled code, so a frame of hundreds of steps costs one Python call.
+
+Determinism: every parallel loop writes only its own index (gather, no
+scatter, no atomics); the sorts of a rebuild are serial and stable; each body sums
+its spheres in index order. The output is bit-identical for any thread count.
+"""
+
+from __future__ import annotations
+
+import types
+
+import numba
+from numba import prange
+
+from dempipe.sim.kernels import contacts
+from dempipe.sim.kernels.bodies import body_update
+from dempipe.sim.kernels.prescribed import driven_row, motion_row
+from dempipe.sim.kernels.compile import compile_formulas, invalidate_stale_cache, specialize
+from dempipe.sim.kernels.layout import (
+    FLAGS, BodyModel, BodyScratch, ContactModel, ContactScratch)
+from dempipe.sim.kernels.neighbours import SKIN, SKIN_SHRINK_ABOVE
+from dempipe.sim.kernels.cpu.device import (
+    adapt_skin, angular_velocity, cell_coord, cell_hash, cell_key, quat_rotate, slot_store,
+    sphere_kinematics, static_body)
+from dempipe.sim.kernels.cpu.grid import (
+    stage_grid_gather, stage_grid_sort, stage_history_to_slots, stage_history_to_spheres,
+    stage_neighbours, stage_pairs, stage_pairs_to_rows, stage_rows_to_pairs, stage_unsort,
+    stage_wall_reach)
+# Read by the functions of contacts.py, bodies.py and prescribed.py, which kernels()
+# compiles with this module's globals (compile.specialize):
+from dempipe.sim.kernels.contacts import CLOSE_REACH2  # noqa: F401
+from dempipe.sim.kernels.pairing import UNPAIRED  # noqa: F401
+from dempipe.sim.kernels.cpu.device import (  # noqa: F401
+    HIST_BY_SLOT, LIST_ROWS, PAIR_ROWS, WALL_ROWS, anchor_local, anchor_state,
+    anchor_surface, body_step, carried_state, contact_coefficients, entry_range,
+    history_recall, history_store, rest_steps, rolling_scale, rolling_torque,
+    sphere_pair_force, sphere_wall_force, sqrt, closing)
+
+invalidate_stale_cache(__file__)
+invalidate_stale_cache(contacts.__file__)   # pair_forces, sphere_forces: cached under its name
+
+# ---------------------------------------------------------------------------
+# Specialization. The stage drivers below are plain functions reading the flags
+# FRICTION, ROTATION, SLEEPING, WALLS as globals; ``kernels(flags)`` compiles
+# one variant per flag set (compile.specialize), each with its own numba disk
+# cache file. The values here (all on) are the general kernel's. Features off
+# are compiled out; features on still check their runtime data (``friction``,
+# ``sleep_steps`` > 0, per-pair mu, the wall count), so the general kernel on
+# a scene that does not use a feature gives the specialized kernel's frames bit
+# for bit (tests/sim/test_specialize.py).
+#
+# TORQUE_NOTE: a contact without friction pushes along the line of centres and
+# has no torque about the sphere's centre; physics.sphere_pair_force's
+# radius (n × f) rounds to ±1 ulp instead of 0 for a third of the contacts, which
+# would spin a one-sphere ball. The kernels add a contact's own torque only
+# when its mu > 0, so a frictionless ball keeps L = 0 exactly whichever variant
+# runs it, and the variants without friction never read or write sphere_t.
+# ---------------------------------------------------------------------------
+
+# Feature flags the stage drivers are compiled for: layout.FLAGS, in ``kernels()``'s order.
+FRICTION = True
+ROTATION = True
+SLEEPING = True
+WALLS = True
+
+
+
+def stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
+                          body_v, body_w):
+    """V = P/M and W = I(t)⁻¹ L (eq. 5-6) for each dynamic body (W = 0 without ROTATION)."""
+    for b in prange(n_bodies):
+        im = body_inv_mass[b]
+        body_v[b, 0] = body_P[b, 0] * im
+        body_v[b, 1] = body_P[b, 1] * im
+        body_v[b, 2] = body_P[b, 2] * im
+        if not ROTATION:
+            body_w[b, 0] = 0.0
+            body_w[b, 1] = 0.0
+            body_w[b, 2] = 0.0
+            continue
+        ii = body_inv_inertia[b]
+        q = body_q[b]
+        wx, wy, wz = angular_velocity(q[0], q[1], q[2], q[3], ii[0], ii[1], ii[2], ii[3],
+                                      ii[4], ii[5], body_L[b, 0], body_L[b, 1], body_L[b, 2])
+        body_w[b, 0] = wx
+        body_w[b, 1] = wy
+        body_w[b, 2] = wz
+
+
+def stage_motion(t, motion_kind, motion_v, motion_w, motion_pivot, key_start, key_t, key_p,
+                 key_q, motion_now):
+    """The prescribed motions at time t [s] into motion_now (prescribed.motion_row);
+    serial: a scene has a few."""
+    for m in range(motion_now.shape[0]):
+        motion_row(m, t, motion_kind, motion_v, motion_w, motion_pivot, key_start, key_t,
+                   key_p, key_q, motion_now)
+
+
+def stage_driven(driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now, body_x,
+                 body_q, body_v, body_w, body_rest, body_still):
+    """The carried bodies where their motions put them (prescribed.driven_row)."""
+    for k in range(driven_body.shape[0]):
+        driven_row(k, driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now,
+                   body_x, body_q, body_v, body_w, body_rest, body_still)
+
+
+def sphere_state(i, sphere_body, sphere_offset, body_x, body_q, body_v, body_w):
+    """Stage 1 for sphere i (eq. 19-21): (x, v, R r') [m, m/s, m], world frame."""
+    b = sphere_body[i]
+    q = body_q[b]
+    if ROTATION:
+        return sphere_kinematics(
+            body_x[b, 0], body_x[b, 1], body_x[b, 2], q[0], q[1], q[2], q[3],
+            body_v[b, 0], body_v[b, 1], body_v[b, 2],
+            body_w[b, 0], body_w[b, 1], body_w[b, 2],
+            sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2])
+    # W = 0: sphere_kinematics with the W × r' term dropped
+    rx, ry, rz = quat_rotate(q[0], q[1], q[2], q[3], sphere_offset[i, 0],
+                             sphere_offset[i, 1], sphere_offset[i, 2])
+    return (body_x[b, 0] + rx, body_x[b, 1] + ry, body_x[b, 2] + rz,
+            body_v[b, 0], body_v[b, 1], body_v[b, 2], rx, ry, rz)
+
+
+def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_cell, grid,
+                  sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash):
+    """Stage 1 (eq. 19-21) in sphere order, and each sphere's grid cell (stage 2's input)."""
+    for i in prange(sphere_body.shape[0]):
+        x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset, body_x,
+                                                       body_q, body_v, body_w)
+        sphere_x[i, 0] = x
+        sphere_x[i, 1] = y
+        sphere_x[i, 2] = z
+        sphere_v[i, 0] = vx
+        sphere_v[i, 1] = vy
+        sphere_v[i, 2] = vz
+        sphere_r[i, 0] = rx
+        sphere_r[i, 1] = ry
+        sphere_r[i, 2] = rz
+        cx = cell_coord(x, inv_cell)
+        cy = cell_coord(y, inv_cell)
+        cz = cell_coord(z, inv_cell)
+        sphere_key[i] = cell_key(cx, cy, cz)
+        sphere_hash[i] = cell_hash(cx, cy, cz, grid)
+
+
+def stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x, body_q, body_v,
+                         body_w, body_still, built_x, rebuild_at2, sorted_x, sorted_v, sphere_r):
+    """Stage 1 (eq. 19-21) between rebuilds: straight into the sorted slots of the
+    last rebuild (no grid, no sort; slot_of[i] is sphere i's). Returns how many
+    spheres have moved sqrt(rebuild_at2) [m] or more since (then the lists must
+    be rebuilt). Spheres of a body that slept through the last step, or of a
+    static collider (body_still), keep the values computed before: the body has
+    not moved since.
+
+    In sphere order, not slot order: a body's spheres are contiguous, so their
+    offsets are read and sphere_r written in order and the body's state is read
+    once per run of its spheres (1.04-1.06x on the 25 k dense pile than the
+    other way round, the same at 275 k, when the slots were sorted by cell); and
+    a body's slots are consecutive too (stage_grid_sort), so the stores run in
+    order as well.
+    CUDA (k_spheres_sorted) runs a thread per slot."""
+    moved = 0
+    for i in prange(slot_of.shape[0]):
+        s = slot_of[i]
+        if body_still[sphere_body[i]] != 0:
+            continue
+        x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset, body_x,
+                                                       body_q, body_v, body_w)
+        moved += slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r,
+                            built_x, rebuild_at2)
+    return moved
+
+
+#: A sleeping pile's contact passes run over only the chunks with work left in
+#: them (stage_active) once at least this share of the bodies is quiet; below it
+#: finding the chunks would cost about what it saves.
+QUIET_SHARE = 0.5
+
+#: Steps at least between two searches for the spans (stage_active): the search is
+#: a pass over every slot, about what a step with few sleepers spends on them.
+#: Between searches the spans stay valid while bodies only fall quiet (they cover
+#: more than needed); a body that wakes sends the passes back to every chunk
+#: until the next search. (Searching at every change cost 0.91x on a pile waking
+#: and settling, half of it quiet; benchmarks/sleeping_pile.py --wake 1800.)
+SEARCH_GAP = 8
+
+
+@numba.njit(inline="always", cache=True)
+def body_quiet(b, body_inv_mass, body_rest, body_still, sleep_steps):
+    """Whether body b will do nothing in the contact passes of the next step: a
+    static collider (not a carried one moving: rest count -1), or a body asleep
+    that also slept through the step just done (body_still), so that its pass-1
+    and pass-2 results are those already stored."""
+    return (static_body(body_inv_mass[b]) and body_rest[b] >= 0) or (
+        body_rest[b] >= sleep_steps and body_still[b] != 0)
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still, sleep_steps,
+                 chunks, spans, wall_mask, moving_walls):
+    """After the body stage: spans[:n] (returned) = for each chunk of sorted slots
+    (chunks) with a slot the next step's contact passes must visit, the first and
+    one past the last such slot; the rest of the chunk's slots are left out.
+
+    A slot must be visited unless it is static or its body is quiet (body_quiet)
+    and so is the body of every partner in its list. Such a slot's visit writes
+    nothing: pass 1 at a sleeper computes only pairs with a moving partner (and
+    its walls not at all; its trim of the pairs it remembers was done when it
+    was last visited, asleep among the same sleepers), pass 2 writes the zero
+    force it wrote at its last visit. So the spans give the same State bit for
+    bit as every chunk (tests/sim/test_sleeping.py), and a pile where most bodies
+    sleep costs what its moving part costs, not its size. Valid for the steps
+    after it until a rebuild (new slots) or a quiet body wakes; bodies that fall
+    quiet meanwhile only make the spans cover more than needed (run_steps)."""
+    n_chunks = chunks.shape[0]
+    for c in prange(n_chunks):
+        lo = -1
+        hi = -1
+        for s in range(chunks[c, 0], chunks[c, 1]):
+            bi = sorted_body[s]
+            if static_body(body_inv_mass[bi]):
+                continue
+            visit = not body_quiet(bi, body_inv_mass, body_rest, body_still, sleep_steps) \
+                or (wall_mask[s] & moving_walls) != 0   # a moving wall may reach it
+            e = 0
+            while not visit and e < nbr_n[s]:
+                visit = not body_quiet(sorted_body[nbr[s, e]], body_inv_mass, body_rest,
+                                       body_still, sleep_steps)
+                e += 1
+            if visit:
+                if lo < 0:
+                    lo = s
+                hi = s + 1
+        spans[c, 0] = lo
+        spans[c, 1] = hi
+    n = 0
+    for c in range(n_chunks):        # serial, in chunk order: the same spans for any threads
+        if spans[c, 0] >= 0:
+            spans[n, 0] = spans[c, 0]
+            spans[n, 1] = spans[c, 1]
+            n += 1
+    return n
+
+
+def stage_contacts(cm, cs, motion_now, parity, spans, n_spans):
+    """Stages 3-4, first pass: the force of each contact, computed once, by the
+    sphere that owns it (kernels/contacts.py: pair_forces), and each sphere's
+    walls, in parallel over the spans of sorted slots spans[:n_spans] (every
+    chunk of CONTACT_CHUNK slots, or only those a sleeping pile leaves to do:
+    stage_active).
+
+    With friction, each contact's tangential spring lives in its owner's history
+    row (hist_partner, hist_spring: the State's contact_partner, contact_spring
+    with rows in sorted-slot order, see stage_history_to_slots): a contact found
+    again keeps its stretch, a new one starts at zero, and one not touched this
+    step (``parity``) is forgotten. Only a slot's own rows are written: gather.
+    A sphere of a moving body (rest count 0) that touches a sleeping body flags
+    it to wake (body_wake). cm, cs: layout.ContactModel, ContactScratch;
+    motion_now: control.Drive's; parity: step & 1.
+    """
+    for c in prange(n_spans):
+        pair_forces(spans[c, 0], spans[c, 1], cm, cs, motion_now, parity)
+
+
+def stage_sums(cm, cs, spans, n_spans):
+    """Stage 4, second pass (contacts.sphere_forces): each sphere gathers the
+    forces on itself, in its list's order (its partners' index order), then its
+    walls'; writes sphere_f, sphere_t (torque about the sphere's centre) and
+    sphere_overlap (largest overlap this step, [m]). Static and sleeping spheres
+    feel no force. Over spans[:n_spans], as stage_contacts."""
+    for c in prange(n_spans):
+        sphere_forces(spans[c, 0], spans[c, 1], cm, cs)
+
+
+def stage_bodies(n_bodies, bm, bs, step):
+    """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10).
+
+    With sleeping (sleep_steps > 0): a body slower than (v_sleep, w_sleep) for
+    sleep_steps steps in a row falls asleep (P = L = 0, no integration) until a
+    moving body touches it (body_wake, set by the contact stage). Returns (bodies
+    awake for the next step, bodies that woke from quiet, bodies quiet, bodies
+    that became quiet: body_update), integer sums: the same for any thread count.
+    bm, bs: layout.BodyModel, BodyScratch.
+    """
+    awake = 0
+    woke = 0
+    quiet = 0
+    calmed = 0
+    for b in prange(n_bodies):
+        r = body_update(b, bm, bs, step)
+        awake += r & 1
+        woke += (r >> 1) & 1
+        quiet += (r >> 2) & 1
+        calmed += r >> 3
+    return awake, woke, quiet, calmed
+
+
+def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, drive):
+    """Advance up to ``n_steps`` steps of the eight stages; everything stays in
+    compiled code. Returns (steps done, steps computed). Done is fewer than
+    n_steps only when a rebuild found a neighbour list longer than nbr holds
+    (nbr_n has the counts), or more pairs than pair_f has rows (pair_start[-1]
+    is the count): the caller grows them and calls again, that step not yet
+    begun. Computed is fewer than done when every body fell asleep.
+
+    Stages 2-3 (grid, sort, 27-cell search) run only to rebuild the neighbour
+    lists: at the first step, when a sphere has moved skin/2 d since, and when a
+    wide skin has gone SKIN_SHRINK_ABOVE steps without one (to shrink it). The
+    skin (skin_ctl[0], [d]) adapts at each rebuild to how many steps came since
+    the last (neighbours.adapt_skin, up to skin_ctl[2]); it changes which pairs
+    are listed, never a force (the frames do not depend on it). skin_ctl[1] carries the steps since the last rebuild from call to call,
+    skin_ctl[3] counts the rebuilds.
+
+    With sleeping, once every body is asleep the remaining steps are skipped:
+    a step then changes nothing (a sleeping body moves only when a moving one
+    touches it, and none is left), so skipping them gives the same State bit
+    for bit, at no cost. The scratch arrays keep the last step done.
+    And once at least quiet_share of the bodies are quiet, the contact passes
+    visit only the chunks of slots stage_active finds work in (spans): searched
+    at most every SEARCH_GAP steps, after a rebuild (new slots), a wake (a woken
+    body's chunks may be missing: every chunk until the next search) or once a
+    quarter of the bodies not quiet at the last search have become quiet (the
+    spans cover more than needed until then); exact too. span_ctl counts the
+    steps run so (0) and the searches (1).
+
+    The arguments: model (layout.StepModel: what the step reads of the Model),
+    state (layout.StepState: the State's arrays), scratch (layout.Scratch: the
+    backend's), drive (control.Drive): the prescribed motions, evaluated at the start of
+    each step (stage_motion, stage_driven) and once more at the end, so the State
+    holds the carried bodies where they are at its time; and the emitters' start
+    steps (a call never spans one: the backend splits it there).
+    """
+    # the structured arguments (layout.StepModel, StepState, Scratch; control.Drive),
+    # under the names the stages take them by
+    (dt, onset_speed, diameter, n_bodies, gravity, sphere_body, sphere_offset, body_sphere_start,
+     body_mass, body_inv_mass, body_inv_inertia, body_material, pair_k, pair_damp, pair_mu,
+     kt_ratio, ks_ratio, friction, sleep_steps, v_sleep, w_sleep, wall_normal, wall_offset,
+     wall_lo, wall_hi, wall_depth, wall_material, rolling, pair_rolling,
+     body_inv_radius) = model
+    (body_x, body_q, body_P, body_L, body_rest, contact_partner, contact_spring) = state
+    (hist_partner, hist_spring, body_wake, body_still, body_v, body_w, sphere_x, sphere_v,
+     sphere_r, sphere_key, sphere_hash, bucket_start, bucket_fill, body_key, grid_slot,
+     sorted_idx, slot_of, sorted_x, sorted_v, sorted_body, grid_idx, grid_x, grid_key,
+     grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
+     wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_tr, sphere_overlap,
+     skin_ctl, chunks, spans, span_ctl) = scratch
+    # what the contact passes take (layout.ContactModel, ContactScratch): the same arrays
+    cm = ContactModel(diameter, dt, onset_speed, body_inv_mass, body_material, pair_k,
+                      pair_damp, pair_mu, kt_ratio, ks_ratio, friction, sleep_steps,
+                      wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
+                      drive.wall_motion, rolling, pair_rolling, body_inv_radius)
+    cs = ContactScratch(nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s, list_start,
+                        list_e, sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest,
+                        body_wake, wall_mask, hist_partner, hist_spring, pair_f, wall_f,
+                        sphere_f, sphere_t, sphere_tr, sphere_overlap)
+    bm = BodyModel(dt, gravity, body_sphere_start, body_mass, body_inv_mass, body_inv_inertia,
+                   sleep_steps, v_sleep, w_sleep, drive.body_start, rolling)
+    bs = BodyScratch(sphere_f, sphere_t, sphere_tr, sphere_r, body_x, body_q, body_P, body_L,
+                     body_rest, body_wake, body_still)
+    if n_steps <= 0:
+        return 0, 0  # nothing sorted yet: the unsort below would scramble the State's rows
+    skin = skin_ctl[0]
+    since = skin_ctl[1]
+    inv_cell = 1.0 / ((1.0 + skin) * diameter)     # neighbours.cell_size, at this skin
+    half_skin = 0.5 * skin * diameter
+    rebuild = True
+    moved = False
+    computed = 0
+    n_chunks = chunks.shape[0]
+    n_spans = 0
+    spans_ok = False        # spans[:n_spans] hold this step's work (stage_active)
+    rebuilt = True
+    since_search = SEARCH_GAP
+    calmed_since = 0        # bodies that became quiet since the last search
+    quiet_then = 0          # and how many were quiet at it
+    driven = drive.motion_now.shape[0] > 0
+    body_start = drive.body_start
+    for step in range(first_step, first_step + n_steps):
+        computed += 1
+        stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
+                              body_v, body_w)
+        if driven:
+            stage_motion(step * dt, drive.motion_kind, drive.motion_v, drive.motion_w,
+                         drive.motion_pivot, drive.key_start, drive.key_t, drive.key_p,
+                         drive.key_q, drive.motion_now)
+            stage_driven(drive.driven_body, drive.body_motion, drive.body_anchor_c,
+                         drive.body_anchor_q, drive.motion_now, body_x, body_q, body_v, body_w,
+                         body_rest, body_still)
+        if not rebuild:
+            rebuild = stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x,
+                                           body_q, body_v, body_w, body_still, built_x,
+                                           half_skin * half_skin, sorted_x, sorted_v,
+                                           sphere_r) > 0
+            moved = rebuild
+            if not rebuild and skin > SKIN and since > SKIN_SHRINK_ABOVE:
+                rebuild = True                  # at rest with a wide skin: shrink it
+        if rebuild:
+            skin = adapt_skin(skin, since, skin_ctl[2], moved)    # the reach for this build
+            inv_cell = 1.0 / ((1.0 + skin) * diameter)
+            half_skin = 0.5 * skin * diameter
+            since = 0.0
+            moved = False
+            if FRICTION and friction and step > first_step:   # histories back to sphere order
+                stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
+                                    pair_f, wall_mask, wall_start, wall_s)
+                stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
+                                         contact_partner, contact_spring)
+            stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_cell,
+                          grid, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash)
+            stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start,
+                            bucket_start, bucket_fill, body_key, sorted_idx, slot_of, grid_idx,
+                            grid_slot)
+            stage_grid_gather(sorted_idx, grid_idx, sphere_x, sphere_v, sphere_key, sphere_body,
+                              sorted_x, sorted_v, sorted_body, grid_x, grid_key, grid_body)
+            if FRICTION and friction:
+                stage_history_to_slots(sorted_idx, contact_partner, contact_spring,
+                                       hist_partner, hist_spring)
+            if stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_key,
+                                grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
+                                body_inv_mass, built_x, nbr, nbr_n, body_start, step) > 0 or \
+                    stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
+                                pair_start, pidx, pair_t, pair_f.shape[0], list_start,
+                                list_e) > 0 or \
+                    (WALLS and stage_wall_reach(diameter, skin, sorted_x, wall_normal,
+                                                wall_offset, wall_lo, wall_hi, wall_depth,
+                                                wall_mask, wall_start,
+                                                hist_partner.shape[1] if FRICTION and friction
+                                                else 0, wall_s.shape[0], drive.wall_motion,
+                                                sorted_body, body_start, step) > 0):
+                skin_ctl[0] = skin              # the redo keeps this build's skin
+                skin_ctl[1] = since
+                return step - first_step, step - first_step   # the histories are current
+            skin_ctl[3] += 1.0
+            spans_ok = False                    # new slots, new lists
+            rebuilt = True
+            if FRICTION and friction:
+                stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
+                                    wall_mask, hist_partner, hist_spring, pair_f, wall_start,
+                                    wall_s)
+            rebuild = False
+        work = spans if spans_ok else chunks
+        n_work = n_spans if spans_ok else n_chunks
+        if spans_ok:
+            span_ctl[0] += 1
+        stage_contacts(cm, cs, drive.motion_now, step & 1, work, n_work)
+        stage_sums(cm, cs, work, n_work)
+        awake, woke, quiet, calmed = stage_bodies(n_bodies, bm, bs, step)
+        since_search += 1
+        calmed_since += calmed
+        if rebuilt or woke > 0:
+            spans_ok = False    # (at the first step: body_still was stale, rebuilt is set)
+        if SLEEPING and sleep_steps > 0 and quiet >= quiet_share * n_bodies and quiet > 0:
+            if since_search >= SEARCH_GAP and (
+                    not spans_ok or 4 * calmed_since >= n_bodies - quiet_then):
+                n_spans = stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest,
+                                       body_still, sleep_steps, chunks, spans, wall_mask,
+                                       drive.moving_walls)
+                span_ctl[1] += 1
+                spans_ok = True
+                since_search = 0
+                calmed_since = 0
+                quiet_then = quiet
+        else:
+            spans_ok = False
+        rebuilt = False
+        since += 1.0
+        if SLEEPING and sleep_steps > 0 and awake == 0:
+            break                               # all asleep: nothing changes any more
+    skin_ctl[0] = skin
+    skin_ctl[1] = since
+    if driven:                  # the carried bodies where they are at the State's time
+        stage_motion((first_step + n_steps) * dt, drive.motion_kind, drive.motion_v,
+                     drive.motion_w, drive.motion_pivot, drive.key_start, drive.key_t,
+                     drive.key_p, drive.key_q, drive.motion_now)
+        stage_driven(drive.driven_body, drive.body_motion, drive.body_anchor_c,
+                     drive.body_anchor_q, drive.motion_now, body_x, body_q, body_v, body_w,
+                     body_rest, body_still)
+    stage_unsort(sorted_idx, sorted_x, sphere_x)
+    if FRICTION and friction:
+        stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f,
+                            wall_mask, wall_start, wall_s)
+        stage_history_to_spheres(sorted_idx, hist_partner, hist_spring, contact_partner,
+                                 contact_spring)
+    return n_steps, computed
+
+
+_STAGES = (stage_body_velocities, motion_row, driven_row, stage_motion, stage_driven,
+           sphere_state, stage_spheres,
+           stage_spheres_sorted,
+           contacts.wall_gap, contacts.pair_ended, contacts.pair_forces, contacts.sphere_forces,
+           stage_contacts, stage_sums, body_update,
+           stage_bodies, run_steps)
+_JITS = {
+    "stage_body_velocities": numba.njit(parallel=True, cache=True),
+    "motion_row": numba.njit(inline="always", cache=True),
+    "driven_row": numba.njit(inline="always", cache=True),
+    "stage_motion": numba.njit(cache=True),
+    "stage_driven": numba.njit(cache=True),
+    "sphere_state": numba.njit(inline="always", cache=True),
+    "stage_spheres": numba.njit(parallel=True, cache=True),
+    "stage_spheres_sorted": numba.njit(parallel=True, cache=True),
+    "wall_gap": numba.njit(inline="always", cache=True),
+    "pair_ended": numba.njit(inline="always", cache=True),
+    "pair_forces": numba.njit(cache=True),
+    "sphere_forces": numba.njit(cache=True),
+    "stage_contacts": numba.njit(parallel=True, cache=True),
+    "stage_sums": numba.njit(parallel=True, cache=True),
+    "body_update": numba.njit(cache=True),
+    "stage_bodies": numba.njit(parallel=True, cache=True),
+    "run_steps": numba.njit(cache=True),
+}
+_VARIANTS: dict = {}
+
+
+def kernels(flags, law: str = "linear") -> "types.SimpleNamespace":
+    """The stage drivers compiled for ``flags`` (friction, rotation, sleeping, walls)
+    and the contact ``law`` (laws.LAWS; the module's formulas are the linear law's,
+    another law's are compiled and overlaid), created on first use; numba compiles
+    each (or loads it from its disk cache) at its first call."""
+    flags = tuple(bool(f) for f in flags)
+    key = flags if law == "linear" else (flags, law)
+    if key not in _VARIANTS:
+        tag = "".join(f"{n[0].upper()}{int(f)}" for n, f in zip(FLAGS, flags))
+        consts = {n.upper(): f for n, f in zip(FLAGS, flags)}
+        if law != "linear":
+            tag += f"_{law}"
+            fl = compile_formulas(numba.njit(inline="always", cache=False), law)
+            consts.update(sphere_pair_force=fl.sphere_pair_force,
+                          sphere_wall_force=fl.sphere_wall_force,
+                          contact_coefficients=fl.contact_coefficients, closing=fl.closing)
+        _VARIANTS[key] = specialize(_STAGES, _JITS, consts, tag, globals())
+    return _VARIANTS[key]
+
+

@@ -1,0 +1,229 @@
+"""Materials and contact parameters: where stability lives.
+
+A user thinks in restitution, not in dashpot constants. The contact law
+(``laws.law(name)``, laws/linear.py for the linear spring-dashpot) turns the
+asked restitution into a damping ratio, the asked overlap into a stiffness,
+and gives each contact's frequency and critical step; this module holds what
+does not depend on the law: the materials, how two of them mix, the table of
+pair constants and the choice of dt (explicit symplectic Euler integration
+stays far below the critical step, because accuracy of the bounce, and of
+piles with many simultaneous contacts whose stiffness adds up, needs ~16 steps
+per contact, not ~1). The functions below named for a derived quantity
+(damping_ratio, contact_time, critical_dt, auto_stiffness, ...) are the linear
+law's, kept here under the names callers know.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from dempipe.errors import StabilityError
+from dempipe.sim.laws import linear as _law
+
+#: Steps per contact duration that dt="auto" aims for, the default law's (each law
+#: says its own: laws.linear.STEPS_PER_CONTACT, laws.hertz.STEPS_PER_CONTACT).
+STEPS_PER_CONTACT = _law.STEPS_PER_CONTACT
+
+#: Tangential dashpot as a multiple of √(k m_eff). With the tangential spring
+#: (ks = 2/7 k, below) doing the holding, the dashpot only damps the tangential
+#: oscillation: for a ball (m_t = 2/7 m) 0.3 is a damping ratio of
+#: 0.3 / (2 · 2/7) ≈ 0.52. It must stay small because a body touching on n
+#: contacts feels n dashpots: at 1.0 a box resting on 16 contacts rocked
+#: unstably at dt auto and crept down a 20° slope at 7 mm/s with μ = 0.6
+#: (tests/sim/test_friction.py); at 0.1-0.5 it holds to 1e-18 m/s.
+TANGENTIAL_RATIO = 0.3
+
+#: Tangential spring as a fraction of the normal one, ks = 2/7 k: a solid ball's
+#: tangential oscillation (effective mass 2/7 m) then has the normal frequency,
+#: so the static-friction spring adds no faster mode than dt already resolves
+#: (Schäfer, Dippel and Wolf 1996).
+TANGENTIAL_SPRING_RATIO = 2.0 / 7.0
+
+
+#: Default rolling-friction coefficient μ_r [1]: the rolling-resistance torque's
+#: lever arm as a fraction of the rolling radius (physics.rolling_torque). Small
+#: but not zero, so a ball on a plane comes to rest (after 7 v0² / (10 μ_r g): 7 m
+#: from 1 m/s) instead of rolling forever; a billiard ball on cloth is near 0.01,
+#: a steel ball on steel near 0.001 (the coefficient of rolling resistance).
+ROLLING_FRICTION = 0.01
+
+
+@dataclass(frozen=True)
+class Material:
+    """A material as the user gives it.
+
+    density : [kg/m³] > 0
+    restitution : e ∈ [0, 1], normal rebound speed / approach speed
+    friction : Coulomb μ ≥ 0 (0 turns friction off)
+    stiffness : normal spring k [N/m] (the Hertz law: its constant K [N/m^1.5]), or
+        None for "auto"
+    young_modulus : Young's modulus E [Pa] for the Hertz law, or None: K from E and
+        poisson_ratio ν (laws.hertz.stiffness_from_modulus) instead of "auto"
+    rolling_friction : rolling-resistance coefficient μ_r ≥ 0 [1] (0 turns it off;
+        physics.rolling_torque)
+    """
+
+    name: str
+    density: float = 1000.0
+    restitution: float = 0.5
+    friction: float = 0.5
+    stiffness: float | None = None
+    young_modulus: float | None = None
+    poisson_ratio: float = 0.3
+    rolling_friction: float = ROLLING_FRICTION
+
+
+DEFAULT_MATERIAL = Material("default")
+
+
+damping_ratio = _law.damping_ratio
+restitution_from_damping = _law.restitution
+contact_time = _law.contact_time
+critical_dt = _law.critical_dt
+damped_critical_step = _law.critical_step
+auto_stiffness = _law.stiffness_for_overlap
+
+
+def mix(a: Material, b: Material) -> tuple[float | None, float, float]:
+    """Contact parameters of a pair of materials: (k, e, μ).
+
+    Stiffness: springs in series, k = 2 k_a k_b / (k_a + k_b) (equal materials keep
+    their k). Restitution and friction: geometric means (equal materials keep theirs,
+    and a frictionless partner makes the pair frictionless, as in Bullet's product rule).
+    """
+    if a.stiffness is None or b.stiffness is None:
+        k = None
+    else:
+        k = 2.0 * a.stiffness * b.stiffness / (a.stiffness + b.stiffness)
+    return k, math.sqrt(a.restitution * b.restitution), math.sqrt(a.friction * b.friction)
+
+
+def mix_rolling(a: Material, b: Material) -> float:
+    """The pair's rolling-friction coefficient μ_r: the geometric mean, as friction's
+    (equal materials keep theirs; a partner without rolling resistance has none)."""
+    return math.sqrt(a.rolling_friction * b.rolling_friction)
+
+
+@dataclass(frozen=True)
+class PairTable:
+    """Per material pair contact constants, indexed [material_i, material_j].
+
+    k : (M, M) normal stiffness [N/m]
+    zeta : (M, M) normal damping ratio [-]
+    mu : (M, M) Coulomb friction [-]
+    kt_ratio : tangential viscous coefficient as a multiple of √(k m_eff) [-]
+    ks_ratio : tangential spring as a multiple of k [-] (static friction)
+    mu_r : (M, M) rolling-friction coefficient [-] (mix_rolling; 0 for a frictionless pair)
+    """
+
+    k: np.ndarray
+    zeta: np.ndarray
+    mu: np.ndarray
+    kt_ratio: float = TANGENTIAL_RATIO
+    ks_ratio: float = TANGENTIAL_SPRING_RATIO
+    mu_r: np.ndarray = None
+
+
+def pair_table(materials: list[Material], stiffness: list[float], law=_law) -> PairTable:
+    """Build the pair table from materials and their resolved stiffness (auto applied);
+    ``law``: the contact law module whose damping ratio gives each pair's restitution."""
+    m = len(materials)
+    k = np.zeros((m, m))
+    zeta = np.zeros((m, m))
+    mu = np.zeros((m, m))
+    mu_r = np.zeros((m, m))
+    for i, a in enumerate(materials):
+        for j, b in enumerate(materials):
+            ka, kb = stiffness[i], stiffness[j]
+            k[i, j] = 2.0 * ka * kb / (ka + kb)
+            _, e, f = mix(a, b)
+            zeta[i, j] = law.damping_ratio(e)
+            mu[i, j] = f
+            # a frictionless contact takes no tangential force: it cannot roll a body,
+            # so it resists no rolling either (friction 0 means no grip of any kind)
+            mu_r[i, j] = mix_rolling(a, b) if f > 0.0 else 0.0
+    return PairTable(k, zeta, mu, mu_r=mu_r)
+
+
+#: Largest rotation per step dt "auto" allows a free spin [rad]: the midpoint
+#: orientation update keeps a spinning needle's energy within 1e-3 at 0.04.
+MAX_SPIN_STEP = 0.04
+
+#: dt "auto" moves no point of a body launched at the scene's initial speeds
+#: further than this fraction of a diameter per step: half the bake's travel
+#: guard (simulator.MAX_STEP_TRAVEL), so a spinning needle's tip stays resolved.
+AUTO_TRAVEL = 0.25
+
+#: dt "auto" stays below this fraction of the critical step of a flat landing
+#: (see flat_face_critical_step).
+FLAT_FACE_SAFETY = 0.5
+
+
+def flat_face_critical_step(n: int, k: float, m: float, zeta: float, law=_law,
+                            speed: float = 1.0) -> float:
+    """Critical step of a body of mass m landing flat on n spheres at once [s].
+
+    Each contact's dashpot is η = 2ζ√(k m) (the body's mass, see docs/physics.md),
+    so n contacts in parallel are one oscillator of stiffness n k and damping
+    n η: ω_n = √n ω, ζ_n = √n ζ. A wide flat face (a tile: n = 64) makes ζ_n
+    large and its critical step far shorter than a corner contact's.
+    """
+    kn, zn = law.parallel(n, k, zeta)
+    return law.critical_step(law.omega(kn, m, speed), zn)
+
+
+def auto_dt(omega_max: float, fps: float, steps_per_contact: float = STEPS_PER_CONTACT,
+            zeta_max: float = 0.0, dt_max: float = math.inf) -> tuple[float, int]:
+    """dt from the stiffest mode, rounded down so each frame is whole steps.
+
+    omega_max : the largest contact frequency √(k/m_eff) of the scene [rad/s]
+                (translational and rotational effective masses included).
+    zeta_max : the largest damping ratio; the contact lasts π/(ω√(1−ζ²)), but
+               for ζ → 1 (e → 0) that grows without bound while the dynamics
+               do not slow down, so √(1−ζ²) is taken no smaller than 1/√2 (at
+               1/2, e = 0 rebounded at 0.143 of its impact speed, above the exact
+               e^-2 = 0.135; at 1/√2, 0.100: tests/sim/test_extremes.py).
+    dt_max : a further bound [s] (flat faces, free spin), see ModelBuilder.finalize.
+    Returns (dt, steps_per_frame).
+    """
+    if omega_max == math.inf:
+        raise StabilityError(_STIFF_REFUSAL.format(what="infinitely stiff (the speeds or "
+                                                   "gravity overflow)"))
+    if not (omega_max > 0.0 and math.isfinite(omega_max)):
+        # No contact can happen (no colliders, one body): one step per 1/240 s
+        # resolves free flight and tumbling well.
+        dt_target = 1.0 / 240.0
+    else:
+        tc = math.pi / (omega_max * math.sqrt(max(1.0 - zeta_max**2, 0.5)))
+        dt_target = tc / steps_per_contact
+    dt_target = min(dt_target, dt_max)
+    frame = 1.0 / fps
+    per_frame = frame / dt_target if dt_target > 0.0 else math.inf
+    if not per_frame < 1e15:
+        raise StabilityError(_STIFF_REFUSAL.format(
+            what=f"so stiff that a frame needs {per_frame:.3g} steps"))
+    steps = max(1, math.ceil(per_frame - 1e-9))
+    return frame / steps, steps
+
+
+#: auto_dt's refusal of contacts no step can resolve (keys named for the user).
+_STIFF_REFUSAL = ("simulation.dt: the auto step finds the contacts {what}: check the "
+                  "bodies' velocity and angular_velocity, simulation.gravity and "
+                  "simulation.stiffness_target_overlap (physical values are metres per "
+                  "second, about 9.81 m/s² and 0.01-0.1)")
+
+
+def check_dt(dt: float, omega_max: float, zeta_min: float, where: str, law=_law) -> None:
+    """Refuse a user dt above the critical step of the stiffest contact (``law``'s)."""
+    if omega_max <= 0.0:
+        return
+    limit = law.critical_step(omega_max, zeta_min)
+    if dt >= limit:
+        raise StabilityError(
+            f"{where}: dt = {dt:.3g} s is above the critical step {limit:.3g} s of the "
+            f"stiffest contact (ω = {omega_max:.4g} rad/s); use dt = \"auto\", a dt below "
+            f"{limit / law.STEPS_PER_CONTACT * math.pi / 2:.3g} s, or softer materials"
+        )

@@ -1,0 +1,57 @@
+"""How a sphere set is built: its mode, the surface mode's spacing and the inside test's
+threshold. Every option is part of the sphere-set cache key."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from dempipe.errors import ShapeError
+
+#: Default spacing of the surface mode's shell centres, as a fraction of the diameter
+#: d. Chosen from the measured bump height (docs/spheres.md, "Surface mode"): at 0.3 d
+#: the envelope of a flat face or a round one dips at most ~0.03 d between neighbours.
+#: Here rather than in spheres.surface, so that `dempipe check` does not import numba.
+DEFAULT_SPACING = 0.3
+#: The sphere-set modes: "lattice" (solid voxelization, Harada et al.) and "surface"
+#: (centres on the inward offset of the surface, so round bodies roll).
+MODES = ("lattice", "surface")
+#: The mode a scene gets when it names none (docs/spheres.md, "Surface mode": why).
+DEFAULT_MODE = "lattice"
+
+
+@dataclass(frozen=True)
+class BuildOptions:
+    """Options of the sphere-set builder (all part of the cache key).
+
+    winding_threshold: a lattice cell is kept when ``|winding number|`` at its centre
+        exceeds this (0.5: the generalized winding number's natural inside test).
+    mode: "lattice" (solid voxelization: the cells inside the mesh) or "surface"
+        (centres on the inward offset of the surface at d/2, dempipe.spheres.surface).
+    spacing: surface mode only: spacing of the shell's centres as a fraction of the
+        diameter, in [0.05, 1].
+    """
+
+    winding_threshold: float = 0.5
+    mode: str = DEFAULT_MODE
+    spacing: float = DEFAULT_SPACING
+
+    def __post_init__(self):
+        t = self.winding_threshold
+        if not (isinstance(t, (int, float)) and 0.0 < float(t) < 1.0):
+            raise ShapeError(f"winding_threshold must be between 0 and 1, got {t!r}")
+        if self.mode not in MODES:
+            raise ShapeError(f"sphere mode must be one of {', '.join(MODES)}, got {self.mode!r}")
+        h = self.spacing
+        if isinstance(h, bool) or not isinstance(h, (int, float)) or not 0.05 <= float(h) <= 1.0:
+            raise ShapeError(f"surface spacing must be a fraction of the diameter in "
+                             f"[0.05, 1], got {h!r}")
+
+    def key_text(self) -> str:
+        items = asdict(self)
+        if self.mode == "lattice":
+            # the lattice ignores the surface options: its keys stay those of before
+            items = {k: v for k, v in items.items() if k not in ("mode", "spacing")}
+        return repr(sorted((k, repr(v)) for k, v in items.items()))
+
+
+DEFAULT_OPTIONS = BuildOptions()

@@ -1,0 +1,143 @@
+"""Meshes and their looks: polygon mesh prims with crease-angle normals, one
+UsdPreviewSurface material per shape and one for the colliders.
+
+    _author_mesh(prim, vertices, faces, color, material)  # points, topology, normals
+    corner_normals(vertices, faces)                       # faceted at sharp edges
+
+Bodies cycle through ``_PALETTE`` by shape; colliders are grey. Lengths are in
+stage units (the caller divides by ``model.meters_per_unit``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pxr import Gf, Sdf, Vt
+
+from dempipe.usd.authoring import _DEF, _T, _attr, _unique_names
+
+# Display colours: bodies cycle through a palette by shape, colliders are grey.
+_PALETTE = np.array(
+    [
+        [0.85, 0.33, 0.10], [0.00, 0.45, 0.74], [0.47, 0.67, 0.19],
+        [0.93, 0.69, 0.13], [0.49, 0.18, 0.56], [0.30, 0.75, 0.93],
+        [0.64, 0.08, 0.18], [0.90, 0.90, 0.85],
+    ],
+    dtype=np.float32,
+)
+_COLLIDER_COLOR = (0.55, 0.55, 0.55)
+
+
+def _author_mesh(prim, vertices, faces, color, material=None) -> None:
+    """Points, topology, extent, normals, displayColor and material of a polygon mesh prim.
+
+    ``material``: the path of a ``UsdShade.Material`` to bind (``material:binding``),
+    so that DCC tools show ``color`` by default: most ignore ``displayColor`` unless a
+    material reads it (Blender, Maya, Omniverse), and usdview draws the material too.
+    """
+    pts = np.ascontiguousarray(vertices, dtype=np.float32)
+    faces = np.asarray(faces, dtype=np.int32)
+    _attr(prim, "points", _T.Point3fArray, Vt.Vec3fArray.FromNumpy(pts))
+    _attr(prim, "faceVertexCounts", _T.IntArray,
+          Vt.IntArray.FromNumpy(np.full(len(faces), faces.shape[1] if faces.ndim == 2 else 3,
+                                        dtype=np.int32)))
+    _attr(prim, "faceVertexIndices", _T.IntArray,
+          Vt.IntArray.FromNumpy(np.ascontiguousarray(faces.reshape(-1))))
+    if len(pts):
+        ext = np.stack([pts.min(axis=0), pts.max(axis=0)])
+    else:
+        ext = np.zeros((2, 3), np.float32)
+    _attr(prim, "extent", _T.Float3Array, Vt.Vec3fArray.FromNumpy(ext))
+    _attr(prim, "subdivisionScheme", _T.Token, "none", uniform=True)
+    if len(faces):
+        normals = _attr(prim, "normals", _T.Normal3fArray, Vt.Vec3fArray.FromNumpy(
+            np.ascontiguousarray(corner_normals(vertices, faces), dtype=np.float32)))
+        normals.SetInfo("interpolation", "faceVarying")
+    col = _attr(prim, "primvars:displayColor", _T.Color3fArray,
+                Vt.Vec3fArray([Gf.Vec3f(*map(float, color))]))
+    col.SetInfo("interpolation", "constant")
+    if material is not None:
+        prim.SetInfo("apiSchemas", Sdf.TokenListOp.CreateExplicit(["MaterialBindingAPI"]))
+        rel = Sdf.RelationshipSpec(prim, "material:binding", custom=False)
+        rel.targetPathList.explicitItems = [material]
+
+
+#: Faces meeting at a smaller angle than this share their normals at a corner
+#: (smooth shading); at a larger one the edge stays sharp. Blender's default
+#: "auto smooth" angle: a box stays faceted, a revolved chess piece is smooth
+#: between its 11.25-degree segments and sharp at the rim of its base.
+CREASE_ANGLE_DEG = 30.0
+
+
+def corner_normals(vertices, faces, crease_deg: float = CREASE_ANGLE_DEG) -> np.ndarray:
+    """Face-varying normals (F * K, 3) of a polygon mesh (K corners a face).
+
+    At each corner, the area-weighted mean of the normals of the faces that share
+    its vertex and lie within ``crease_deg`` of the corner's own face: faceted
+    where faces meet at a sharp angle, smooth across shallow ones (what Houdini's
+    cusp angle and Blender's auto smooth do). Without authored normals every DCC
+    smooths the whole mesh, so a box looks like a pillow. Deterministic (sums in a
+    fixed order).
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    k = f.shape[1]
+    # Polygon normal by Newell's method (area-weighted; exact for triangles).
+    p = v[f]
+    q = np.roll(p, -1, axis=1)
+    fn = np.stack([((p[..., 1] - q[..., 1]) * (p[..., 2] + q[..., 2])).sum(1),
+                   ((p[..., 2] - q[..., 2]) * (p[..., 0] + q[..., 0])).sum(1),
+                   ((p[..., 0] - q[..., 0]) * (p[..., 1] + q[..., 1])).sum(1)], axis=1)
+    length = np.linalg.norm(fn, axis=1, keepdims=True)
+    unit = fn / np.where(length > 0, length, 1.0)
+    corner_v = f.reshape(-1)
+    corner_f = np.repeat(np.arange(len(f)), k)
+    # Every (corner, face at the corner's vertex) pair, grouped by vertex.
+    order = np.argsort(corner_v, kind="stable")
+    count = np.bincount(corner_v, minlength=len(v))
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    n_at = count[corner_v[order]]                      # faces at each sorted corner's vertex
+    i = np.repeat(np.arange(len(order)), n_at)         # sorted corner of each pair
+    first = start[corner_v[order]]
+    run = np.repeat(np.cumsum(n_at) - n_at, n_at)
+    j = first[i] + (np.arange(len(i)) - run)           # sorted corner giving the face
+    c, g = order[i], corner_f[order[j]]
+    near = (unit[g] * unit[corner_f[c]]).sum(1) >= np.cos(np.radians(crease_deg)) - 1e-9
+    c, g = c[near], g[near]
+    out = np.stack([np.bincount(c, weights=fn[g, a], minlength=len(corner_v))
+                    for a in range(3)], axis=1)
+    norm = np.linalg.norm(out, axis=1, keepdims=True)
+    flat = unit[corner_f]
+    return np.where(norm > 0, out / np.where(norm > 0, norm, 1.0), flat)
+
+
+def _author_material(looks, name, color):
+    """A ``UsdPreviewSurface`` material of diffuse ``color`` under ``looks``; its path.
+
+    Every renderer and DCC importer reads UsdPreviewSurface; the diffuse colour
+    also reads as the object's colour in viewports. Authored with Sdf like the rest.
+    """
+    mat = Sdf.PrimSpec(looks, name, _DEF, "Material")
+    shader = Sdf.PrimSpec(mat, "PreviewSurface", _DEF, "Shader")
+    _attr(shader, "info:id", _T.Token, "UsdPreviewSurface", uniform=True)
+    _attr(shader, "inputs:diffuseColor", _T.Color3f, Gf.Vec3f(*map(float, color)))
+    _attr(shader, "inputs:roughness", _T.Float, 0.6)
+    _attr(shader, "inputs:metallic", _T.Float, 0.0)
+    out = _attr(shader, "outputs:surface", _T.Token)
+    surface = _attr(mat, "outputs:surface", _T.Token)
+    surface.connectionPathList.explicitItems = [out.path]
+    return mat.path
+
+
+def _shape_materials(world, model):
+    """One material per shape (its palette colour), and one for the colliders:
+    ``(shape material paths, collider material path)`` under ``/World/Looks``."""
+    looks = Sdf.PrimSpec(world, "Looks", _DEF, "Scope")
+    names = _unique_names([f"{s.name}_mat" for s in model.shapes] + ["collider_mat"])
+    paths = [_author_material(looks, n, _PALETTE[i % len(_PALETTE)])
+             for i, n in enumerate(names[:-1])]
+    return paths, _author_material(looks, names[-1], _COLLIDER_COLOR)
+
+
+def _shape_points(model, mpu):
+    """Body-frame prototype points in stage units, one array per shape."""
+    return [np.asarray(s.vertices, dtype=np.float64) / mpu for s in model.shapes]

@@ -1,0 +1,124 @@
+"""Guards during a bake: an unstable or unforeseen run stops
+at the step it goes wrong, with a message naming the frame, the time, the body
+and the likely cause, and keeps every frame before it."""
+
+import math
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from bodies import ball_set, box_set
+from dempipe.errors import StabilityError
+from dempipe.sim.materials import Material
+from dempipe.sim.builder import ModelBuilder
+from dempipe.sim.simulator import BakeFailure, Simulator
+from dempipe_cli.main import app
+
+D = 0.01
+
+
+def bouncing_boxes(dt, e=1.0, n_frames=40):
+    """Lossless boxes dropped onto a plane with a user dt (forced past the check)."""
+    b = ModelBuilder(D)
+    ss, mesh = box_set(2, 2, 2, D)
+    s = b.add_shape("box", mesh, ss)
+    m = b.add_material(Material("m", density=1000, restitution=e, friction=0.3,
+                                stiffness=1e4))
+    b.add_bodies("boxes", s, m, [[0.0, 0.0, 0.012], [0.03, 0.0, 0.02]])
+    b.add_plane([0, 0, 0], [0, 0, 1], m)
+    return b.finalize(fps=24, n_frames=n_frames, dt=dt, force=True)
+
+
+def test_energy_growth_stops_the_bake_and_keeps_the_frames():
+    # Past the critical step the explicit spring gains energy every contact: the
+    # guard must stop it as energy growth (before it becomes NaN), name the body,
+    # and hand back the frames recorded so far.
+    auto = bouncing_boxes("auto")
+    crit = 2.0 / auto.omega_max           # undamped critical step (e = 1)
+    model = bouncing_boxes(1.0 / 24 / math.floor(1.0 / 24 / (1.3 * crit)))
+    with pytest.raises(BakeFailure) as info:
+        Simulator(model).advance(model.initial_state())
+    msg = str(info.value)
+    assert "energy grew" in msg and "boxes[" in msg and "t = " in msg and "dt" in msg
+    kept = info.value.frames
+    assert 1 <= kept.n_frames < model.n_frames
+    assert np.isfinite(kept.x).all()
+
+
+def test_stable_run_is_not_stopped():
+    # the same scene at dt auto: lossless bounces keep their energy, no guard trips
+    model = bouncing_boxes("auto")
+    frames = Simulator(model).advance(model.initial_state())
+    assert frames.n_frames == model.n_frames
+
+
+def test_unforeseen_speed_stops_the_bake():
+    # A ball launched far faster than dt was chosen for (dt given, forced): it
+    # would cross the plane in one step. The guard stops it at frame 1, still in
+    # flight, before it reaches the plane.
+    b = ModelBuilder(D)
+    ss, mesh = ball_set(D)
+    s = b.add_shape("ball", mesh, ss)
+    m = b.add_material(Material("m", density=1000, restitution=0.5, friction=0.0))
+    b.add_bodies("ball", s, m, [[0.0, 0.0, 20.0]], velocities=[[0.0, 0.0, -200.0]])
+    b.add_plane([0, 0, 0], [0, 0, 1], m)
+    model = b.finalize(fps=24, n_frames=10, dt=1.0 / 2400, force=True)
+    with pytest.raises(BakeFailure) as info:
+        Simulator(model).advance(model.initial_state())
+    msg = str(info.value)
+    assert "ball[0]" in msg and "per step" in msg and "frame 1 " in msg
+
+
+def test_user_dt_above_critical_is_refused_without_force():
+    b = ModelBuilder(D)
+    ss, mesh = ball_set(D)
+    s = b.add_shape("ball", mesh, ss)
+    m = b.add_material(Material("m", stiffness=1e6))
+    b.add_bodies("ball", s, m, [[0.0, 0.0, 0.02]])
+    b.add_plane([0, 0, 0], [0, 0, 1], m)
+    with pytest.raises(StabilityError, match="critical step"):
+        b.finalize(fps=24, n_frames=5, dt=1.0 / 240)
+
+
+TUNNEL = """
+[output]
+fps = 24
+duration = 0.2
+[simulation]
+sphere_diameter = 0.01
+dt = {dt}
+[materials.m]
+restitution = 0.5
+friction = 0.3
+stiffness = 1000.0
+[shapes.ball]
+builtin = "sphere"
+diameter = 0.01
+[[bodies]]
+name = "ball"
+shape = "ball"
+material = "m"
+layout = "single"
+position = [0.0, 0.0, 0.5]
+velocity = [0.0, 0.0, -60.0]
+[[colliders]]
+type = "plane"
+point = [0.0, 0.0, 0.0]
+normal = [0.0, 0.0, 1.0]
+material = "m"
+"""
+
+
+def test_bake_refuses_tunnelling_and_names_the_fix(tmp_path):
+    # soft user stiffness + dt auto: the step is long for a 60 m/s ball; bake
+    # refuses with the check's message (one line, exit 1, nothing written)
+    scene = tmp_path / "tunnel.toml"
+    scene.write_text(TUNNEL.format(dt='"auto"'))
+    out = tmp_path / "o.usdc"
+    res = CliRunner().invoke(app, ["bake", str(scene), "-o", str(out), "--quiet",
+                                   "--cache-dir", str(tmp_path / "c")])
+    assert res.exit_code != 0
+    msg = str(res.exception) + res.output
+    assert "diameter per step" in msg and "stiffness" in msg and "--force" in msg
+    assert not out.exists()

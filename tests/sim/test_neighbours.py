@@ -1,0 +1,236 @@
+"""Verlet neighbour lists (kernels/neighbours.py) on the CPU target.
+
+The lists are an optimisation of stages 2-3, never of the physics: each list must
+hold every partner within its reach, and the frames must not depend on when the
+lists are rebuilt (a list is summed in its partners' index order, and a listed
+pair farther apart than d adds nothing). Both are asserted exactly here.
+"""
+
+import numpy as np
+
+from bodies import ball_set
+from dempipe.sim.kernels.neighbours import SKIN, SKIN_MAX, adapt_skin, cell_size
+from dempipe.sim.materials import Material
+from dempipe.sim.builder import ModelBuilder
+from dempipe.sim.simulator import Simulator
+from dempipe.sim.kernels.cpu.backend import CpuBackend
+from test_simulation import cluster_model
+
+D = 0.01
+
+
+def loose_balls(n=300, seed=3, box=0.06):
+    """One-sphere bodies scattered at random (some touching, many just outside reach)
+    in a box, thrown in every direction, no gravity: pairs at every distance."""
+    rng = np.random.default_rng(seed)
+    b = ModelBuilder(D, gravity=(0, 0, 0))
+    ss, mesh = ball_set(D)
+    s = b.add_shape("ball", mesh, ss)
+    m = b.add_material(Material("m", density=1000, restitution=0.8, friction=0.3))
+    pos = rng.uniform(D, box - D, size=(n, 3))
+    keep = [0]
+    for i in range(1, n):      # no deep overlaps at the start (they would explode)
+        if np.min(np.linalg.norm(pos[keep] - pos[i], axis=1)) > 0.9 * D:
+            keep.append(i)
+    pos = pos[keep]
+    b.add_bodies("balls", s, m, pos, velocities=rng.normal(size=pos.shape) * 0.3)
+    b.add_box([0, 0, 0], [box, box, box], material=m)
+    return b.finalize(fps=60, n_frames=6)
+
+
+def ball_lattice(n=5, pitch=1.05, seed=4):
+    """n³ one-sphere bodies on a cubic lattice pitch d apart (inside every list's reach,
+    not touching), jostled: each ball starts with up to 6 listed partners."""
+    rng = np.random.default_rng(seed)
+    b = ModelBuilder(D)
+    ss, mesh = ball_set(D)
+    s = b.add_shape("ball", mesh, ss)
+    m = b.add_material(Material("m", density=1000, restitution=0.5, friction=0.5))
+    g = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    pos = (g + 1.0) * pitch * D
+    b.add_bodies("balls", s, m, pos, velocities=rng.normal(size=pos.shape) * 0.2)
+    b.add_box([0, 0, 0], [(n + 1) * pitch * D] * 2 + [0.2], material=m)
+    return b.finalize(fps=60, n_frames=6)
+
+
+def brute_force_lists(backend, model):
+    """For each sorted slot: the set of slots of spheres of other bodies within the
+    lists' reach, by testing every pair (the oracle for the 27-cell search)."""
+    x = backend.sorted_x
+    body = backend.sorted_body
+    reach2 = cell_size(model.diameter) ** 2
+    d2 = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
+    near = (d2 < reach2) & (body[:, None] != body[None, :])
+    static = model.body_inv_mass[body] == 0
+    near[static, :] = False
+    return near
+
+
+def test_lists_hold_every_partner_within_reach_in_index_order():
+    # the cells of the rebuild grid are (1 + SKIN) d: with cells of d, partners
+    # between d and (1 + SKIN) d two cells away were missed (energy grew in the
+    # elastic gas of test_extremes)
+    for model in (loose_balls(), ball_lattice(), cluster_model(n=20)):
+        be = CpuBackend(model)
+        st = model.initial_state()
+        for _ in range(3):
+            be.step(st, max(1, model.steps_per_frame // 3))
+            be.probe(st)                     # rebuilds the lists from this state
+            near = brute_force_lists(be, model)
+            for s in range(model.n_spheres):
+                lst = be.nbr[s, : be.nbr_n[s]]
+                assert set(lst.tolist()) == set(np.flatnonzero(near[s]).tolist()), s
+                idx = be.sorted_idx[lst]
+                assert np.all(np.diff(idx) > 0), s       # partners' index order
+
+
+def z_order(c):
+    """Place on the Z-order curve of integer cell coordinates (x, y, z): bit k of
+    x, y, z to bits 3k, 3k+1, 3k+2 (the reference for kernels.cpu.device.morton_key)."""
+    key = 0
+    for bit in range(21):
+        for axis in range(3):
+            key |= ((int(c[axis]) >> bit) & 1) << (3 * bit + axis)
+    return key
+
+
+def test_slots_follow_the_bodies_and_the_grid_holds_every_sphere_once():
+    # The CPU's slots (stage_grid_sort): bodies in Z-order of the cell their centre is
+    # in (ties in body order), each body's spheres in consecutive slots in their own
+    # order; the grid beside them holds every sphere once, by bucket, in index order
+    # within a bucket, with its slot, position, cell key and body.
+    from test_contacts import boxes_on_static_slab      # (test_contacts imports this module)
+
+    for model in (cluster_model(n=20), loose_balls(), boxes_on_static_slab()):
+        be = CpuBackend(model)
+        st = model.initial_state()
+        be.step(st, model.steps_per_frame)
+        be.probe(st)
+        ns = model.n_spheres
+        idx, slot = be.sorted_idx, be.slot_of
+        assert np.array_equal(np.sort(idx), np.arange(ns))
+        assert np.array_equal(slot[idx], np.arange(ns))
+        start = model.body_sphere_start
+        nb = len(start) - 1
+        first = np.array([slot[start[b]] for b in range(nb)])
+        for b in range(nb):
+            assert np.array_equal(slot[start[b]:start[b + 1]],
+                                  first[b] + np.arange(start[b + 1] - start[b])), b
+        cells = np.floor(st.body_x * (1.0 / cell_size(model.diameter))).astype(np.int64)
+        keys = [z_order(c + (1 << 20)) for c in cells]          # cpu._CELL_OFF
+        order = sorted(range(nb), key=lambda b: (keys[b], b))
+        assert np.array_equal(np.argsort(first), order)
+        g = be.grid
+        assert np.array_equal(np.sort(be.grid_idx), np.arange(ns))
+        assert np.array_equal(be.grid_slot, slot[be.grid_idx])
+        assert np.array_equal(be.grid_x, be.sphere_x[be.grid_idx])
+        assert np.array_equal(be.grid_key, be.sphere_key[be.grid_idx])
+        assert np.array_equal(be.grid_body, model.sphere_body[be.grid_idx])
+        bucket = be.sphere_hash[be.grid_idx]
+        assert np.all((np.diff(bucket) > 0) | ((np.diff(bucket) == 0)
+                                               & (np.diff(be.grid_idx) > 0)))
+        counts = np.bincount(bucket, minlength=int(g[5]))
+        assert np.array_equal(np.diff(be.bucket_start[: g[5] + 1]), counts)
+
+
+def test_frames_do_not_depend_on_when_lists_are_rebuilt():
+    # one call of many steps (rebuilds only when a sphere moved SKIN/2 d) against one
+    # step per call (a rebuild at every step, as the paper's loop): bit for bit
+    for model in (loose_balls(), ball_lattice(), cluster_model(n=20)):
+        a = model.initial_state()
+        b = model.initial_state()
+        sa = Simulator(model).backend
+        sb = Simulator(model).backend
+        n = 3 * model.steps_per_frame
+        sa.step(a, n)
+        for _ in range(n):
+            sb.step(b, 1)
+        for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner",
+                     "contact_spring"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
+def test_the_skin_grows_while_bodies_fly_and_the_frames_do_not_change():
+    # Balls thrown about force a rebuild every few steps at the smallest skin: the CPU
+    # widens the lists' reach (neighbours.adapt_skin) and rebuilds less often. A list
+    # still holds every pair that can touch before the next rebuild, so the State is
+    # the same bit for bit as with the skin held at SKIN (skin_ctl[2]).
+    model = loose_balls()
+    runs = []
+    for skin_max in (SKIN_MAX, SKIN):
+        st = model.initial_state()
+        be = Simulator(model).backend
+        be.skin_ctl[2] = skin_max
+        skins = []
+        for _ in range(3):
+            be.step(st, model.steps_per_frame)
+            skins.append(be.skin_ctl[0])
+        runs.append((st, be.skin_ctl[3], max(skins)))
+    (adaptive, rebuilds, widest), (fixed, rebuilds_fixed, widest_fixed) = runs
+    assert widest_fixed == SKIN and SKIN < widest <= SKIN_MAX
+    assert rebuilds < 0.6 * rebuilds_fixed
+    for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner", "contact_spring"):
+        assert np.array_equal(getattr(adaptive, name), getattr(fixed, name)), name
+
+
+def test_the_skin_shrinks_back_when_rebuilds_are_rare():
+    # the rule itself: grow by a step when rebuilds come fast, shrink back when slow
+    from dempipe.sim.kernels.neighbours import SKIN_GROW_BELOW, SKIN_SHRINK_ABOVE, SKIN_STEP
+    assert adapt_skin(SKIN, SKIN_GROW_BELOW - 1, SKIN_MAX, True) == SKIN + SKIN_STEP
+    assert adapt_skin(SKIN, SKIN_GROW_BELOW - 1, SKIN_MAX, False) == SKIN  # a call's start
+    assert adapt_skin(SKIN_MAX, 1, SKIN_MAX, True) == SKIN_MAX
+    for moved in (True, False):
+        assert adapt_skin(SKIN_MAX, SKIN_SHRINK_ABOVE + 1, SKIN_MAX, moved) == \
+            SKIN_MAX - SKIN_STEP
+        assert adapt_skin(SKIN, SKIN_SHRINK_ABOVE + 1, SKIN_MAX, moved) == SKIN
+    assert adapt_skin(0.4, (SKIN_GROW_BELOW + SKIN_SHRINK_ABOVE) // 2, SKIN_MAX, True) == 0.4
+    assert adapt_skin(SKIN, 1, SKIN, True) == SKIN                  # held: a fixed skin
+    up = adapt_skin(SKIN, 1, SKIN_MAX, True)                        # 0.30000000000000004
+    assert adapt_skin(up, SKIN_SHRINK_ABOVE + 1, SKIN_MAX, False) == SKIN   # exactly
+
+
+def test_rebuilds_happen_mid_call_and_lists_grow_without_losing_contacts():
+    # lists of room 1 overflow at the first rebuild: the backend grows them and
+    # redoes the step; the result is the one with room to spare
+    for model in (ball_lattice(), ball_lattice(n=4, pitch=1.15, seed=5)):
+        ref = model.initial_state()
+        full = Simulator(model).backend
+        full.probe(ref)
+        assert full.nbr_n.max() > 1            # room 1 overflows at the first rebuild
+        full.step(ref, 2 * model.steps_per_frame)
+        be = Simulator(model).backend
+        be.nbr = np.zeros((model.n_spheres, 1), dtype=np.int32)
+        st = model.initial_state()
+        be.step(st, 2 * model.steps_per_frame)
+        assert be.nbr.shape[1] > 1
+        assert st.step == ref.step
+        for name in ("body_x", "body_q", "body_P", "body_L"):
+            assert np.array_equal(getattr(st, name), getattr(ref, name)), name
+        # the bodies move far enough that the lists are rebuilt inside one call
+        moved = np.linalg.norm(st.body_x - model.initial_state().body_x, axis=1).max()
+        assert moved > SKIN * model.diameter
+
+
+def test_an_overflow_in_the_middle_of_a_call_keeps_the_histories():
+    # A box falls onto a slab: no partner at the first build, so lists of room 1
+    # overflow at a rebuild in the middle of the call, with friction histories in
+    # sorted-slot order at that moment; the State's histories must be current when
+    # run_steps returns early, and the rest of the call must go on from there.
+    from test_cuda import falling_model
+
+    model = falling_model()
+    ref = model.initial_state()
+    Simulator(model).backend.step(ref, 30)
+    assert (ref.contact_partner != 0).any()              # friction histories in use
+    for split in (30, 13, 19):
+        be = Simulator(model).backend
+        be.probe(model.initial_state())
+        assert be.nbr_n.max() == 0                       # nothing to overflow at the start
+        be.nbr = np.zeros((model.n_spheres, 1), dtype=np.int32)
+        st = model.initial_state()
+        be.step(st, split)
+        be.step(st, 30 - split)
+        assert be.nbr.shape[1] > 1                       # it overflowed, and grew
+        for name in ("body_x", "body_q", "body_P", "body_L", "body_rest",
+                     "contact_partner", "contact_spring"):
+            assert np.array_equal(getattr(st, name), getattr(ref, name)), (split, name)

@@ -1,0 +1,149 @@
+"""Sleeping: bodies at rest leave the integration, and wake when a
+moving body touches them."""
+
+import numpy as np
+import pytest
+
+from bodies import ball_set, box_set
+from dempipe.sim.materials import Material
+from dempipe.sim.builder import ModelBuilder
+from dempipe.sim.simulator import Simulator
+
+D = 0.01
+
+
+def pile(sleep, ball_height=None, n_frames=24, fps=24, slab=False):
+    """Nine 2×2×2-sphere boxes dropped side by side onto a plane; optionally a
+    ball dropped onto the middle one from ``ball_height``, and a static mesh slab
+    (one sphere thick, under the plane's surface level + 1 d) under them."""
+    b = ModelBuilder(D)
+    ss, mesh = box_set(2, 2, 2, D)
+    s = b.add_shape("box", mesh, ss)
+    m = b.add_material(Material("wood", density=700, restitution=0.3, friction=0.5))
+    pos = [[(i % 3 - 1) * 0.025, (i // 3 - 1) * 0.025, 0.012 + 0.002 * i] for i in range(9)]
+    b.add_bodies("boxes", s, m, pos)
+    if ball_height is not None:
+        bs, bm = ball_set(2 * D)
+        ball = b.add_shape("ball", bm, _scaled(bs))
+        b.add_bodies("ball", ball, b.add_material(Material("steel", density=7800,
+                                                           restitution=0.3, friction=0.5)),
+                     [[0.0, 0.0, ball_height]])
+    if slab:
+        slab_set, slab_mesh = box_set(8, 8, 1, D)
+        centre = np.array([0.0, 0.0, -0.3 * D])      # its top 0.2 d above the plane
+        slab_set.com = centre          # the builder places the set's centres about its com
+        slab_mesh.vertices = slab_mesh.vertices + centre
+        b.add_static_mesh("slab", slab_mesh, slab_set, m)
+    b.add_plane([0, 0, 0], [0, 0, 1], m)
+    return b.finalize(fps=fps, n_frames=n_frames, sleep=sleep)
+
+
+def _scaled(bs):
+    # a ball of diameter 2D made of one sphere of diameter D would not touch
+    # right; use 8 spheres in a cube instead, with the ball's mass properties
+    ss, _ = box_set(2, 2, 2, D)
+    return ss
+
+
+def test_a_settled_pile_falls_asleep_and_stays_put():
+    model = pile(sleep=(None, None, 0.2), n_frames=25)
+    sim = Simulator(model)
+    state = model.initial_state()
+    frames = sim.advance(state)
+    asleep = state.asleep(model.sleep_steps)[: model.n_bodies]
+    assert asleep.all(), f"{asleep.sum()} of {model.n_bodies} asleep after 1 s"
+    # once all sleep, the CPU target skips the steps (and says how many it skipped)
+    assert 0 < sim.stats.steps_skipped < sim.stats.steps
+    # asleep means exactly still: the last frames are identical
+    assert np.array_equal(frames.x[-1], frames.x[-2])
+    assert np.all(frames.v[-1] == 0.0)
+
+
+def test_sleeping_that_never_triggers_gives_the_same_frames():
+    # the general path (sleeping off) and the sleeping path with thresholds no
+    # body meets are bit-identical: the feature costs nothing in the physics
+    a = pile(sleep=None, n_frames=10)
+    b = pile(sleep=(1e-12, 1e-12, 10.0), n_frames=10)
+    fa = Simulator(a).advance(a.initial_state())
+    fb = Simulator(b).advance(b.initial_state())
+    for name in ("x", "q", "v", "w"):
+        assert np.array_equal(getattr(fa, name), getattr(fb, name)), name
+
+
+def test_a_sleeping_pile_wakes_when_hit():
+    # The boxes sleep after 0.2 s at rest (settled by ~0.3 s); the ball dropped
+    # from 1.5 m reaches them at ~0.55 s and must wake the middle box and push it.
+    model = pile(sleep=(None, None, 0.2), ball_height=1.5, n_frames=36)
+    sim = Simulator(model)
+    state = model.initial_state()
+    sim.advance(state, n_frames=13)                     # to t = 0.5 s: pile asleep
+    asleep = state.asleep(model.sleep_steps)[:9]
+    assert asleep.sum() >= 8
+    before = state.body_x[:9].copy()
+    frames = sim.advance(state, n_frames=24)            # the ball lands
+    moved = np.linalg.norm(frames.x[:, :9] - before, axis=2).max(axis=0)
+    assert moved[4] > 0.05 * D, "the hit box never moved"
+    assert np.isfinite(frames.x).all()
+
+
+def test_sleeping_adds_little_error_to_a_settled_pile():
+    # With sleeping, bodies freeze once slower than ~1.6 cm/s for 0.2 s: the
+    # final pile differs from the one without sleeping by less than a tenth of a
+    # diameter per body (a viewer sees no difference).
+    a = pile(sleep=None, n_frames=25)
+    b = pile(sleep=(None, None, 0.2), n_frames=25)
+    fa = Simulator(a).advance(a.initial_state())
+    fb = Simulator(b).advance(b.initial_state())
+    err = np.linalg.norm(fa.x[-1] - fb.x[-1], axis=1).max()
+    assert err < 0.1 * D, f"{err / D:.3f} d"
+
+
+@pytest.mark.parametrize("ball_height,slab", [(0.3, False), (None, True)])
+def test_skipping_what_sleeps_changes_nothing(ball_height, slab):
+    # Three shortcuts of the CPU kernels: once every body sleeps, run_steps skips the
+    # rest of its steps (nothing can move any more), stage 1 keeps the spheres of
+    # bodies that slept through the last step and of static colliders, and the
+    # contact passes leave out the slots of sleepers among sleepers. All must be
+    # exact: one call of 1.5 s against calls of one step each (each a rebuild,
+    # with stage 1 and the contact passes for every sphere and no skipping), bit
+    # for bit. The ball lands on
+    # the boxes as they settle, so some fall asleep while touching a moving body.
+    model = pile(sleep=(None, None, 0.2), ball_height=ball_height, n_frames=37, slab=slab)
+    n = 36 * model.steps_per_frame                       # 1.5 s; all asleep before
+    a = model.initial_state()
+    fast = Simulator(model).backend
+    fast.step(a, n)
+    assert fast.steps_skipped > 0                       # the shortcut was taken
+    # and the third: once half the bodies are quiet, the contact passes visit
+    # only the chunks of slots with work in them (kernels.cpu.stages.stage_active); the
+    # calls of one step below never do (a call's first step visits every chunk)
+    assert fast.span_ctl[0] > 0
+    b = model.initial_state()
+    be = Simulator(model).backend
+    for _ in range(n):
+        be.step(b, 1)
+    assert a.asleep(model.sleep_steps)[: model.n_bodies].all()
+    assert a.step == b.step == n
+    for name in ("body_x", "body_q", "body_P", "body_L", "body_rest", "contact_partner",
+                 "contact_spring"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
+def test_contact_passes_over_spans_change_nothing_frame_by_frame():
+    # kernels.cpu.stages.stage_active at its most eager (quiet_share 0: the spans are used
+    # whenever any body is quiet, so also while most still move, through wakes and
+    # bodies falling quiet between searches) against never (quiet_share above 1):
+    # the same State bit for bit at every frame, not only at the end. The ball
+    # lands on the boxes as they settle and wakes some of them.
+    model = pile(sleep=(None, None, 0.2), ball_height=0.3, n_frames=37)
+    eager, never = Simulator(model).backend, Simulator(model).backend
+    eager.quiet_share, never.quiet_share = 0.0, 2.0
+    a, b = model.initial_state(), model.initial_state()
+    for frame in range(36):
+        eager.step(a, model.steps_per_frame)
+        never.step(b, model.steps_per_frame)
+        for name in ("body_x", "body_q", "body_P", "body_L", "body_rest", "contact_partner",
+                     "contact_spring"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), (frame, name)
+    assert eager.span_ctl[0] > 0 and eager.span_ctl[1] > 0   # the spans were used
+    assert never.span_ctl[0] == 0

@@ -1,0 +1,329 @@
+"""Surface-following sphere sets, and float32 meshes.
+
+Geometry only, no bakes (those are in test_rolling.py): where the centres go, the
+envelope's errors against closed forms, determinism and the cache key, the scene key,
+and exact lattice counts of boxes read back from STL and PLY files.
+"""
+
+import hashlib
+import json
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from dempipe.scene.build import Overrides, build_model, sphere_options
+from dempipe.spheres.cache import SphereCache
+from dempipe.errors import SceneError, ShapeError
+from dempipe.scene.load import parse_scene
+from dempipe.mesh.shapes import build_shape, load_mesh
+from dempipe.spheres.options import DEFAULT_MODE, BuildOptions
+from dempipe.spheres.sphere_set import build_sphere_set, cell_tolerance, mesh_for_errors
+from dempipe.spheres.options import DEFAULT_SPACING
+from dempipe.spheres.surface import MeshQueries, envelope_errors
+from processes import run_python
+
+SURFACE = BuildOptions(mode="surface")
+
+
+# ------------------------------------------------------------------ float32 meshes
+
+
+@pytest.mark.parametrize("fmt", ["stl", "ply"])
+@pytest.mark.parametrize("extents, d, count", [((0.4, 0.3, 0.2), 0.1, 24),
+                                               ((0.4, 0.3, 0.2), 0.05, 192),
+                                               ((0.7, 0.3, 0.1), 0.1, 21)])
+def test_float32_boxes_tile_exactly(tmp_path, fmt, extents, d, count):
+    box = trimesh.creation.box(extents=extents)
+    box.apply_translation([1.3, -0.6, 0.1])     # coordinates of several magnitudes
+    path = tmp_path / f"box.{fmt}"
+    box.export(path)
+    mesh = load_mesh(path)
+    v = np.asarray(mesh.vertices)
+    # the case of the issue: float32 coordinates put an extent just past whole cells
+    assert np.array_equal(v.astype(np.float32).astype(np.float64), v)
+    assert (np.ptp(v, axis=0) / d - np.round(np.ptp(v, axis=0) / d)).max() > 1e-9
+    s = build_sphere_set(mesh, d)
+    assert s.count == count
+    assert s.sphere_volume_error == pytest.approx(0.0, abs=1e-5)
+
+
+def test_cell_tolerance_follows_the_precision():
+    v64 = np.array([[0.0, 0.0, 0.0], [0.4, 0.3, 0.2]]) + 1e-12
+    assert cell_tolerance(v64, 0.1) == 1e-9
+    v32 = np.array([[0.0, 0.0, 0.0], [0.4, 0.3, 0.2]], dtype=np.float32).astype(np.float64)
+    tol = cell_tolerance(v32, 0.1)
+    # 4 float32 ulps of 0.4 m, in cells of 0.1 m: ~1.9e-6, far below a real layer
+    assert tol == pytest.approx(4 * np.finfo(np.float32).eps * 0.4 / 0.1, rel=1e-6)
+    # an extent a true millionth of a cell longer than 4 cells still gets its 5th layer
+    # from a float64 mesh
+    box = trimesh.creation.box(extents=(0.4 + 1e-7, 0.3, 0.2))
+    assert build_sphere_set(box, 0.1).count == 5 * 3 * 2
+
+
+def test_cli_counts_an_stl_box(tmp_path, monkeypatch):
+    from click.testing import CliRunner
+
+    from dempipe_cli.main import app
+
+    monkeypatch.setenv("DEMPIPE_CACHE_DIR", str(tmp_path / "cache"))
+    trimesh.creation.box(extents=(0.4, 0.3, 0.2)).export(tmp_path / "box.stl")
+    result = CliRunner().invoke(app, ["spheres", str(tmp_path / "box.stl"), "--diameter", "0.1",
+                                      "--mode", "lattice", "--json", "--no-errors"],
+                                catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)[0]["count"] == 24
+
+
+def test_cli_shows_both_modes_with_their_errors(tmp_path, monkeypatch):
+    from click.testing import CliRunner
+
+    from dempipe_cli.main import app
+
+    monkeypatch.setenv("DEMPIPE_CACHE_DIR", str(tmp_path / "cache"))
+    args = ["spheres", "sphere", "--resolution", "6", "--mode", "both"]
+    result = CliRunner().invoke(app, args + ["--json"], catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    rows = {r["mode"]: r for r in json.loads(result.stdout)}
+    assert set(rows) == {"lattice", "surface"}
+    lat, sur = rows["lattice"], rows["surface"]
+    assert sur["count"] > lat["count"] and sur["bump"] < lat["bump"]
+    assert 0 < sur["hausdorff"] <= lat["hausdorff"] and sur["build_seconds"] >= 0
+    text = CliRunner().invoke(app, args, catch_exceptions=False).stdout.splitlines()
+    assert len(text) == 2 and all("Hausdorff" in t and "bump" in t for t in text)
+    assert "(surface)" in text[1] and "cache hit" in text[1]
+    bad = CliRunner().invoke(app, args + ["-o", str(tmp_path / "x.npz")])
+    assert bad.exit_code != 0 and "{mode}" in bad.output
+
+
+# ------------------------------------------------------------------ surface sets
+
+
+def depth_of(mesh, points, d):
+    dist, _ = MeshQueries(mesh.vertices, mesh.faces, d).closest(points)
+    return dist
+
+
+@pytest.mark.parametrize("name", ["sphere", "cylinder", "torus", "box"])
+def test_shell_centres_touch_the_surface_from_inside(name):
+    mesh = build_shape(name)
+    d = float(mesh.extents.max()) / 8
+    s = build_sphere_set(mesh, d, options=SURFACE)
+    assert "surface" in s.notes and s.diameter == d
+    c = s.centers + s.com
+    dist = depth_of(mesh, c, d)
+    # every centre is at least r deep (no sphere pokes out); the shell is at exactly r
+    shell = np.abs(dist - 0.5 * d) <= 1e-3 * 0.5 * d
+    assert np.all(~np.isfinite(dist) | (dist >= 0.5 * d * (1 - 1e-3)))
+    assert shell.sum() > 0.6 * s.count
+    # evenly spread: no two shell centres closer than the spacing
+    sc = c[shell]
+    gap = np.linalg.norm(sc[:, None] - sc[None], axis=2) + np.eye(len(sc)) * 1e9
+    assert gap.min() >= DEFAULT_SPACING * d * (1 - 1e-9)
+    # mass properties are the exact mesh's, whatever the mode
+    lat = build_sphere_set(mesh, d)
+    assert s.volume == lat.volume
+    np.testing.assert_array_equal(s.inertia, lat.inertia)
+
+
+def test_surface_sets_are_deterministic_and_cached_under_their_own_key(tmp_path):
+    mesh = build_shape("pawn")
+    d = float(mesh.extents.max()) / 8
+    a = build_sphere_set(mesh, d, options=SURFACE)
+    b = build_sphere_set(mesh, d, options=SURFACE)
+    assert a.key == b.key and a.centers.tobytes() == b.centers.tobytes()
+    lattice = build_sphere_set(mesh, d)
+    assert lattice.key != a.key
+    # the lattice keys are those of before the mode existed (caches stay valid)
+    assert BuildOptions().key_text() == repr([("winding_threshold", "0.5")])
+    assert BuildOptions(mode="surface", spacing=0.2).key_text() != SURFACE.key_text()
+    # the same centres whatever the kernels' thread count: built again with 1 and 2
+    out = run_python("""
+import hashlib, numba
+from dempipe.mesh.shapes import build_shape
+from dempipe.spheres.options import BuildOptions
+from dempipe.spheres.sphere_set import build_sphere_set
+mesh = build_shape("pawn")
+for n in (1, 2):
+    numba.set_num_threads(n)
+    s = build_sphere_set(mesh, float(mesh.extents.max()) / 8, options=BuildOptions(mode="surface"))
+    print(hashlib.sha256(s.centers.tobytes()).hexdigest())
+""", threads=2)
+    assert out.split() == [hashlib.sha256(a.centers.tobytes()).hexdigest()] * 2
+    cache = SphereCache(tmp_path)
+    build_sphere_set(mesh, d, options=SURFACE, cache=cache)
+    hit = build_sphere_set(mesh, d, options=SURFACE, cache=cache)
+    assert hit.centers.tobytes() == a.centers.tobytes() and hit.notes == a.notes
+
+
+@pytest.mark.parametrize("bad", [dict(mode="voxel"), dict(mode="surface", spacing=0.0),
+                                 dict(mode="surface", spacing=2.0), dict(spacing=True)])
+def test_bad_options(bad):
+    with pytest.raises(ShapeError):
+        BuildOptions(**bad)
+
+
+def test_thin_plate_gets_one_row_on_its_medial_plane():
+    plate = trimesh.creation.box(extents=(0.1, 0.08, 0.004))     # thinner than d
+    d = 0.01
+    s = build_sphere_set(plate, d, options=SURFACE)
+    c = s.centers + s.com
+    assert np.abs(c[:, 2]).max() < 1e-9
+    assert np.abs(c[:, :2]).max(axis=0) == pytest.approx([0.05, 0.04], abs=0.5 * d)
+    gap = np.linalg.norm(c[:, None] - c[None], axis=2) + np.eye(len(c))
+    assert gap.min() >= DEFAULT_SPACING * d * (1 - 1e-9)
+
+
+# ------------------------------------------------------------------ envelope errors
+
+
+def test_envelope_errors_of_an_exact_lattice_box():
+    # 4 x 4 x 4 spheres tiling a cube: the corner sphere is sqrt(3) r from the corner,
+    # so the Hausdorff distance is r (sqrt(3) - 1) = 0.366 d; no sphere pokes out, and
+    # the ideal envelope (balls of radius r inside the cube) rounds the corner the same
+    d = 0.01
+    box = trimesh.creation.box(extents=(4 * d, 4 * d, 4 * d))
+    s = build_sphere_set(box, d)
+    e = envelope_errors(mesh_for_errors(box), s.centers + s.com, d)
+    assert e.hausdorff == pytest.approx(0.5 * d * (math.sqrt(3) - 1), rel=1e-6)
+    assert e.rounding == pytest.approx(0.5 * d * (math.sqrt(3) - 1), rel=1e-6)
+    # the faces' dips: a face point above the middle of 4 spheres is sqrt(r^2 + d^2/2)
+    # from their centres, r (sqrt(3) - 1) from the spheres, all of it a bump (sampled)
+    assert 0.3 * d < e.bump <= 0.5 * d * (math.sqrt(3) - 1) * (1 + 1e-6)
+
+
+def test_envelope_errors_of_one_ball():
+    ball = build_shape("sphere", diameter=0.01, subdivisions=4)
+    e = envelope_errors(mesh_for_errors(ball), np.zeros((1, 3)), 0.01)
+    # the icosphere's facets are within 0.1 % of its radius: one sphere is the ball
+    assert e.hausdorff < 2e-3 * 0.01 and e.bump < 2e-3 * 0.01
+
+
+#: Bump bound of the surface mode at the default spacing, as a fraction of d: the
+#: envelope between neighbours dips by r - sqrt(r^2 - rho^2) ~ rho^2 / d for a hole of
+#: radius rho <= spacing (0.3 d: 0.09 d), plus the sampled mesh's facets.
+SURFACE_BUMP = 0.15
+
+
+@pytest.mark.parametrize("name", ["sphere", "cylinder", "torus", "box"])
+def test_surface_mode_is_closer_to_the_mesh(name):
+    mesh = build_shape(name)
+    d = float(mesh.extents.max()) / 8
+    rm = mesh_for_errors(mesh)
+    lat = build_sphere_set(mesh, d)
+    sur = build_sphere_set(mesh, d, options=SURFACE)
+    el = envelope_errors(rm, lat.centers + lat.com, d)
+    es = envelope_errors(rm, sur.centers + sur.com, d)
+    assert es.bump <= SURFACE_BUMP * d
+    assert es.bump < 0.5 * el.bump
+    assert es.hausdorff <= el.hausdorff + 1e-12
+
+
+# ------------------------------------------------------------------ scene key
+
+
+SCENE = """
+[simulation]
+sphere_diameter = 0.004
+{sim}
+[shapes.ball]
+builtin = "sphere"
+{shape}
+[shapes.brick]
+builtin = "box"
+[[bodies]]
+name = "b"
+shape = ["ball", "brick"]
+count = 2
+layout = "grid"
+origin = [0.0, 0.0, 0.05]
+dims = [2, 1, 1]
+spacing = [0.1, 0.1, 0.1]
+[[colliders]]
+type = "plane"
+"""
+
+
+def test_scene_key_per_scene_and_per_shape(tmp_path):
+    sc = parse_scene(SCENE.format(sim="", shape=""), tmp_path / "s.toml")
+    assert sc.simulation.spheres is None and sphere_options(sc, "ball").mode == DEFAULT_MODE
+    sc = parse_scene(SCENE.format(sim='spheres = "surface"', shape='spheres = "lattice"'),
+                     tmp_path / "s.toml")
+    assert sphere_options(sc, "ball").mode == "lattice"
+    assert sphere_options(sc, "brick").mode == "surface"
+    assert sphere_options(sc, "ball", Overrides(spheres="surface")).mode == "surface"
+    model = build_model(sc)
+    notes = {s.name: s.sphere_set.notes for s in model.shapes}
+    assert "surface" in notes["brick"] and "surface" not in notes["ball"]
+
+
+@pytest.mark.parametrize("sim, shape, where", [
+    ('spheres = "round"', "", "simulation.spheres"),
+    ("spheres = 1", "", "simulation.spheres"),
+    ("", 'spheres = "voxels"', "shapes.ball.spheres"),
+])
+def test_scene_key_errors(tmp_path, sim, shape, where):
+    with pytest.raises(SceneError) as exc:
+        parse_scene(SCENE.format(sim=sim, shape=shape), tmp_path / "s.toml")
+    msg = str(exc.value)
+    assert where in msg and "s.toml" in msg
+    assert "surface" in msg or "lattice" in msg
+
+
+# ------------------------------------------------------------------ report sweep
+
+
+REPORT_SCENE = """
+[output]
+fps = 24
+duration = 0.1
+[simulation]
+resolution = 4
+[shapes.ball]
+builtin = "sphere"
+[[bodies]]
+name = "balls"
+shape = "ball"
+layout = "grid"
+origin = [0.0, 0.0, 0.03]
+dims = [2, 1, 1]
+spacing = 0.06
+velocity = [0.2, 0.0, 0.0]
+[[colliders]]
+type = "plane"
+"""
+
+
+@pytest.mark.slow
+def test_report_sweeps_the_mode(tmp_path):
+    import csv
+
+    from dempipe.report.results import ReportError
+    from dempipe.report.runs import Sweep, recommend, run_report
+
+    scene = tmp_path / "balls.toml"
+    scene.write_text(REPORT_SCENE)
+    sweep = Sweep(resolutions=(4,), dt_factors=(1.0,), stiffness_factors=(1.0,), duration=0.1,
+                  plots=False, sphere_modes=("lattice", "surface"))
+    result = run_report(scene, tmp_path / "out", sweep, cache=SphereCache(tmp_path / "c"))
+    assert result.reference.mode == "surface"
+    with open(tmp_path / "out" / "report.csv", newline="") as f:
+        table = {r["sphere_mode"]: r for r in csv.DictReader(f)}
+    assert set(table) == {"lattice", "surface"}
+    lat, sur = table["lattice"], table["surface"]
+    assert int(sur["spheres"]) > int(lat["spheres"])
+    assert float(sur["envelope_bump_d"]) < float(lat["envelope_bump_d"])
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "## Sphere-set modes" in md and "r4 dt×1 k×1 lattice" in md
+    # the incline: a ball of 4 spheres across rolls down 20° within 10 % of 5/7 g sin θ
+    # as a surface set (8 % measured); the lattice ball (a polyhedron) is off by over
+    # half (0.57 measured), so a rolling tolerance makes the recommendation the surface run
+    assert float(sur["incline"]) < 0.1 < 0.5 < float(lat["incline"])
+    assert "incline roll" in md
+    runs = {u.mode: u for u in result.runs}
+    runs["surface"].reference = False            # as if a finer run were the reference
+    assert recommend(result.runs, tolerance=1e9) is min(runs.values(), key=lambda u: u.wall_s)
+    assert recommend(result.runs, tolerance=1e9, rolling_tolerance=0.1) is runs["surface"]
+    with pytest.raises(ReportError, match="--spheres"):
+        run_report(scene, tmp_path / "o2", Sweep(plots=False, sphere_modes=("voxel",)))
