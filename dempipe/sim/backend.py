@@ -44,3 +44,12 @@ class Backend(Protocol):
 
     def load_arrays(self, state, arrays: dict) -> None:
         """Put ``arrays`` (as :meth:`save_arrays` gave them) back, and ``state`` with them."""
+
+
+def copy_matching(backend, arrays: dict) -> None:
+    """Copy each of ``arrays`` into ``backend``'s host array of the same name and shape
+    (names it has no such array for are left out)."""
+    for name, a in arrays.items():
+        target = getattr(backend, name, None)
+        if isinstance(target, np.ndarray) and target.shape == a.shape:
+            target[...] = a

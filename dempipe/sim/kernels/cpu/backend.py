@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from dempipe.sim.control import drive, split_at
+from dempipe.sim.backend import copy_matching
 from dempipe.sim.kernels.cpu.grid import (
     stage_grid_gather,
     stage_grid_sort,
@@ -243,10 +244,7 @@ class CpuBackend:
 
     def load_arrays(self, state, arrays: dict) -> None:
         """Copy ``arrays`` into this backend's arrays of the same names and shapes."""
-        for name, a in arrays.items():
-            target = getattr(self, name, None)
-            if isinstance(target, np.ndarray) and target.shape == a.shape:
-                target[...] = a
+        copy_matching(self, arrays)
 
     def take_max_overlap(self) -> float:
         """Largest overlap since the last call [m], then reset."""

@@ -43,6 +43,7 @@ from dempipe.sim.control import drive, split_at
 from dempipe.errors import DeviceError
 from dempipe.sim.laws.linear import DAMP_TERMS
 from dempipe.sim.state import CONTACT_SLOTS
+from dempipe.sim.backend import copy_matching
 from dempipe.sim.kernels.compile import compile_contacts, compile_formulas
 from dempipe.sim.kernels.pairing import PAIR_COLS, WALL_SLACK
 from dempipe.sim.kernels.layout import (
@@ -667,10 +668,7 @@ class CudaBackend:
     def load_arrays(self, state, arrays: dict) -> None:
         """Copy ``arrays`` into the host arrays of the same names and shapes, then make
         ``state`` the resident State (Backend.load_arrays)."""
-        for name, a in arrays.items():
-            target = getattr(self, name, None)
-            if isinstance(target, np.ndarray) and target.shape == a.shape:
-                target[...] = a
+        copy_matching(self, arrays)
         self.upload(state)
 
     # -- host copies of scratch (tests, diagnostics) -----------------------------
