@@ -32,7 +32,7 @@ import numpy as np
 from dempipe.check.sizes import memory_estimate
 from dempipe.sim import laws
 from dempipe.sim import materials as mat
-from dempipe.sim.model import Model, flat_face_spheres, rotational_mass_factor
+from dempipe.sim.model import Model, rotational_mass_factor
 from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP, frame0_overlap
 
 #: Distance the fastest closing pair travels in one step, as a fraction of the
@@ -348,51 +348,6 @@ def pair_stability(model: Model, factors: np.ndarray | None = None,
     return out, omega_max, zeta_min
 
 
-def flat_face_step(model: Model) -> tuple[float, str]:
-    """Critical step [s] of a body resting (or landing) flat on a face of its sphere
-    set, and which contact it is: n face spheres in parallel are one oscillator of
-    stiffness n k and damping ratio √n ζ (materials.flat_face_critical_step), far
-    stiffer than one corner contact. Against a wall the body's mass, against a
-    body half of it (a stack): what finalize bounds the auto step with, without its
-    safety factor. (inf, "") without contacts."""
-    n = model.n_bodies
-    has_contacts = n > 1 or model.n_walls > 0 or model.n_static > 0
-    if not n or not has_contacts:
-        return math.inf, ""
-    d = model.diameter
-    g = float(np.linalg.norm(model.gravity))
-    impact = expected_speeds(model)[2]
-    mass = np.asarray(model.body_mass[:n])
-    shape = np.asarray(model.body_shape)
-    dyn_mat = np.asarray(model.body_material[:n])
-    wall_mats = set(np.asarray(model.wall_material).tolist()) | set(
-        np.asarray(model.body_material[n:]).tolist())
-    dyn_present = sorted(set(dyn_mat.tolist()))
-    names = [m.name for m in model.materials]
-    best, what = math.inf, ""
-    for mi in dyn_present:
-        sel = dyn_mat == mi
-        m = float(mass[sel].min())
-        partners = [("body", mj) for mj in dyn_present] if n > 1 else []
-        partners += [("wall", mj) for mj in sorted(wall_mats)]
-        for kind, mj in partners:
-            half = 0.5 if kind == "body" else 1.0
-            # the spheres a plane presses at once in the deepest landing (as finalize)
-            n_face = max(flat_face_spheres(np.asarray(model.shapes[s].sphere_set.centers), d,
-                                           float(model.pair_k[mi, mj]),
-                                           float(mass[sel].max()) * half, impact, g)
-                         for s in np.unique(shape[sel]))
-            crit = mat.flat_face_critical_step(n_face, float(model.pair_k[mi, mj]), m * half,
-                                               float(model.pair_zeta[mi, mj]),
-                                               laws.law(model.contact_law), model.impact_speed)
-            if crit < best:
-                best = crit
-                what = (f"a body of {names[mi]} resting flat on {n_face} spheres of a face "
-                        f"({'on another body' if kind == 'body' else 'on a wall'} of "
-                        f"{names[mj]})")
-    return best, what
-
-
 def critical_step(omega_max: float, zeta_min: float, law_name: str = laws.DEFAULT) -> float:
     """The step materials.check_dt refuses at (the law's critical step of the
     stiffest contact with the least damping) [s]; inf when nothing touches."""
@@ -496,14 +451,6 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
     step = float(model.dt if dt is None else dt)
     pairs, omega_max, zeta_min = pair_stability(model, factors, step)
     crit = critical_step(omega_max, zeta_min, model.contact_law)
-    # a body resting on a whole face is stiffer than any one contact (the two-box
-    # stack of tests/check/test_predicts.py diverges at dt / critical 0.52 of the single
-    # contact)
-    crit_flat, flat_what = flat_face_step(model)
-    if crit_flat < crit:
-        crit = crit_flat
-    else:
-        flat_what = ""
     ratio = step / crit if math.isfinite(crit) else 0.0
     fastest, closing, impact = expected_speeds(model)
     travel = closing * step / d
@@ -526,7 +473,7 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
                 ERROR, "dt-above-critical",
                 f"{src}: simulation.dt = {step:.3g} s is {ratio:.3g}× the critical step "
                 f"{crit:.3g} s of "
-                + (flat_what or f"the stiffest contact (ω = {omega_max:.4g} rad/s)")
+                + f"the stiffest contact (ω = {omega_max:.4g} rad/s)"
                 + "; bake refuses it",
                 f"use dt = \"auto\" ({model.dt:.3g} s here, {model.steps_per_frame} steps per "
                 f"frame), a dt below {crit / 2:.3g} s, or softer materials"))
@@ -537,7 +484,7 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
         findings.append(Finding(
             ERROR, "dt-above-critical",
             f"{src}: dt = {step:.3g} s is {ratio:.3g}× the critical step {crit:.3g} s of "
-            f"{flat_what or 'the stiffest contact'}; the integration diverges",
+            "the stiffest contact; the integration diverges",
             "use dt = \"auto\", a smaller dt, or softer materials"))
 
     # 2. tunnelling: distance per step against the diameter

@@ -36,7 +36,6 @@ from dempipe.sim.model import (
     ShapeInstance,
     StaticMesh,
     _frozen,
-    flat_face_spheres,
     quat_to_matrix,
     rotational_mass_factor,
     sleep_defaults,
@@ -355,6 +354,10 @@ class ModelBuilder:
             body_rot[b] = rotational_mass_factor(
                 np.asarray(self._shapes[body_shape[b]].sphere_set.centers), i_per_m)
         m_corner = mass / (1.0 + body_rot) if n_dyn else mass
+        # what the overlap target is a fraction of: a contact is one patch whatever the
+        # number of its spheres, so its stiffness follows the bodies' size, not d
+        patch = mat.patch_scale(d, [float(np.ptp(self._shapes[s].vertices, axis=0).max())
+                                    for s in np.unique(body_shape[~kin])] if n_dyn else [])
         stiffness = []
         auto_notes = []
         k_auto_all = 0.0
@@ -374,9 +377,10 @@ class ModelBuilder:
                                      f"law only (contact_law is {law_name!r}; give stiffness)")
                 # equal spheres of diameter d (R* = d/4); a sphere on a wall (R* = d/2)
                 # would be √2 stiffer: walls take the pair's K
-                stiffness.append(law.stiffness_from_modulus(m.young_modulus, m.poisson_ratio, d))
+                stiffness.append(law.stiffness_from_modulus(m.young_modulus, m.poisson_ratio,
+                                                            patch))
             elif m.stiffness is None and used.any():
-                k = law.stiffness_for_overlap(float(m_corner[used].max()), v_imp, g, d,
+                k = law.stiffness_for_overlap(float(m_corner[used].max()), v_imp, g, patch,
                                               target_overlap)
                 k_auto_all = max(k_auto_all, k)
                 stiffness.append(k)
@@ -408,30 +412,9 @@ class ModelBuilder:
                     half = 0.5 if (n_dyn > 1 and mj in dyn_present) else 1.0
                     contacts.append((k, m_eff * half, table.zeta[mi, mj]))
         omega_max, zeta_min, zeta_max = laws.stiffest(contacts, law_name, v_imp)
-        # flat landings (n spheres of a face at once) and free spin bound dt further
+        # free spin and fast surfaces bound dt further (a face landing flat is one
+        # contact patch, kernels/patches.py: no stiffer than a corner)
         dt_max = math.inf
-        flat_crit = math.inf        # the same without the safety: a user dt's limit
-        if has_contacts:
-            dyn_present = set(np.unique(dyn_mat).tolist())
-            for gi, gdict in enumerate(groups):
-                if gdict["p"].shape[0] == 0 or gdict["kinematic"]:
-                    continue
-                mi = gdict["material"]
-                in_group = body_group == gi
-                m_flat = float(mass[in_group].min())
-                m_deep = float(mass[in_group].max())    # the heaviest sinks deepest
-                for mj in (present if n_dyn > 1 else wall_mats):
-                    half = 0.5 if (n_dyn > 1 and mj in dyn_present) else 1.0
-                    # the spheres a plane presses at once in the deepest landing
-                    n_face = max(flat_face_spheres(
-                        np.asarray(self._shapes[sj].sphere_set.centers), d,
-                        float(table.k[mi, mj]), m_deep * half, v_imp, g)
-                        for sj in np.unique(gdict["shapes"]))
-                    flat = mat.flat_face_critical_step(n_face, table.k[mi, mj],
-                                                       m_flat * half, table.zeta[mi, mj],
-                                                       law, v_imp)
-                    flat_crit = min(flat_crit, flat)
-                    dt_max = min(dt_max, mat.FLAT_FACE_SAFETY * flat)
         if n_dyn and np.any(w0):
             dt_max = min(dt_max, mat.MAX_SPIN_STEP / float(np.linalg.norm(w0, axis=1).max()))
         if surface_speed > 0.0:
@@ -451,12 +434,6 @@ class ModelBuilder:
                 raise SceneError(f"{where}: dt must be positive seconds, got {dt!r}")
             if not force:
                 mat.check_dt(float(dt), omega_max, zeta_min, where, law)
-                if float(dt) >= flat_crit:
-                    raise StabilityError(
-                        f"{where}: dt = {dt:.3g} s is above the critical step {flat_crit:.3g} s "
-                        f"of a body resting flat on a face of its spheres (its contacts act "
-                        f"in parallel); use dt = \"auto\", a dt below {flat_crit / 2:.3g} s, "
-                        f"or softer materials")
             spf = max(1, round((1.0 / fps) / dt))
             dt_v = 1.0 / fps / spf
             if abs(dt_v - dt) > 1e-9 * dt and abs(dt_v - dt) / dt > 0.01:
@@ -519,7 +496,7 @@ class ModelBuilder:
             initial_w=_frozen(np.concatenate([w0, np.zeros((n_static, 3))])),
             stiffness_auto=tuple(auto_notes), contact_layers=self.contact_layers,
             initial_asleep=_frozen(asleep0, bool) if asleep0.any() else None,
-            contact_law=law_name, impact_speed=float(v_imp),
+            contact_law=law_name, impact_speed=float(v_imp), patch_scale=float(patch),
             motions=driven["motions"], motion_table=driven["table"],
             body_motion=_frozen(driven["body_motion"], np.int32),
             body_anchor_c=_frozen(driven["anchor_c"]), body_anchor_q=_frozen(driven["anchor_q"]),

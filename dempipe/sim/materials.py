@@ -157,22 +157,28 @@ MAX_SPIN_STEP = 0.04
 #: guard (simulator.MAX_STEP_TRAVEL), so a spinning needle's tip stays resolved.
 AUTO_TRAVEL = 0.25
 
-#: dt "auto" stays below this fraction of the critical step of a flat landing
-#: (see flat_face_critical_step).
-FLAT_FACE_SAFETY = 0.5
+#: Spheres across the patch scale's body (patch_scale): the overlap target of
+#: auto stiffness is a fraction of a quarter of the smallest body's extent, or of d
+#: where the spheres are coarser than that.
+PATCH_RESOLUTION = 4.0
 
 
-def flat_face_critical_step(n: int, k: float, m: float, zeta: float, law=_law,
-                            speed: float = 1.0) -> float:
-    """Critical step of a body of mass m landing flat on n spheres at once [s].
+def patch_scale(diameter: float, extents) -> float:
+    """The length ℓ [m] the overlap target (stiffness_target_overlap) is a fraction
+    of: max(d, L / PATCH_RESOLUTION), L the longest extent of the smallest dynamic
+    shape ([m], ``extents``: each shape's; d alone when there is none).
 
-    Each contact's dashpot is η = 2ζ√(k m) (the body's mass, see docs/physics.md),
-    so n contacts in parallel are one oscillator of stiffness n k and damping
-    n η: ω_n = √n ω, ζ_n = √n ζ. A wide flat face (a tile: n = 64) makes ζ_n
-    large and its critical step far shorter than a corner contact's.
+    A contact between two bodies is one patch however many sphere pairs make it up
+    (kernels/patches.py), so its stiffness is the bodies' business, not the
+    spheres': with ℓ = d, a finer set would be stiffer (k ∝ 1/d²) and its step
+    shorter, for the same bodies. With ℓ fixed by the bodies, the auto stiffness and
+    the auto step do not depend on the resolution from PATCH_RESOLUTION spheres
+    across up; coarser sets keep the overlap a fraction of d.
     """
-    kn, zn = law.parallel(n, k, zeta)
-    return law.critical_step(law.omega(kn, m, speed), zn)
+    ext = [float(e) for e in extents if e > 0.0]
+    if not ext:
+        return float(diameter)
+    return max(float(diameter), min(ext) / PATCH_RESOLUTION)
 
 
 def auto_dt(omega_max: float, fps: float, steps_per_contact: float = STEPS_PER_CONTACT,
@@ -186,7 +192,7 @@ def auto_dt(omega_max: float, fps: float, steps_per_contact: float = STEPS_PER_C
                do not slow down, so √(1−ζ²) is taken no smaller than 1/√2 (at
                1/2, e = 0 rebounded at 0.143 of its impact speed, above the exact
                e^-2 = 0.135; at 1/√2, 0.100: tests/sim/test_extremes.py).
-    dt_max : a further bound [s] (flat faces, free spin), see ModelBuilder.finalize.
+    dt_max : a further bound [s] (free spin, fast surfaces), see ModelBuilder.finalize.
     Returns (dt, steps_per_frame).
     """
     if omega_max == math.inf:

@@ -11,7 +11,6 @@ spheres sit in the grid like any other but are never integrated.
 
 from __future__ import annotations
 
-import hashlib
 import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -234,6 +233,10 @@ class Model:
     impact_speed: float = 1.0
     """The fastest impact the scene can produce [m/s] (auto stiffness; the Hertz
     law's contact frequency depends on it)."""
+    patch_scale: float = 0.0
+    """The length ℓ [m] the auto stiffness's overlap target is a fraction of
+    (materials.patch_scale: max(d, the smallest dynamic shape's extent / 4); 0 in a
+    Model built without bodies)."""
     pair_rolling: np.ndarray = None
     """(M, M): each material pair's rolling-friction coefficient μ_r [1]
     (materials.mix_rolling; physics.rolling_torque)."""
@@ -310,137 +313,6 @@ def sleep_defaults(diameter, g, body_radius, linear=None, angular=None, time=Non
         r = float(np.median(body_radius)) if len(body_radius) else diameter
         angular = linear / max(r, 0.5 * diameter)
     return float(linear), float(angular), float(SLEEP_TIME if time is None else time)
-
-
-#: Widest band [fraction of d] below a set's extreme plane counted as one face: a
-#: lattice's next layer of centres is a whole d behind its face, so any band below d
-#: counts a lattice face exactly; 0.25 d is also the count without a landing.
-FLAT_FACE_BAND = 0.25
-#: A surface set's flat face: its centres lie on the offset plane within
-#: spheres.surface._DEPTH_TOL r; heights below this fraction of d count as on it.
-FLAT_FACE_TOL = 1e-3
-
-_FLAT_FACE_MEMO: dict = {}
-
-
-def flat_face_spheres(centers: np.ndarray, diameter: float, k: float | None = None,
-                      mass: float = 0.0, speed: float = 0.0, g: float = 0.0) -> int:
-    """Most spheres of a sphere set that a plane presses at once when the body lands
-    or rests on it: the n of the flat-face critical step (n contacts in parallel).
-
-    A body lands on a plane with a face of the convex hull of its centres (a vertex
-    or an edge being a face of fewer), so the planes tried are the hull's facets and
-    the six axis planes. Without ``k``: the centres within FLAT_FACE_BAND d of each
-    plane. With the contact stiffness ``k`` [N/m], the body's ``mass`` [kg], its
-    landing ``speed`` [m/s] and gravity ``g`` [m/s²] along the normal: the centres
-    that the deepest landing on that plane presses, where the springs (the linear
-    law's, each k (δ − h_i) for a centre h_i above the deepest point) have taken
-    the kinetic energy and the weight's work,
-
-        Σ_{h_i < δ} ½ k (δ − h_i)² = ½ m v² + m g δ,
-
-    solved exactly piece by piece over the sorted heights (damping only makes the
-    landing shallower; centres more than FLAT_FACE_BAND d above the plane are not
-    counted, a landing that deep being past the overlap limits). On a face, every
-    centre at h = 0, that is the whole face (a lattice's count is the same as
-    without ``k``: its next layer is d away). On a curved part only the cap within δ
-    presses: the surface ball of 8 spheres across counts 5 of its 916 spheres (a
-    landing pressed 1), not the 35 within 0.25 d (docs/spheres.md, "The flat-face
-    step of a surface set"). The linear law's springs; results are memoized.
-    """
-    c = np.ascontiguousarray(centers, dtype=np.float64)
-    if c.shape[0] == 0:
-        return 0
-    load = None
-    if k is not None and k > 0 and mass > 0 and math.isfinite(k):
-        load = (mass * speed * speed / k, mass * max(g, 0.0) / k)
-    shape_key = (hashlib.sha1(c.tobytes()).hexdigest(), c.shape[0], float(diameter))
-    hit = _FLAT_FACE_MEMO.get(shape_key + (load,))
-    if hit is not None:
-        return hit
-    heights = _FLAT_FACE_MEMO.get(shape_key)
-    if heights is None:
-        band = FLAT_FACE_BAND * diameter
-        heights = []        # per plane: the heights above it of the centres within the band
-        for a in range(3):
-            x = c[:, a]
-            for h in (x - x.min(), x.max() - x):
-                heights.append(np.sort(h[h < band]))
-        heights += _hull_heights(c, band)
-        heights = _padded(heights)
-    best = int(_pressed(heights, load, diameter).max())
-    if len(_FLAT_FACE_MEMO) > 256:
-        _FLAT_FACE_MEMO.clear()
-    _FLAT_FACE_MEMO[shape_key] = heights
-    _FLAT_FACE_MEMO[shape_key + (load,)] = best
-    return best
-
-
-def _padded(heights: list) -> np.ndarray:
-    """Sorted heights (1-D arrays: one plane; 2-D: a plane per row, padded with +inf)
-    as the rows of one array, padded with +inf."""
-    rows = [np.atleast_2d(h) for h in heights]
-    n = max(1, max(r.shape[1] for r in rows))
-    out = np.full((sum(r.shape[0] for r in rows), n), np.inf)
-    i = 0
-    for r in rows:
-        out[i:i + r.shape[0], :r.shape[1]] = r
-        i += r.shape[0]
-    return out
-
-
-def _pressed(h: np.ndarray, load, diameter: float) -> np.ndarray:
-    """Per row of sorted heights ``h`` [m] (padded with +inf; one row may be given as
-    a 1-D array), how many of them a landing of ``load`` = (m v²/k, m g/k) presses
-    (flat_face_spheres); all of them without a load, at least one."""
-    h = np.atleast_2d(np.asarray(h, dtype=np.float64))
-    n_row = np.count_nonzero(np.isfinite(h), axis=1)
-    if load is None or h.shape[1] <= 1:
-        return np.maximum(n_row, 1)
-    h = np.maximum(h - FLAT_FACE_TOL * diameter, 0.0)
-    e2, w = load
-    j = np.arange(1, h.shape[1] + 1, dtype=np.float64)
-    fin = np.where(np.isfinite(h), h, 0.0)
-    s1 = np.cumsum(fin, axis=1) + w
-    s2 = np.cumsum(fin * fin, axis=1)
-    # j δ² − 2 δ (S1 + w) + S2 − m v²/k = 0 with the j lowest centres pressed
-    disc = np.maximum(s1 * s1 - j * (s2 - e2), 0.0)
-    delta = (s1 + np.sqrt(disc)) / j
-    nxt = np.concatenate([h[:, 1:], np.full((h.shape[0], 1), np.inf)], axis=1)
-    stop = delta <= nxt                 # the first j whose δ stays below the next centre
-    first = np.argmax(stop, axis=1) + 1
-    return np.maximum(np.minimum(first, n_row), 1)
-
-
-def _hull_heights(c: np.ndarray, band: float) -> list:
-    """Per distinct facet plane of the centres' convex hull, the sorted heights of
-    the centres within ``band`` of it: 2-D arrays, a plane per row padded with +inf
-    (one plane through all of them when the set is flat, which has no hull)."""
-    from scipy.spatial import ConvexHull, QhullError
-
-    if c.shape[0] < 4:
-        return []
-    try:
-        eq = ConvexHull(c).equations
-    except (QhullError, ValueError):
-        x = c - c.mean(axis=0)
-        normal = np.linalg.svd(x, full_matrices=False)[2][-1]
-        off = x @ normal
-        h = off - off.min()
-        return [np.sort(h[h < band])]
-    # coplanar triangles of one facet share their plane: each plane once
-    eq = np.unique(np.round(eq, 9), axis=0)
-    out = []
-    for i in range(0, eq.shape[0], 512):
-        e = eq[i:i + 512]
-        # a plane per row: every centre's height above it, >= 0 inside the hull
-        dist = -(e[:, :3] @ c.T + e[:, 3:4])
-        dist[dist >= band] = np.inf
-        k = max(1, int(np.count_nonzero(np.isfinite(dist), axis=1).max()))
-        if k < dist.shape[1]:
-            dist = np.partition(dist, k - 1, axis=1)[:, :k]
-        out.append(np.sort(dist, axis=1))
-    return out
 
 
 def sym6_to_mat(s):

@@ -68,14 +68,13 @@ def test_report_restates_finalize_exactly():
     model = b.finalize(fps=60, n_frames=3, target_overlap=0.03)
     r = st.analyze(model)
     assert r.omega_max == pytest.approx(model.omega_max, rel=1e-12)
-    # the single contact's critical step is where materials.check_dt starts refusing;
-    # the report's is the smaller of it and a body resting on a face, the
-    # one finalize refuses a user dt at too
+    # the single contact's critical step is where materials.check_dt starts refusing,
+    # and the report's: a face is one contact patch, no stiffer than a corner
     single = st.critical_step(r.omega_max, r.zeta_min)
     mat.check_dt(single * (1 - 1e-9), model.omega_max, r.zeta_min, "x")
     with pytest.raises(StabilityError):
         mat.check_dt(single * (1 + 1e-9), model.omega_max, r.zeta_min, "x")
-    assert r.critical_dt == min(single, st.flat_face_step(model)[0])
+    assert r.critical_dt == single
     # auto stiffness: finalize's k from the heaviest corner-contact mass and r.impact_speed
     f = st.shape_rotational_factors(model)
     n = model.n_bodies

@@ -98,12 +98,10 @@ def test_ball_rolls_at_five_sevenths(tmp_path):
     assert v == pytest.approx(w * 0.05, rel=0.05)
 
 
-# force, for the cylinder and the torus: finalize refuses DT = 1e-4 s for them, rightly.
-# Landing on an end face (the cylinder) or lying flat (the torus) a plane presses 344
-# and 43 of their spheres at once, whose flat-face critical steps at K (2.5e-5 and
-# 8.5e-5 s) are below DT (model.flat_face_spheres, docs/spheres.md). Here they stay on their rims, on a line
-# of a few spheres, where DT is stable (the energy guard and overlap limits still run).
-ON_RIM = dict(rotation=ON_SIDE, force=True)
+# The cylinder and the torus lie on their side and roll on their rims. (A face landing
+# flat is one contact patch, kernels/patches.py: DT is as stable for it as for a rim,
+# so finalize's check stays on.)
+ON_RIM = dict(rotation=ON_SIDE)
 
 
 def test_cylinder_on_its_side_rolls_at_two_thirds(tmp_path):
@@ -130,11 +128,10 @@ def test_torus_rolls_on_its_rim(tmp_path):
 
 def test_box_rests_flat_and_slides(tmp_path):
     # μ = 0.2 < tan 20°: slides at g (sin θ - μ cos θ) = 1.51 m/s², flat on its face.
-    # Its bottom face is ~300 spheres side by side, together 300 K: K / 40 keeps that
-    # face's contact as stiff as the ball's few spheres, and DT stable
+    # Its bottom face is ~300 spheres side by side, one contact patch of stiffness K
+    # (kernels/patches.py): the same K and DT as the ball's few spheres
     mu = 0.2
-    model, fr = bake(tmp_path, 'builtin = "box"\nsize = [0.1, 0.1, 0.05]', 0.0251, mu=mu,
-                     k=K / 40)
+    model, fr = bake(tmp_path, 'builtin = "box"\nsize = [0.1, 0.1, 0.05]', 0.0251, mu=mu)
     expect = G * (math.sin(THETA) - mu * math.cos(THETA))
     assert acceleration(fr) == pytest.approx(expect, rel=0.03)
     q = fr.q[:, 0]

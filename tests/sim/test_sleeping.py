@@ -104,12 +104,12 @@ def test_skipping_what_sleeps_changes_nothing(ball_height, slab):
     # rest of its steps (nothing can move any more), stage 1 keeps the spheres of
     # bodies that slept through the last step and of static colliders, and the
     # contact passes leave out the slots of sleepers among sleepers. All must be
-    # exact: one call of 1.5 s against calls of one step each (each a rebuild,
+    # exact: one call of 2 s against calls of one step each (each a rebuild,
     # with stage 1 and the contact passes for every sphere and no skipping), bit
     # for bit. The ball lands on
     # the boxes as they settle, so some fall asleep while touching a moving body.
-    model = pile(sleep=(None, None, 0.2), ball_height=ball_height, n_frames=37, slab=slab)
-    n = 36 * model.steps_per_frame                       # 1.5 s; all asleep before
+    model = pile(sleep=(None, None, 0.2), ball_height=ball_height, n_frames=49, slab=slab)
+    n = 48 * model.steps_per_frame                       # 2 s; all asleep before
     a = model.initial_state()
     fast = Simulator(model).backend
     fast.step(a, n)

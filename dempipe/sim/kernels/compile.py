@@ -15,7 +15,7 @@ import os
 import types
 
 from dempipe.sim import laws, motion, physics
-from dempipe.sim.kernels import contacts, neighbours, pairing
+from dempipe.sim.kernels import contacts, neighbours, pairing, patches
 
 #: physics.py functions in dependency order (callees before callers).
 FORMULAS = (
@@ -83,7 +83,8 @@ def compile_pairing(jit, formulas) -> types.SimpleNamespace:
 
 
 def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNamespace:
-    """contacts.pair_forces and contacts.sphere_forces compiled with ``jit``, calling
+    """contacts.pair_forces and contacts.sphere_forces, and patches.py's passes that
+    count each contact patch before them, compiled with ``jit``, calling
     ``formulas`` (the target's compile_formulas) and ``pairing``'s entry_range (its
     compile_pairing), and reading ``constants`` (the
     flags FRICTION, ROTATION, SLEEPING, WALLS, HIST_BY_SLOT, and sqrt) as globals.
@@ -98,8 +99,11 @@ def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNam
                  rolling_torque=formulas.rolling_torque,
                  anchor_local=formulas.anchor_local, anchor_surface=formulas.anchor_surface)
     given.update(constants)
-    return compile_chain(contacts, ("wall_gap", "pair_ended", "pair_forces", "sphere_forces"), jit,
-                         given)
+    c = compile_chain(contacts, ("wall_gap", "pair_ended"), jit, given)
+    given.update(wall_gap=c.wall_gap, pair_ended=c.pair_ended)
+    pt = compile_chain(patches, patches.KERNEL, jit, given)
+    given.update(vars(pt))
+    return compile_chain(contacts, ("pair_forces", "sphere_forces"), jit, given)
 
 
 def compile_formulas(jit, law: str = laws.DEFAULT) -> types.SimpleNamespace:

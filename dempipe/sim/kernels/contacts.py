@@ -165,10 +165,11 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
     (nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s, _list_start, _list_e,
      sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest, body_wake, wall_mask,
      hist_partner, hist_spring, pair_f, wall_f, _sphere_f, _sphere_t, _sphere_tr,
-     _sphere_overlap) = cs
+     _sphere_overlap, body_patch) = cs
     d2 = diameter * diameter
     radius = 0.5 * diameter
     n_walls = wall_normal.shape[0]
+    n_bodies = body_inv_mass.shape[0]
     n_spheres = sorted_idx.shape[0]
     cap = hist_partner.shape[1]
     for s in range(s0, s1):
@@ -235,6 +236,11 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
             k, eta, kt, ks = contact_coefficients(  # noqa: F821 (the law's)
                 pair_k[mi, mj], pair_damp, mi, mj, imi + imj, kt_ratio, ks_ratio, dt,
                 diameter - dist)
+            share = patch_share(body_patch, bi, bj)  # noqa: F821 (its patch's share)
+            k *= share
+            eta *= share
+            kt *= share
+            ks *= share
             if FRICTION and friction and pair_f[p, 9] != 0.0:  # noqa: F821 (touching last step)
                 mu = pair_mu[mi, mj]
                 sx = pair_f[p, 6]
@@ -347,6 +353,11 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
                 k, eta, kt, ks = contact_coefficients(  # noqa: F821 (the law's; a wall adds
                     pair_k[mi, mj], pair_damp, mi, mj, imi, kt_ratio, ks_ratio, dt,  # no 1/m)
                     radius - dist)
+                share = patch_share(body_patch, bi, n_bodies + w)  # noqa: F821
+                k *= share
+                eta *= share
+                kt *= share
+                ks *= share
                 if FRICTION and friction:  # noqa: F821
                     mu = pair_mu[mi, mj]
                     code = n_spheres + w + 1
@@ -486,7 +497,7 @@ def sphere_forces(s0, s1, cm, cs):
     (nbr, nbr_n, pidx, _pair_start, _pair_t, _wall_start, _wall_s, list_start, list_e,
      sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest, _body_wake, wall_mask,
      _hist_partner, _hist_spring, pair_f, wall_f, sphere_f, sphere_t, sphere_tr,
-     sphere_overlap) = cs
+     sphere_overlap, _body_patch) = cs
     d2 = diameter * diameter
     for s in range(s0, s1):
         i = sorted_idx[s]

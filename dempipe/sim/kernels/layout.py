@@ -24,6 +24,7 @@ from dempipe.errors import DeviceError
 from dempipe.sim.kernels.contacts import CONTACT_CHUNK
 from dempipe.sim.kernels.neighbours import NEIGHBOURS, cell_size
 from dempipe.sim.kernels.pairing import LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE
+from dempipe.sim.kernels.patches import BODY_PATCHES
 from dempipe.sim.state import CONTACT_SLOTS
 
 #: Most buckets per sphere the grid may use: its table has 2^k >= this × spheres
@@ -141,6 +142,8 @@ def cpu_scratch(model, friction: bool) -> dict:
         "wall_f": ((ns, 10), f8),
         "sphere_f": ((ns, 3), f8), "sphere_t": ((ns, 3), f8), "sphere_overlap": ((ns,), f8),
         "sphere_tr": ((ns, 3), f8),              # rolling torques (bodies.body_update)
+        # each body's contacts this step per partner (patches.py)
+        "body_patch": ((nb, BODY_PATCHES + 1, 3), f8),
         "body_wake": ((nb,), i4),
         "body_still": ((nb,), i4),               # static colliders: stage 1 keeps them
         # the contact passes' work: every chunk of slots, or a sleeping pile's
@@ -342,6 +345,7 @@ class Scratch(NamedTuple):
     sphere_t: Any
     sphere_tr: Any
     sphere_overlap: Any
+    body_patch: Any
     skin_ctl: Any
     chunks: Any
     spans: Any
@@ -394,7 +398,8 @@ class ContactScratch(NamedTuple):
     slots' spheres (sorted_idx, sorted_x [m], sorted_v [m/s], sorted_body), the
     bodies' spin body_w [rad/s] and rest counts, the wake flags, the walls in
     reach, the contact histories (hist_partner, hist_spring) and what the passes
-    write: pair_f, wall_f, sphere_f [N], sphere_t [N m], sphere_overlap [m]."""
+    write: pair_f, wall_f, sphere_f [N], sphere_t [N m], sphere_overlap [m]; and the
+    contact patches' sums per body (body_patch: patches.py)."""
 
     nbr: Any
     nbr_n: Any
@@ -421,6 +426,7 @@ class ContactScratch(NamedTuple):
     sphere_t: Any
     sphere_tr: Any
     sphere_overlap: Any
+    body_patch: Any
 
 
 class BodyModel(NamedTuple):

@@ -169,12 +169,6 @@ def critical_dt(k: float, m_eff: float, zeta: float, speed: float = 1.0) -> floa
     return critical_step(omega(k, m_eff, speed), zeta)
 
 
-def parallel(n: int, k: float, zeta: float) -> tuple[float, float]:
-    """(K, c) of n equal contacts at one overlap: n K, and the dashpots, ∝ √(m K),
-    make c grow by √n (as for the linear law)."""
-    return n * k, math.sqrt(n) * zeta
-
-
 def rest_overlap(weight: float, k: float) -> float:
     """The overlap [m] at which a contact of Hertz constant ``k`` [N/m^1.5] carries
     ``weight`` [N]: F = k δ^1.5."""

@@ -90,13 +90,6 @@ def duration_zeta(zeta: float) -> float:
     return zeta
 
 
-def parallel(n: int, k: float, zeta: float) -> tuple[float, float]:
-    """(k, ζ) of n equal contacts acting together on one body (a face landing
-    flat): the dashpots scale with √(k m), so n contacts are one oscillator of
-    stiffness n k and damping ratio √n ζ."""
-    return n * k, math.sqrt(n) * zeta
-
-
 def stiffness_for_overlap(mass: float, impact_speed: float, weight_accel: float,
                           diameter: float, target_overlap: float) -> float:
     """Stiffness that keeps the largest overlap near ``target_overlap × diameter``.

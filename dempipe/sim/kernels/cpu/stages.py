@@ -16,7 +16,7 @@ import types
 import numba
 from numba import prange
 
-from dempipe.sim.kernels import contacts
+from dempipe.sim.kernels import contacts, patches
 from dempipe.sim.kernels.bodies import body_update
 from dempipe.sim.kernels.prescribed import driven_row, motion_row
 from dempipe.sim.kernels.compile import compile_formulas, invalidate_stale_cache, specialize
@@ -42,6 +42,7 @@ from dempipe.sim.kernels.cpu.device import (  # noqa: F401
 
 invalidate_stale_cache(__file__)
 invalidate_stale_cache(contacts.__file__)   # pair_forces, sphere_forces: cached under its name
+invalidate_stale_cache(patches.__file__)
 
 # ---------------------------------------------------------------------------
 # Specialization. The stage drivers below are plain functions reading the flags
@@ -246,6 +247,13 @@ def stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still, 
     return n
 
 
+def stage_patches(cm, cs, motion_now, body_sphere_start, slot_of):
+    """The contact patches (patches.body_patches): each body's contacts this step
+    per partner, summed over its spheres in index order, for every body."""
+    for b in prange(cs.body_patch.shape[0]):
+        body_patches(b, cm, cs, motion_now, body_sphere_start, slot_of)
+
+
 def stage_contacts(cm, cs, motion_now, parity, spans, n_spans):
     """Stages 3-4, first pass: the force of each contact, computed once, by the
     sphere that owns it (kernels/contacts.py: pair_forces), and each sphere's
@@ -315,9 +323,10 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
     are listed, never a force (the frames do not depend on it). skin_ctl[1] carries the steps since the last rebuild from call to call,
     skin_ctl[3] counts the rebuilds.
 
-    With sleeping, once every body is asleep the remaining steps are skipped:
-    a step then changes nothing (a sleeping body moves only when a moving one
-    touches it, and none is left), so skipping them gives the same State bit
+    With sleeping, once every body is asleep and no wall moves the remaining steps
+    are skipped: a step then changes nothing (a sleeping body moves only when a
+    moving body or wall touches it, and none is left), so skipping them gives the
+    same State bit
     for bit, at no cost. The scratch arrays keep the last step done.
     And once at least quiet_share of the bodies are quiet, the contact passes
     visit only the chunks of slots stage_active finds work in (spans): searched
@@ -347,7 +356,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
      sorted_idx, slot_of, sorted_x, sorted_v, sorted_body, grid_idx, grid_x, grid_key,
      grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
      wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_tr, sphere_overlap,
-     skin_ctl, chunks, spans, span_ctl) = scratch
+     body_patch, skin_ctl, chunks, spans, span_ctl) = scratch
     # what the contact passes take (layout.ContactModel, ContactScratch): the same arrays
     cm = ContactModel(diameter, dt, onset_speed, body_inv_mass, body_material, pair_k,
                       pair_damp, pair_mu, kt_ratio, ks_ratio, friction, sleep_steps,
@@ -356,7 +365,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
     cs = ContactScratch(nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s, list_start,
                         list_e, sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest,
                         body_wake, wall_mask, hist_partner, hist_spring, pair_f, wall_f,
-                        sphere_f, sphere_t, sphere_tr, sphere_overlap)
+                        sphere_f, sphere_t, sphere_tr, sphere_overlap, body_patch)
     bm = BodyModel(dt, gravity, body_sphere_start, body_mass, body_inv_mass, body_inv_inertia,
                    sleep_steps, v_sleep, w_sleep, drive.body_start, rolling)
     bs = BodyScratch(sphere_f, sphere_t, sphere_tr, sphere_r, body_x, body_q, body_P, body_L,
@@ -446,6 +455,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
         n_work = n_spans if spans_ok else n_chunks
         if spans_ok:
             span_ctl[0] += 1
+        stage_patches(cm, cs, drive.motion_now, body_sphere_start, slot_of)
         stage_contacts(cm, cs, drive.motion_now, step & 1, work, n_work)
         stage_sums(cm, cs, work, n_work)
         awake, woke, quiet, calmed = stage_bodies(n_bodies, bm, bs, step)
@@ -468,8 +478,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
             spans_ok = False
         rebuilt = False
         since += 1.0
-        if SLEEPING and sleep_steps > 0 and awake == 0:
-            break                               # all asleep: nothing changes any more
+        if SLEEPING and sleep_steps > 0 and awake == 0 and drive.moving_walls == 0:
+            break                               # all asleep, no wall moving: nothing changes
     skin_ctl[0] = skin
     skin_ctl[1] = since
     if driven:                  # the carried bodies where they are at the State's time
@@ -491,8 +501,9 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
 _STAGES = (stage_body_velocities, motion_row, driven_row, stage_motion, stage_driven,
            sphere_state, stage_spheres,
            stage_spheres_sorted,
-           contacts.wall_gap, contacts.pair_ended, contacts.pair_forces, contacts.sphere_forces,
-           stage_contacts, stage_sums, body_update,
+           contacts.wall_gap, contacts.pair_ended, patches.patch_add, patches.body_patches,
+           patches.patch_share, stage_patches,
+           contacts.pair_forces, contacts.sphere_forces, stage_contacts, stage_sums, body_update,
            stage_bodies, run_steps)
 _JITS = {
     "stage_body_velocities": numba.njit(parallel=True, cache=True),
@@ -505,6 +516,10 @@ _JITS = {
     "stage_spheres_sorted": numba.njit(parallel=True, cache=True),
     "wall_gap": numba.njit(inline="always", cache=True),
     "pair_ended": numba.njit(inline="always", cache=True),
+    "patch_add": numba.njit(inline="always", cache=True),
+    "body_patches": numba.njit(cache=True),
+    "patch_share": numba.njit(inline="always", cache=True),
+    "stage_patches": numba.njit(parallel=True, cache=True),
     "pair_forces": numba.njit(cache=True),
     "sphere_forces": numba.njit(cache=True),
     "stage_contacts": numba.njit(parallel=True, cache=True),

@@ -46,6 +46,7 @@ from dempipe.sim.state import CONTACT_SLOTS
 from dempipe.sim.backend import copy_matching
 from dempipe.sim.kernels.compile import compile_contacts, compile_formulas
 from dempipe.sim.kernels.pairing import PAIR_COLS, WALL_SLACK
+from dempipe.sim.kernels.patches import BODY_PATCHES
 from dempipe.sim.kernels.layout import (
     CUDA_LAYOUT, FLAGS, GENERAL, ContactScratch, BodyScratch, body_model, layout_bytes,
     contact_model, fit_grid, grid_table, run_flags, scene_features, static_extent)
@@ -64,7 +65,8 @@ from dempipe.sim.kernels.cuda.stages import (
     k_begin_call, k_body_velocities, k_driven, k_fill, k_idle_check, k_load_pairs, k_motion,
     k_pair_mirror, k_pair_slots, k_save_pairs, k_take_max)
 # SPECIALIZED: kernels() looks them up through globals()
-from dempipe.sim.kernels.cuda.stages import k_bodies, k_pair_forces, k_sphere_forces  # noqa: F401
+from dempipe.sim.kernels.cuda.stages import (  # noqa: F401
+    k_bodies, k_body_patches, k_pair_forces, k_sphere_forces)
 
 
 # ---------------------------------------------------------------------------
@@ -72,7 +74,7 @@ from dempipe.sim.kernels.cuda.stages import k_bodies, k_pair_forces, k_sphere_fo
 # ---------------------------------------------------------------------------
 
 #: The kernels compiled per feature set (FLAGS); the others read no flag.
-SPECIALIZED = ("k_pair_forces", "k_sphere_forces", "k_bodies")
+SPECIALIZED = ("k_body_patches", "k_pair_forces", "k_sphere_forces", "k_bodies")
 _VARIANTS: dict = {}
 
 
@@ -105,6 +107,7 @@ def kernels(flags, law: str = "linear") -> types.SimpleNamespace:
             glb = dict(py.__globals__)
             glb.update(consts)
             glb.update(pair_forces=c.pair_forces, sphere_forces=c.sphere_forces,
+                       body_patches=c.body_patches,
                        body_update=body_update)
             fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__,
                                     py.__closure__)
@@ -193,7 +196,8 @@ def scratch_layout(model, friction=None) -> dict:
         "sphere_x": ((ns, 3), f8), "sphere_v": ((ns, 3), f8), "sphere_r": ((ns, 3), f8),
         "sphere_key": ((ns,), i8), "sphere_hash": ((ns,), i8),
         "bucket_start": ((table + 1,), i8), "bucket_fill": ((table,), i8),
-        "sorted_idx": ((ns,), i4), "sorted_x": ((ns, 3), f8), "sorted_v": ((ns, 3), f8),
+        "sorted_idx": ((ns,), i4), "slot_of": ((ns,), i4),
+        "sorted_x": ((ns, 3), f8), "sorted_v": ((ns, 3), f8),
         "sorted_key": ((ns,), i8), "sorted_body": ((ns,), i4),
         # neighbour lists (NEIGHBOURS entries to start with; CudaBackend.grow_neighbours)
         "built_x": ((ns, 3), f8), "nbr": ((ns, NEIGHBOURS), i4), "nbr_n": ((ns,), i4),
@@ -203,6 +207,8 @@ def scratch_layout(model, friction=None) -> dict:
         "ctl": ((CTL_SIZE,), i4),
         "sphere_f": ((ns, 3), f8), "sphere_t": ((ns, 3), f8), "sphere_overlap": ((ns,), f8),
         "sphere_tr": ((ns, 3), f8),
+        # each step's contacts per partner: by sphere, then by body (kernels/patches.py)
+        "body_patch": ((nb, BODY_PATCHES + 1, 3), f8),
         "max_out": ((1,), f8),
     }
     # contact histories (static friction) live only on the device, and only with friction
@@ -368,7 +374,9 @@ class CudaBackend:
                 d["body_rest"], d["body_still"])
 
     def _idle_check(self):
-        k_idle_check[1, 1](self.d["ctl"], self.model.sleep_steps)
+        # a moving wall may wake a sleeper: no step is idle while one moves
+        k_idle_check[1, 1](self.d["ctl"], self.model.sleep_steps
+                           if int(self.drive.moving_walls) == 0 else 0)
 
     def _velocities(self):
         m, d = self.model, self.d
@@ -412,7 +420,8 @@ class CudaBackend:
         d = self.d
         k_gather[_blocks(self.model.n_spheres, THREADS), THREADS](
             d["sorted_idx"], d["sphere_x"], d["sphere_v"], d["sphere_key"], d["sphere_body"],
-            d["sorted_x"], d["sorted_v"], d["sorted_key"], d["sorted_body"], d["ctl"])
+            d["sorted_x"], d["sorted_v"], d["sorted_key"], d["sorted_body"], d["slot_of"],
+            d["ctl"])
 
     def _neighbours(self):
         """Rebuild, stages 2-3: every sorted slot's neighbour list."""
@@ -467,7 +476,9 @@ class CudaBackend:
             hist_spring=d["contact_spring"] if spring is None else spring,
             pair_f=d["pair_f"], wall_f=d["wall_f"], sphere_f=d["sphere_f"],
             sphere_t=d["sphere_t"], sphere_tr=d["sphere_tr"],
-            sphere_overlap=d["sphere_overlap"])
+            sphere_overlap=d["sphere_overlap"], body_patch=d["body_patch"])
+        self.k.k_body_patches[_blocks(d["body_patch"].shape[0], THREADS), THREADS](
+            cm, cs, d["motion_now"], d["body_sphere_start"], d["slot_of"], d["ctl"])
         self.k.k_pair_forces[_blocks(m.n_spheres, CONTACT_THREADS), CONTACT_THREADS](
             cm, cs, d["motion_now"], parity, d["ctl"])
         self.k.k_sphere_forces[_blocks(m.n_spheres, THREADS), THREADS](cm, cs, d["ctl"])

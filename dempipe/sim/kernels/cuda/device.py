@@ -146,6 +146,7 @@ C = compile_contacts(_device_jit(), F, P, dict(FRICTION=True, ROTATION=True, SLE
                                              WALLS=True, sqrt=math.sqrt, **CUDA_LAYOUT))
 pair_forces = C.pair_forces
 sphere_forces = C.sphere_forces
+body_patches = C.body_patches
 
 
 def compile_body_stage(consts: dict):

@@ -175,8 +175,9 @@ def k_bucket_sort(bucket_start, sorted_idx, ctl):
 
 @cuda.jit
 def k_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
-             sorted_x, sorted_v, sorted_key, sorted_body, ctl):
-    """Copy sphere data into sorted order, so neighbours are read from contiguous memory."""
+             sorted_x, sorted_v, sorted_key, sorted_body, slot_of, ctl):
+    """Copy sphere data into sorted order, so neighbours are read from contiguous
+    memory, and note each sphere's slot (slot_of: the contact patches' pass)."""
     s = cuda.grid(1)
     if s >= sorted_idx.shape[0] or not rebuilding(ctl):
         return
@@ -189,6 +190,7 @@ def k_gather(sorted_idx, sphere_x, sphere_v, sphere_key, sphere_body,
     sorted_v[s, 2] = sphere_v[i, 2]
     sorted_key[s] = sphere_key[i]
     sorted_body[s] = sphere_body[i]
+    slot_of[i] = s
 
 
 @cuda.jit

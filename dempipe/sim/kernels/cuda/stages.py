@@ -22,6 +22,7 @@ from dempipe.sim.kernels.cuda.device import (
     CTL_REBUILDS,
     CTL_STEP,
     angular_velocity,
+    body_patches,
     body_update,
     driven_row,
     motion_row,
@@ -90,6 +91,16 @@ def k_load_pairs(friction, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_m
         return
     rows_to_pairs(s, sorted_idx[s], n, nbr, nbr_n, pidx, sorted_idx, sorted_body,
                   body_inv_mass, wall_mask, contact_partner, contact_spring, pair_f)
+
+
+@cuda.jit
+def k_body_patches(cm, cs, motion_now, body_sphere_start, slot_of, ctl):
+    """The contact patches (patches.body_patches, one thread per body): each body's
+    contacts this step per partner, summed over its spheres in index order."""
+    b = cuda.grid(1)
+    if b >= cs.body_patch.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
+        return
+    body_patches(b, cm, cs, motion_now, body_sphere_start, slot_of)
 
 
 @cuda.jit
