@@ -1,0 +1,164 @@
+"""The Blender extension end to end, headless: a scene built in bpy, baked by the
+real `dempipe` child process, cancelled with a real SIGINT, resumed, keyed onto
+the user's objects and freed.
+
+Runs where Blender's Python module is importable (the ``test`` extra installs
+``bpy`` on the one Python version its wheels exist for), in this interpreter or
+the one named by ``DEMPIPE_BPY_PYTHON``; skipped otherwise. Blender runs in a
+subprocess (bpy keeps global state, and its USD libraries stay out of this
+process); tests/blender/drive.py prints what it shows as JSON.
+
+Tolerances: Blender's matrices and F-curve values are float32, positions here are
+below 1 m, so 1e-6 m holds with margin; the baked USD is read with pxr here.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pxr import Usd, UsdGeom
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+from processes import assert_same_samples  # noqa: E402
+
+import scene as test_scene  # noqa: E402  (constants only: bpy is imported inside build())
+
+
+def _bpy_python():
+    if importlib.util.find_spec("bpy") is not None:
+        return sys.executable
+    return os.environ.get("DEMPIPE_BPY_PYTHON") or None
+
+
+BPY_PYTHON = _bpy_python()
+pytestmark = pytest.mark.skipif(
+    BPY_PYTHON is None, reason="Blender's Python module (bpy) is not installed "
+    "(set DEMPIPE_BPY_PYTHON to a Python that has it)")
+TOL = 1e-6      # m
+
+
+def _env(tmp_path):
+    env = dict(os.environ)
+    # the `dempipe` of this environment, found on PATH as a user's would be
+    env["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), env.get("PATH", "")])
+    env["DEMPIPE_CACHE_DIR"] = str(tmp_path / "cache")
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def run_bpy(script, *args, tmp_path, timeout=900):
+    proc = subprocess.run([BPY_PYTHON, str(script), *map(str, args)], capture_output=True,
+                          text=True, timeout=timeout, env=_env(tmp_path))
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("DEMPIPE_JSON"))
+    return json.loads(line[len("DEMPIPE_JSON"):])
+
+
+@pytest.fixture(scope="module")
+def driven(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("blender")
+    return run_bpy(HERE / "drive.py", tmp / "bake", tmp_path=tmp), tmp
+
+
+def usd_world_points(stage, prim_name, frame):
+    """World-space points [m] of the mesh under a body prim at a time code."""
+    body = stage.GetPrimAtPath(f"/World/Bodies/{prim_name}/{prim_name}_0")
+    assert body.IsValid(), prim_name
+    meshes = [p for p in Usd.PrimRange(body, Usd.TraverseInstanceProxies())
+              if p.IsA(UsdGeom.Mesh)]
+    assert len(meshes) == 1
+    mesh = UsdGeom.Mesh(meshes[0])
+    pts = np.array(mesh.GetPointsAttr().Get(frame), dtype=np.float64)
+    m = np.array(mesh.ComputeLocalToWorldTransform(frame), dtype=np.float64)
+    return pts @ m[:3, :3] + m[3, :3]
+
+
+def nearest(a, b):
+    """Largest distance from a point of ``a`` to its nearest point of ``b``."""
+    d = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=-1)
+    return float(d.min(axis=1).max())
+
+
+def test_objects_follow_the_baked_usd(driven):
+    got, _ = driven
+    assert got["resume"] == ["FINISHED"], got["status"]
+    stage = Usd.Stage.Open(got["out"])
+    assert stage.GetMetadata("metersPerUnit") == 1.0
+    by_object = {v: k for k, v in got["bodies"].items()}
+    assert sorted(by_object) == sorted(test_scene.DYNAMIC)
+    for frame, objects in got["frames"].items():
+        for name, o in objects.items():
+            usd = usd_world_points(stage, by_object[name], float(frame))
+            blender = np.array(o["vertices"])
+            # every vertex of the user's object lies on the baked mesh, and back
+            assert nearest(blender, usd) < TOL, (frame, name)
+            assert nearest(usd, blender) < TOL, (frame, name)
+    # the bake moved things: the top cube fell, the emitted batch too
+    first, last = got["frames"][str(test_scene.FRAME_START)], got["frames"][str(test_scene.FRAME_END)]
+    for name in ("Cube.002", "Drop"):
+        assert np.mean(last[name]["vertices"], axis=0)[2] < \
+            np.mean(first[name]["vertices"], axis=0)[2] - 0.01
+
+
+def test_emitted_bodies_hidden_before_their_start(driven):
+    got, _ = driven
+    stage = Usd.Stage.Open(got["out"])
+    by_object = {v: k for k, v in got["bodies"].items()}
+    for frame, objects in got["frames"].items():
+        for name, o in objects.items():
+            emitted = name.startswith("Drop")
+            hidden = emitted and int(frame) < test_scene.EMIT_FRAME
+            assert o["hide"] == [hidden, hidden], (frame, name)
+            p = by_object[name]
+            prim = stage.GetPrimAtPath(f"/World/Bodies/{p}/{p}_0")
+            vis = UsdGeom.Imageable(prim).ComputeVisibility(float(frame))
+            assert (vis == UsdGeom.Tokens.invisible) == hidden, (frame, name)
+
+
+def test_free_bake_restores_the_scene(driven):
+    got, _ = driven
+    assert got["free"] == ["FINISHED"]
+    assert got["rbw_enabled_before"] and not got["rbw_enabled_baked"]
+    assert got["rbw_enabled_after"]
+    assert got["actions_left"] == []
+    assert got["after_free"].keys() == got["before"].keys()
+    for name, before in got["before"].items():
+        after = got["after_free"][name]
+        assert after == before, name           # exactly: matrices, channels, actions
+
+
+def test_cancel_leaves_a_resumable_bake(driven, tmp_path):
+    """SIGINT mid-bake: dempipe exits 130 with its checkpoints kept, the panel
+    offers Resume, and the resumed bake writes the uninterrupted bake's samples."""
+    got, tmp = driven
+    c = got["cancel"]
+    assert c["returncode"] == 130, c
+    assert c["resumable"] and c["frames_done"] >= 2 and not c["baked"], c
+    assert c["error"] == "cancelled: the bake can be resumed"
+    out = Path(got["out"])
+    whole = tmp_path / "whole.usdc"
+    proc = subprocess.run([str(Path(sys.executable).parent / "dempipe"), "bake",
+                           str(out.parent / "scene.toml"), "-o", str(whole), "--layout",
+                           "xforms", "--device", "cpu", "-q"], env=_env(tmp),
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr
+    assert_same_samples(out, whole)
+
+
+def test_extension_zip_has_its_manifest_at_the_root(tmp_path):
+    zpath = tmp_path / "dempipe_bake.zip"
+    proc = subprocess.run([str(Path(sys.executable).parent / "dempipe"), "blender-extension",
+                           "-o", str(zpath)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    names = zipfile.ZipFile(zpath).namelist()
+    assert "blender_manifest.toml" in names and "__init__.py" in names
+    assert not any("__pycache__" in n for n in names)
