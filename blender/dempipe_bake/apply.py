@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 
 import bpy
-from mathutils import Matrix
+from mathutils import Matrix, Quaternion
 
 STATE = "dempipe_bake_state"
 _RAW = ("location", "rotation_euler", "rotation_quaternion", "rotation_axis_angle", "scale")
@@ -31,7 +31,7 @@ def read_body_matrices(usd_path, prims, frames):
     """World matrices (mathutils, column vectors) of each body prim at each frame,
     from the baked USD: {prim: [Matrix per frame]}. Reads with pxr (bundled with
     Blender)."""
-    from pxr import Usd, UsdGeom
+    from pxr import Usd
 
     stage = Usd.Stage.Open(str(usd_path))
     paths = {p: f"/World/Bodies/{p}/{p}_0" for p in prims}
@@ -40,13 +40,18 @@ def read_body_matrices(usd_path, prims, frames):
     if missing:
         raise ValueError(f"the bake has no prim {missing[0]} ({len(missing)} missing): "
                          f"bake again")
+    # The pose is the body's translate and orient ops (its parents are identity
+    # Xforms); an emitted body's scale op, 0 before its start, is not part of it.
     out = {p: [] for p in prims}
+    ops = {p: (prim.GetAttribute("xformOp:translate"), prim.GetAttribute("xformOp:orient"))
+           for p, prim in found.items()}
     for f in frames:
-        cache = UsdGeom.XformCache(Usd.TimeCode(float(f)))
-        for p, prim in found.items():
-            m = cache.GetLocalToWorldTransform(prim)
-            # Gf matrices act on row vectors (translation in the last row)
-            out[p].append(Matrix([[m[j][i] for j in range(4)] for i in range(4)]))
+        t = Usd.TimeCode(float(f))
+        for p, (tr, ori) in ops.items():
+            x, q = tr.Get(t), ori.Get(t)
+            m = Quaternion((q.GetReal(), *q.GetImaginary())).normalized().to_matrix().to_4x4()
+            m.translation = (x[0], x[1], x[2])
+            out[p].append(m)
     return out
 
 

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pxr import Usd, UsdGeom
+from pxr import Gf, Usd, UsdGeom
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
@@ -70,16 +70,22 @@ def driven(tmp_path_factory):
 
 
 def usd_world_points(stage, prim_name, frame):
-    """World-space points [m] of the mesh under a body prim at a time code."""
+    """World-space points [m] of the mesh under a body prim at a time code, placed
+    by the body's translate and orient (an emitted body's scale, 0 before its
+    start, is what hides it: docs/usd-output.md)."""
     body = stage.GetPrimAtPath(f"/World/Bodies/{prim_name}/{prim_name}_0")
     assert body.IsValid(), prim_name
     meshes = [p for p in Usd.PrimRange(body, Usd.TraverseInstanceProxies())
               if p.IsA(UsdGeom.Mesh)]
     assert len(meshes) == 1
-    mesh = UsdGeom.Mesh(meshes[0])
-    pts = np.array(mesh.GetPointsAttr().Get(frame), dtype=np.float64)
-    m = np.array(mesh.ComputeLocalToWorldTransform(frame), dtype=np.float64)
-    return pts @ m[:3, :3] + m[3, :3]
+    pts = np.array(UsdGeom.Mesh(meshes[0]).GetPointsAttr().Get(frame), dtype=np.float64)
+    x = np.array(body.GetAttribute("xformOp:translate").Get(frame), dtype=np.float64)
+    q = body.GetAttribute("xformOp:orient").Get(frame)
+    # from the components (Gf.Rotation would take the angle from acos(real), which
+    # is 0 for a float32 real part of 1 and a rotation of 1e-5 rad)
+    r = np.array(Gf.Matrix3d(Gf.Quatd(q.GetReal(), Gf.Vec3d(q.GetImaginary()))),
+                 dtype=np.float64)
+    return pts @ r + x          # Gf matrices act on row vectors
 
 
 def nearest(a, b):
