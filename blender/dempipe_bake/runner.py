@@ -4,7 +4,8 @@ No bpy here: the operator's modal timer and the blocking path (Blender in
 background mode, the tests) both call :meth:`BakeJob.poll`. The child's stderr is
 read by a thread, so Blender's main loop never blocks on a pipe; its progress
 lines (``[####    ] frame 3/13 ...``, one per 5 s when stderr is not a terminal)
-give the fraction done.
+give the fraction done; its stderr is a pseudo-terminal, so that dempipe updates
+that line every frame.
 """
 
 from __future__ import annotations
@@ -76,18 +77,35 @@ class BakeJob:
         self.returncode: int | None = None
         self.cancelled = False
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        # stderr on a pseudo-terminal where there is one: dempipe then updates its
+        # progress line every frame (to a pipe it writes one every 5 s, for logs)
+        try:
+            self._fd, slave = os.openpty()
+        except (AttributeError, OSError):
+            self._fd, slave = None, subprocess.PIPE
+        self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=slave,
                                      stdin=subprocess.DEVNULL, env=env,
                                      cwd=str(Path(scene).parent))
+        if self._fd is not None:
+            os.close(slave)
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 
+    def _chunk(self) -> bytes:
+        if self._fd is None:
+            return self.proc.stderr.read1(4096)
+        try:
+            return os.read(self._fd, 4096)
+        except OSError:             # EIO: the child closed the terminal (it ended)
+            return b""
+
     def _read(self) -> None:
         buf = b""
-        stream = self.proc.stderr
         while True:
-            chunk = stream.read1(4096) if hasattr(stream, "read1") else stream.read(1)
+            chunk = self._chunk()
             if not chunk:
+                if self._fd is not None:
+                    os.close(self._fd)
                 break
             buf += chunk
             parts = re.split(rb"[\r\n]", buf)

@@ -75,7 +75,8 @@ result["cancel"] = dict(returncode=job.returncode, error=job.error,
                         resumable=operators.can_resume(scene),
                         frames_done=json.loads(meta.read_text())["frames_done"]
                         if meta.exists() else None,
-                        baked=bool(scene.get("dempipe_bake_state")))
+                        baked=bool(scene.get("dempipe_bake_state")),
+                        fraction=job.fraction, status=job.status)
 operators.finish(bpy.context, job)
 
 # Resume: the operator's blocking path (no window here), as the panel's Resume button.

@@ -150,6 +150,8 @@ def test_cancel_leaves_a_resumable_bake(driven, tmp_path):
     assert c["returncode"] == 130, c
     assert c["resumable"] and c["frames_done"] >= 2 and not c["baked"], c
     assert c["error"] == "cancelled: the bake can be resumed"
+    # dempipe's progress line, read from its terminal, moved the progress bar
+    assert 0 < c["fraction"] < 1 and c["status"].startswith("dempipe: frame "), c
     out = Path(got["out"])
     whole = tmp_path / "whole.usdc"
     proc = subprocess.run([str(Path(sys.executable).parent / "dempipe"), "bake",
