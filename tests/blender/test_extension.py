@@ -162,7 +162,7 @@ def test_cancel_leaves_a_resumable_bake(driven, tmp_path):
     assert_same_samples(out, whole)
 
 
-def test_extension_zip_has_its_manifest_at_the_root(tmp_path):
+def test_extension_zip_installs_in_blender(tmp_path):
     zpath = tmp_path / "dempipe_bake.zip"
     proc = subprocess.run([str(Path(sys.executable).parent / "dempipe"), "blender-extension",
                            "-o", str(zpath)], capture_output=True, text=True, timeout=120)
@@ -170,3 +170,22 @@ def test_extension_zip_has_its_manifest_at_the_root(tmp_path):
     names = zipfile.ZipFile(zpath).namelist()
     assert "blender_manifest.toml" in names and "__init__.py" in names
     assert not any("__pycache__" in n for n in names)
+    # Blender's own "Install from Disk" (its operator), into a user folder of its own
+    env = _env(tmp_path)
+    env["HOME"] = str(tmp_path / "home")
+    proc = subprocess.run([BPY_PYTHON, "-c", INSTALL, str(zpath)], capture_output=True,
+                          text=True, timeout=300, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "INSTALLED ['bl_ext.user_default.dempipe_bake'] True True" in proc.stdout, \
+        proc.stdout[-3000:]
+
+
+INSTALL = r"""
+import sys
+import bpy
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.extensions.package_install_files(filepath=sys.argv[-1], repo="user_default",
+                                         enable_on_install=True)
+print("INSTALLED", [m for m in bpy.context.preferences.addons.keys() if "dempipe" in m],
+      hasattr(bpy.types, "DEMPIPE_PT_bake"), hasattr(bpy.types.Scene, "dempipe"))
+"""
