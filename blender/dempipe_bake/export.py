@@ -318,6 +318,9 @@ def write_scene(scene, folder: Path, *, resolution: int = 8, target_overlap: flo
         mat = material(rb.friction, rb.restitution, 1000.0)
         verts, tris, _ = _mesh_arrays(ob, depsgraph, scale)
         keys = None
+        if "rigid_body.kinematic" in _animated_paths(ob):
+            report.append(f"{ob.name}: Animated is keyed: dempipe keeps it as it is at frame "
+                          f"{f0} for the whole bake")
         if ob.name in mats and rb.kinematic:
             poses = [m.decompose() for m in mats[ob.name]]
             if any(not _close(m, m0) for m in mats[ob.name]):

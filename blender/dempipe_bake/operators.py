@@ -77,6 +77,7 @@ def finish(context, job) -> tuple[str, str]:
     scene = context.scene
     JOBS.pop(scene.name, None)
     if not job.ok:
+        scene.dempipe.status = job.error
         return ("WARNING" if job.cancelled else "ERROR"), job.error
     e = job.export
     n = apply.apply_bake(scene, job.out, e.bodies, e.start_frames, e.frame_start, e.frame_end)

@@ -64,9 +64,7 @@ class BakeJob:
         args = [executable, "bake", str(scene), "-o", str(out), "--layout", "xforms",
                 "--device", device]
         if resume:
-            args.append("--resume")
-        else:
-            args.append("--force")
+            args.append("--resume")     # without it a bake starts over (an old work folder goes)
         if checkpoint_seconds is not None:
             args += ["--checkpoint-every", repr(float(checkpoint_seconds))]
         args += list(extra)

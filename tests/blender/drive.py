@@ -82,6 +82,7 @@ operators.finish(bpy.context, job)
 # Resume: the operator's blocking path (no window here), as the panel's Resume button.
 result["resume"] = list(bpy.ops.dempipe.bake(resume=True))
 result["status"] = s.status
+result["report"] = s.report
 result["out"] = str(job.out)
 result["bodies"] = job.export.bodies
 result["rbw_enabled_baked"] = scene.rigidbody_world.enabled
@@ -98,4 +99,18 @@ scene.frame_set(test_scene.FRAME_START)
 result["after_free"] = snapshot()
 result["rbw_enabled_after"] = scene.rigidbody_world.enabled
 result["actions_left"] = sorted(a.name for a in bpy.data.actions if a.name.endswith("_dempipe"))
+
+# The scene the bake above read, kept for the test's uninterrupted bake of it.
+scene_toml = job.out.parent / "scene.toml"
+result["scene_toml"] = str(scene_toml.with_name("baked_scene.toml"))
+Path(result["scene_toml"]).write_text(scene_toml.read_text())
+
+# An error: a cube moved into the one below it; dempipe refuses, its line is shown.
+bpy.data.objects["Cube.001"].location.z = 0.15
+try:
+    result["error_bake"] = list(bpy.ops.dempipe.bake())
+except RuntimeError as exc:         # an operator's ERROR report, raised to its caller
+    result["error_bake"] = ["ERROR", str(exc)]
+result["error_status"] = s.status
+result["error_baked"] = bool(scene.get("dempipe_bake_state"))
 print("DEMPIPE_JSON" + json.dumps(result))

@@ -1,5 +1,6 @@
 """The test scene, built with bpy: a stack of cubes and a torus on a passive plane,
-a keyframed Animated paddle, and a batch of two cubes emitted at frame 7.
+a keyframed Animated paddle, and a batch of two cubes emitted at frame 7 (and a
+hinge constraint, which dempipe reports as not simulated).
 
 Run inside a Python that has bpy (tests/blender/test_extension.py starts one);
 ``build()`` returns nothing and leaves the scene in bpy.context.scene. 13 frames
@@ -49,6 +50,15 @@ def build():
     torus = bpy.context.object
     torus.name = "Torus"
     _rigid(torus, "ACTIVE", mass=0.5, restitution=0.4)
+    torus["dempipe_velocity"] = [0.0, 0.2, 0.0]      # Blender has no initial velocity
+
+    # a hinge between two cubes: dempipe has no joints, the report names it
+    hinge = bpy.data.objects.new("Hinge", None)
+    scene.collection.objects.link(hinge)
+    bpy.context.view_layer.objects.active = hinge
+    bpy.ops.rigidbody.constraint_add(type="HINGE")
+    hinge.rigid_body_constraint.object1 = bpy.data.objects["Cube"]
+    hinge.rigid_body_constraint.object2 = bpy.data.objects["Cube.001"]
 
     bpy.ops.mesh.primitive_cube_add(size=1.0, location=(-0.6, 0.0, 0.1))
     paddle = bpy.context.object
