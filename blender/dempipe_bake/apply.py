@@ -1,4 +1,5 @@
-"""The baked USD on the user's own objects, as keyframes; Free Bake undoes it.
+"""The baked USD on the user's own objects, as keyframes (or through a Transform
+Cache, :func:`apply_cache`); Free Bake undoes either.
 
 The bake (xforms layout) has each dynamic body at ``/World/Bodies/<prim>/<prim>_0``,
 posed at its centre of mass. The object's world matrix at frame f is
@@ -149,6 +150,59 @@ def apply_bake(scene, usd_path, bodies: dict, start_frames: dict, f0: int, f1: i
     return len(state["objects"])
 
 
+DRIVERS = "dempipe drivers"
+
+
+def apply_cache(scene, usd_path, bodies: dict, f0: int) -> int:
+    """Drive each body's object through a Transform Cache on the baked USD: an
+    empty per object follows its body prim (a Transform Cache constraint) and the
+    object becomes its child, with the parent inverse ``B(f0)^-1`` and its own
+    first-frame world matrix as its basis, so that it is at ``B(f) B(f0)^-1 M0``
+    as with keys. An emitted body's prim is scaled 0 before its start
+    (docs/usd-output.md), which hides the child. Nothing is keyed: the .blend stays
+    small and needs the USD where it is (docs/blender.md, the measured choice)."""
+    if STATE in scene:
+        free_bake(scene)
+    b0 = read_body_matrices(usd_path, list(bodies), [f0])
+    current = scene.frame_current
+    scene.frame_set(f0)
+    rbw = scene.rigidbody_world
+    state = dict(rbw_enabled=bool(rbw.enabled) if rbw else None, objects={})
+    with bpy.context.temp_override(scene=scene):
+        bpy.ops.cachefile.open(filepath=str(usd_path))
+    cache = bpy.data.cache_files[-1]
+    cache.name = f"{scene.name}_dempipe"
+    state["cache_file"] = cache.name
+    coll = bpy.data.collections.new(DRIVERS)
+    scene.collection.children.link(coll)
+    coll.hide_render = True
+    state["collection"] = coll.name
+    for prim, name in bodies.items():
+        ob = bpy.data.objects.get(name)
+        if ob is None:
+            continue
+        snap = _snapshot(ob)
+        snap["parent"] = ob.parent.name if ob.parent else None
+        snap["parent_inverse"] = [list(r) for r in ob.matrix_parent_inverse]
+        m0 = ob.matrix_world.copy()
+        driver = bpy.data.objects.new(f"{ob.name}_dempipe", None)
+        driver.empty_display_size = 0.02
+        coll.objects.link(driver)
+        c = driver.constraints.new("TRANSFORM_CACHE")
+        c.cache_file = cache
+        c.object_path = f"/World/Bodies/{prim}/{prim}_0"
+        ob.parent = driver
+        ob.matrix_parent_inverse = b0[prim][0].inverted()
+        ob.matrix_basis = m0
+        snap["driver"] = driver.name
+        state["objects"][name] = snap
+    if rbw is not None:
+        rbw.enabled = False
+    scene[STATE] = json.dumps(state)
+    scene.frame_set(current)
+    return len(state["objects"])
+
+
 def free_bake(scene) -> int:
     """Put the baked objects back as they were before :func:`apply_bake`: their
     actions, rotation modes, transform channels, visibility, and the rigid-body
@@ -175,12 +229,24 @@ def free_bake(scene) -> int:
             ob.animation_data_clear()
         if baked is not None:
             bpy.data.actions.remove(baked)
+        if snap.get("driver"):
+            ob.parent = bpy.data.objects.get(snap["parent"] or "")
+            ob.matrix_parent_inverse = Matrix(snap["parent_inverse"])
+            driver = bpy.data.objects.get(snap["driver"])
+            if driver is not None:
+                bpy.data.objects.remove(driver)
         ob.rotation_mode = snap["rotation_mode"]
         for k, v in snap["raw"].items():
             setattr(ob, k, v)
         ob.hide_viewport = snap["hide_viewport"]
         ob.hide_render = snap["hide_render"]
         n += 1
+    coll = bpy.data.collections.get(state.get("collection") or "")
+    if coll is not None:
+        bpy.data.collections.remove(coll)
+    cache = bpy.data.cache_files.get(state.get("cache_file") or "")
+    if cache is not None:            # cache_files has no remove(); batch_remove takes any ID
+        bpy.data.batch_remove([cache])
     rbw = scene.rigidbody_world
     if rbw is not None and state.get("rbw_enabled") is not None:
         rbw.enabled = state["rbw_enabled"]

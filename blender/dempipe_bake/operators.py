@@ -80,7 +80,11 @@ def finish(context, job) -> tuple[str, str]:
         scene.dempipe.status = job.error
         return ("WARNING" if job.cancelled else "ERROR"), job.error
     e = job.export
-    n = apply.apply_bake(scene, job.out, e.bodies, e.start_frames, e.frame_start, e.frame_end)
+    if scene.dempipe.drive == "cache":
+        n = apply.apply_cache(scene, job.out, e.bodies, e.frame_start)
+    else:
+        n = apply.apply_bake(scene, job.out, e.bodies, e.start_frames, e.frame_start,
+                             e.frame_end)
     scene.dempipe.status = f"baked {n} objects, frames {e.frame_start}-{e.frame_end}"
     return "INFO", scene.dempipe.status
 

@@ -34,6 +34,12 @@ class DempipeSettings(bpy.types.PropertyGroup):
     checkpoint_seconds: bpy.props.FloatProperty(
         name="Checkpoint Every", default=30.0, min=0.0, unit="TIME_ABSOLUTE",
         description="Seconds between checkpoints: what Cancel can lose at most")
+    drive: bpy.props.EnumProperty(
+        name="Drive", default="keys",
+        items=[("keys", "Keyframes", "Key every frame on the objects: the .blend holds the "
+                "result (best up to a few thousand objects)"),
+               ("cache", "Transform Cache", "Parent each object to an empty that follows the "
+                "baked USD: faster and smaller with many objects; the USD must stay")])
     status: bpy.props.StringProperty(name="Status", default="")
     report: bpy.props.StringProperty(name="Report", default="")
 
@@ -76,6 +82,7 @@ class DEMPIPE_PT_bake(bpy.types.Panel):
         col.prop(s, "device")
         col.prop(s, "folder")
         col.prop(s, "checkpoint_seconds")
+        col.prop(s, "drive")
         running = scene.name in operators.JOBS
         row = layout.row(align=True)
         if running:

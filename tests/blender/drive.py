@@ -100,6 +100,22 @@ result["after_free"] = snapshot()
 result["rbw_enabled_after"] = scene.rigidbody_world.enabled
 result["actions_left"] = sorted(a.name for a in bpy.data.actions if a.name.endswith("_dempipe"))
 
+# The same bake through a Transform Cache (the panel's Drive), then freed again.
+from dempipe_bake import apply  # noqa: E402
+e = job.export
+result["cache_applied"] = apply.apply_cache(scene, job.out, e.bodies, e.frame_start)
+result["cache_frames"] = {}
+for f in (test_scene.FRAME_START, test_scene.EMIT_FRAME - 1, test_scene.EMIT_FRAME,
+          test_scene.FRAME_END):
+    scene.frame_set(f)
+    result["cache_frames"][f] = {name: world_vertices(bpy.data.objects[name])
+                                 for name in test_scene.DYNAMIC}
+apply.free_bake(scene)
+scene.frame_set(test_scene.FRAME_START)
+result["after_cache_free"] = snapshot()
+result["cache_left"] = [len(bpy.data.cache_files), bool(bpy.data.collections.get(apply.DRIVERS)),
+                        sorted(o.name for o in bpy.data.objects if o.name.endswith("_dempipe"))]
+
 # The scene the bake above read, kept for the test's uninterrupted bake of it.
 scene_toml = job.out.parent / "scene.toml"
 result["scene_toml"] = str(scene_toml.with_name("baked_scene.toml"))

@@ -237,3 +237,26 @@ def test_scene_toml_maps_blenders_settings(driven):
     assert keys[-1]["time"] == pytest.approx(0.5)
     # what dempipe does not simulate is named, not dropped
     assert "rigid-body constraints are not simulated: Hinge" in got["report"].splitlines()
+
+
+def test_transform_cache_drive_puts_objects_where_the_keys_do(driven):
+    """The panel's other Drive: each object under an empty with a Transform Cache
+    constraint on the baked USD. The places of the keys, to 2e-5 m: Blender's USD
+    reader drops a rotation whose float32 quaternion has a real part of exactly 1
+    (below about 7e-4 rad; measured here: 3.3e-5 rad, 4.6e-6 m on a 20 cm cube),
+    which the keys, built from the components, keep. Emitted bodies collapse to a
+    point before their start (the USD's zero scale), and Free Bake leaves no
+    empty, cache file or change behind."""
+    got, _ = driven
+    assert got["cache_applied"] == len(test_scene.DYNAMIC)
+    for frame, objects in got["cache_frames"].items():
+        for name, verts in objects.items():
+            verts = np.array(verts)
+            hidden = name.startswith("Drop") and int(frame) < test_scene.EMIT_FRAME
+            if hidden:
+                assert np.ptp(verts, axis=0).max() < 1e-9, (frame, name)
+                continue
+            keyed = np.array(got["frames"][frame][name]["vertices"])
+            np.testing.assert_allclose(verts, keyed, atol=2e-5, err_msg=f"{frame} {name}")
+    assert got["cache_left"] == [0, False, []]
+    assert got["after_cache_free"] == got["before"]
