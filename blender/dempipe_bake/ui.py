@@ -1,4 +1,5 @@
-"""The panel (Physics properties), the scene's settings and the preferences."""
+"""The panel (Physics properties, and the 3D view's sidebar), the scene's settings
+and the preferences."""
 
 from __future__ import annotations
 
@@ -105,4 +106,13 @@ class DEMPIPE_PT_bake(bpy.types.Panel):
                 box.label(text=line)
 
 
-CLASSES = (DempipeSettings, DempipePreferences, DEMPIPE_PT_bake)
+class DEMPIPE_PT_bake_sidebar(DEMPIPE_PT_bake):
+    """The same panel in the 3D view's sidebar (N), tab dempipe."""
+
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "dempipe"
+    bl_context = ""
+
+
+CLASSES = (DempipeSettings, DempipePreferences, DEMPIPE_PT_bake, DEMPIPE_PT_bake_sidebar)

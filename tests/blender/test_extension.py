@@ -192,7 +192,8 @@ bpy.ops.wm.read_factory_settings(use_empty=True)
 bpy.ops.extensions.package_install_files(filepath=sys.argv[-1], repo="user_default",
                                          enable_on_install=True)
 print("INSTALLED", [m for m in bpy.context.preferences.addons.keys() if "dempipe" in m],
-      hasattr(bpy.types, "DEMPIPE_PT_bake"), hasattr(bpy.types.Scene, "dempipe"))
+      hasattr(bpy.types, "DEMPIPE_PT_bake") and hasattr(bpy.types, "DEMPIPE_PT_bake_sidebar"),
+      hasattr(bpy.types.Scene, "dempipe"))
 """
 
 
