@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -155,8 +154,8 @@ def main(argv=None):
                          usd_mb=usd.stat().st_size / 2**20 if way == "cache" else 0.0)
                 rows.append(r)
                 print(json.dumps(r), file=sys.stderr)
-    print(f"| objects | way | set up [s] | .blend [MiB] | + USD [MiB] | open [s] | "
-          f"scrub [ms/frame] | scrub after open [ms/frame] |")
+    print("| objects | way | set up [s] | .blend [MiB] | + USD [MiB] | open [s] | "
+          "scrub [ms/frame] | scrub after open [ms/frame] |")
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['n']:,} | {r['way']} | {r['setup']:.2f} | {r['blend_mb']:.1f} | "

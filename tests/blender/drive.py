@@ -21,7 +21,7 @@ import scene as test_scene  # noqa: E402
 folder = Path(sys.argv[-1])
 test_scene.build()
 import dempipe_bake  # noqa: E402
-from dempipe_bake import operators, runner  # noqa: E402
+from dempipe_bake import operators  # noqa: E402
 
 dempipe_bake.register()
 scene = bpy.context.scene
