@@ -5,10 +5,11 @@ The bake (xforms layout) has each dynamic body at ``/World/Bodies/<prim>/<prim>_
 posed at its centre of mass. The object's world matrix at frame f is
 ``B(f) B(f0)^-1 M0``: the body's rigid motion since the first frame applied to
 the object's own first-frame matrix M0, so its origin, scale and mesh stay as they
-were. Keyframes (location, quaternion rotation, scale, one per frame, linear)
-rather than a Transform Cache constraint: the constraint would put the object at
-the prim's pose (its centre of mass, no scale), not at its own origin; the
-measured file sizes and times are in docs/blender.md.
+were. By default as keyframes (location, quaternion rotation, scale, one per
+frame, linear), built from the quaternion's components; :func:`apply_cache`
+reaches the same matrix through an empty with a Transform Cache constraint (a
+constraint on the object itself would put it at the prim's pose: its centre of
+mass, without its scale). The measured trade-off is in docs/blender.md.
 
 Emitted bodies are hidden before their first frame with keyframes on
 ``hide_viewport`` and ``hide_render`` (constant), which Blender plays back.
