@@ -33,6 +33,7 @@ COMMANDS = {
     "preview": ("dempipe_cli.preview_cmd", "preview"),
     "wedge": ("dempipe_cli.wedge_cmd", "wedge"),
     "scene": ("dempipe_cli.scene_cmd", "scene"),
+    "blender-extension": ("dempipe_cli.blender_cmd", "blender_extension"),
 }
 
 HELP = {
@@ -44,6 +45,7 @@ HELP = {
     "preview": "Render a still or a movie of a bake (needs dempipe[preview]).",
     "wedge": "Bake variants of a scene (seeds, any key) as tasks on Dask.",
     "scene": "Convert a TOML scene to a UsdPhysics stage (scene export).",
+    "blender-extension": "Write the Blender extension (Bake from Blender) as a zip.",
 }
 
 

@@ -29,9 +29,10 @@ def test_run_all_lists_every_script():
     finally:
         sys.path.remove(BENCH)
     # gpu_bench needs a CUDA GPU, perf_samples Linux perf, cuda_compile_table ptxas,
-    # ab_trees and quickstart_bake two source trees (tools, not benchmarks): run alone
+    # ab_trees and quickstart_bake two source trees (tools, not benchmarks), blender_drive
+    # Blender as a Python module (bpy): run alone
     helpers = {"run_all", "gpu_bench", "perf_samples", "cuda_compile_table", "ab_trees",
-               "quickstart_bake"}
+               "quickstart_bake", "blender_drive"}
     missing = set(SCRIPTS) - set(run_all.BENCHMARKS) - helpers
     assert not missing, f"benchmarks not run by run_all.py: {sorted(missing)}"
     unknown = set(run_all.BENCHMARKS) - set(SCRIPTS)

@@ -4,7 +4,7 @@ Two layouts (see ``docs/usd-output.md``):
 
 ``"instancer"`` (default)
     One ``UsdGeom.PointInstancer`` at ``/World/Bodies`` whose prototypes are the
-    shapes' meshes; per frame ``positions``, ``orientations``, ``velocities``,
+    shapes' meshes (its own children); per frame ``positions``, ``orientations``, ``velocities``,
     ``angularVelocities`` and ``extent``. Compact and fast; Houdini, usdview,
     Omniverse and Blender (4.x) read it.
 ``"xforms"``
@@ -50,7 +50,7 @@ from dempipe.usd.authoring import (
     _quat_xyzw,
     _unique_names,
 )
-from dempipe.usd.colliders import _author_colliders
+from dempipe.usd.colliders import _author_colliders, collider_names
 from dempipe.usd.meshes import _PALETTE, _author_mesh, _shape_materials, _shape_points
 from dempipe.usd.prescribed import first_shown_frame
 from dempipe.usd.samples import Scan, SparseTrack, as_source
@@ -230,8 +230,12 @@ def _author_metadata(layer, scan, model, layout) -> None:
 def _author_instancer(layer, world, source, scan, model, sparse, materials) -> int:
     mpu = float(model.meters_per_unit)
     bodies = Sdf.PrimSpec(world, "Bodies", _DEF, "PointInstancer")
-    protos = Sdf.PrimSpec(bodies, "Prototypes", _DEF, "Scope")
-    shape_names = _unique_names(s.name for s in model.shapes)
+    # The prototypes are the instancer's own children, with no Scope around them:
+    # Blender imports a Scope as an empty object (a stray "Prototypes" under
+    # Bodies), and Hydra and the importers draw an instancer's children only
+    # through it anyway.
+    protos = bodies
+    shape_names = mesh_names(model, [])
     points = _shape_points(model, mpu)
     proto_paths = []
     for i, (shape, name, pts) in enumerate(zip(model.shapes, shape_names, points)):
@@ -403,47 +407,59 @@ def _author_xforms(layer, world, source, scan, model, sparse, materials) -> int:
     # references its shape's class and is instanceable, so the mesh is stored and
     # drawn once, and a DCC lists each body's mesh under its shape's name.
     protos = Sdf.PrimSpec(world, "Prototypes", _CLASS, "Scope")
+    group_names = _unique_names(model.group_names)
+    body_group = np.asarray(model.body_group)
+    body_group_index = np.asarray(model.body_group_index)
+    body_names = [f"{group_names[int(g)]}_{int(i)}" for g, i in zip(body_group, body_group_index)]
     shape_names = _unique_names(s.name for s in model.shapes)
+    mesh_names_ = mesh_names(model, group_names + body_names)
     points = _shape_points(model, mpu)
     proto_paths = []
     for i, (shape, name, pts) in enumerate(zip(model.shapes, shape_names, points)):
         cls = Sdf.PrimSpec(protos, name, _CLASS, "Xform")
-        mesh = Sdf.PrimSpec(cls, name, _DEF, "Mesh")
+        mesh = Sdf.PrimSpec(cls, mesh_names_[i], _DEF, "Mesh")
         _author_mesh(mesh, pts, shape.faces, _PALETTE[i % len(_PALETTE)], materials[i])
         proto_paths.append(cls.path)
 
     bodies = Sdf.PrimSpec(world, "Bodies", _DEF, "Xform")
-    group_names = _unique_names(model.group_names)
     groups = [Sdf.PrimSpec(bodies, g, _DEF, "Xform") for g in group_names]
 
     body_shape = np.asarray(model.body_shape)
-    body_group = np.asarray(model.body_group)
-    body_group_index = np.asarray(model.body_group_index)
     op_order = Vt.TokenArray(["xformOp:translate", "xformOp:orient"])
+    shown = _first_shown(model, scan)
     n_bodies = int(model.n_bodies)
     t_paths, o_paths = [], []
     for b in range(n_bodies):
-        g = int(body_group[b])
-        prim = Sdf.PrimSpec(groups[g], f"{group_names[g]}_{int(body_group_index[b])}", _DEF, "Xform")
+        prim = Sdf.PrimSpec(groups[int(body_group[b])], body_names[b], _DEF, "Xform")
         prim.referenceList.prependedItems.append(Sdf.Reference(primPath=proto_paths[int(body_shape[b])]))
         prim.instanceable = True
         t_paths.append(_attr(prim, "xformOp:translate", _T.Double3).path)
         o_paths.append(_attr(prim, "xformOp:orient", _T.Quatf).path)
-        _attr(prim, "xformOpOrder", _T.TokenArray, op_order, uniform=True)
+        order = op_order if shown[b] == 0 else Vt.TokenArray(list(op_order) + ["xformOp:scale"])
+        _attr(prim, "xformOpOrder", _T.TokenArray, order, uniform=True)
 
-    # emitted bodies: "invisible" until their first frame, then "inherited" (a token
-    # is held between samples, never interpolated)
+    # Emitted bodies: "invisible" until their first frame, then "inherited" (a token
+    # is held between samples, never interpolated): usdview, Houdini, Omniverse.
+    # Blender's importer reads visibility once, not animated, but follows animated
+    # transforms (a Transform Cache constraint): a scale of 0 until the first frame,
+    # then 1, hides the body there too.
     numbers = scan.numbers
     n_vis = 0
-    for b, f in enumerate(_first_shown(model, scan)):
+    for b, f in enumerate(shown):
         if f == 0:
             continue
-        vis = _attr(layer.GetPrimAtPath(t_paths[b].GetPrimPath()), "visibility", _T.Token)
+        prim = layer.GetPrimAtPath(t_paths[b].GetPrimPath())
+        vis = _attr(prim, "visibility", _T.Token)
+        scale = _attr(prim, "xformOp:scale", _T.Float3)
         layer.SetTimeSample(vis.path, float(numbers[0]), "invisible")
-        n_vis += 1
+        layer.SetTimeSample(scale.path, float(numbers[0]), (0.0, 0.0, 0.0))
+        n_vis += 2
         if f < len(numbers):
             layer.SetTimeSample(vis.path, float(numbers[f]), "inherited")
-            n_vis += 1
+            if f > 1:       # held at 0 up to the frame before, so it pops in at f
+                layer.SetTimeSample(scale.path, float(numbers[f - 1]), (0.0, 0.0, 0.0))
+            layer.SetTimeSample(scale.path, float(numbers[f]), (1.0, 1.0, 1.0))
+            n_vis += 2 + (f > 1)
 
     writers = (_BodySamples(layer, t_paths, Vt.Vec3dArray.FromNumpy, sparse),
                _BodySamples(layer, o_paths, Vt.QuatfArray.FromNumpy, sparse))
@@ -454,6 +470,25 @@ def _author_xforms(layer, world, source, scan, model, sparse, materials) -> int:
             writers[0].push(float(t), trans[f])
             writers[1].push(float(t), orient[f])
     return n_vis + sum(wr.finish() for wr in writers)
+
+
+def mesh_names(model, taken) -> list[str]:
+    """Names of the shapes' Mesh prims: the shape's name, unless that is already
+    the name of another prim a DCC makes an object of (``taken``: groups, bodies;
+    always World, Bodies, Colliders, Looks and the colliders). Blender's object
+    names are global: a mesh ``ball`` beside a group ``ball`` would rename one of
+    them ``ball.001``. A clash takes ``<shape>_mesh`` (then ``_1``, ...)."""
+    taken = set(taken) | {"World", "Bodies", "Colliders", "Looks", "Prototypes"}
+    taken |= set(collider_names(model))
+    out = []
+    for name in _unique_names(s.name for s in model.shapes):
+        cand, k = name, 0
+        while cand in taken:
+            cand = f"{name}_mesh" + (f"_{k}" if k else "")
+            k += 1
+        taken.add(cand)
+        out.append(cand)
+    return out
 
 
 def _first_shown(model, scan) -> np.ndarray:

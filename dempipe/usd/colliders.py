@@ -92,6 +92,16 @@ def _box_walls(box, up: int):
     return np.concatenate(verts), np.concatenate(faces)
 
 
+def collider_names(model) -> list[str]:
+    """The prim names under /World/Colliders, in order: ``plane_<i>``, ``box_<i>``,
+    then the static meshes' names (made valid and unique)."""
+    n_planes = len(np.asarray(getattr(model, "plane_point", np.zeros((0, 3)))).reshape(-1, 3))
+    n_boxes = len(tuple(getattr(model, "boxes", ()) or ()))
+    statics = tuple(getattr(model, "static_meshes", ()) or ())
+    reserved = [f"plane_{i}" for i in range(n_planes)] + [f"box_{i}" for i in range(n_boxes)]
+    return reserved + _unique_names(reserved + [m.name for m in statics])[len(reserved):]
+
+
 def _author_colliders(layer, world, source, scan, model, material, sparse=True) -> int:
     """The colliders under /World/Colliders (geometry in world coordinates); the
     animated ones (``model.collider_motions``) with time-sampled xformOps.
@@ -126,8 +136,7 @@ def _author_colliders(layer, world, source, scan, model, material, sparse=True) 
         verts, faces = _box_walls(box, up)
         _author_mesh(prim, verts / mpu, faces, _COLLIDER_COLOR, material)
         n += _moving_collider(layer, prim, moving.get(("box", i)), times, numbers, mpu, sparse)
-    reserved = {f"plane_{i}" for i in range(len(plane_point))} | {f"box_{i}" for i in range(len(boxes))}
-    names = _unique_names(list(reserved) + [m.name for m in statics])[len(reserved):]
+    names = collider_names(model)[len(plane_point) + len(boxes):]
     for i, (name, mesh) in enumerate(zip(names, statics)):
         prim = Sdf.PrimSpec(col, name, _DEF, "Mesh")
         _author_mesh(prim, np.asarray(mesh.vertices, dtype=np.float64) / mpu, mesh.faces,

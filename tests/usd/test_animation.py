@@ -222,7 +222,7 @@ def test_metadata_and_prim_types(tmp_path, ext):
     pi = UsdGeom.PointInstancer(pi_prim)
     targets = pi.GetPrototypesRel().GetTargets()
     assert [str(p) for p in targets] == [
-        "/World/Bodies/Prototypes/brick", "/World/Bodies/Prototypes/ball", "/World/Bodies/Prototypes/cone"]
+        "/World/Bodies/brick", "/World/Bodies/ball", "/World/Bodies/cone"]
     for p, shape in zip(targets, model.shapes):
         mesh = UsdGeom.Mesh(stage.GetPrimAtPath(p))
         assert mesh.GetPrim().GetTypeName() == "Mesh"
@@ -628,7 +628,7 @@ def test_normals_are_faceted_on_a_box_and_smooth_on_a_ball(tmp_path):
     model, frames = make_model(), make_frames()
     stage = Usd.Stage.Open(str(write_usd(tmp_path / "a.usdc", frames, model).path))
     for name in ("brick", "ball"):
-        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/Bodies/Prototypes/{name}"))
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/Bodies/{name}"))
         assert mesh.GetNormalsInterpolation() == UsdGeom.Tokens.faceVarying
         normals = np.array(mesh.GetNormalsAttr().Get(), dtype=np.float64)
         pts = np.array(mesh.GetPointsAttr().Get(), dtype=np.float64)

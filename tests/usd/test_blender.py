@@ -133,6 +133,9 @@ def test_blender_imports_the_instancer_layout(tmp_path):
         assert objects[shape.name]["material"] == f"{shape.name}_mat"
         np.testing.assert_allclose(objects[shape.name]["colour"], _PALETTE[i % len(_PALETTE)],
                                    atol=1e-6)
+    # no stray empty for the prototypes, and every name as written (no ".001")
+    assert "Prototypes" not in objects
+    assert not any("." in n for n in objects), sorted(objects)
     inst = got["instances"]
     assert len(inst) == model.n_bodies
     # Instances come in body order (ids); each at its body's pose at the middle frame.
@@ -155,3 +158,43 @@ def test_blender_shows_an_emitted_instance_from_its_start(tmp_path):
     before = blender_import(path, FIRST + mid - 1)["instances"]
     after = blender_import(path, FIRST + mid)["instances"]
     assert len(before) == model.n_bodies - 1 and len(after) == model.n_bodies
+
+
+def test_blender_hides_an_emitted_xforms_body_before_its_start(tmp_path):
+    """Blender reads a prim's visibility once, not animated; the xforms layout also
+    scales an emitted body by 0 until its first frame (docs/usd-output.md), which
+    Blender's Transform Cache constraint follows: before it the object has no
+    extent, from it on it stands at its pose, unscaled."""
+    model, frames = make_model(), make_frames()
+    mid = len(frames.frame_numbers) // 2
+    model.body_start_time = np.zeros(model.n_bodies)
+    model.body_start_time[-1] = frames.times[mid]
+    path = write_usd(tmp_path / "bake.usdc", frames, model, layout="xforms").path
+    b = model.n_bodies - 1
+    name = f"{model.group_names[model.body_group[b]]}_{model.body_group_index[b]}"
+    for frame, shown in ((FIRST, False), (FIRST + mid - 1, False), (FIRST + mid, True),
+                         (FIRST + mid + 1, True)):
+        m = np.array(blender_import(path, frame)["objects"][name]["matrix"])
+        if shown:
+            np.testing.assert_allclose(np.linalg.svd(m[:3, :3])[1], 1.0, atol=1e-6)
+            np.testing.assert_allclose(m[:3, 3], frames.x[frame - FIRST, b], atol=2e-6)
+        else:
+            assert np.abs(m[:3, :3]).max() < 1e-9, frame
+    # a body there from the start keeps its two ops and no scale
+    other = blender_import(path, FIRST)["objects"][f"{model.group_names[0]}_0"]
+    np.testing.assert_allclose(np.linalg.svd(np.array(other["matrix"])[:3, :3])[1], 1.0,
+                               atol=1e-6)
+
+
+def test_blender_names_do_not_collide(tmp_path):
+    """A group named like a shape (wrecking_ball's ``ball``): the mesh takes
+    ``<shape>_mesh``, so the group keeps its name in Blender (object names are
+    global there; a clash becomes ``ball.001``)."""
+    model, frames = make_model(), make_frames()
+    model.group_names = ("pieces", "ball")
+    path = write_usd(tmp_path / "bake.usdc", frames, model, layout="xforms").path
+    objects = blender_import(path, FIRST)["objects"]
+    assert not any("." in n for n in objects), sorted(objects)
+    assert objects["ball"]["type"] == "EMPTY" and objects["ball"]["parent"] == "Bodies"
+    assert objects["ball_0"]["instances"] == ["ball_mesh"]
+    assert objects["ball_mesh"]["type"] == "MESH"
