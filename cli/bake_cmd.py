@@ -113,8 +113,9 @@ def bake(scene, output, device, layout, frames, threads, report_path, cache_dir,
     if report_path:
         from pathlib import Path
 
-        from dempipe.pipeline.bake import check_writable
+        from dempipe.pipeline.bake import check_report_path, check_writable
 
+        check_report_path(report_path, output, scene)
         check_writable(Path(report_path).parent, "report folder")
     cache = SphereCache(cache_dir, strict=True) if cache_dir else None
     threads = clamp_threads(threads, warn)

@@ -23,6 +23,7 @@ from dempipe.check.sizes import check_run_time
 from dempipe.check.stability import ERROR, expected_speeds, soft_contact, tunnelling
 from dempipe.errors import DempipeError, ExportError, SceneError, StabilityError
 from dempipe.interrupt import StopRequested, signal_name
+from dempipe.pipeline.lock import WorkLock, work_dir
 from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP
 from dempipe.spheres.cache import SphereCache
 
@@ -88,6 +89,73 @@ def check_writable(folder, what: str = "output folder") -> None:
                           f"({exc.strerror or exc})") from None
 
 
+def _same_file(a, b) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return Path(a).resolve() == Path(b).resolve()
+
+
+def check_output_names(out: Path, scene_path=None) -> None:
+    """Refuse, before any work, an output that is the scene itself or whose name or
+    the names derived from it (work folder, partial file, temporary files) are too
+    long for its file system: an ExportError naming the file and the fix."""
+    if scene_path is not None and _same_file(out, scene_path):
+        raise ExportError(f"{out}: is the scene file; give another -o (e.g. "
+                          f"{out.stem}_baked{out.suffix})")
+    try:
+        limit = os.pathconf(_existing(out.parent), "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    longest = max(len(os.fsencode(n)) for n in (
+        f".{out.name}.bake", f".{out.stem}.tmp-{os.getpid()}{out.suffix}",
+        f".{out.stem}.partial.tmp-{os.getpid()}{out.suffix}",
+        f".{out.name}.tmp-{os.getpid()}"))
+    if longest > limit:
+        raise ExportError(f"{out}: the file name is too long for its folder's file system "
+                          f"(with the bake's work and temporary files, {longest} bytes of "
+                          f"{limit}); give a shorter -o")
+    if len(os.fsencode(str(out.parent.resolve() / f".{out.name}.bake/state-000000.npz"))) \
+            >= 4096:
+        raise ExportError(f"{out}: the path is too long for the file system; give a "
+                          f"shorter -o")
+
+
+def check_report_path(report, out, scene_path) -> None:
+    """Refuse a --report path that would replace the output, its partial file or the
+    scene with JSON (an ExportError naming both)."""
+    report, out = Path(report), Path(out)
+    for other, what in ((out, "the output"), (partial_path(out), "the output's partial file"),
+                        (Path(scene_path), "the scene file")):
+        if _same_file(report, other):
+            raise ExportError(f"--report {report}: is {what}; give the report its own "
+                              f"file (e.g. {out.stem}.json)")
+
+
+def _existing(folder: Path) -> Path:
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    return folder
+
+
+def remove_stale_temporaries(out: Path) -> None:
+    """Temporary files of earlier bakes to ``out`` that were killed while writing
+    (``.NAME.tmp-PID.EXT``, the partial file's, a report's): the caller holds the
+    work folder's lock, so no live bake is writing them."""
+    folder = out.parent
+    if not folder.is_dir():
+        return
+    part = partial_path(out)
+    prefixes = (f".{out.stem}.tmp-", f".{part.stem}.tmp-", f".{out.name}.tmp-",
+                f".{part.name}.tmp-")
+    for p in folder.iterdir():
+        if p.name.startswith(prefixes) and p.is_file():
+            rest = p.name.split(".tmp-", 1)[1]
+            pid = rest.split(".", 1)[0]
+            if pid.isdigit() and int(pid) != os.getpid():
+                p.unlink(missing_ok=True)
+
+
 def bake(scene_path, out_path, *, device: str | None = None, layout: str = "instancer",
          frames: str | None = None, threads: int | None = None, cache=None,
          progress=None, warn=None, force: bool = False, resume: bool = False,
@@ -140,17 +208,9 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
           simulation) -> BakeResult:
     import warnings
 
-    # The heavy libraries (trimesh and manifold3d, numba, pxr) load here, inside the
-    # bake's stop handler: a stop while they load is this bake's stop
+    # The heavy libraries (trimesh and manifold3d, numba, pxr) load in _bake_locked,
+    # inside the bake's stop handler: a stop while they load is this bake's stop
     # (interrupt.stop_behind), and importing this module stays cheap.
-    from dempipe.pipeline.checkpoint import CHECKPOINT_SECONDS, BakeStore, model_fingerprint
-    from dempipe.scene.build import build_model, initial_overlap_all_spheres
-    from dempipe.scene.load import load_scene
-    from dempipe.sim.simulator import BakeFailure, Simulator, resolve_device
-    from dempipe.usd.chunks import write_usd_chunks
-    from dempipe.usd.overlay import OverlayWriter
-    from dempipe.usd.samples import ChunkSource
-
     warn = warn or (lambda msg: warnings.warn(msg, stacklevel=3))
     out = Path(out_path)
     if out.suffix not in (".usd", ".usdc", ".usda"):
@@ -159,9 +219,40 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
         raise ExportError(f"{out}: is a folder (give a file name ending in .usd, .usdc or "
                           f".usda)")
     check_writable(out.parent)
+    check_output_names(out, scene_path)
     interrupt.check()
+    lock = WorkLock(work_dir(out), out)
+    lock.acquire()                  # a second bake to this output is refused here
+    try:
+        return _bake_locked(
+            scene_path, out, device=device, layout=layout, frames=frames, threads=threads,
+            cache=cache, progress=progress, warn=warn, force=force, resume=resume,
+            chunk_frames=chunk_frames, checkpoint_seconds=checkpoint_seconds,
+            checkpoints=checkpoints, simulation=simulation)
+    finally:
+        lock.release()
+
+
+def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, progress, warn,
+                 force, resume, chunk_frames, checkpoint_seconds, checkpoints,
+                 simulation) -> BakeResult:
+    from dempipe.pipeline.checkpoint import (CHECKPOINT_SECONDS, BakeStore, model_fingerprint,
+                                             read_meta)
+    from dempipe.scene.build import build_model, initial_overlap_all_spheres
+    from dempipe.scene.load import load_scene
+    from dempipe.sim.simulator import BakeFailure, Simulator, resolve_device
+    from dempipe.usd.chunks import write_usd_chunks
+    from dempipe.usd.overlay import OverlayWriter
+    from dempipe.usd.samples import ChunkSource
+
+    remove_stale_temporaries(out)
+    if resume and (work_dir(out) / "meta.json").is_file():
+        read_meta(work_dir(out))    # a damaged checkpoint: one line, before any work
     t_start = time.perf_counter()
     scene = with_simulation(load_scene(scene_path), simulation)
+    if scene.usd is not None and _same_file(out, scene.usd.stage_path):
+        raise ExportError(f"{out}: is the input stage {scene.usd.stage_path}; write the "
+                          f"overlay to another file (e.g. {out.stem}_baked{out.suffix})")
     for msg in scene.usd.warnings if scene.usd is not None else ():
         warn(msg)
     device_asked = device or scene.simulation.device
@@ -309,6 +400,8 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
                   wall_seconds=time.perf_counter() - t_start, output=str(target))
     if failure is None:
         store.remove()
+        # an earlier stopped bake's frames, now superseded by the whole file
+        partial_path(out).unlink(missing_ok=True)
         return BakeResult(target, report)
     if isinstance(failure, KeyboardInterrupt):
         raise _interrupted(failure, scene_path, out, store, target, written, report)
