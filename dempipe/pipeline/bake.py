@@ -392,7 +392,7 @@ def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, pro
         raise _interrupted(exc, scene_path, out, store, None, 0, report) from None
     except ExportError as exc:
         # the frames are safe in the work folder: say so, and how to write them again
-        raise ExportError(f"{exc}; the {kept} frames baked are kept in {store.dir}: free "
+        raise ExportError(f"{write_failure(exc, target, store)}; the {kept} frames baked are kept in {store.dir}: free "
                           f"the space or fix the folder, then run the same bake with "
                           f"--resume to write them without simulating again") from None
     written = kept - start
@@ -409,6 +409,32 @@ def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, pro
     exc = StabilityError(f"{failure} — {written} frames kept in {target}")
     exc.result = BakeResult(target, report, partial=True)
     raise exc
+
+
+def write_failure(exc: ExportError, target: Path, store) -> str:
+    """The message of a failed USD write, with the OS's reason where pxr hid it.
+
+    pxr reports a full disk as C++ text ("Error in '...::WriteToFile' ... Could not
+    close ..."), with the errno lost and its temporary file already removed. Its
+    quoted reason is kept, and the free space of the folder is held against what the
+    file needs (about 8 times the frames' bytes on disk, USD text being the larger
+    form): below it, the reason is the full disk."""
+    text = str(exc)
+    if "pxrInternal" not in text and "Error in '" not in text:
+        return text
+    quoted = text.rsplit("'", 2)
+    cause = quoted[-2] if len(quoted) == 3 else "USD could not write the layer"
+    try:
+        st = os.statvfs(_existing(target.parent))
+        free = st.f_bavail * st.f_frsize
+    except OSError:
+        return f"{target}: cannot write USD file ({cause})"
+    need = max(1 << 20, 8 * sum(p.stat().st_size for p, _, _ in store.frame_chunks()
+                                if p.exists()))
+    if free < need:
+        return (f"{target}: cannot write USD file (No space left on device: "
+                f"{free / 2**20:.1f} MiB free, the file needs about {need / 2**20:.1f} MiB)")
+    return f"{target}: cannot write USD file ({cause})"
 
 
 def _interrupted(failure, scene_path, out, store, target, written, report):

@@ -181,3 +181,29 @@ def test_full_disk_at_a_checkpoint_keeps_the_last_one(reference, tmp_path):
         assert_same_samples(ref, out)
     finally:
         subprocess.run(["umount", "-l", str(disk)])
+
+
+def test_full_disk_at_the_usd_write_is_the_os_reason(reference, tmp_path):
+    # The frames fit (one chunk and a State: about 90 KiB) but the 250 KiB .usda does
+    # not: one line saying the disk is full, no pxr C++ text, the frames kept; --resume
+    # with room writes them without simulating again.
+    scene, ref, cache = reference
+    disk = tmp_path / "disk"
+    if not _mount_tmpfs(disk, "160k"):
+        pytest.skip("cannot mount a tmpfs here (not root?)")
+    try:
+        out = disk / "o.usda"
+        code, _, err = run("bake", scene, "-o", out, "--device", "cpu", "-q", cache=cache)
+        assert code == 2, err
+        assert "No space left on device" in err and "pxrInternal" not in err, err
+        assert "--resume" in err and len(err.strip().splitlines()) == 1, err
+        assert [p.name for p in disk.iterdir()] == [work_dir(out).name]   # no temporary
+        subprocess.run(["mount", "-o", "remount,size=16m", str(disk)], check=True)
+        rep = tmp_path / "r.json"
+        code, _, err = run("bake", scene, "-o", out, "--device", "cpu", "--resume", "--report",
+                           rep, "-q", cache=cache)
+        assert code == 0, err
+        assert json.loads(rep.read_text())["resumed_from_frame"] == 25
+        assert_same_samples(ref, out)
+    finally:
+        subprocess.run(["umount", "-l", str(disk)])
