@@ -39,8 +39,9 @@ from dempipe.scene.data import (
     SimulationSettings,
 )
 from dempipe.scene.settings import parse_simulation
+from dempipe.scene.usd_diagnostics import captured_stderr, pxr_reason
 from dempipe.scene.usd_geometry import (
-    _gprim_mesh,
+    gprim_mesh,
     _np,
     _quat_matrix,
     matrix_to_quat,
@@ -62,6 +63,12 @@ PLANE_ALIGNMENT = 0.9999
 PLANE_WIDTH_BODIES = 10.0
 #: Duration baked when the stage has no time range [s].
 DEFAULT_DURATION = 4.0
+
+#: metersPerUnit and kilogramsPerUnit accepted (nanometres to a million km): outside,
+#: a unit is a typing error, and a negative or zero one would reverse or void gravity.
+UNIT_RANGE = (1e-9, 1e9)
+#: Largest time code magnitude read: frame numbers stay exact integers in float64.
+TIME_CODE_MAX = 1e9
 
 _USD_SETTINGS_KEYS = ("stage",)
 _SIM_FROM_STAGE = ("gravity",)
@@ -120,6 +127,28 @@ class UsdShot:
 # ---------------------------------------------------------------------------- reader
 
 
+def _stage_number(value, key: str, path: Path, bounds, zero: bool = False) -> float:
+    """A number of the stage's metadata checked against ``bounds`` (a SceneError naming
+    the key otherwise; ``zero`` lets 0 through a lower bound above it)."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise SceneError(f"{path.name}: {key} is not a number ({value!r})") from None
+    lo, hi = bounds
+    if not math.isfinite(x) or not (lo <= x <= hi or (zero and x == 0)):
+        raise SceneError(f"{path.name}: {key} = {x:g} is out of range (expected a finite "
+                         f"number in [{lo:g}, {hi:g}])")
+    return x
+
+
+def _finite_vector(v, where: str, key: str) -> np.ndarray:
+    a = np.asarray(v, float)
+    if not np.isfinite(a).all():
+        raise SceneError(f"{where}: {key} = {tuple(a.tolist())} is not finite (author "
+                         "numbers)")
+    return a
+
+
 def _name(path: str, used: set) -> str:
     """A unique group/shape name from a prim path (its last element)."""
     base = re.sub(r"[^A-Za-z0-9_]", "_", path.rstrip("]").split("/")[-1]) or "body"
@@ -141,13 +170,22 @@ class _Reader:
 
         self.stage, self.path, self.sim = stage, path, sim
         self.src = path.name
-        self.mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
-        self.kpu = float(UsdPhysics.GetStageKilogramsPerUnit(stage))
+        self.mpu = _stage_number(UsdGeom.GetStageMetersPerUnit(stage), "metersPerUnit",
+                                 path, UNIT_RANGE)
+        self.kpu = _stage_number(UsdPhysics.GetStageKilogramsPerUnit(stage),
+                                 "kilogramsPerUnit", path, UNIT_RANGE)
         up = str(UsdGeom.GetStageUpAxis(stage))
         self.up_axis = "Y" if up == "Y" else "Z"
-        self.start = float(stage.GetStartTimeCode())
-        self.end = float(stage.GetEndTimeCode())
-        self.tcps = float(stage.GetTimeCodesPerSecond())
+        self.start = _stage_number(stage.GetStartTimeCode(), "startTimeCode", path,
+                                   (-TIME_CODE_MAX, TIME_CODE_MAX), zero=True)
+        self.end = _stage_number(stage.GetEndTimeCode(), "endTimeCode", path,
+                                 (-TIME_CODE_MAX, TIME_CODE_MAX), zero=True)
+        self.tcps = _stage_number(stage.GetTimeCodesPerSecond(), "timeCodesPerSecond", path,
+                                  (1.0, 1e5))
+        if abs(self.tcps - round(self.tcps)) > 1e-9:
+            raise SceneError(f"{path.name}: timeCodesPerSecond = {self.tcps:g} is not a whole "
+                             "number of frames per second (dempipe samples one frame per "
+                             "time code)")
         if not stage.HasAuthoredTimeCodeRange() or self.end <= self.start:
             self.end = self.start + DEFAULT_DURATION * self.tcps
             self.no_range = True
@@ -229,10 +267,13 @@ class _Reader:
                 for t in UsdGeom.PointInstancer(prim).GetPrototypesRel().GetTargets():
                     protos.add(str(t))
         body_prims, kinematic_prims, static_colliders = [], [], []
+        bodies_at: set = set()
         unsupported = {"joints": [], "articulations": [], "filtered pairs": [],
                        "collision groups": [], "deformables": [],
                        "disabled bodies (their shapes are static colliders)": [],
-                       "bodies inside native instances (make them not instanceable)": []}
+                       "bodies inside native instances (make them not instanceable)": [],
+                       "static colliders inside native instances (make them not "
+                       "instanceable)": []}
         it = iter(Usd.PrimRange(self.stage.GetPseudoRoot()))
         for prim in it:
             ps = str(prim.GetPath())
@@ -244,13 +285,22 @@ class _Reader:
                 it.PruneChildren()
                 continue
             if prim.IsInstance():
-                # an instance proxy cannot be overridden by the overlay
-                if any(p.HasAPI(UsdPhysics.RigidBodyAPI)
-                       for p in Usd.PrimRange(prim, Usd.TraverseInstanceProxies())):
+                # an instance proxy cannot be overridden by the overlay; the instance
+                # prim itself can: a body there has its shapes in the prototype
+                inside = [p for p in Usd.PrimRange(prim, Usd.TraverseInstanceProxies())
+                          if p != prim and p.HasAPI(UsdPhysics.RigidBodyAPI)]
+                if inside:
                     unsupported["bodies inside native instances (make them not "
                                 "instanceable)"].append(ps)
                 it.PruneChildren()
-                continue
+                if not prim.HasAPI(UsdPhysics.RigidBodyAPI):
+                    if (not self.inside_body(prim, bodies_at)
+                            and any(p.HasAPI(UsdPhysics.CollisionAPI)
+                                    and self.collision_enabled(p) for p in
+                                    Usd.PrimRange(prim, Usd.TraverseInstanceProxies()))):
+                        unsupported["static colliders inside native instances (make them "
+                                    "not instanceable)"].append(ps)
+                    continue
             schemas = [str(s) for s in prim.GetAppliedSchemas()]
             if prim.IsA(UsdPhysics.Joint):
                 unsupported["joints"].append(ps)
@@ -266,14 +316,17 @@ class _Reader:
                 rb = UsdPhysics.RigidBodyAPI(prim)
                 if not rb.GetRigidBodyEnabledAttr().Get():
                     unsupported["disabled bodies (their shapes are static colliders)"].append(ps)
-                elif rb.GetKinematicEnabledAttr().Get():
-                    kinematic_prims.append(prim)
-                    it.PruneChildren()
                 else:
-                    body_prims.append(prim)
-                    it.PruneChildren()      # its collision prims are its shapes
+                    (kinematic_prims if rb.GetKinematicEnabledAttr().Get()
+                     else body_prims).append(prim)
+                    # its collision prims are its shapes; a body nested below it is a
+                    # body of its own (the traversal goes on to find it)
+                    bodies_at.add(prim.GetPath())
+                    if prim.IsInstance():
+                        it.PruneChildren()
                 continue
-            if prim.HasAPI(UsdPhysics.CollisionAPI) and self.collision_enabled(prim):
+            if (prim.HasAPI(UsdPhysics.CollisionAPI) and self.collision_enabled(prim)
+                    and not self.inside_body(prim, bodies_at)):
                 static_colliders.append((prim, "static"))
         for prim in body_prims:
             self.read_body(prim)
@@ -285,6 +338,17 @@ class _Reader:
             if prims:
                 self.ignored.append(f"{what}: {', '.join(prims)}")
 
+    @staticmethod
+    def inside_body(prim, bodies_at: set) -> bool:
+        """Whether an ancestor of ``prim`` is an enabled rigid body (its shapes are
+        that body's, not static colliders)."""
+        p = prim.GetParent()
+        while p and not p.IsPseudoRoot():
+            if p.GetPath() in bodies_at:
+                return True
+            p = p.GetParent()
+        return False
+
     def collision_enabled(self, prim) -> bool:
         from pxr import UsdPhysics
 
@@ -295,7 +359,9 @@ class _Reader:
         from pxr import Usd, UsdPhysics
 
         out = []
-        it = iter(Usd.PrimRange(root))
+        # an instanceable body's shapes are instance proxies in its prototype
+        it = iter(Usd.PrimRange(root, Usd.TraverseInstanceProxies()) if root.IsInstance()
+                  else Usd.PrimRange(root))
         for prim in it:
             if prim != root and prim.HasAPI(UsdPhysics.RigidBodyAPI):
                 it.PruneChildren()          # a nested body is its own body
@@ -332,7 +398,7 @@ class _Reader:
         inv_body = np.linalg.inv(W_body)
         out = []
         for c in prims:
-            mesh = _gprim_mesh(c, self.where(c))
+            mesh = gprim_mesh(c, self.where(c))
             if mesh is None:
                 self.ignored.append(f"collision shapes of an unread type "
                                     f"({c.GetTypeName()}): {c.GetPath()}")
@@ -416,11 +482,16 @@ class _Reader:
             # "in the same space as the node's xform": the parent's space
             parent = self.xf.GetParentToWorldTransform(prim)
             P3 = _np(parent)[:3, :3]
-            v = np.asarray(rb.GetVelocityAttr().Get() or (0, 0, 0), float) @ P3
+            v = _finite_vector(rb.GetVelocityAttr().Get() or (0, 0, 0), where,
+                               "physics:velocity") @ P3
             _, Rp = polar(P3)
-            w = np.asarray(rb.GetAngularVelocityAttr().Get() or (0, 0, 0), float) @ Rp
+            w = _finite_vector(rb.GetAngularVelocityAttr().Get() or (0, 0, 0), where,
+                               "physics:angularVelocity") @ Rp
         else:
             v, w = np.asarray(velocity, float), np.asarray(angular, float)
+        if not (np.isfinite(W_body).all() and np.abs(W_body).max() < 1e15):
+            raise SceneError(f"{where}: the body's transform holds a non-finite or huge "
+                             "number; fix its xformOps or its parents'")
         q = matrix_to_quat(R.T)
         self.groups.append(BodyGroup(
             name=group, shape=group, material=mat, position=tuple(W_body[3, :3] * self.mpu),
@@ -546,12 +617,36 @@ class _Reader:
                                     f"{prim.GetPath()}")
             return
         ps = str(prim.GetPath())
+        where = self.where(prim)
         proto_idx = np.asarray(pi.GetProtoIndicesAttr().Get(self.t0) or [], dtype=np.int64)
+        n = len(proto_idx)
+        bad = proto_idx[(proto_idx < 0) | (proto_idx >= len(targets))]
+        if len(bad):
+            raise SceneError(f"{where}: protoIndices holds {int(bad[0])}, but the instancer "
+                             f"has {len(targets)} prototype(s) (indices 0..{len(targets) - 1})")
+        for name, attr in (("positions", pi.GetPositionsAttr()),
+                           ("orientations", pi.GetOrientationsAttr()),
+                           ("orientationsf", pi.GetOrientationsfAttr()),
+                           ("scales", pi.GetScalesAttr()),
+                           ("velocities", pi.GetVelocitiesAttr()),
+                           ("angularVelocities", pi.GetAngularVelocitiesAttr())):
+            vals = attr.Get(self.t0)
+            if vals is None or len(vals) == 0:
+                if name == "positions" and n:
+                    raise SceneError(f"{where}: positions is not authored (one per "
+                                     f"protoIndices entry, {n})")
+                continue
+            if len(vals) != n:
+                raise SceneError(f"{where}: {name} has {len(vals)} entries, protoIndices "
+                                 f"{n} (author one per instance)")
+            a = np.asarray([tuple(x.GetImaginary()) + (x.GetReal(),) if hasattr(x, "GetReal")
+                            else tuple(x) for x in vals], float)
+            if not np.isfinite(a).all():
+                raise SceneError(f"{where}: {name} holds a non-finite number")
         xforms = pi.ComputeInstanceTransformsAtTime(self.t0, self.t0)
         W_inst = self.world(prim)
         vel = pi.GetVelocitiesAttr().Get(self.t0)
         ang = pi.GetAngularVelocitiesAttr().Get(self.t0)
-        n = len(proto_idx)
         proto_local = np.zeros((n, 4, 4))
 
         for i in range(n):
@@ -584,7 +679,7 @@ class _Reader:
             n = np.linalg.inv(W[:3, :3]) @ n_local          # normals: inverse transpose
             self.add_plane(W[3, :3] * self.mpu, n, mat, name)
             return
-        mesh = _gprim_mesh(prim, where)
+        mesh = gprim_mesh(prim, where)
         if mesh is None:
             self.ignored.append(f"collision shapes of an unread type ({prim.GetTypeName()}): "
                                 f"{prim.GetPath()}")
@@ -644,14 +739,21 @@ def _open(path: Path):
 
     if not path.is_file():
         raise SceneError(f"{path.name}: file not found")
+    said = []
     try:
-        stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
+        with captured_stderr(said):
+            stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
     except Tf.ErrorException as exc:
-        lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-        raise SceneError(f"{path.name}: cannot open the USD stage "
-                         f"({lines[-1] if lines else 'unreadable'})") from None
+        why = pxr_reason(said) or pxr_reason(str(exc).splitlines()) or "unreadable"
+        raise SceneError(f"{path.name}: cannot open the USD stage ({why})") from None
     if stage is None:
-        raise SceneError(f"{path.name}: cannot open the USD stage")
+        raise SceneError(f"{path.name}: cannot open the USD stage "
+                         f"({pxr_reason(said) or 'unreadable'})")
+    if said:
+        # a sublayer, reference or payload that cannot be read: the stage would be
+        # simulated without it
+        raise SceneError(f"{path.name}: the stage does not compose whole "
+                         f"({pxr_reason(said)}); fix or remove the missing layer")
     return stage
 
 
@@ -671,8 +773,9 @@ def load_usd_scene(path, simulation: SimulationSettings | None = None, *,
     r = _Reader(stage, p, sim, gravity_given)
     r.read()
     if not r.groups:
+        left = f"; not simulated: {'; '.join(r.ignored)}" if r.ignored else ""
         raise SceneError(f"{p.name}: no rigid bodies to simulate (apply PhysicsRigidBodyAPI "
-                         "to a prim with PhysicsCollisionAPI at or below it)")
+                         f"to a prim with PhysicsCollisionAPI at or below it){left}")
     warnings = []
     if r.no_range:
         warnings.append(f"{p.name}: no time range (startTimeCode/endTimeCode); baking "
@@ -686,9 +789,6 @@ def load_usd_scene(path, simulation: SimulationSettings | None = None, *,
     start = int(round(r.start))
     output = OutputSettings(fps=int(round(r.tcps)), duration=(r.end - r.start) / r.tcps,
                             up_axis=r.up_axis, meters_per_unit=r.mpu, start_frame=start)
-    if abs(r.tcps - round(r.tcps)) > 1e-9 or r.tcps < 1:
-        raise SceneError(f"{p.name}: timeCodesPerSecond = {r.tcps:g} is not a whole number of "
-                         "frames per second (dempipe samples one frame per time code)")
     shot = UsdShot(stage_path=p, bodies=tuple(r.bodies), instancers=dict(r.instancers),
                    meters_per_unit=r.mpu, kilograms_per_unit=r.kpu, up_axis=r.up_axis,
                    start=float(start), end=r.end, tcps=r.tcps, warnings=tuple(warnings))
