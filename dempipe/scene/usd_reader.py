@@ -39,7 +39,13 @@ from dempipe.scene.data import (
     SimulationSettings,
 )
 from dempipe.scene.settings import parse_simulation
-from dempipe.scene.usd_diagnostics import captured_stderr, pxr_reason
+from dempipe.scene.usd_stage import (
+    TIME_CODE_MAX,
+    UNIT_RANGE,
+    finite_vector,
+    open_stage,
+    stage_number,
+)
 from dempipe.scene.usd_geometry import (
     gprim_mesh,
     _np,
@@ -63,12 +69,6 @@ PLANE_ALIGNMENT = 0.9999
 PLANE_WIDTH_BODIES = 10.0
 #: Duration baked when the stage has no time range [s].
 DEFAULT_DURATION = 4.0
-
-#: metersPerUnit and kilogramsPerUnit accepted (nanometres to a million km): outside,
-#: a unit is a typing error, and a negative or zero one would reverse or void gravity.
-UNIT_RANGE = (1e-9, 1e9)
-#: Largest time code magnitude read: frame numbers stay exact integers in float64.
-TIME_CODE_MAX = 1e9
 
 _USD_SETTINGS_KEYS = ("stage",)
 _SIM_FROM_STAGE = ("gravity",)
@@ -127,28 +127,6 @@ class UsdShot:
 # ---------------------------------------------------------------------------- reader
 
 
-def _stage_number(value, key: str, path: Path, bounds, zero: bool = False) -> float:
-    """A number of the stage's metadata checked against ``bounds`` (a SceneError naming
-    the key otherwise; ``zero`` lets 0 through a lower bound above it)."""
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise SceneError(f"{path.name}: {key} is not a number ({value!r})") from None
-    lo, hi = bounds
-    if not math.isfinite(x) or not (lo <= x <= hi or (zero and x == 0)):
-        raise SceneError(f"{path.name}: {key} = {x:g} is out of range (expected a finite "
-                         f"number in [{lo:g}, {hi:g}])")
-    return x
-
-
-def _finite_vector(v, where: str, key: str) -> np.ndarray:
-    a = np.asarray(v, float)
-    if not np.isfinite(a).all():
-        raise SceneError(f"{where}: {key} = {tuple(a.tolist())} is not finite (author "
-                         "numbers)")
-    return a
-
-
 def _name(path: str, used: set) -> str:
     """A unique group/shape name from a prim path (its last element)."""
     base = re.sub(r"[^A-Za-z0-9_]", "_", path.rstrip("]").split("/")[-1]) or "body"
@@ -170,17 +148,17 @@ class _Reader:
 
         self.stage, self.path, self.sim = stage, path, sim
         self.src = path.name
-        self.mpu = _stage_number(UsdGeom.GetStageMetersPerUnit(stage), "metersPerUnit",
+        self.mpu = stage_number(UsdGeom.GetStageMetersPerUnit(stage), "metersPerUnit",
                                  path, UNIT_RANGE)
-        self.kpu = _stage_number(UsdPhysics.GetStageKilogramsPerUnit(stage),
+        self.kpu = stage_number(UsdPhysics.GetStageKilogramsPerUnit(stage),
                                  "kilogramsPerUnit", path, UNIT_RANGE)
         up = str(UsdGeom.GetStageUpAxis(stage))
         self.up_axis = "Y" if up == "Y" else "Z"
-        self.start = _stage_number(stage.GetStartTimeCode(), "startTimeCode", path,
+        self.start = stage_number(stage.GetStartTimeCode(), "startTimeCode", path,
                                    (-TIME_CODE_MAX, TIME_CODE_MAX), zero=True)
-        self.end = _stage_number(stage.GetEndTimeCode(), "endTimeCode", path,
+        self.end = stage_number(stage.GetEndTimeCode(), "endTimeCode", path,
                                  (-TIME_CODE_MAX, TIME_CODE_MAX), zero=True)
-        self.tcps = _stage_number(stage.GetTimeCodesPerSecond(), "timeCodesPerSecond", path,
+        self.tcps = stage_number(stage.GetTimeCodesPerSecond(), "timeCodesPerSecond", path,
                                   (1.0, 1e5))
         if abs(self.tcps - round(self.tcps)) > 1e-9:
             raise SceneError(f"{path.name}: timeCodesPerSecond = {self.tcps:g} is not a whole "
@@ -482,10 +460,10 @@ class _Reader:
             # "in the same space as the node's xform": the parent's space
             parent = self.xf.GetParentToWorldTransform(prim)
             P3 = _np(parent)[:3, :3]
-            v = _finite_vector(rb.GetVelocityAttr().Get() or (0, 0, 0), where,
+            v = finite_vector(rb.GetVelocityAttr().Get() or (0, 0, 0), where,
                                "physics:velocity") @ P3
             _, Rp = polar(P3)
-            w = _finite_vector(rb.GetAngularVelocityAttr().Get() or (0, 0, 0), where,
+            w = finite_vector(rb.GetAngularVelocityAttr().Get() or (0, 0, 0), where,
                                "physics:angularVelocity") @ Rp
         else:
             v, w = np.asarray(velocity, float), np.asarray(angular, float)
@@ -734,29 +712,6 @@ class _Reader:
 # ------------------------------------------------------------------------------ API
 
 
-def _open(path: Path):
-    from pxr import Tf, Usd
-
-    if not path.is_file():
-        raise SceneError(f"{path.name}: file not found")
-    said = []
-    try:
-        with captured_stderr(said):
-            stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
-    except Tf.ErrorException as exc:
-        why = pxr_reason(said) or pxr_reason(str(exc).splitlines()) or "unreadable"
-        raise SceneError(f"{path.name}: cannot open the USD stage ({why})") from None
-    if stage is None:
-        raise SceneError(f"{path.name}: cannot open the USD stage "
-                         f"({pxr_reason(said) or 'unreadable'})")
-    if said:
-        # a sublayer, reference or payload that cannot be read: the stage would be
-        # simulated without it
-        raise SceneError(f"{path.name}: the stage does not compose whole "
-                         f"({pxr_reason(said)}); fix or remove the missing layer")
-    return stage
-
-
 def load_usd_scene(path, simulation: SimulationSettings | None = None, *,
                    gravity_given: bool = False, settings_path: Path | None = None) -> Scene:
     """Read the UsdPhysics stage at ``path`` as a Scene whose ``usd`` is a UsdShot.
@@ -768,7 +723,7 @@ def load_usd_scene(path, simulation: SimulationSettings | None = None, *,
     Raises SceneError naming the file and prim for anything unusable.
     """
     p = Path(path).expanduser().resolve()
-    stage = _open(p)
+    stage = open_stage(p)
     sim = simulation or SimulationSettings()
     r = _Reader(stage, p, sim, gravity_given)
     r.read()

@@ -19,7 +19,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics  # noqa: E402
 
 from dempipe.errors import SceneError  # noqa: E402
 from dempipe.scene.data import SimulationSettings  # noqa: E402
-from dempipe.scene.usd_diagnostics import captured_stderr  # noqa: E402
+from dempipe.scene.usd_stage import captured_stderr  # noqa: E402
 from dempipe.scene.usd_reader import load_usd_scene  # noqa: E402
 from dempipe.sim.frames import Frames  # noqa: E402
 from test_usd_reader import body, ground, new_stage  # noqa: E402
