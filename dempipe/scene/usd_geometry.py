@@ -88,6 +88,9 @@ def _axis_perm(axis: str) -> np.ndarray:
 #: Largest coordinate or size read from a stage, in stage units: beyond it squares
 #: and volumes overflow float64 (1e300 ** 2 is inf) long before a simulation could use it.
 MAX_COORDINATE = 1e15
+#: ... and the smallest size, radius or height: below it a shape is a typing error
+#: (and its volume underflows to 0).
+MIN_LENGTH = 1e-9
 
 
 def _length(attr, where: str, zero: bool = False) -> float:
@@ -98,9 +101,9 @@ def _length(attr, where: str, zero: bool = False) -> float:
         x = float(v)
     except (TypeError, ValueError):
         raise SceneError(f"{where}: {attr.GetName()} is not a number ({v!r})") from None
-    if not math.isfinite(x) or x < 0 or (x == 0 and not zero) or x > MAX_COORDINATE:
-        raise SceneError(f"{where}: {attr.GetName()} = {x:g} (expected a finite length > 0, "
-                         f"at most {MAX_COORDINATE:g} stage units)")
+    if not (MIN_LENGTH <= x <= MAX_COORDINATE or (zero and x == 0)):     # NaN too
+        raise SceneError(f"{where}: {attr.GetName()} = {x:g} (expected a length of "
+                         f"{MIN_LENGTH:g} to {MAX_COORDINATE:g} stage units)")
     return x
 
 

@@ -40,13 +40,20 @@ from dempipe.scene.data import (
 )
 from dempipe.scene.settings import parse_simulation
 from dempipe.scene.usd_stage import (
+    MAX_FRICTION,
+    MAX_GRAVITY,
+    MAX_MASS,
     TIME_CODE_MAX,
     UNIT_RANGE,
+    check_instancer_arrays,
+    density_of,
     finite_vector,
+    mass_of,
     open_stage,
     stage_number,
 )
 from dempipe.scene.usd_geometry import (
+    MAX_COORDINATE,
     gprim_mesh,
     _np,
     _quat_matrix,
@@ -189,7 +196,12 @@ class _Reader:
         return f"{self.src}: {prim.GetPath()}"
 
     def world(self, prim) -> np.ndarray:
-        return _np(self.xf.GetLocalToWorldTransform(prim))
+        W = _np(self.xf.GetLocalToWorldTransform(prim))
+        if not (np.isfinite(W).all() and np.abs(W).max() <= MAX_COORDINATE):
+            raise SceneError(f"{self.where(prim)}: its transform (or a parent's) holds a "
+                             f"non-finite or huge number (beyond ±{MAX_COORDINATE:g}); fix "
+                             "the xformOps")
+        return W
 
     def material(self, prim) -> tuple[str, MaterialSpec | None]:
         """The physics material bound to ``prim`` (purpose physics, then all-purpose)."""
@@ -208,13 +220,14 @@ class _Reader:
         m = UsdPhysics.MaterialAPI(mat.GetPrim())
         key = f"{self.src}: {p}"
         e = float(m.GetRestitutionAttr().Get() or 0.0)
-        if not 0.0 <= e <= 1.0:
+        if not 0.0 <= e <= 1.0:     # NaN too
             raise SceneError(f"{key}: physics:restitution = {e:g} is out of range "
                              "(expected a number in [0, 1])")
         mu = float(m.GetDynamicFrictionAttr().Get() or 0.0)
-        if mu < 0:
-            raise SceneError(f"{key}: physics:dynamicFriction = {mu:g} is negative")
-        rho = float(m.GetDensityAttr().Get() or 0.0) * self.kpu / self.mpu ** 3
+        if not 0 <= mu <= MAX_FRICTION:
+            raise SceneError(f"{key}: physics:dynamicFriction = {mu:g} (expected a number in "
+                             f"[0, {MAX_FRICTION:g}])")
+        rho = density_of(m.GetDensityAttr(), self.kpu, self.mpu, key)
         name = _name(p, self.names)
         spec = MaterialSpec(name, density=rho if rho > 0 else DEFAULT_DENSITY, restitution=e,
                             friction=mu)
@@ -359,11 +372,18 @@ class _Reader:
             from pxr import UsdPhysics
 
             s = UsdPhysics.Scene(scene_prim)
-            d = np.asarray(s.GetGravityDirectionAttr().Get() or (0, 0, 0), dtype=np.float64)
-            if np.linalg.norm(d) > 0:
-                direction = d / np.linalg.norm(d)
+            where = self.where(scene_prim)
+            d = finite_vector(s.GetGravityDirectionAttr().Get() or (0, 0, 0), where,
+                              "physics:gravityDirection")
+            big = float(np.abs(d).max())
+            if big > 0:                 # scaled first: the norm of (1e300, 0, 0) is inf
+                direction = (d / big) / np.linalg.norm(d / big)
             g = float(s.GetGravityMagnitudeAttr().Get())
-            if math.isfinite(g) and g >= 0:
+            if g != -math.inf:          # the schema's "not authored"
+                if not (math.isfinite(g) and 0 <= g * self.mpu <= MAX_GRAVITY):
+                    raise SceneError(f"{where}: physics:gravityMagnitude = {g:g} (expected "
+                                     f"-inf for the default, or a number in [0, "
+                                     f"{MAX_GRAVITY / self.mpu:g}] stage units/s²)")
                 magnitude = g * self.mpu          # stage units/s² → m/s²
         return direction * magnitude
 
@@ -399,10 +419,9 @@ class _Reader:
             mass = density = None
             if c.HasAPI(UsdPhysics.MassAPI):
                 api = UsdPhysics.MassAPI(c)
-                mv = float(api.GetMassAttr().Get() or 0.0)
-                dv = float(api.GetDensityAttr().Get() or 0.0)
-                mass = mv * self.kpu if mv > 0 else None
-                density = dv * self.kpu / self.mpu ** 3 if dv > 0 else None
+                cw = self.where(c)
+                mass = mass_of(api.GetMassAttr(), self.kpu, cw)
+                density = density_of(api.GetDensityAttr(), self.kpu, self.mpu, cw) or None
             out.append((c, m, name, mass, density))
         return out
 
@@ -426,6 +445,9 @@ class _Reader:
         where = self.where(prim) if instancer is None else f"{self.src}: {instancer}[{instance}]"
         self._proto_root = prim if instancer is not None else None
         W_body = self.world(prim) if W is None else W
+        if not (np.isfinite(W_body).all() and np.abs(W_body).max() <= MAX_COORDINATE):
+            raise SceneError(f"{where}: the instance's transform holds a non-finite or huge "
+                             "number; fix positions, orientations or scales")
         S, R = polar(W_body[:3, :3])
         if abs(np.linalg.det(S)) < 1e-300:
             raise SceneError(f"{where}: the body's transform has zero scale")
@@ -467,7 +489,7 @@ class _Reader:
                                "physics:angularVelocity") @ Rp
         else:
             v, w = np.asarray(velocity, float), np.asarray(angular, float)
-        if not (np.isfinite(W_body).all() and np.abs(W_body).max() < 1e15):
+        if not (np.isfinite(W_body).all() and np.abs(W_body).max() <= MAX_COORDINATE):
             raise SceneError(f"{where}: the body's transform holds a non-finite or huge "
                              "number; fix its xformOps or its parents'")
         q = matrix_to_quat(R.T)
@@ -526,18 +548,22 @@ class _Reader:
         body_mass = body_density = com = inertia = None
         if prim.HasAPI(UsdPhysics.MassAPI):
             api = UsdPhysics.MassAPI(prim)
-            mv = float(api.GetMassAttr().Get() or 0.0)
-            dv = float(api.GetDensityAttr().Get() or 0.0)
-            body_mass = mv * self.kpu if mv > 0 else None
-            body_density = dv * self.kpu / self.mpu ** 3 if dv > 0 else None
+            body_mass = mass_of(api.GetMassAttr(), self.kpu, where)
+            dv = density_of(api.GetDensityAttr(), self.kpu, self.mpu, where)
+            body_density = dv if dv > 0 else None
             c = api.GetCenterOfMassAttr().Get()
-            if c is not None and all(math.isfinite(x) for x in c):
+            # the schema's "not authored" is -inf in each component
+            if c is not None and not all(x == -math.inf for x in c):
+                c = finite_vector(c, where, "physics:centerOfMass")
+                if np.abs(c).max() > MAX_COORDINATE:
+                    raise SceneError(f"{where}: physics:centerOfMass = {tuple(c)} is beyond "
+                                     f"±{MAX_COORDINATE:g}")
                 com = (np.asarray(c, float) @ S) * self.mpu
             dg = api.GetDiagonalInertiaAttr().Get()
             if dg is not None and any(x != 0 for x in dg):
-                if any(x < 0 or not math.isfinite(x) for x in dg):
+                if any(not 0 <= x <= MAX_MASS * MAX_COORDINATE for x in dg):
                     raise SceneError(f"{where}: physics:diagonalInertia = {tuple(dg)} must be "
-                                     "positive")
+                                     "positive and finite")
                 pa = api.GetPrincipalAxesAttr().Get()
                 Rpa = np.eye(3)
                 if pa is not None and pa.GetLength() > 0:
@@ -602,25 +628,7 @@ class _Reader:
         if len(bad):
             raise SceneError(f"{where}: protoIndices holds {int(bad[0])}, but the instancer "
                              f"has {len(targets)} prototype(s) (indices 0..{len(targets) - 1})")
-        for name, attr in (("positions", pi.GetPositionsAttr()),
-                           ("orientations", pi.GetOrientationsAttr()),
-                           ("orientationsf", pi.GetOrientationsfAttr()),
-                           ("scales", pi.GetScalesAttr()),
-                           ("velocities", pi.GetVelocitiesAttr()),
-                           ("angularVelocities", pi.GetAngularVelocitiesAttr())):
-            vals = attr.Get(self.t0)
-            if vals is None or len(vals) == 0:
-                if name == "positions" and n:
-                    raise SceneError(f"{where}: positions is not authored (one per "
-                                     f"protoIndices entry, {n})")
-                continue
-            if len(vals) != n:
-                raise SceneError(f"{where}: {name} has {len(vals)} entries, protoIndices "
-                                 f"{n} (author one per instance)")
-            a = np.asarray([tuple(x.GetImaginary()) + (x.GetReal(),) if hasattr(x, "GetReal")
-                            else tuple(x) for x in vals], float)
-            if not np.isfinite(a).all():
-                raise SceneError(f"{where}: {name} holds a non-finite number")
+        check_instancer_arrays(pi, self.t0, n, where)
         xforms = pi.ComputeInstanceTransformsAtTime(self.t0, self.t0)
         W_inst = self.world(prim)
         vel = pi.GetVelocitiesAttr().Get(self.t0)

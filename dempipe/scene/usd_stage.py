@@ -28,6 +28,16 @@ from dempipe.errors import SceneError
 UNIT_RANGE = (1e-9, 1e9)
 #: Largest time code magnitude read: frame numbers stay exact integers in float64.
 TIME_CODE_MAX = 1e9
+#: Densities read from a stage [kg/m³] (an aerogel to ten times osmium): beyond them
+#: masses and inertias underflow or overflow before the contact stiffness is derived.
+DENSITY_RANGE = (1e-3, 1e6)
+#: The largest mass read from a stage [kg].
+MAX_MASS = 1e12
+#: The largest friction coefficient read.
+MAX_FRICTION = 100.0
+#: The largest gravity read from a stage [m/s²] (a thousand g): beyond it no contact
+#: stiffness holds a body, and a typing error is the likelier cause.
+MAX_GRAVITY = 1e4
 
 
 @contextmanager
@@ -113,8 +123,57 @@ def stage_number(value, key: str, path: Path, bounds, zero: bool = False) -> flo
 
 
 def finite_vector(v, where: str, key: str) -> np.ndarray:
+    """``v`` as float64, or a SceneError naming ``key`` when a component is not finite."""
     a = np.asarray(v, float)
     if not np.isfinite(a).all():
         raise SceneError(f"{where}: {key} = {tuple(a.tolist())} is not finite (author "
                          "numbers)")
     return a
+
+
+def density_of(attr, kpu: float, mpu: float, where: str) -> float:
+    """A density attribute in kg/m³; 0 when unauthored (or 0: "not authored", as the
+    schema has it). A SceneError for one out of DENSITY_RANGE."""
+    v = float(attr.Get() or 0.0)
+    if v == 0:
+        return 0.0
+    rho = v * kpu / mpu ** 3 if math.isfinite(v) else v
+    lo, hi = DENSITY_RANGE
+    if not lo <= rho <= hi:
+        raise SceneError(f"{where}: {attr.GetName()} = {v:g} is {rho:g} kg/m³ (expected 0 "
+                         f"for not authored, or {lo:g} to {hi:g} kg/m³)")
+    return rho
+
+
+def mass_of(attr, kpu: float, where: str) -> float | None:
+    """A physics:mass in kg; None when unauthored or 0 (the schema's "not authored").
+    A SceneError for a negative, non-finite or absurd one."""
+    mv = float(attr.Get() or 0.0)
+    if not (mv == 0 or 0 < mv * kpu <= MAX_MASS):
+        raise SceneError(f"{where}: physics:mass = {mv:g} (expected 0 for not authored, or "
+                         f"a mass above 0 and at most {MAX_MASS:g} kg)")
+    return mv * kpu if mv > 0 else None
+
+
+def check_instancer_arrays(pi, t0, n: int, where: str) -> None:
+    """A PointInstancer's per-instance arrays at ``t0``: one entry per protoIndices entry
+    (``n``), finite (a SceneError naming the array otherwise)."""
+    for name, attr in (("positions", pi.GetPositionsAttr()),
+                       ("orientations", pi.GetOrientationsAttr()),
+                       ("orientationsf", pi.GetOrientationsfAttr()),
+                       ("scales", pi.GetScalesAttr()),
+                       ("velocities", pi.GetVelocitiesAttr()),
+                       ("angularVelocities", pi.GetAngularVelocitiesAttr())):
+        vals = attr.Get(t0)
+        if vals is None or len(vals) == 0:
+            if name == "positions" and n:
+                raise SceneError(f"{where}: positions is not authored (one per "
+                                 f"protoIndices entry, {n})")
+            continue
+        if len(vals) != n:
+            raise SceneError(f"{where}: {name} has {len(vals)} entries, protoIndices "
+                             f"{n} (author one per instance)")
+        a = np.asarray([tuple(x.GetImaginary()) + (x.GetReal(),) if hasattr(x, "GetReal")
+                        else tuple(x) for x in vals], float)
+        if not np.isfinite(a).all():
+            raise SceneError(f"{where}: {name} holds a non-finite number")
