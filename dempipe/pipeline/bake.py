@@ -238,6 +238,7 @@ def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, pro
                  simulation) -> BakeResult:
     from dempipe.pipeline.checkpoint import (CHECKPOINT_SECONDS, BakeStore, model_fingerprint,
                                              read_meta)
+    from dempipe.pipeline.check import emission_finding, spin_finding
     from dempipe.scene.build import build_model, initial_overlap_all_spheres
     from dempipe.scene.load import load_scene
     from dempipe.sim.simulator import BakeFailure, Simulator, resolve_device
@@ -270,7 +271,9 @@ def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, pro
     closing = expected_speeds(model)[1]
     for risk in (tunnelling(model, model.dt, closing,
                             "auto" if isinstance(scene.simulation.dt, str) else "given", src),
-                 soft_contact(model, closing, src)):
+                 soft_contact(model, closing, src),
+                 spin_finding(model, src, scene.simulation.dt),
+                 emission_finding(model, src)):    # emitted bodies: known before they start
         if risk is not None and risk.level == ERROR and not force:
             raise StabilityError(f"{risk.message}. Fix: {risk.fix} (or bake with --force)")
         if risk is not None:
@@ -305,6 +308,7 @@ def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, pro
         if overlap > WARN_OVERLAP:
             warn(f"{src}: body {model.body_name(body)} starts {overlap:.0%} of a diameter deep "
                  f"in contact; it will be pushed out in the first steps")
+
         store.create()
     interrupt.check()
 

@@ -7,11 +7,22 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+from dempipe.check.emission import emission_overlap
+from dempipe.check.prescribed import missing_surface_speed
 from dempipe.check.sizes import check_run_time
-from dempipe.check.stability import ERROR, WARNING, Finding, StabilityReport, analyze
+from dempipe.check.stability import (
+    ERROR,
+    WARNING,
+    Finding,
+    StabilityReport,
+    analyze,
+    expected_speeds,
+    tunnelling,
+)
 from dempipe.errors import StabilityError
 from dempipe.scene.build import Overrides, build_model, full_sphere_model
 from dempipe.scene.load import load_scene
+from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP
 from dempipe.spheres.cache import SphereCache
 
 
@@ -44,7 +55,45 @@ def analyze_scene(path, cache=None) -> StabilityReport:
         text = str(exc)
         message, _, fix = text.partition(". Fix: ")
         report.findings.append(Finding(ERROR, "run-size", message, fix))
+    for found in (emission_finding(model, Path(path).name),
+                  spin_finding(model, Path(path).name, user_dt)):
+        if found is not None:
+            report.findings.append(found)
     return _with_usd_findings(report, scene)
+
+
+def spin_finding(model, src: str, dt_setting) -> Finding | None:
+    """The tunnelling finding at the closing speed with the kinematic bodies' whole
+    surface speed (check.prescribed), when the Model's own speed left some out."""
+    extra, b = missing_surface_speed(model)
+    if extra <= 0:
+        return None
+    closing = expected_speeds(model)[1] + extra
+    found = tunnelling(model, model.dt, closing, "auto" if isinstance(dt_setting, str)
+                       else "given", src)
+    if found is None:
+        return None
+    return Finding(found.level, "prescribed-speed",
+                   f"{found.message} (kinematic body {model.body_name(b)}'s surface moves at "
+                   f"{extra + float(model.surface_speed):.3g} m/s)",
+                   f"lower its motion's speed, or {found.fix}")
+
+
+def emission_finding(model, src: str) -> Finding | None:
+    """The emitters' start overlap (check.emission) as a Finding: an error above the
+    limit at which the bake's emission check stops it, a warning above WARN_OVERLAP."""
+    depth, b, other = emission_overlap(model)
+    if depth <= WARN_OVERLAP:
+        return None
+    t = float(model.body_start_time[b])
+    message = (f"{src}: body {model.body_name(b)} starts {depth:.0%} of a sphere diameter "
+               f"deep in {model.body_name(other)} at its start_time {t:.4g} s")
+    if depth > REFUSE_OVERLAP:
+        return Finding(ERROR, "emission-overlap", message + "; the bake would stop there",
+                       "lower the emitter's rate, widen its region (region_min, region_max) "
+                       "or start its groups at other times")
+    return Finding(WARNING, "emission-overlap", message + "; it will be pushed out",
+                   "lower the emitter's rate or widen its region")
 
 
 def _with_usd_findings(report, scene):

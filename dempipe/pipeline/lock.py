@@ -31,23 +31,27 @@ class BakeLockedError(DempipeError):
 
 
 class WorkLock:
-    """``flock`` on ``folder/lock``; ``acquire`` creates the folder if it is missing,
-    and ``release`` removes it again when the lock file is all it holds (a bake that
-    failed on its scene leaves nothing behind)."""
+    """``flock`` on ``folder/lock``; ``acquire`` creates the folder (and the output's
+    folders) if missing, and ``release`` removes them again when the lock file is all
+    they hold (a bake that failed on its scene leaves nothing behind)."""
 
     def __init__(self, folder, out):
         self.folder = Path(folder)
         self.out = Path(out)
         self.path = self.folder / LOCK_NAME
         self.fd: int | None = None
-        self.created = False
+        self.created: list = []
 
     def acquire(self) -> None:
         """Take the lock or raise BakeLockedError naming the other bake's process."""
         try:
-            if not self.folder.is_dir():
-                self.folder.mkdir(parents=True)
-                self.created = True
+            missing = []
+            up = self.folder
+            while not up.exists() and up != up.parent:
+                missing.append(up)
+                up = up.parent
+            self.folder.mkdir(parents=True, exist_ok=True)
+            self.created = missing         # deepest first: removed again if left empty
         except FileExistsError:
             pass
         except OSError as exc:
@@ -90,10 +94,11 @@ class WorkLock:
             left = [p.name for p in self.folder.iterdir()] if self.folder.is_dir() else []
             if left == [LOCK_NAME]:
                 self.path.unlink(missing_ok=True)       # still held: no one locks it now
-                try:
-                    self.folder.rmdir()
-                except OSError:
-                    pass
+                for folder in self.created or [self.folder]:
+                    try:
+                        folder.rmdir()      # only when empty: a written output stays
+                    except OSError:
+                        break
         finally:
             os.close(self.fd)
             self.fd = None
