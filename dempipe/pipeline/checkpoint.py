@@ -354,6 +354,25 @@ class BakeStore:
         entry = self._write_chunk()
         if entry is not None:
             self.tail.append(entry)
+        # what the folder holds until this checkpoint's meta.json replaces the last one:
+        # restored when a write fails (a full disk), so messages and a later stop tell
+        # the checkpoint that is really there
+        before = (list(self.chunks), list(self.tail), self.frames_done, self.state_file,
+                  self.state_bytes, self.state_sha256, self.point, self.checkpoints)
+        try:
+            old = self._commit(sim, state)
+        except BaseException:
+            (self.chunks, self.tail, self.frames_done, self.state_file, self.state_bytes,
+             self.state_sha256, self.point, self.checkpoints) = before
+            raise
+        if old and old != self.state_file:
+            (self.dir / old).unlink(missing_ok=True)
+        self.last_checkpoint = time.monotonic()
+        self.checkpoint_seconds_spent += time.perf_counter() - t0
+
+    def _commit(self, sim, state) -> str | None:
+        """Write the State and meta.json committing the tail's chunks; returns the
+        previous State file's name (removed by the caller once meta.json is written)."""
         self.chunks += self.tail          # committed with this checkpoint's meta.json
         self.tail = []
         self.frames_done = sum(c[2] for c in self.chunks)
@@ -377,10 +396,7 @@ class BakeStore:
                           step=int(state.step), time=float(state.time))
         self.checkpoints += 1
         self._write_meta()
-        if old and old != name:
-            (self.dir / old).unlink(missing_ok=True)
-        self.last_checkpoint = time.monotonic()
-        self.checkpoint_seconds_spent += time.perf_counter() - t0
+        return old
 
     def keep_tail(self) -> None:
         """Write the buffered frames without a checkpoint (a full chunk between two

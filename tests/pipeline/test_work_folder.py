@@ -172,8 +172,9 @@ def test_full_disk_at_a_checkpoint_keeps_the_last_one(reference, tmp_path):
                            "-q", cache=cache)
         assert code == 2, err
         assert "No space left on device" in err and "pxr" not in err, err
+        assert "--resume" in err and len(err.strip().splitlines()) == 1, err
         done = frames_done(out)
-        assert done > 0, err
+        assert done > 0 and f"checkpoint at frame {done}" in err, err
         subprocess.run(["mount", "-o", "remount,size=16m", str(disk)], check=True)
         code, _, err = run("bake", scene, "-o", out, "--device", "cpu", "--chunk-frames", "1",
                            "--resume", "-q", cache=cache)
