@@ -209,14 +209,22 @@ class StageReader:
         if self.path.suffix.lower() not in USD_EXTENSIONS:
             raise PreviewError(f"{self.path}: not a USD file (expected a dempipe bake: "
                                f"{', '.join(USD_EXTENSIONS)})")
+        from dempipe.scene.usd_stage import captured_stderr, pxr_reason
+
+        said: list = []
         try:
-            stage = Usd.Stage.Open(str(self.path), Usd.Stage.LoadAll)
+            with captured_stderr(said):     # pxr's C++ diagnostics: one line, below
+                stage = Usd.Stage.Open(str(self.path), Usd.Stage.LoadAll)
         except Exception as exc:    # pxr.Tf.ErrorException: not USD, or corrupt
             text = " ".join(str(exc).split())
-            why = text.rsplit(" : ", 1)[-1].strip("' ") if text else type(exc).__name__
+            why = pxr_reason(said) or (text.rsplit(" : ", 1)[-1].strip("' ") if text
+                                       else type(exc).__name__)
             raise PreviewError(f"{self.path}: not a USD file pxr can open ({why})") from None
         if stage is None:
             raise PreviewError(f"{self.path}: not a USD file pxr can open")
+        if said:    # a sublayer (an overlay's input stage) or reference that is missing
+            raise PreviewError(f"{self.path}: the stage does not compose whole "
+                               f"({pxr_reason(said)}); restore the missing layer")
         self.stage = stage
         self.up_axis = str(UsdGeom.GetStageUpAxis(stage)).upper()
         self.fps = float(stage.GetFramesPerSecond() or stage.GetTimeCodesPerSecond() or 24.0)

@@ -98,3 +98,18 @@ def test_the_usd_input_example_draws_every_body_and_collider():
     got = _instances(r.batches(r.frames[0]))
     assert want > 3 and got == want
     assert np.isfinite(np.concatenate([b.matrices for b in r.batches(r.frames[0])])).all()
+
+
+def test_an_overlay_whose_input_is_gone_is_one_line(tmp_path):
+    from dempipe.preview.reader import PreviewError
+    from dempipe.scene.usd_stage import captured_stderr
+
+    _stage(tmp_path / "g.usda")
+    over = Usd.Stage.CreateNew(str(tmp_path / "o.usda"))
+    over.GetRootLayer().subLayerPaths.append("gone.usda")
+    over.GetRootLayer().Save()
+    said = []
+    with captured_stderr(said), pytest.raises(PreviewError) as err:
+        StageReader(tmp_path / "o.usda")
+    assert "gone.usda" in str(err.value) and "\n" not in str(err.value)
+    assert said == []
