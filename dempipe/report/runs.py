@@ -60,6 +60,9 @@ DEFAULT_RESOLUTION_FACTORS = (2 / 3, 5 / 6, 1.0)
 DEFAULT_DT_FACTORS = (1.0, 0.5)
 DEFAULT_STIFFNESS_FACTORS = (0.3, 1.0)
 DEFAULT_DURATION = 0.5
+#: Sweep values (resolutions, factors) from 1/SWEEP_SPAN to SWEEP_SPAN: beyond, a run
+#: is a typing error whose stiffness or step count overflows before it can fail.
+SWEEP_SPAN = 1e6
 DEFAULT_TOLERANCE = 0.02
 #: A scene with at least this many bodies is a pile: the report adds the statistics
 #: a viewer sees of it, and the chaos floor they can be compared with.
@@ -81,6 +84,9 @@ def parse_values(text: str, option: str, kind=float) -> tuple:
                               f"{what}, e.g. {'4,6,8' if kind is int else '1,0.5'})") from None
         if not (math.isfinite(v) and v > 0):
             raise ReportError(f"{option}: {p} must be greater than 0")
+        if not 1.0 / SWEEP_SPAN <= v <= SWEEP_SPAN:
+            raise ReportError(f"{option}: {p} is out of range (expected "
+                              f"{1.0 / SWEEP_SPAN:g} to {SWEEP_SPAN:g})")
         out.append(v)
     return tuple(sorted(set(out)))
 

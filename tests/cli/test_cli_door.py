@@ -132,3 +132,14 @@ def test_a_real_scheduler_passes_the_probe():
             await s.close()
 
     asyncio.run(main())
+
+
+@pytest.mark.parametrize("option, value", [("--stiffness-factors", "1,1e300"),
+                                           ("--dt-factors", "1e-300,1"),
+                                           ("--resolutions", "4,1000000000")])
+def test_report_sweep_values_beyond_reason_are_one_line(tmp_path, option, value):
+    (tmp_path / "s.toml").write_text(SCENE)
+    code, err, _ = dempipe(tmp_path, "report", "s.toml", "-o", "rep", option, value,
+                           "--no-plots")
+    assert code == 2 and option in err and "out of range" in err, err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "rep").exists()
