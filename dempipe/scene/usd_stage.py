@@ -28,9 +28,9 @@ from dempipe.errors import SceneError
 UNIT_RANGE = (1e-9, 1e9)
 #: Largest time code magnitude read: frame numbers stay exact integers in float64.
 TIME_CODE_MAX = 1e9
-#: Densities read from a stage [kg/m³] (an aerogel to ten times osmium): beyond them
+#: Densities read from a stage [kg/m³] (far beyond any material both ways): outside,
 #: masses and inertias underflow or overflow before the contact stiffness is derived.
-DENSITY_RANGE = (1e-3, 1e6)
+DENSITY_RANGE = (1e-6, 1e9)
 #: The largest mass read from a stage [kg].
 MAX_MASS = 1e12
 #: The largest friction coefficient read.
