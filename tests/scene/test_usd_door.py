@@ -264,3 +264,19 @@ def test_overlay_velocities_are_aligned_with_positions_and_still_is_zero(tmp_pat
         for t in range(6):
             pi.ComputeInstanceTransformsAtTime(Usd.TimeCode(t + 0.5), Usd.TimeCode(0))
     assert said == []
+
+
+def test_output_that_is_the_stage_a_settings_file_names_is_refused_before_work(tmp_path):
+    from dempipe.errors import ExportError
+    from dempipe.pipeline.bake import bake
+
+    st = base(tmp_path / "shot.usda")
+    st.GetRootLayer().Save()
+    (tmp_path / "shot.toml").write_text('[usd]\nstage = "shot.usda"\n')
+    before = (tmp_path / "shot.usda").read_bytes()
+    t0 = __import__("time").monotonic()
+    with pytest.raises(ExportError, match="is the input stage"):
+        bake(tmp_path / "shot.toml", tmp_path / "shot.usda", device="cpu")
+    assert __import__("time").monotonic() - t0 < 30
+    assert (tmp_path / "shot.usda").read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["shot.toml", "shot.usda"]
