@@ -84,7 +84,8 @@ def clamp_threads(threads, warn):
               default=None, metavar="SECONDS",
               help="Longest wall time between two checkpoints: what a SIGKILL or power cut "
                    "can lose [default: 60].")
-@click.option("--chunk-frames", type=click.IntRange(min=1, max=1_000_000), default=None, hidden=True,
+@click.option("--chunk-frames", type=click.IntRange(min=1, max=1_000_000), default=None,
+              hidden=True,
               help="Frames per chunk written to disk (default: 32 MiB of frames).")
 @click.option("--resume", is_flag=True,
               help="Go on from the checkpoint an interrupted bake to OUTPUT left (the same "

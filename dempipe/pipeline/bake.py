@@ -403,7 +403,8 @@ def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, pro
         raise _interrupted(exc, scene_path, out, store, None, 0, report) from None
     except ExportError as exc:
         # the frames are safe in the work folder: say so, and how to write them again
-        raise ExportError(f"{write_failure(exc, target, store)}; the {kept} frames baked are kept in {store.dir}: free "
+        raise ExportError(f"{write_failure(exc, target, store)}; the {kept} frames baked are "
+                          f"kept in {store.dir}: free "
                           f"the space or fix the folder, then run the same bake with "
                           f"--resume to write them without simulating again") from None
     written = kept - start

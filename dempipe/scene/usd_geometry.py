@@ -122,7 +122,8 @@ def gprim_mesh(prim, where: str):
         return trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=r)
     if t in ("Capsule", "Cylinder", "Cone"):
         g = getattr(UsdGeom, t)(prim)
-        r, h = _length(g.GetRadiusAttr(), where), _length(g.GetHeightAttr(), where, zero=t == "Capsule")
+        r = _length(g.GetRadiusAttr(), where)
+        h = _length(g.GetHeightAttr(), where, zero=t == "Capsule")
         axis = g.GetAxisAttr().Get()
         if axis not in ("X", "Y", "Z"):
             raise SceneError(f"{where}: axis = {axis!r} (expected X, Y or Z)")
