@@ -13,6 +13,7 @@ the target, and keeps the last checkpoint for ``resume``.
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -24,6 +25,7 @@ from dempipe.check.stability import ERROR, expected_speeds, soft_contact, tunnel
 from dempipe.errors import DempipeError, ExportError, SceneError, StabilityError
 from dempipe.interrupt import StopRequested, signal_name
 from dempipe.pipeline.lock import WorkLock, work_dir
+from dempipe.scene.keys import MAX_MAGNITUDE
 from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP
 from dempipe.spheres.cache import SphereCache
 
@@ -484,6 +486,14 @@ def with_simulation(scene, simulation: dict | None):
             raise SceneError(f"unknown simulation setting {k!r} "
                              f"(known: {', '.join(sorted(known))})")
     changes = dict(simulation)
+    for k, v in changes.items():    # what the command line or a caller gives, as a scene's
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and not (
+                math.isfinite(v) and abs(v) <= MAX_MAGNITUDE):
+            raise SceneError(f"simulation.{k}: {v!r} is not a finite number of at most "
+                             f"{MAX_MAGNITUDE:g}")
+    for k in ("resolution", "sphere_diameter"):
+        if changes.get(k) is not None and not changes[k] > 0:
+            raise SceneError(f"simulation.{k}: {changes[k]!r} must be greater than 0")
     if changes.get("resolution") is not None:
         changes.setdefault("sphere_diameter", None)
     if changes.get("sphere_diameter") is not None:

@@ -208,3 +208,15 @@ def test_full_disk_at_the_usd_write_is_the_os_reason(reference, tmp_path):
         assert_same_samples(ref, out)
     finally:
         subprocess.run(["umount", "-l", str(disk)])
+
+
+def test_simulation_settings_from_a_caller_are_checked(reference, tmp_path):
+    # bake(simulation=...) is what the command line's --sphere-diameter reaches
+    from dempipe.errors import SceneError
+    from dempipe.pipeline.bake import bake
+
+    scene, _, cache = reference
+    for v in (float("nan"), -1.0, 1e300):
+        with pytest.raises(SceneError, match="simulation.sphere_diameter"):
+            bake(scene, tmp_path / "o.usda", simulation={"sphere_diameter": v})
+    assert list(tmp_path.iterdir()) == []
