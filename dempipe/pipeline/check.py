@@ -9,6 +9,8 @@ from pathlib import Path
 
 from dempipe.check.emission import emission_overlap
 from dempipe.check.prescribed import missing_surface_speed
+from dempipe.check.sinking import sinking
+from dempipe.check.stability import OVERLAP_ERROR
 from dempipe.check.sizes import check_run_time
 from dempipe.check.stability import (
     ERROR,
@@ -56,7 +58,8 @@ def analyze_scene(path, cache=None) -> StabilityReport:
         message, _, fix = text.partition(". Fix: ")
         report.findings.append(Finding(ERROR, "run-size", message, fix))
     for found in (emission_finding(model, Path(path).name),
-                  spin_finding(model, Path(path).name, user_dt)):
+                  spin_finding(model, Path(path).name, user_dt),
+                  sinking_finding(model, Path(path).name)):
         if found is not None:
             report.findings.append(found)
     return _with_usd_findings(report, scene)
@@ -104,3 +107,20 @@ def _with_usd_findings(report, scene):
     found = [Finding(WARNING, "usd-not-simulated" if "not simulated" in w else "usd-reading", w)
              for w in scene.usd.warnings]
     return replace(report, findings=found + list(report.findings))
+
+
+def sinking_finding(model, src: str) -> Finding | None:
+    """An error when a heavy body sinks past the overlap guard even with every one of
+    its spheres sharing the load (check.sinking): what soft-contact leaves a warning
+    under auto stiffness, the bake stops on."""
+    depth, b, mi, mj = sinking(model, expected_speeds(model)[1])
+    if depth <= OVERLAP_ERROR:
+        return None
+    names = [m.name for m in model.materials]
+    return Finding(
+        ERROR, "sinking",
+        f"{src}: body {model.body_name(b)} ({names[mi]}, {float(model.body_mass[b]):.3g} kg) "
+        f"sinks {depth:.0%} of a sphere diameter into {names[mj]} even with all its "
+        f"spheres sharing the load; the bake's overlap guard would stop it",
+        f"keep densities within 100x of each other, or give {names[mj]} an explicit, "
+        f"higher stiffness")

@@ -87,3 +87,62 @@ def test_a_body_spinning_about_its_centre_has_a_surface_speed(scene, tmp_path):
     assert "prescribed-speed" in errors and "paddle[0]" in errors["prescribed-speed"], errors
     with pytest.raises(StabilityError, match="paddle"):
         bake(scene(spin=1e6), tmp_path / "o.usda", device="cpu", cache=cache)
+
+
+HEAVY = """
+[output]
+fps = 24
+duration = 0.3
+
+[simulation]
+resolution = 3
+
+[materials.light]
+density = 1000.0
+
+[materials.heavy]
+density = {density}
+
+[shapes.ball]
+builtin = "sphere"
+diameter = 0.1
+
+[shapes.box]
+builtin = "box"
+size = [0.08, 0.06, 0.05]
+
+[[bodies]]
+name = "balls"
+shape = "ball"
+material = "light"
+layout = "grid"
+origin = [-0.1, -0.1, 0.06]
+dims = [2, 2, 1]
+spacing = 0.12
+
+[[bodies]]
+name = "boxes"
+shape = "box"
+material = "heavy"
+position = [0.0, 0.0, 0.3]
+
+[[colliders]]
+type = "plane"
+point = [0.0, 0.0, 0.0]
+normal = [0.0, 0.0, 1.0]
+material = "light"
+"""
+
+
+def test_a_body_no_load_sharing_saves_is_an_error_under_auto_stiffness(tmp_path):
+    # a density ratio of 1e6: soft-contact alone says "a warning" (several contacts
+    # share the load); even every sphere of the box sharing it sinks it past the guard
+    cache = SphereCache(tmp_path / "cache")
+    p = tmp_path / "h.toml"
+    p.write_text(HEAVY.format(density=10000.0))
+    assert "sinking" not in _errors(analyze_scene(p, cache=cache))
+    p.write_text(HEAVY.format(density=1e9))
+    errors = _errors(analyze_scene(p, cache=cache))
+    assert "sinking" in errors and "boxes[0]" in errors["sinking"], errors
+    with pytest.raises(StabilityError, match="sharing the load"):
+        bake(p, tmp_path / "o.usda", device="cpu", cache=cache, warn=[].append)
