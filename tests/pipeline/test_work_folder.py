@@ -220,3 +220,30 @@ def test_simulation_settings_from_a_caller_are_checked(reference, tmp_path):
         with pytest.raises(SceneError, match="simulation.sphere_diameter"):
             bake(scene, tmp_path / "o.usda", simulation={"sphere_diameter": v})
     assert list(tmp_path.iterdir()) == []
+
+
+def test_sigkill_inside_the_final_write_leaves_nothing_after_resume(reference, tmp_path):
+    # A real SIGKILL the moment the USD write's temporary file appears (pxr's own
+    # temporary beside it): the next bake to that output, here --resume, removes both
+    # and writes the file from the kept frames without simulating again.
+    _, _, cache = reference
+    scene = write_scene(tmp_path, duration=4.0)        # a 1 MB .usda: a write to land in
+    out = tmp_path / "o.usda"
+    p = dempipe("bake", scene, "-o", out, "--device", "cpu", "-q", cache=cache)
+    hit = None
+    while p.poll() is None:
+        hit = [q.name for q in tmp_path.iterdir() if q.name.startswith(".o.tmp-")]
+        if hit:
+            p.send_signal(signal.SIGKILL)
+            break
+        time.sleep(0.0005)
+    p.communicate(timeout=60)
+    if not hit:
+        pytest.skip("the write ended before the kill could land in it on this machine")
+    assert p.returncode == -signal.SIGKILL
+    rep = tmp_path / "r.json"
+    code, _, err = run("bake", scene, "-o", out, "--device", "cpu", "--resume", "--report",
+                       rep, "-q", cache=cache)
+    assert code == 0, err
+    assert json.loads(rep.read_text())["resumed_from_frame"] == 97     # 4 s at 24 fps
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["o.usda", "r.json", "scene.toml"]
