@@ -7,6 +7,8 @@ import time
 
 import click
 
+from dempipe_cli.params import Number
+
 
 class Progress:
     """One line on stderr: frames done, simulated time, steps per second, ETA."""
@@ -78,11 +80,12 @@ def clamp_threads(threads, warn):
 @click.option("--force", is_flag=True,
               help="Bake even a scene that `dempipe check` refuses: deep frame-0 overlaps, "
                    "a dt above the critical step, tunnelling speeds.")
-@click.option("--checkpoint-every", "checkpoint_seconds", type=click.FloatRange(min=0),
+@click.option("--checkpoint-every", "checkpoint_seconds", type=Number(lo=0),
               default=None, metavar="SECONDS",
               help="Longest wall time between two checkpoints: what a SIGKILL or power cut "
                    "can lose [default: 60].")
-@click.option("--chunk-frames", type=click.IntRange(min=1), default=None, hidden=True,
+@click.option("--chunk-frames", type=click.IntRange(min=1, max=1_000_000), default=None,
+              hidden=True,
               help="Frames per chunk written to disk (default: 32 MiB of frames).")
 @click.option("--resume", is_flag=True,
               help="Go on from the checkpoint an interrupted bake to OUTPUT left (the same "
@@ -90,7 +93,7 @@ def clamp_threads(threads, warn):
 @click.option("--resolution", type=click.IntRange(min=1), default=None,
               help="Spheres across the smallest shape (replaces the scene's; for a bare "
                    "USD stage, dempipe's own setting).")
-@click.option("--sphere-diameter", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--sphere-diameter", type=Number(lo=0, lo_open=True), default=None,
               metavar="M", help="Sphere diameter in metres (instead of --resolution).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
@@ -113,8 +116,9 @@ def bake(scene, output, device, layout, frames, threads, report_path, cache_dir,
     if report_path:
         from pathlib import Path
 
-        from dempipe.pipeline.bake import check_writable
+        from dempipe.pipeline.bake import check_report_path, check_writable
 
+        check_report_path(report_path, output, scene)
         check_writable(Path(report_path).parent, "report folder")
     cache = SphereCache(cache_dir, strict=True) if cache_dir else None
     threads = clamp_threads(threads, warn)

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import click
 
+from dempipe_cli.params import Number
+
 
 class MovieProgress:
     """Frames done, frames per second and ETA on stderr: a bar on a terminal, a line
@@ -52,7 +54,7 @@ class MovieProgress:
               help="Framing the bodies at the bake's first and last frames.")
 @click.option("--size", default="1280x720", show_default=True, metavar="WxH",
               help="Picture size in pixels.")
-@click.option("--fps", type=float, default=None,
+@click.option("--fps", type=Number(lo=0, lo_open=True, hi=1000), default=None,
               help="Movie frame rate [default: the stage's framesPerSecond].")
 @click.option("--msaa", type=click.Choice(["0", "2", "4", "8"]), default=None,
               help="Multisamples a pixel (antialiasing) [default: 4 for a still, 0 for a "

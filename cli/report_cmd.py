@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import click
 
+from dempipe_cli.params import Number
+
 
 @click.command("report")
 @click.argument("scene", type=click.Path(dir_okay=False))
@@ -20,12 +22,12 @@ import click
               help="Multiples of the scene's time step (auto: of its step per contact).")
 @click.option("--stiffness-factors", default="0.3,1", show_default=True, metavar="LIST",
               help="Multiples of every material's contact stiffness.")
-@click.option("--duration", type=float, default=None, metavar="S",
+@click.option("--duration", type=Number(lo=0, lo_open=True), default=None, metavar="S",
               help="Simulated seconds per run [default: the scene's, at most 0.5].")
-@click.option("--horizon", type=float, default=None, metavar="S",
+@click.option("--horizon", type=Number(lo=0, lo_open=True), default=None, metavar="S",
               help="When the per-body motion error is taken [default: 0.1 s after the "
                    "reference's median first contact].")
-@click.option("--tolerance", type=float, default=0.02, show_default=True,
+@click.option("--tolerance", type=Number(lo=0, lo_open=True), default=0.02, show_default=True,
               help="Largest error (in body sizes) a recommended setting may have.")
 @click.option("--bodies", type=click.IntRange(min=1), default=None, metavar="N",
               help="Bake only the first N bodies of the scene (a quick look at a big one).")
@@ -43,7 +45,7 @@ import click
 @click.option("--spheres", "sphere_modes", default=None, metavar="LIST",
               help="Sphere-set modes to sweep, e.g. lattice,surface (the reference takes "
                    "the last). Default: the scene's own, no mode axis.")
-@click.option("--rolling-tolerance", type=float, default=None, metavar="X",
+@click.option("--rolling-tolerance", type=Number(lo=0, lo_open=True), default=None, metavar="X",
               help="Largest incline rolling error (a ball of each run's resolution and "
                    "sphere mode against 5/7 g sin θ) a recommended setting may have "
                    "[default: not a condition; it is measured and shown].")

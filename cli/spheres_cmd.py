@@ -8,6 +8,8 @@ from pathlib import Path
 
 import click
 
+from dempipe_cli.params import Number
+
 from dempipe.errors import ShapeError
 
 
@@ -55,11 +57,11 @@ def _list_shapes() -> None:
 
 @click.command("spheres")
 @click.argument("inputs", metavar="MESH_OR_SHAPE...", nargs=-1)
-@click.option("--diameter", "-d", type=float, default=None,
+@click.option("--diameter", "-d", type=Number(), default=None,
               help="Sphere diameter in metres (after --scale).")
-@click.option("--resolution", "-r", type=float, default=None,
+@click.option("--resolution", "-r", type=Number(), default=None,
               help="Spheres across the longest bounding-box extent (sets the diameter per input).")
-@click.option("--scale", type=float, default=1.0, show_default=True,
+@click.option("--scale", type=Number(), default=1.0, show_default=True,
               help="Scale applied to the mesh (e.g. 0.01 for a mesh in centimetres).")
 @click.option("-o", "--output", "output", type=str, default=None,
               help="Write the sphere set: .npz (arrays) or .usda/.usdc/.usd (mesh and spheres). "

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Sdf
 
-from dempipe.pipeline.checkpoint import work_dir
+from dempipe.pipeline.lock import work_dir
 
 
 def env(cache: Path) -> dict:

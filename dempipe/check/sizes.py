@@ -107,7 +107,9 @@ def _gib(n: float) -> str:
 def lattice_cells(extents, diameter: float) -> float:
     """Cells of the voxelization lattice of a shape of ``extents`` [m] (a float:
     it may be far beyond any integer type)."""
-    return float(np.prod([max(1.0, math.ceil(float(e) / diameter - 1e-9))
+    # floats throughout: numpy multiplies Python ints as int64, which wraps to 0 at
+    # 2e12 cells an axis (then no size would be refused)
+    return float(np.prod([max(1.0, float(math.ceil(float(e) / diameter - 1e-9)))
                           for e in np.asarray(extents, dtype=np.float64)]))
 
 

@@ -39,6 +39,10 @@ INSTALL_HINT = 'pip install "dempipe[farm]"'
 #: How long to wait for a running scheduler to answer, and for its first worker [s].
 CONNECT_TIMEOUT = 30.0
 WORKER_TIMEOUT = 120.0
+#: Seconds a --scheduler address has to answer as Dask does (probe_scheduler).
+PROBE_TIMEOUT = 5.0
+#: The largest length a Dask handshake starts with (it is about 60 bytes).
+HANDSHAKE_BYTES_MAX = 1 << 20
 
 
 class FarmError(DempipeError):
@@ -214,6 +218,49 @@ def _dashboard(client) -> str | None:
         return None
 
 
+def probe_scheduler(address: str, timeout: float = PROBE_TIMEOUT) -> None:
+    """Refuse (FarmError) an address where no Dask scheduler listens, before Dask tries.
+
+    A Dask scheduler speaks first: on a new TCP connection it sends its handshake, a
+    message whose first 8 bytes are a small little-endian length. Something else
+    listening either says nothing (Dask's client then waits out its timeouts, ten
+    minutes in all) or says something else (which Dask reads as a length of exabytes
+    and fails with a MemoryError). Only tcp:// (or a bare host:port) is probed."""
+    import socket
+    import struct
+
+    scheme, _, rest = address.rpartition("://")
+    if scheme not in ("", "tcp"):
+        return
+    host, _, port = rest.rpartition(":")
+    host = host.strip("[]") or "127.0.0.1"
+    try:
+        port_n = int(port)
+    except ValueError:
+        raise FarmError(f"--scheduler {address}: expected tcp://HOST:PORT (e.g. "
+                        f"tcp://10.0.0.5:8786)") from None
+    try:
+        with socket.create_connection((host, port_n), timeout=timeout) as conn:
+            conn.settimeout(timeout)
+            head = b""
+            while len(head) < 8:
+                got = conn.recv(8 - len(head))
+                if not got:
+                    break
+                head += got
+    except socket.timeout:
+        raise FarmError(f"--scheduler {address}: something listens there but does not "
+                        f"answer as a Dask scheduler within {timeout:.0f} s; give the "
+                        f"address `dask scheduler` prints (docs/farm.md)") from None
+    except OSError as exc:
+        raise FarmError(f"--scheduler {address}: cannot connect ({exc.strerror or exc}); "
+                        f"start one with `dask scheduler` (docs/farm.md)") from None
+    if len(head) < 8 or struct.unpack("<Q", head)[0] > HANDSHAKE_BYTES_MAX:
+        raise FarmError(f"--scheduler {address}: what listens there is not a Dask "
+                        f"scheduler (it answered {head[:16]!r}); give the address "
+                        f"`dask scheduler` prints (docs/farm.md)")
+
+
 @contextmanager
 def connect(workers: int | None = None, scheduler: str | None = None,
             threads: int | None = None, tasks: int | None = None, *,
@@ -242,6 +289,7 @@ def connect(workers: int | None = None, scheduler: str | None = None,
     from distributed import Client
 
     if scheduler:
+        probe_scheduler(scheduler)
         try:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT)
         except (OSError, TimeoutError, ValueError) as exc:

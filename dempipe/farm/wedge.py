@@ -42,7 +42,8 @@ from dempipe.errors import DempipeError, SceneError
 from dempipe.farm import cluster as farming
 from dempipe.farm.cluster import failure_reason, host_warnings
 from dempipe.pipeline.bake import bake
-from dempipe.pipeline.checkpoint import CheckpointError, work_dir
+from dempipe.pipeline.checkpoint import CheckpointError
+from dempipe.pipeline.lock import work_dir
 from dempipe.preview import contact_sheet as sheet
 from dempipe.scene.load import load_scene
 from dempipe.spheres.cache import SphereCache

@@ -13,6 +13,7 @@ the target, and keeps the last checkpoint for ``resume``.
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -23,6 +24,8 @@ from dempipe.check.sizes import check_run_time
 from dempipe.check.stability import ERROR, expected_speeds, soft_contact, tunnelling
 from dempipe.errors import DempipeError, ExportError, SceneError, StabilityError
 from dempipe.interrupt import StopRequested, signal_name
+from dempipe.pipeline.lock import WorkLock, work_dir
+from dempipe.scene.keys import MAX_MAGNITUDE
 from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP
 from dempipe.spheres.cache import SphereCache
 
@@ -88,6 +91,73 @@ def check_writable(folder, what: str = "output folder") -> None:
                           f"({exc.strerror or exc})") from None
 
 
+def _same_file(a, b) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return Path(a).resolve() == Path(b).resolve()
+
+
+def check_output_names(out: Path, scene_path=None) -> None:
+    """Refuse, before any work, an output that is the scene itself or whose name or
+    the names derived from it (work folder, partial file, temporary files) are too
+    long for its file system: an ExportError naming the file and the fix."""
+    if scene_path is not None and _same_file(out, scene_path):
+        raise ExportError(f"{out}: is the scene file; give another -o (e.g. "
+                          f"{out.stem}_baked{out.suffix})")
+    try:
+        limit = os.pathconf(_existing(out.parent), "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    longest = max(len(os.fsencode(n)) for n in (
+        f".{out.name}.bake", f".{out.stem}.tmp-{os.getpid()}{out.suffix}",
+        f".{out.stem}.partial.tmp-{os.getpid()}{out.suffix}",
+        f".{out.name}.tmp-{os.getpid()}"))
+    if longest > limit:
+        raise ExportError(f"{out}: the file name is too long for its folder's file system "
+                          f"(with the bake's work and temporary files, {longest} bytes of "
+                          f"{limit}); give a shorter -o")
+    if len(os.fsencode(str(out.parent.resolve() / f".{out.name}.bake/state-000000.npz"))) \
+            >= 4096:
+        raise ExportError(f"{out}: the path is too long for the file system; give a "
+                          f"shorter -o")
+
+
+def check_report_path(report, out, scene_path) -> None:
+    """Refuse a --report path that would replace the output, its partial file or the
+    scene with JSON (an ExportError naming both)."""
+    report, out = Path(report), Path(out)
+    for other, what in ((out, "the output"), (partial_path(out), "the output's partial file"),
+                        (Path(scene_path), "the scene file")):
+        if _same_file(report, other):
+            raise ExportError(f"--report {report}: is {what}; give the report its own "
+                              f"file (e.g. {out.stem}.json)")
+
+
+def _existing(folder: Path) -> Path:
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    return folder
+
+
+def remove_stale_temporaries(out: Path) -> None:
+    """Temporary files of earlier bakes to ``out`` that were killed while writing
+    (``.NAME.tmp-PID.EXT``, the partial file's, a report's): the caller holds the
+    work folder's lock, so no live bake is writing them."""
+    folder = out.parent
+    if not folder.is_dir():
+        return
+    part = partial_path(out)
+    prefixes = (f".{out.stem}.tmp-", f".{part.stem}.tmp-", f".{out.name}.tmp-",
+                f".{part.name}.tmp-")
+    for p in folder.iterdir():
+        if p.name.startswith(prefixes) and p.is_file():
+            rest = p.name.split(".tmp-", 1)[1]
+            pid = rest.split(".", 1)[0]
+            if pid.isdigit() and int(pid) != os.getpid():
+                p.unlink(missing_ok=True)
+
+
 def bake(scene_path, out_path, *, device: str | None = None, layout: str = "instancer",
          frames: str | None = None, threads: int | None = None, cache=None,
          progress=None, warn=None, force: bool = False, resume: bool = False,
@@ -140,17 +210,9 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
           simulation) -> BakeResult:
     import warnings
 
-    # The heavy libraries (trimesh and manifold3d, numba, pxr) load here, inside the
-    # bake's stop handler: a stop while they load is this bake's stop
+    # The heavy libraries (trimesh and manifold3d, numba, pxr) load in _bake_locked,
+    # inside the bake's stop handler: a stop while they load is this bake's stop
     # (interrupt.stop_behind), and importing this module stays cheap.
-    from dempipe.pipeline.checkpoint import CHECKPOINT_SECONDS, BakeStore, model_fingerprint
-    from dempipe.scene.build import build_model, initial_overlap_all_spheres
-    from dempipe.scene.load import load_scene
-    from dempipe.sim.simulator import BakeFailure, Simulator, resolve_device
-    from dempipe.usd.chunks import write_usd_chunks
-    from dempipe.usd.overlay import OverlayWriter
-    from dempipe.usd.samples import ChunkSource
-
     warn = warn or (lambda msg: warnings.warn(msg, stacklevel=3))
     out = Path(out_path)
     if out.suffix not in (".usd", ".usdc", ".usda"):
@@ -159,9 +221,41 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
         raise ExportError(f"{out}: is a folder (give a file name ending in .usd, .usdc or "
                           f".usda)")
     check_writable(out.parent)
+    check_output_names(out, scene_path)
     interrupt.check()
+    lock = WorkLock(work_dir(out), out)
+    lock.acquire()                  # a second bake to this output is refused here
+    try:
+        return _bake_locked(
+            scene_path, out, device=device, layout=layout, frames=frames, threads=threads,
+            cache=cache, progress=progress, warn=warn, force=force, resume=resume,
+            chunk_frames=chunk_frames, checkpoint_seconds=checkpoint_seconds,
+            checkpoints=checkpoints, simulation=simulation)
+    finally:
+        lock.release()
+
+
+def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, progress, warn,
+                 force, resume, chunk_frames, checkpoint_seconds, checkpoints,
+                 simulation) -> BakeResult:
+    from dempipe.pipeline.checkpoint import (CHECKPOINT_SECONDS, BakeStore, model_fingerprint,
+                                             read_meta)
+    from dempipe.pipeline.check import emission_finding, sinking_finding, spin_finding
+    from dempipe.scene.build import build_model, initial_overlap_all_spheres
+    from dempipe.scene.load import load_scene
+    from dempipe.sim.simulator import BakeFailure, Simulator, resolve_device
+    from dempipe.usd.chunks import write_usd_chunks
+    from dempipe.usd.overlay import OverlayWriter
+    from dempipe.usd.samples import ChunkSource
+
+    remove_stale_temporaries(out)
+    if resume and (work_dir(out) / "meta.json").is_file():
+        read_meta(work_dir(out))    # a damaged checkpoint: one line, before any work
     t_start = time.perf_counter()
     scene = with_simulation(load_scene(scene_path), simulation)
+    if scene.usd is not None and _same_file(out, scene.usd.stage_path):
+        raise ExportError(f"{out}: is the input stage {scene.usd.stage_path}; write the "
+                          f"overlay to another file (e.g. {out.stem}_baked{out.suffix})")
     for msg in scene.usd.warnings if scene.usd is not None else ():
         warn(msg)
     device_asked = device or scene.simulation.device
@@ -179,7 +273,10 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
     closing = expected_speeds(model)[1]
     for risk in (tunnelling(model, model.dt, closing,
                             "auto" if isinstance(scene.simulation.dt, str) else "given", src),
-                 soft_contact(model, closing, src)):
+                 soft_contact(model, closing, src),
+                 spin_finding(model, src, scene.simulation.dt),
+                 emission_finding(model, src),     # emitted bodies: known before they start
+                 sinking_finding(model, src)):
         if risk is not None and risk.level == ERROR and not force:
             raise StabilityError(f"{risk.message}. Fix: {risk.fix} (or bake with --force)")
         if risk is not None:
@@ -214,6 +311,7 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
         if overlap > WARN_OVERLAP:
             warn(f"{src}: body {model.body_name(body)} starts {overlap:.0%} of a diameter deep "
                  f"in contact; it will be pushed out in the first steps")
+
         store.create()
     interrupt.check()
 
@@ -249,6 +347,13 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
         except KeyboardInterrupt as exc:       # not through our handlers: State unknown
             failure = exc
             store.keep_tail()
+        except ExportError as exc:             # a chunk or checkpoint did not fit on disk
+            # the last whole checkpoint is still the folder's (meta.json is replaced last)
+            kept = (f"the checkpoint at frame {store.frames_done} in {store.dir} is kept: "
+                    f"free the space, then run the same bake with --resume to go on from it"
+                    if store.state_file else
+                    f"no checkpoint was written yet: free the space and bake again")
+            raise ExportError(f"{exc}; {kept}") from None
     elif point is not None:
         sim.stats = point.stats
 
@@ -301,7 +406,8 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
         raise _interrupted(exc, scene_path, out, store, None, 0, report) from None
     except ExportError as exc:
         # the frames are safe in the work folder: say so, and how to write them again
-        raise ExportError(f"{exc}; the {kept} frames baked are kept in {store.dir}: free "
+        raise ExportError(f"{write_failure(exc, target, store)}; the {kept} frames baked are "
+                          f"kept in {store.dir}: free "
                           f"the space or fix the folder, then run the same bake with "
                           f"--resume to write them without simulating again") from None
     written = kept - start
@@ -309,6 +415,8 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
                   wall_seconds=time.perf_counter() - t_start, output=str(target))
     if failure is None:
         store.remove()
+        # an earlier stopped bake's frames, now superseded by the whole file
+        partial_path(out).unlink(missing_ok=True)
         return BakeResult(target, report)
     if isinstance(failure, KeyboardInterrupt):
         raise _interrupted(failure, scene_path, out, store, target, written, report)
@@ -316,6 +424,32 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
     exc = StabilityError(f"{failure} — {written} frames kept in {target}")
     exc.result = BakeResult(target, report, partial=True)
     raise exc
+
+
+def write_failure(exc: ExportError, target: Path, store) -> str:
+    """The message of a failed USD write, with the OS's reason where pxr hid it.
+
+    pxr reports a full disk as C++ text ("Error in '...::WriteToFile' ... Could not
+    close ..."), with the errno lost and its temporary file already removed. Its
+    quoted reason is kept, and the free space of the folder is held against what the
+    file needs (about 8 times the frames' bytes on disk, USD text being the larger
+    form): below it, the reason is the full disk."""
+    text = str(exc)
+    if "pxrInternal" not in text and "Error in '" not in text:
+        return text
+    quoted = text.rsplit("'", 2)
+    cause = quoted[-2] if len(quoted) == 3 else "USD could not write the layer"
+    try:
+        st = os.statvfs(_existing(target.parent))
+        free = st.f_bavail * st.f_frsize
+    except OSError:
+        return f"{target}: cannot write USD file ({cause})"
+    need = max(1 << 20, 8 * sum(p.stat().st_size for p, _, _ in store.frame_chunks()
+                                if p.exists()))
+    if free < need:
+        return (f"{target}: cannot write USD file (No space left on device: "
+                f"{free / 2**20:.1f} MiB free, the file needs about {need / 2**20:.1f} MiB)")
+    return f"{target}: cannot write USD file ({cause})"
 
 
 def _interrupted(failure, scene_path, out, store, target, written, report):
@@ -353,6 +487,14 @@ def with_simulation(scene, simulation: dict | None):
             raise SceneError(f"unknown simulation setting {k!r} "
                              f"(known: {', '.join(sorted(known))})")
     changes = dict(simulation)
+    for k, v in changes.items():    # what the command line or a caller gives, as a scene's
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and not (
+                math.isfinite(v) and abs(v) <= MAX_MAGNITUDE):
+            raise SceneError(f"simulation.{k}: {v!r} is not a finite number of at most "
+                             f"{MAX_MAGNITUDE:g}")
+    for k in ("resolution", "sphere_diameter"):
+        if changes.get(k) is not None and not changes[k] > 0:
+            raise SceneError(f"simulation.{k}: {changes[k]!r} must be greater than 0")
     if changes.get("resolution") is not None:
         changes.setdefault("sphere_diameter", None)
     if changes.get("sphere_diameter") is not None:

@@ -7,11 +7,24 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+from dempipe.check.emission import emission_overlap
+from dempipe.check.prescribed import missing_surface_speed
+from dempipe.check.sinking import sinking
+from dempipe.check.stability import OVERLAP_ERROR
 from dempipe.check.sizes import check_run_time
-from dempipe.check.stability import ERROR, WARNING, Finding, StabilityReport, analyze
+from dempipe.check.stability import (
+    ERROR,
+    WARNING,
+    Finding,
+    StabilityReport,
+    analyze,
+    expected_speeds,
+    tunnelling,
+)
 from dempipe.errors import StabilityError
 from dempipe.scene.build import Overrides, build_model, full_sphere_model
 from dempipe.scene.load import load_scene
+from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP
 from dempipe.spheres.cache import SphereCache
 
 
@@ -44,7 +57,46 @@ def analyze_scene(path, cache=None) -> StabilityReport:
         text = str(exc)
         message, _, fix = text.partition(". Fix: ")
         report.findings.append(Finding(ERROR, "run-size", message, fix))
+    for found in (emission_finding(model, Path(path).name),
+                  spin_finding(model, Path(path).name, user_dt),
+                  sinking_finding(model, Path(path).name)):
+        if found is not None:
+            report.findings.append(found)
     return _with_usd_findings(report, scene)
+
+
+def spin_finding(model, src: str, dt_setting) -> Finding | None:
+    """The tunnelling finding at the closing speed with the kinematic bodies' whole
+    surface speed (check.prescribed), when the Model's own speed left some out."""
+    extra, b = missing_surface_speed(model)
+    if extra <= 0:
+        return None
+    closing = expected_speeds(model)[1] + extra
+    found = tunnelling(model, model.dt, closing, "auto" if isinstance(dt_setting, str)
+                       else "given", src)
+    if found is None:
+        return None
+    return Finding(found.level, "prescribed-speed",
+                   f"{found.message} (kinematic body {model.body_name(b)}'s surface moves at "
+                   f"{extra + float(model.surface_speed):.3g} m/s)",
+                   f"lower its motion's speed, or {found.fix}")
+
+
+def emission_finding(model, src: str) -> Finding | None:
+    """The emitters' start overlap (check.emission) as a Finding: an error above the
+    limit at which the bake's emission check stops it, a warning above WARN_OVERLAP."""
+    depth, b, other = emission_overlap(model)
+    if depth <= WARN_OVERLAP:
+        return None
+    t = float(model.body_start_time[b])
+    message = (f"{src}: body {model.body_name(b)} starts {depth:.0%} of a sphere diameter "
+               f"deep in {model.body_name(other)} at its start_time {t:.4g} s")
+    if depth > REFUSE_OVERLAP:
+        return Finding(ERROR, "emission-overlap", message + "; the bake would stop there",
+                       "lower the emitter's rate, widen its region (region_min, region_max) "
+                       "or start its groups at other times")
+    return Finding(WARNING, "emission-overlap", message + "; it will be pushed out",
+                   "lower the emitter's rate or widen its region")
 
 
 def _with_usd_findings(report, scene):
@@ -55,3 +107,20 @@ def _with_usd_findings(report, scene):
     found = [Finding(WARNING, "usd-not-simulated" if "not simulated" in w else "usd-reading", w)
              for w in scene.usd.warnings]
     return replace(report, findings=found + list(report.findings))
+
+
+def sinking_finding(model, src: str) -> Finding | None:
+    """An error when a heavy body sinks past the overlap guard even with every one of
+    its spheres sharing the load (check.sinking): what soft-contact leaves a warning
+    under auto stiffness, the bake stops on."""
+    depth, b, mi, mj = sinking(model, expected_speeds(model)[1])
+    if depth <= OVERLAP_ERROR:
+        return None
+    names = [m.name for m in model.materials]
+    return Finding(
+        ERROR, "sinking",
+        f"{src}: body {model.body_name(b)} ({names[mi]}, {float(model.body_mass[b]):.3g} kg) "
+        f"sinks {depth:.0%} of a sphere diameter into {names[mj]} even with all its "
+        f"spheres sharing the load; the bake's overlap guard would stop it",
+        f"keep densities within 100x of each other, or give {names[mj]} an explicit, "
+        f"higher stiffness")

@@ -41,12 +41,14 @@ import numpy as np
 
 from dempipe import interrupt
 from dempipe.errors import DempipeError, ExportError
+from dempipe.pipeline.lock import LOCK_NAME, work_dir
 from dempipe.sim.frames import Frames, save_frames
 from dempipe.sim.simulator import RunPoint, RunStats
 from dempipe.version import __version__
 
-#: Format of meta.json; a folder of another format is refused.
-FORMAT = 1
+#: Format of meta.json; a folder of another format is refused. Format 2 records each
+#: file's size and SHA-256, verified before a resume runs anything.
+FORMAT = 2
 #: Frames are written out once the buffered ones hold this many bytes.
 CHUNK_BYTES = 8 << 20
 #: ... or once this many seconds of wall time have passed since the last checkpoint:
@@ -64,12 +66,6 @@ STATE_ARRAYS = ("body_x", "body_q", "body_P", "body_L", "contact_partner", "cont
 
 class CheckpointError(DempipeError):
     """A checkpoint that cannot be resumed (another scene, settings or version)."""
-
-
-def work_dir(out) -> Path:
-    """The work folder of a bake to ``out``: ``.NAME.bake`` beside it."""
-    out = Path(out)
-    return out.with_name(f".{out.name}.bake")
 
 
 def model_fingerprint(model) -> str:
@@ -144,6 +140,61 @@ def write_error(path, exc: OSError, what: str) -> DempipeError:
     return ExportError(f"{path}: cannot write {what} ({why})")
 
 
+def file_digest(path: Path) -> tuple[int, str]:
+    """(size in bytes, SHA-256 hex) of ``path``."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(1 << 20):
+            h.update(block)
+    return path.stat().st_size, h.hexdigest()
+
+
+def read_meta(folder: Path) -> dict:
+    """meta.json of a work folder, its files verified against the sizes and checksums
+    it records: CheckpointError, one line naming the damaged file, when any is missing,
+    truncated or altered (a damaged checkpoint would fail only after re-simulating)."""
+    again = "bake again without --resume to start over"
+    try:
+        meta = json.loads((folder / "meta.json").read_text())
+        if not isinstance(meta, dict):
+            raise ValueError("not a JSON object")
+    except (OSError, ValueError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        raise CheckpointError(f"{folder / 'meta.json'}: the checkpoint cannot be read "
+                              f"({why}); {again}") from None
+    if meta.get("format") != FORMAT or meta.get("dempipe") != __version__:
+        raise CheckpointError(
+            f"{folder}: the checkpoint was written by dempipe {meta.get('dempipe')} "
+            f"(format {meta.get('format')}), this is dempipe {__version__}; it cannot be "
+            f"resumed: {again}")
+    try:
+        files = [(c[0], int(c[3]), str(c[4])) for c in meta["chunks"]]
+        for c in meta["chunks"]:
+            int(c[1]), int(c[2])
+        if meta.get("state"):
+            files.append((meta["state"], int(meta["state_bytes"]), str(meta["state_sha256"])))
+        int(meta["frames_done"])
+    except (KeyError, TypeError, ValueError, IndexError):
+        raise CheckpointError(f"{folder / 'meta.json'}: the checkpoint's record is "
+                              f"incomplete or altered; {again}") from None
+    for name, size, sha in files:
+        path = folder / str(name)
+        if Path(str(name)).name != str(name) or not path.is_file():
+            raise CheckpointError(f"{path}: a file of the checkpoint is missing; {again}")
+        try:
+            got_size, got_sha = file_digest(path)
+        except OSError as exc:
+            raise CheckpointError(f"{path}: cannot read the checkpoint "
+                                  f"({exc.strerror or exc}); {again}") from None
+        if got_size != size:
+            raise CheckpointError(f"{path}: the checkpoint file is damaged ({got_size} bytes, "
+                                  f"{size} written); {again}")
+        if got_sha != sha:
+            raise CheckpointError(f"{path}: the checkpoint file is damaged (its checksum "
+                                  f"differs from the one written); {again}")
+    return meta
+
+
 class FrameBuffer:
     """Up to ``capacity`` frames in memory, in the layout of Frames."""
 
@@ -204,6 +255,7 @@ class BakeStore:
         self.tail: list = []          # chunks written since (committed by the next one)
         self.frames_done = 0          # frames in self.chunks
         self.state_file = None
+        self.state_bytes, self.state_sha256 = 0, ""
         self.point: dict | None = None
         self.last_checkpoint = time.monotonic()
         self.checkpoint_seconds_spent = 0.0
@@ -211,10 +263,10 @@ class BakeStore:
 
     # -- create / open ------------------------------------------------------------
     def create(self) -> None:
-        """Start an empty folder (an old one is removed)."""
-        self.remove()
+        """Start an empty folder (an old one's files are removed, its lock kept)."""
+        self.clear()
         try:
-            self.dir.mkdir(parents=True)
+            self.dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise write_error(self.dir, exc, "the bake's work folder") from None
         self._write_meta()
@@ -223,18 +275,10 @@ class BakeStore:
         return (self.dir / "meta.json").is_file()
 
     def open(self) -> None:
-        """Load the folder's last checkpoint; CheckpointError when it does not fit."""
+        """Load the folder's last checkpoint; CheckpointError when it does not fit
+        or a file of it is missing or damaged (read_meta)."""
         where = self.dir
-        try:
-            meta = json.loads((where / "meta.json").read_text())
-        except (OSError, ValueError) as exc:
-            raise CheckpointError(f"{where}: the checkpoint cannot be read ({exc}); bake "
-                                  f"again without --resume") from None
-        if meta.get("format") != FORMAT or meta.get("dempipe") != __version__:
-            raise CheckpointError(
-                f"{where}: the checkpoint was written by dempipe {meta.get('dempipe')} "
-                f"(format {meta.get('format')}), this is dempipe {__version__}; it cannot be "
-                f"resumed: bake again without --resume")
+        meta = read_meta(where)
         if meta.get("fingerprint") != self.fingerprint:
             raise CheckpointError(
                 f"{where}: the checkpoint is of another scene: the scene file, a mesh it uses "
@@ -249,17 +293,31 @@ class BakeStore:
         self.chunks = [list(c) for c in meta["chunks"]]
         self.frames_done = int(meta["frames_done"])
         self.state_file = meta.get("state")
+        self.state_bytes = int(meta.get("state_bytes", 0))
+        self.state_sha256 = str(meta.get("state_sha256", ""))
         self.point = meta.get("point")
         self.checkpoints = int(meta.get("checkpoints", 0))
         # chunks written after the checkpoint (a stop that did not save the State)
         # are recomputed: remove them
-        keep = {c[0] for c in self.chunks} | {self.state_file, "meta.json"}
+        keep = {c[0] for c in self.chunks} | {self.state_file, "meta.json", LOCK_NAME}
         for p in self.dir.iterdir():
             if p.name not in keep:
                 p.unlink(missing_ok=True)
 
     def remove(self) -> None:
         shutil.rmtree(self.dir, ignore_errors=True)
+
+    def clear(self) -> None:
+        """Remove the folder's files but its lock (pipeline.lock), held by this bake."""
+        if not self.dir.is_dir():
+            return
+        for p in self.dir.iterdir():
+            if p.name == LOCK_NAME:
+                continue
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
 
     # -- frames -------------------------------------------------------------------
     def add(self, k: int, frame_number: int, state, v, w) -> None:
@@ -282,9 +340,10 @@ class BakeStore:
         frames = self.buffer.view()
         try:
             atomic_write(self.dir / name, lambda fh: save_frames(fh, frames))
+            size, sha = file_digest(self.dir / name)
         except OSError as exc:
             raise write_error(self.dir / name, exc, "frames") from None
-        entry = [name, int(self.buffer.first), int(self.buffer.n)]
+        entry = [name, int(self.buffer.first), int(self.buffer.n), size, sha]
         self.buffer.n = 0
         return entry
 
@@ -295,6 +354,25 @@ class BakeStore:
         entry = self._write_chunk()
         if entry is not None:
             self.tail.append(entry)
+        # what the folder holds until this checkpoint's meta.json replaces the last one:
+        # restored when a write fails (a full disk), so messages and a later stop tell
+        # the checkpoint that is really there
+        before = (list(self.chunks), list(self.tail), self.frames_done, self.state_file,
+                  self.state_bytes, self.state_sha256, self.point, self.checkpoints)
+        try:
+            old = self._commit(sim, state)
+        except BaseException:
+            (self.chunks, self.tail, self.frames_done, self.state_file, self.state_bytes,
+             self.state_sha256, self.point, self.checkpoints) = before
+            raise
+        if old and old != self.state_file:
+            (self.dir / old).unlink(missing_ok=True)
+        self.last_checkpoint = time.monotonic()
+        self.checkpoint_seconds_spent += time.perf_counter() - t0
+
+    def _commit(self, sim, state) -> str | None:
+        """Write the State and meta.json committing the tail's chunks; returns the
+        previous State file's name (removed by the caller once meta.json is written)."""
         self.chunks += self.tail          # committed with this checkpoint's meta.json
         self.tail = []
         self.frames_done = sum(c[2] for c in self.chunks)
@@ -305,6 +383,7 @@ class BakeStore:
         name = f"state-{self.frames_done:06d}.npz"
         try:
             atomic_write(self.dir / name, lambda fh: np.savez(fh, **arrays))
+            self.state_bytes, self.state_sha256 = file_digest(self.dir / name)
         except OSError as exc:
             raise write_error(self.dir / name, exc, "a checkpoint") from None
         old = self.state_file
@@ -317,10 +396,7 @@ class BakeStore:
                           step=int(state.step), time=float(state.time))
         self.checkpoints += 1
         self._write_meta()
-        if old and old != name:
-            (self.dir / old).unlink(missing_ok=True)
-        self.last_checkpoint = time.monotonic()
-        self.checkpoint_seconds_spent += time.perf_counter() - t0
+        return old
 
     def keep_tail(self) -> None:
         """Write the buffered frames without a checkpoint (a full chunk between two
@@ -334,6 +410,7 @@ class BakeStore:
         meta = dict(format=FORMAT, dempipe=__version__, fingerprint=self.fingerprint,
                     settings=self.settings, output=str(self.out), chunks=self.chunks,
                     frames_done=self.frames_done, state=self.state_file, point=self.point,
+                    state_bytes=self.state_bytes, state_sha256=self.state_sha256,
                     checkpoints=self.checkpoints)
         text = json.dumps(meta, indent=1).encode()
         try:
@@ -345,17 +422,27 @@ class BakeStore:
     def restore(self, sim, state):
         """Put the checkpoint's State into ``state`` and its arrays into ``sim``'s
         backend; returns the simulator.RunPoint to pass to Simulator.run."""
+        import zipfile
+
         backend = {}
-        with np.load(self.dir / self.state_file) as z:
-            for key in z.files:
-                kind, name = key.split(".", 1)
-                if kind == "state":
-                    setattr(state, name, np.array(z[key]))
-                else:
-                    backend[name] = np.array(z[key])
-        p = self.point
-        state.step = int(p["step"])
-        state.time = float(p["time"])
+        path = self.dir / self.state_file
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                for key in z.files:
+                    kind, name = key.split(".", 1)
+                    if kind == "state":
+                        setattr(state, name, np.array(z[key]))
+                    else:
+                        backend[name] = np.array(z[key])
+            p = self.point
+            state.step = int(p["step"])
+            state.time = float(p["time"])
+        except (OSError, EOFError, ValueError, KeyError, TypeError,
+                zipfile.BadZipFile) as exc:
+            # read_meta verified the file; this is one written wrong, not damaged since
+            raise CheckpointError(f"{path}: the checkpoint cannot be read "
+                                  f"({type(exc).__name__}); bake again without --resume "
+                                  f"to start over") from None
         sim.backend.load_arrays(state, backend)
         return RunPoint(base_step=int(p["base_step"]), first_number=int(p["first_number"]),
                         e0=float(p["e0"]), gain=float(p["gain"]),
@@ -365,7 +452,7 @@ class BakeStore:
 
     def frame_chunks(self, include_tail: bool = True):
         """The chunks' file paths with (first frame index, frames), in order."""
-        for name, first, n in self.chunks + (self.tail if include_tail else []):
+        for name, first, n, *_ in self.chunks + (self.tail if include_tail else []):
             yield self.dir / name, first, n
 
     def frames_kept(self, include_tail: bool = True) -> int:

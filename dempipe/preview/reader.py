@@ -4,10 +4,14 @@ Read generically through pxr, so it works on both dempipe layouts (a PointInstan
 prototypes, or one Xform per body; docs/usd-output.md), on overlays of a USD input and on
 stages written by other tools:
 
-- a Mesh prim is drawn with its world transform from ``UsdGeom.XformCache`` at each time
-  (instance proxies included, so the xforms layout's instanceable bodies are found);
-- a PointInstancer draws the meshes under each prototype with
+- a Mesh prim, or a Cube, Sphere, Cylinder, Capsule or Cone (tessellated as the
+  UsdPhysics reader tessellates them: the bodies and colliders of a USD input shot), is
+  drawn with its world transform from ``UsdGeom.XformCache`` at each time (instance
+  proxies included, so the xforms layout's instanceable bodies are found);
+- a PointInstancer draws the meshes and gprims under each prototype with
   ``ComputeInstanceTransformsAtTime`` (and its invisible-ids mask);
+- visibility is computed at each frame where it is animated (emitted bodies stay hidden
+  until their start);
 - a mesh's colour is its bound UsdPreviewSurface's ``diffuseColor`` (what Hydra shows when a
   material is bound), else its ``displayColor`` primvar (the mean of a varying one), else grey.
 
@@ -27,6 +31,9 @@ import numpy as np
 from dempipe.errors import DempipeError
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
+
+#: The gprims drawn: what a UsdPhysics stage's bodies and colliders are made of.
+DRAWN_TYPES = frozenset(("Mesh", "Cube", "Sphere", "Cylinder", "Capsule", "Cone"))
 
 #: Colour of a mesh with neither a bound material nor a displayColor (USD's fallback grey).
 DEFAULT_COLOR = (0.5, 0.5, 0.5)
@@ -88,6 +95,8 @@ class _MeshRef:
     color: tuple
     body: bool
     animated_points: bool
+    #: visibility animated on the prim or an ancestor: computed at each frame
+    animated_visibility: bool = False
 
 
 @dataclass
@@ -111,6 +120,48 @@ def _triangulate(counts: np.ndarray, indices: np.ndarray) -> np.ndarray:
     s = starts[face]
     tri = np.stack([indices[s], indices[s + k + 1], indices[s + k + 2]], axis=1)
     return tri.astype(np.int32)
+
+
+def _gprim_key(prim) -> str:
+    """A geometry key of a Cube, Sphere, Cylinder, Capsule or Cone: its type and the
+    attributes that shape it, so equal gprims are one geometry."""
+    attrs = [prim.GetAttribute(n).Get() for n in ("size", "radius", "height", "axis")]
+    return f"{prim.GetTypeName()}{tuple(a for a in attrs if a is not None)!r}"
+
+
+def _gprim_geometry(prim, key: str) -> Geometry:
+    """A gprim tessellated as the UsdPhysics reader does (scene.usd_geometry); nothing
+    drawn for one whose sizes are unusable."""
+    from dempipe.errors import SceneError
+    from dempipe.scene.usd_geometry import gprim_mesh
+
+    try:
+        mesh = gprim_mesh(prim, str(prim.GetPath()))
+    except SceneError:
+        mesh = None
+    if mesh is None:
+        return Geometry(key, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
+    return Geometry(key, np.asarray(mesh.vertices, np.float32),
+                    np.asarray(mesh.faces, np.int32))
+
+
+def _visibility_varies(prim, sampled: set | None) -> bool:
+    """Whether ``prim``'s or an ancestor's visibility is animated (and adds its
+    sample times to ``sampled``)."""
+    from pxr import UsdGeom
+
+    varies = False
+    p = prim
+    while p and not p.IsPseudoRoot():
+        img = UsdGeom.Imageable(p)
+        if img:
+            attr = img.GetVisibilityAttr()
+            if attr.ValueMightBeTimeVarying():
+                varies = True
+                if sampled is not None:
+                    sampled.update(attr.GetTimeSamples())
+        p = p.GetParent()
+    return varies
 
 
 def _color_of(prim, time) -> tuple:
@@ -158,14 +209,22 @@ class StageReader:
         if self.path.suffix.lower() not in USD_EXTENSIONS:
             raise PreviewError(f"{self.path}: not a USD file (expected a dempipe bake: "
                                f"{', '.join(USD_EXTENSIONS)})")
+        from dempipe.scene.usd_stage import captured_stderr, pxr_reason
+
+        said: list = []
         try:
-            stage = Usd.Stage.Open(str(self.path), Usd.Stage.LoadAll)
+            with captured_stderr(said):     # pxr's C++ diagnostics: one line, below
+                stage = Usd.Stage.Open(str(self.path), Usd.Stage.LoadAll)
         except Exception as exc:    # pxr.Tf.ErrorException: not USD, or corrupt
             text = " ".join(str(exc).split())
-            why = text.rsplit(" : ", 1)[-1].strip("' ") if text else type(exc).__name__
+            why = pxr_reason(said) or (text.rsplit(" : ", 1)[-1].strip("' ") if text
+                                       else type(exc).__name__)
             raise PreviewError(f"{self.path}: not a USD file pxr can open ({why})") from None
         if stage is None:
             raise PreviewError(f"{self.path}: not a USD file pxr can open")
+        if said:    # a sublayer (an overlay's input stage) or reference that is missing
+            raise PreviewError(f"{self.path}: the stage does not compose whole "
+                               f"({pxr_reason(said)}); restore the missing layer")
         self.stage = stage
         self.up_axis = str(UsdGeom.GetStageUpAxis(stage)).upper()
         self.fps = float(stage.GetFramesPerSecond() or stage.GetTimeCodesPerSecond() or 24.0)
@@ -178,7 +237,7 @@ class StageReader:
         self._collect(sampled)
         if not self._meshes and not self._instancers:
             raise PreviewError(
-                f"{self.path}: no Mesh or PointInstancer prims to draw; not a dempipe bake "
+                f"{self.path}: no Mesh, gprim or PointInstancer prims to draw; not a dempipe bake "
                 f"(bake one with `dempipe bake SCENE -o {self.path.name}`)")
         if stage.HasAuthoredTimeCodeRange():
             start, end = stage.GetStartTimeCode(), stage.GetEndTimeCode()
@@ -196,7 +255,10 @@ class StageReader:
         from pxr import UsdGeom
 
         geom = self._geometries.get(key)
-        if geom is None:
+        if geom is None and not mesh_prim.IsA(UsdGeom.Mesh):
+            geom = _gprim_geometry(mesh_prim, key)
+            self._geometries[key] = geom
+        elif geom is None:
             mesh = UsdGeom.Mesh(mesh_prim)
             pts = mesh.GetPointsAttr().Get(time)
             counts = mesh.GetFaceVertexCountsAttr().Get(time)
@@ -253,29 +315,36 @@ class StageReader:
         for prim in it:
             path = str(prim.GetPath())
             img = UsdGeom.Imageable(prim)
+            vis = img.GetVisibilityAttr() if img else None
             if path in skip or prim.IsA(UsdGeom.PointInstancer) or (
-                    img and (img.GetVisibilityAttr().Get() == UsdGeom.Tokens.invisible
+                    img and ((not vis.ValueMightBeTimeVarying()
+                              and vis.Get() == UsdGeom.Tokens.invisible)
                              or img.GetPurposeAttr().Get() in (UsdGeom.Tokens.guide,
                                                                UsdGeom.Tokens.proxy))):
-                it.PruneChildren()
+                it.PruneChildren()      # never visible (animated visibility: per frame)
                 continue
             xf = UsdGeom.Xformable(prim)
             if sampled is not None and xf and not prim.IsInstanceProxy():
                 for op in xf.GetOrderedXformOps():
                     sampled.update(op.GetTimeSamples())
-            if not prim.IsA(UsdGeom.Mesh):
+            if prim.GetTypeName() not in DRAWN_TYPES:
                 continue
             source = prim.GetPrimInPrototype() if prim.IsInstanceProxy() else prim
             key = str(source.GetPath())
-            points_attr = UsdGeom.Mesh(prim).GetPointsAttr()
-            animated = points_attr.ValueMightBeTimeVarying()
-            if animated:
-                key = path      # deforming: its own geometry, re-read at each frame
-                if sampled is not None:
-                    sampled.update(points_attr.GetTimeSamples())
+            animated = False
+            if prim.IsA(UsdGeom.Mesh):
+                points_attr = UsdGeom.Mesh(prim).GetPointsAttr()
+                animated = points_attr.ValueMightBeTimeVarying()
+                if animated:
+                    key = path      # deforming: its own geometry, re-read at each frame
+                    if sampled is not None:
+                        sampled.update(points_attr.GetTimeSamples())
+            else:
+                key = _gprim_key(prim)      # equal gprims share one geometry
             self._geometry(prim, key, default)
             self._meshes.append(_MeshRef(prim, key, _color_of(prim, default),
-                                         self._is_body(prim, moving), animated))
+                                         self._is_body(prim, moving), animated,
+                                         _visibility_varies(prim, sampled)))
         for prim in instancers:
             inst = UsdGeom.PointInstancer(prim)
             for attr in (inst.GetPositionsAttr(), inst.GetOrientationsAttr(),
@@ -288,9 +357,10 @@ class StageReader:
                 meshes = []
                 if root:
                     for p in Usd.PrimRange(root, predicate):
-                        if p.IsA(UsdGeom.Mesh):
+                        if p.GetTypeName() in DRAWN_TYPES:
                             source = p.GetPrimInPrototype() if p.IsInstanceProxy() else p
-                            key = str(source.GetPath())
+                            key = (str(source.GetPath()) if p.IsA(UsdGeom.Mesh)
+                                   else _gprim_key(p))
                             self._geometry(p, key, default)
                             meshes.append((key, _color_of(p, default), p, root))
                 protos.append(meshes)
@@ -339,6 +409,9 @@ class StageReader:
             cols.append(colors)
 
         for ref in self._meshes:
+            if ref.animated_visibility and (UsdGeom.Imageable(ref.prim).ComputeVisibility(time)
+                                            == UsdGeom.Tokens.invisible):
+                continue
             key = ref.key
             if ref.animated_points:
                 self._geometries.pop(key, None)

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dempipe.check.sizes import memory_estimate
+from dempipe.check.sizes import MAX_FRAMES, check_run_time, memory_estimate
 from dempipe.errors import StabilityError
 from dempipe.farm.cluster import failure_reason
 from dempipe.report import accuracy as acc
@@ -60,6 +60,9 @@ DEFAULT_RESOLUTION_FACTORS = (2 / 3, 5 / 6, 1.0)
 DEFAULT_DT_FACTORS = (1.0, 0.5)
 DEFAULT_STIFFNESS_FACTORS = (0.3, 1.0)
 DEFAULT_DURATION = 0.5
+#: Sweep values (resolutions, factors) from 1/SWEEP_SPAN to SWEEP_SPAN: beyond, a run
+#: is a typing error whose stiffness or step count overflows before it can fail.
+SWEEP_SPAN = 1e6
 DEFAULT_TOLERANCE = 0.02
 #: A scene with at least this many bodies is a pile: the report adds the statistics
 #: a viewer sees of it, and the chaos floor they can be compared with.
@@ -81,6 +84,9 @@ def parse_values(text: str, option: str, kind=float) -> tuple:
                               f"{what}, e.g. {'4,6,8' if kind is int else '1,0.5'})") from None
         if not (math.isfinite(v) and v > 0):
             raise ReportError(f"{option}: {p} must be greater than 0")
+        if not 1.0 / SWEEP_SPAN <= v <= SWEEP_SPAN:
+            raise ReportError(f"{option}: {p} is out of range (expected "
+                              f"{1.0 / SWEEP_SPAN:g} to {SWEEP_SPAN:g})")
         out.append(v)
     return tuple(sorted(set(out)))
 
@@ -298,8 +304,23 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
     device = resolve_device(sweep.device or scene.simulation.device)
     cache = cache if cache is not None else SphereCache()
     duration = sweep.duration or min(scene.output.duration, DEFAULT_DURATION)
-    if sweep.horizon is not None and not sweep.horizon > 0:
+    if not (math.isfinite(duration) and duration > 0):
+        raise ReportError(f"--duration: {duration:g} must be a finite number above 0")
+    frames = duration * scene.output.fps + 1
+    if frames > MAX_FRAMES:
+        raise ReportError(f"--duration {duration:g}: {frames:.3g} frames at "
+                          f"{scene.output.fps:g} fps, at most {MAX_FRAMES:.0e} a run (each run "
+                          f"keeps its frames in memory); give a shorter --duration")
+    if sweep.horizon is not None and not (math.isfinite(sweep.horizon) and sweep.horizon > 0):
         raise ReportError(f"--horizon: {sweep.horizon:g} must be greater than 0")
+    over = [f for f in sweep.dt_factors if f > 1.0]
+    if over and isinstance(scene.simulation.dt, str):
+        # the auto step is the largest the stability bounds allow: a factor above 1 is
+        # cut back to it, and the run would be the factor-1 run under another label
+        raise ReportError(
+            f"--dt-factors: {', '.join(f'{f:g}' for f in over)} above 1, but the scene's "
+            f"simulation.dt is \"auto\", already the largest stable step; give factors "
+            f"of at most 1, or a fixed simulation.dt in the scene to sweep above it")
 
     resolutions = sweep.resolutions
     if resolutions is None:
@@ -341,6 +362,9 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
                                                                        s.vertices, s.faces)
             model = build_model(scene, cache=cache,
                                 overrides=_overrides(scene, r, f, k, duration, mode, law))
+            # what bake refuses before simulating (steps, frames beyond reason): the
+            # report's --duration and factors reach it here, not at the allocation
+            check_run_time(model, Path(scene_path).name)
             run.model = model
             run.envelope = envelopes.get((r, mode), {})
             run.sphere_build_cold_s, run.sphere_build_cached_s = built[(r, mode)]

@@ -26,6 +26,15 @@ _NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 _MISSING = object()
 
+#: The largest and the smallest non-zero size of any number a scene gives, in SI
+#: units: beyond them a value is a typing error, and squares and cubes of it (energies,
+#: inertias, volumes) overflow or underflow float64 (1e300 squared is inf, 1e-300
+#: cubed is 0) before any check that knows the key can name it.
+MAX_MAGNITUDE = 1e15
+MIN_MAGNITUDE = 1e-15
+#: The largest integer a scene gives (counts, frames, seeds): exact in float64.
+MAX_INTEGER = 2**53
+
 
 def _describe(v: Any) -> str:
     if isinstance(v, bool):
@@ -100,13 +109,18 @@ class _Ctx:
         v = float(v)
         if not math.isfinite(v):
             raise self.error(key, f"expected a finite number, got {v!r}", None)
+        if abs(v) > MAX_MAGNITUDE or 0 < abs(v) < MIN_MAGNITUDE:
+            raise self.error(key, f"{v:g} is out of range",
+                             f"dempipe reads SI units: a value is 0 or between "
+                             f"{MIN_MAGNITUDE:g} and {MAX_MAGNITUDE:g} in size")
         if lo is not None and (v < lo or (lo_open and v == lo)):
             raise self.error(key, f"{v:g} is out of range", f"expected {expect}")
         if hi is not None and (v > hi or (hi_open and v == hi)):
             raise self.error(key, f"{v:g} is out of range", f"expected {expect}")
         return v
 
-    def integer(self, v: Any, key: str, *, lo: int | None = None, what: str = "an integer") -> int:
+    def integer(self, v: Any, key: str, *, lo: int | None = None, hi: int | None = None,
+                what: str = "an integer") -> int:
         if isinstance(v, bool) or not isinstance(v, int):
             fix = None
             if isinstance(v, float) and math.isfinite(v) and v == int(v):
@@ -116,6 +130,10 @@ class _Ctx:
             raise self.error(key, f"expected {what}, got {_describe(v)}", fix)
         if lo is not None and v < lo:
             raise self.error(key, f"{v} is out of range", f"expected {what} >= {lo}")
+        top = MAX_INTEGER if hi is None else hi
+        if abs(v) > top:
+            raise self.error(key, f"{v} is out of range", f"expected {what} of at most {top:,}"
+                             + (" in size" if lo is None or lo < 0 else ""))
         return int(v)
 
     def boolean(self, v: Any, key: str) -> bool:

@@ -23,6 +23,10 @@ _SIM_KEYS = ("sphere_diameter", "resolution", "gravity", "dt", "device", "seed",
 _SLEEP_KEYS = ("linear_speed", "angular_speed", "time")
 
 
+#: |output.start_frame| at most (a billion frames: 1.3 years at 24 fps).
+MAX_START_FRAME = 10**9
+
+
 def parse_output(ctx: _Ctx, d: Any) -> OutputSettings:
     d = ctx.table(d, "output")
     ctx.check_keys(d, "output", _OUTPUT_KEYS)
@@ -39,7 +43,9 @@ def parse_output(ctx: _Ctx, d: Any) -> OutputSettings:
         kw["meters_per_unit"] = ctx.number(d["meters_per_unit"], "output.meters_per_unit",
                                            lo=0.0, lo_open=True)
     if "start_frame" in d:
-        kw["start_frame"] = ctx.integer(d["start_frame"], "output.start_frame")
+        # frame numbers are USD time codes: float64, exact integers up to far beyond this
+        kw["start_frame"] = ctx.integer(d["start_frame"], "output.start_frame",
+                                        hi=MAX_START_FRAME)
     return OutputSettings(**kw)
 
 

@@ -2,14 +2,14 @@
 
     S, R = polar(W[:3, :3])             # W: a prim's row-vector world matrix
     q = matrix_to_quat(R.T)             # (w, x, y, z) of the column-convention R.T
-    mesh = _gprim_mesh(prim, where)     # Cube/Sphere/Capsule/Cylinder/Cone/Mesh
+    mesh = gprim_mesh(prim, where)     # Cube/Sphere/Capsule/Cylinder/Cone/Mesh
 
 Conventions are USD's: matrices are row-vector 4 × 4 (``p_world = p_local · M``), so
 a rotation R here acts as ``p · R`` and its column-convention matrix is ``R.T``;
 quaternions are (w, x, y, z) with w >= 0. ``polar`` splits ``A = S R`` (S the
 stretch a body keeps, R proper). Gprim meshes are in the prim's own local
 coordinates [stage units]: scene/usd_reader.py moves them into the body's stretched frame
-and to metres. pxr and trimesh are imported inside ``_gprim_mesh`` only, so this
+and to metres. pxr and trimesh are imported inside ``gprim_mesh`` only, so this
 module (like scene/usd_reader.py) imports neither until a stage is read.
 """
 
@@ -85,7 +85,29 @@ def _axis_perm(axis: str) -> np.ndarray:
     return np.array([0, 1, 2])
 
 
-def _gprim_mesh(prim, where: str):
+#: Largest coordinate or size read from a stage, in stage units: beyond it squares
+#: and volumes overflow float64 (1e300 ** 2 is inf) long before a simulation could use it.
+MAX_COORDINATE = 1e15
+#: ... and the smallest size, radius or height: below it a shape is a typing error
+#: (and its volume underflows to 0).
+MIN_LENGTH = 1e-9
+
+
+def _length(attr, where: str, zero: bool = False) -> float:
+    """A gprim's size, radius or height: a finite number > 0 (>= 0 with ``zero``), or
+    a SceneError naming the attribute."""
+    v = attr.Get()
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise SceneError(f"{where}: {attr.GetName()} is not a number ({v!r})") from None
+    if not (MIN_LENGTH <= x <= MAX_COORDINATE or (zero and x == 0)):     # NaN too
+        raise SceneError(f"{where}: {attr.GetName()} = {x:g} (expected a length of "
+                         f"{MIN_LENGTH:g} to {MAX_COORDINATE:g} stage units)")
+    return x
+
+
+def gprim_mesh(prim, where: str):
     """The collision geometry of a gprim in its own local coordinates [stage units],
     as a trimesh (None for a type dempipe cannot read)."""
     import trimesh
@@ -93,14 +115,18 @@ def _gprim_mesh(prim, where: str):
 
     t = prim.GetTypeName()
     if t == "Cube":
-        size = UsdGeom.Cube(prim).GetSizeAttr().Get()
+        size = _length(UsdGeom.Cube(prim).GetSizeAttr(), where)
         return trimesh.creation.box(extents=[size] * 3)
     if t == "Sphere":
-        r = UsdGeom.Sphere(prim).GetRadiusAttr().Get()
+        r = _length(UsdGeom.Sphere(prim).GetRadiusAttr(), where)
         return trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=r)
     if t in ("Capsule", "Cylinder", "Cone"):
         g = getattr(UsdGeom, t)(prim)
-        r, h, axis = g.GetRadiusAttr().Get(), g.GetHeightAttr().Get(), g.GetAxisAttr().Get()
+        r = _length(g.GetRadiusAttr(), where)
+        h = _length(g.GetHeightAttr(), where, zero=t == "Capsule")
+        axis = g.GetAxisAttr().Get()
+        if axis not in ("X", "Y", "Z"):
+            raise SceneError(f"{where}: axis = {axis!r} (expected X, Y or Z)")
         if t == "Capsule":
             m = trimesh.creation.capsule(height=h, radius=r, count=[ROUND_SECTIONS, ROUND_SECTIONS])
         elif t == "Cylinder":
@@ -119,7 +145,13 @@ def _gprim_mesh(prim, where: str):
             raise SceneError(f"{where}: mesh has no points or faces (author points, "
                              "faceVertexCounts and faceVertexIndices)")
         pts = np.asarray(pts, dtype=np.float64)
+        if not np.isfinite(pts).all() or np.abs(pts).max() > MAX_COORDINATE:
+            raise SceneError(f"{where}: points hold a non-finite or huge coordinate "
+                             f"(beyond ±{MAX_COORDINATE:g}); fix the mesh")
         counts = np.asarray(counts, dtype=np.int64)
+        if (counts < 3).any():
+            raise SceneError(f"{where}: faceVertexCounts holds a face of fewer than 3 "
+                             f"corners")
         idx = np.asarray(idx, dtype=np.int64)
         if counts.sum() != len(idx) or idx.max() >= len(pts) or idx.min() < 0:
             raise SceneError(f"{where}: faceVertexCounts/faceVertexIndices do not match the "

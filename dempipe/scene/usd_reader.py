@@ -39,8 +39,22 @@ from dempipe.scene.data import (
     SimulationSettings,
 )
 from dempipe.scene.settings import parse_simulation
+from dempipe.scene.usd_stage import (
+    MAX_FRICTION,
+    MAX_GRAVITY,
+    MAX_MASS,
+    TIME_CODE_MAX,
+    UNIT_RANGE,
+    check_instancer_arrays,
+    density_of,
+    finite_vector,
+    mass_of,
+    open_stage,
+    stage_number,
+)
 from dempipe.scene.usd_geometry import (
-    _gprim_mesh,
+    MAX_COORDINATE,
+    gprim_mesh,
     _np,
     _quat_matrix,
     matrix_to_quat,
@@ -141,13 +155,22 @@ class _Reader:
 
         self.stage, self.path, self.sim = stage, path, sim
         self.src = path.name
-        self.mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
-        self.kpu = float(UsdPhysics.GetStageKilogramsPerUnit(stage))
+        self.mpu = stage_number(UsdGeom.GetStageMetersPerUnit(stage), "metersPerUnit",
+                                 path, UNIT_RANGE)
+        self.kpu = stage_number(UsdPhysics.GetStageKilogramsPerUnit(stage),
+                                 "kilogramsPerUnit", path, UNIT_RANGE)
         up = str(UsdGeom.GetStageUpAxis(stage))
         self.up_axis = "Y" if up == "Y" else "Z"
-        self.start = float(stage.GetStartTimeCode())
-        self.end = float(stage.GetEndTimeCode())
-        self.tcps = float(stage.GetTimeCodesPerSecond())
+        self.start = stage_number(stage.GetStartTimeCode(), "startTimeCode", path,
+                                   (-TIME_CODE_MAX, TIME_CODE_MAX), zero=True)
+        self.end = stage_number(stage.GetEndTimeCode(), "endTimeCode", path,
+                                 (-TIME_CODE_MAX, TIME_CODE_MAX), zero=True)
+        self.tcps = stage_number(stage.GetTimeCodesPerSecond(), "timeCodesPerSecond", path,
+                                  (1.0, 1e5))
+        if abs(self.tcps - round(self.tcps)) > 1e-9:
+            raise SceneError(f"{path.name}: timeCodesPerSecond = {self.tcps:g} is not a whole "
+                             "number of frames per second (dempipe samples one frame per "
+                             "time code)")
         if not stage.HasAuthoredTimeCodeRange() or self.end <= self.start:
             self.end = self.start + DEFAULT_DURATION * self.tcps
             self.no_range = True
@@ -173,7 +196,12 @@ class _Reader:
         return f"{self.src}: {prim.GetPath()}"
 
     def world(self, prim) -> np.ndarray:
-        return _np(self.xf.GetLocalToWorldTransform(prim))
+        W = _np(self.xf.GetLocalToWorldTransform(prim))
+        if not (np.isfinite(W).all() and np.abs(W).max() <= MAX_COORDINATE):
+            raise SceneError(f"{self.where(prim)}: its transform (or a parent's) holds a "
+                             f"non-finite or huge number (beyond ±{MAX_COORDINATE:g}); fix "
+                             "the xformOps")
+        return W
 
     def material(self, prim) -> tuple[str, MaterialSpec | None]:
         """The physics material bound to ``prim`` (purpose physics, then all-purpose)."""
@@ -192,13 +220,14 @@ class _Reader:
         m = UsdPhysics.MaterialAPI(mat.GetPrim())
         key = f"{self.src}: {p}"
         e = float(m.GetRestitutionAttr().Get() or 0.0)
-        if not 0.0 <= e <= 1.0:
+        if not 0.0 <= e <= 1.0:     # NaN too
             raise SceneError(f"{key}: physics:restitution = {e:g} is out of range "
                              "(expected a number in [0, 1])")
         mu = float(m.GetDynamicFrictionAttr().Get() or 0.0)
-        if mu < 0:
-            raise SceneError(f"{key}: physics:dynamicFriction = {mu:g} is negative")
-        rho = float(m.GetDensityAttr().Get() or 0.0) * self.kpu / self.mpu ** 3
+        if not 0 <= mu <= MAX_FRICTION:
+            raise SceneError(f"{key}: physics:dynamicFriction = {mu:g} (expected a number in "
+                             f"[0, {MAX_FRICTION:g}])")
+        rho = density_of(m.GetDensityAttr(), self.kpu, self.mpu, key)
         name = _name(p, self.names)
         spec = MaterialSpec(name, density=rho if rho > 0 else DEFAULT_DENSITY, restitution=e,
                             friction=mu)
@@ -229,10 +258,13 @@ class _Reader:
                 for t in UsdGeom.PointInstancer(prim).GetPrototypesRel().GetTargets():
                     protos.add(str(t))
         body_prims, kinematic_prims, static_colliders = [], [], []
+        bodies_at: set = set()
         unsupported = {"joints": [], "articulations": [], "filtered pairs": [],
                        "collision groups": [], "deformables": [],
                        "disabled bodies (their shapes are static colliders)": [],
-                       "bodies inside native instances (make them not instanceable)": []}
+                       "bodies inside native instances (make them not instanceable)": [],
+                       "static colliders inside native instances (make them not "
+                       "instanceable)": []}
         it = iter(Usd.PrimRange(self.stage.GetPseudoRoot()))
         for prim in it:
             ps = str(prim.GetPath())
@@ -244,13 +276,22 @@ class _Reader:
                 it.PruneChildren()
                 continue
             if prim.IsInstance():
-                # an instance proxy cannot be overridden by the overlay
-                if any(p.HasAPI(UsdPhysics.RigidBodyAPI)
-                       for p in Usd.PrimRange(prim, Usd.TraverseInstanceProxies())):
+                # an instance proxy cannot be overridden by the overlay; the instance
+                # prim itself can: a body there has its shapes in the prototype
+                inside = [p for p in Usd.PrimRange(prim, Usd.TraverseInstanceProxies())
+                          if p != prim and p.HasAPI(UsdPhysics.RigidBodyAPI)]
+                if inside:
                     unsupported["bodies inside native instances (make them not "
                                 "instanceable)"].append(ps)
                 it.PruneChildren()
-                continue
+                if not prim.HasAPI(UsdPhysics.RigidBodyAPI):
+                    if (not self.inside_body(prim, bodies_at)
+                            and any(p.HasAPI(UsdPhysics.CollisionAPI)
+                                    and self.collision_enabled(p) for p in
+                                    Usd.PrimRange(prim, Usd.TraverseInstanceProxies()))):
+                        unsupported["static colliders inside native instances (make them "
+                                    "not instanceable)"].append(ps)
+                    continue
             schemas = [str(s) for s in prim.GetAppliedSchemas()]
             if prim.IsA(UsdPhysics.Joint):
                 unsupported["joints"].append(ps)
@@ -266,14 +307,17 @@ class _Reader:
                 rb = UsdPhysics.RigidBodyAPI(prim)
                 if not rb.GetRigidBodyEnabledAttr().Get():
                     unsupported["disabled bodies (their shapes are static colliders)"].append(ps)
-                elif rb.GetKinematicEnabledAttr().Get():
-                    kinematic_prims.append(prim)
-                    it.PruneChildren()
                 else:
-                    body_prims.append(prim)
-                    it.PruneChildren()      # its collision prims are its shapes
+                    (kinematic_prims if rb.GetKinematicEnabledAttr().Get()
+                     else body_prims).append(prim)
+                    # its collision prims are its shapes; a body nested below it is a
+                    # body of its own (the traversal goes on to find it)
+                    bodies_at.add(prim.GetPath())
+                    if prim.IsInstance():
+                        it.PruneChildren()
                 continue
-            if prim.HasAPI(UsdPhysics.CollisionAPI) and self.collision_enabled(prim):
+            if (prim.HasAPI(UsdPhysics.CollisionAPI) and self.collision_enabled(prim)
+                    and not self.inside_body(prim, bodies_at)):
                 static_colliders.append((prim, "static"))
         for prim in body_prims:
             self.read_body(prim)
@@ -285,6 +329,17 @@ class _Reader:
             if prims:
                 self.ignored.append(f"{what}: {', '.join(prims)}")
 
+    @staticmethod
+    def inside_body(prim, bodies_at: set) -> bool:
+        """Whether an ancestor of ``prim`` is an enabled rigid body (its shapes are
+        that body's, not static colliders)."""
+        p = prim.GetParent()
+        while p and not p.IsPseudoRoot():
+            if p.GetPath() in bodies_at:
+                return True
+            p = p.GetParent()
+        return False
+
     def collision_enabled(self, prim) -> bool:
         from pxr import UsdPhysics
 
@@ -295,7 +350,9 @@ class _Reader:
         from pxr import Usd, UsdPhysics
 
         out = []
-        it = iter(Usd.PrimRange(root))
+        # an instanceable body's shapes are instance proxies in its prototype
+        it = iter(Usd.PrimRange(root, Usd.TraverseInstanceProxies()) if root.IsInstance()
+                  else Usd.PrimRange(root))
         for prim in it:
             if prim != root and prim.HasAPI(UsdPhysics.RigidBodyAPI):
                 it.PruneChildren()          # a nested body is its own body
@@ -315,11 +372,18 @@ class _Reader:
             from pxr import UsdPhysics
 
             s = UsdPhysics.Scene(scene_prim)
-            d = np.asarray(s.GetGravityDirectionAttr().Get() or (0, 0, 0), dtype=np.float64)
-            if np.linalg.norm(d) > 0:
-                direction = d / np.linalg.norm(d)
+            where = self.where(scene_prim)
+            d = finite_vector(s.GetGravityDirectionAttr().Get() or (0, 0, 0), where,
+                              "physics:gravityDirection")
+            big = float(np.abs(d).max())
+            if big > 0:                 # scaled first: the norm of (1e300, 0, 0) is inf
+                direction = (d / big) / np.linalg.norm(d / big)
             g = float(s.GetGravityMagnitudeAttr().Get())
-            if math.isfinite(g) and g >= 0:
+            if g != -math.inf:          # the schema's "not authored"
+                if not (math.isfinite(g) and 0 <= g * self.mpu <= MAX_GRAVITY):
+                    raise SceneError(f"{where}: physics:gravityMagnitude = {g:g} (expected "
+                                     f"-inf for the default, or a number in [0, "
+                                     f"{MAX_GRAVITY / self.mpu:g}] stage units/s²)")
                 magnitude = g * self.mpu          # stage units/s² → m/s²
         return direction * magnitude
 
@@ -332,7 +396,7 @@ class _Reader:
         inv_body = np.linalg.inv(W_body)
         out = []
         for c in prims:
-            mesh = _gprim_mesh(c, self.where(c))
+            mesh = gprim_mesh(c, self.where(c))
             if mesh is None:
                 self.ignored.append(f"collision shapes of an unread type "
                                     f"({c.GetTypeName()}): {c.GetPath()}")
@@ -355,10 +419,9 @@ class _Reader:
             mass = density = None
             if c.HasAPI(UsdPhysics.MassAPI):
                 api = UsdPhysics.MassAPI(c)
-                mv = float(api.GetMassAttr().Get() or 0.0)
-                dv = float(api.GetDensityAttr().Get() or 0.0)
-                mass = mv * self.kpu if mv > 0 else None
-                density = dv * self.kpu / self.mpu ** 3 if dv > 0 else None
+                cw = self.where(c)
+                mass = mass_of(api.GetMassAttr(), self.kpu, cw)
+                density = density_of(api.GetDensityAttr(), self.kpu, self.mpu, cw) or None
             out.append((c, m, name, mass, density))
         return out
 
@@ -382,6 +445,9 @@ class _Reader:
         where = self.where(prim) if instancer is None else f"{self.src}: {instancer}[{instance}]"
         self._proto_root = prim if instancer is not None else None
         W_body = self.world(prim) if W is None else W
+        if not (np.isfinite(W_body).all() and np.abs(W_body).max() <= MAX_COORDINATE):
+            raise SceneError(f"{where}: the instance's transform holds a non-finite or huge "
+                             "number; fix positions, orientations or scales")
         S, R = polar(W_body[:3, :3])
         if abs(np.linalg.det(S)) < 1e-300:
             raise SceneError(f"{where}: the body's transform has zero scale")
@@ -416,11 +482,16 @@ class _Reader:
             # "in the same space as the node's xform": the parent's space
             parent = self.xf.GetParentToWorldTransform(prim)
             P3 = _np(parent)[:3, :3]
-            v = np.asarray(rb.GetVelocityAttr().Get() or (0, 0, 0), float) @ P3
+            v = finite_vector(rb.GetVelocityAttr().Get() or (0, 0, 0), where,
+                               "physics:velocity") @ P3
             _, Rp = polar(P3)
-            w = np.asarray(rb.GetAngularVelocityAttr().Get() or (0, 0, 0), float) @ Rp
+            w = finite_vector(rb.GetAngularVelocityAttr().Get() or (0, 0, 0), where,
+                               "physics:angularVelocity") @ Rp
         else:
             v, w = np.asarray(velocity, float), np.asarray(angular, float)
+        if not (np.isfinite(W_body).all() and np.abs(W_body).max() <= MAX_COORDINATE):
+            raise SceneError(f"{where}: the body's transform holds a non-finite or huge "
+                             "number; fix its xformOps or its parents'")
         q = matrix_to_quat(R.T)
         self.groups.append(BodyGroup(
             name=group, shape=group, material=mat, position=tuple(W_body[3, :3] * self.mpu),
@@ -477,18 +548,22 @@ class _Reader:
         body_mass = body_density = com = inertia = None
         if prim.HasAPI(UsdPhysics.MassAPI):
             api = UsdPhysics.MassAPI(prim)
-            mv = float(api.GetMassAttr().Get() or 0.0)
-            dv = float(api.GetDensityAttr().Get() or 0.0)
-            body_mass = mv * self.kpu if mv > 0 else None
-            body_density = dv * self.kpu / self.mpu ** 3 if dv > 0 else None
+            body_mass = mass_of(api.GetMassAttr(), self.kpu, where)
+            dv = density_of(api.GetDensityAttr(), self.kpu, self.mpu, where)
+            body_density = dv if dv > 0 else None
             c = api.GetCenterOfMassAttr().Get()
-            if c is not None and all(math.isfinite(x) for x in c):
+            # the schema's "not authored" is -inf in each component
+            if c is not None and not all(x == -math.inf for x in c):
+                c = finite_vector(c, where, "physics:centerOfMass")
+                if np.abs(c).max() > MAX_COORDINATE:
+                    raise SceneError(f"{where}: physics:centerOfMass = {tuple(c)} is beyond "
+                                     f"±{MAX_COORDINATE:g}")
                 com = (np.asarray(c, float) @ S) * self.mpu
             dg = api.GetDiagonalInertiaAttr().Get()
             if dg is not None and any(x != 0 for x in dg):
-                if any(x < 0 or not math.isfinite(x) for x in dg):
+                if any(not 0 <= x <= MAX_MASS * MAX_COORDINATE for x in dg):
                     raise SceneError(f"{where}: physics:diagonalInertia = {tuple(dg)} must be "
-                                     "positive")
+                                     "positive and finite")
                 pa = api.GetPrincipalAxesAttr().Get()
                 Rpa = np.eye(3)
                 if pa is not None and pa.GetLength() > 0:
@@ -546,12 +621,18 @@ class _Reader:
                                     f"{prim.GetPath()}")
             return
         ps = str(prim.GetPath())
+        where = self.where(prim)
         proto_idx = np.asarray(pi.GetProtoIndicesAttr().Get(self.t0) or [], dtype=np.int64)
+        n = len(proto_idx)
+        bad = proto_idx[(proto_idx < 0) | (proto_idx >= len(targets))]
+        if len(bad):
+            raise SceneError(f"{where}: protoIndices holds {int(bad[0])}, but the instancer "
+                             f"has {len(targets)} prototype(s) (indices 0..{len(targets) - 1})")
+        check_instancer_arrays(pi, self.t0, n, where)
         xforms = pi.ComputeInstanceTransformsAtTime(self.t0, self.t0)
         W_inst = self.world(prim)
         vel = pi.GetVelocitiesAttr().Get(self.t0)
         ang = pi.GetAngularVelocitiesAttr().Get(self.t0)
-        n = len(proto_idx)
         proto_local = np.zeros((n, 4, 4))
 
         for i in range(n):
@@ -584,7 +665,7 @@ class _Reader:
             n = np.linalg.inv(W[:3, :3]) @ n_local          # normals: inverse transpose
             self.add_plane(W[3, :3] * self.mpu, n, mat, name)
             return
-        mesh = _gprim_mesh(prim, where)
+        mesh = gprim_mesh(prim, where)
         if mesh is None:
             self.ignored.append(f"collision shapes of an unread type ({prim.GetTypeName()}): "
                                 f"{prim.GetPath()}")
@@ -639,22 +720,6 @@ class _Reader:
 # ------------------------------------------------------------------------------ API
 
 
-def _open(path: Path):
-    from pxr import Tf, Usd
-
-    if not path.is_file():
-        raise SceneError(f"{path.name}: file not found")
-    try:
-        stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
-    except Tf.ErrorException as exc:
-        lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-        raise SceneError(f"{path.name}: cannot open the USD stage "
-                         f"({lines[-1] if lines else 'unreadable'})") from None
-    if stage is None:
-        raise SceneError(f"{path.name}: cannot open the USD stage")
-    return stage
-
-
 def load_usd_scene(path, simulation: SimulationSettings | None = None, *,
                    gravity_given: bool = False, settings_path: Path | None = None) -> Scene:
     """Read the UsdPhysics stage at ``path`` as a Scene whose ``usd`` is a UsdShot.
@@ -666,13 +731,14 @@ def load_usd_scene(path, simulation: SimulationSettings | None = None, *,
     Raises SceneError naming the file and prim for anything unusable.
     """
     p = Path(path).expanduser().resolve()
-    stage = _open(p)
+    stage = open_stage(p)
     sim = simulation or SimulationSettings()
     r = _Reader(stage, p, sim, gravity_given)
     r.read()
     if not r.groups:
+        left = f"; not simulated: {'; '.join(r.ignored)}" if r.ignored else ""
         raise SceneError(f"{p.name}: no rigid bodies to simulate (apply PhysicsRigidBodyAPI "
-                         "to a prim with PhysicsCollisionAPI at or below it)")
+                         f"to a prim with PhysicsCollisionAPI at or below it){left}")
     warnings = []
     if r.no_range:
         warnings.append(f"{p.name}: no time range (startTimeCode/endTimeCode); baking "
@@ -686,9 +752,6 @@ def load_usd_scene(path, simulation: SimulationSettings | None = None, *,
     start = int(round(r.start))
     output = OutputSettings(fps=int(round(r.tcps)), duration=(r.end - r.start) / r.tcps,
                             up_axis=r.up_axis, meters_per_unit=r.mpu, start_frame=start)
-    if abs(r.tcps - round(r.tcps)) > 1e-9 or r.tcps < 1:
-        raise SceneError(f"{p.name}: timeCodesPerSecond = {r.tcps:g} is not a whole number of "
-                         "frames per second (dempipe samples one frame per time code)")
     shot = UsdShot(stage_path=p, bodies=tuple(r.bodies), instancers=dict(r.instancers),
                    meters_per_unit=r.mpu, kilograms_per_unit=r.kpu, up_axis=r.up_axis,
                    start=float(start), end=r.end, tcps=r.tcps, warnings=tuple(warnings))

@@ -60,6 +60,37 @@ OP_MATRIX = "xformOp:transform:dempipe"
 _AXIS_TOL = 1e-9
 
 
+#: Rates and the pose attribute whose samples they must share (USD reads velocities
+#: only when they are sampled where the positions are): rate -> its poses, first found.
+RATE_OF = {"velocities": ("positions",),
+           "angularVelocities": ("orientations", "orientationsf"),
+           "physics:velocity": (OPS_TRS[0], OP_MATRIX),
+           "physics:angularVelocity": (OPS_TRS[1], OP_MATRIX)}
+
+
+def _rows(v) -> np.ndarray:
+    """A sample as (elements, components) float64: one row for a Gf vector,
+    quaternion or matrix, a row per element of a Vt array."""
+    if hasattr(v, "GetReal"):
+        return np.array([[v.GetReal(), *v.GetImaginary()]], dtype=np.float64)
+    if type(v).__module__.endswith("Gf"):
+        return np.array(v, dtype=np.float64).reshape(1, -1)
+    a = np.array(v, dtype=np.float64)
+    return a.reshape(len(a), -1)
+
+
+def _zeroed(v, still: np.ndarray):
+    """The rate sample ``v`` (a Gf.Vec3f or a Vt.Vec3fArray) with the elements where
+    ``still`` holds set to zero."""
+    if not still.any():
+        return v
+    if type(v).__module__.endswith("Gf"):
+        return type(v)(0.0)
+    a = np.array(v, dtype=np.float32).reshape(len(still), -1)
+    a[still] = 0.0
+    return type(v).FromNumpy(a)
+
+
 def _np(m) -> np.ndarray:
     return np.array(m, dtype=np.float64).reshape(4, 4)
 
@@ -106,6 +137,9 @@ class OverlayWriter:
         self.layer = Sdf.Layer.CreateAnonymous("overlay" + self.path.suffix.lower())
         self._author_header()
         self.prims, self.instanced = {}, {}
+        #: body prim path -> body index, for a body nested under another one
+        self.body_at = {body.prim: b for b, body in enumerate(shot.bodies)
+                        if body.instance < 0 and not getattr(body, "kinematic", False)}
         for b, body in enumerate(shot.bodies):
             if getattr(body, "kinematic", False):
                 continue        # it follows the input's own animation: left as authored
@@ -145,6 +179,11 @@ class OverlayWriter:
         parents = [self._parent(prim, t, reset) for t in times[:1]]
         if self._parent_animated(prim):
             parents = [self._parent(prim, t, reset) for t in times]
+        carrier = None if reset else self._carrier(prim)
+        if carrier is not None:     # the parent turns with a simulated body
+            c, rel = carrier
+            parents = [rel @ np.block([[np.asarray(self.shot.bodies[c].stretch), np.zeros((3, 1))],
+                                       [np.zeros((1, 3)), np.ones((1, 1))]])]
         trs = _diagonal(S) and all(_conformal(P[:3, :3]) for P in parents)
         spec = Sdf.CreatePrimInLayer(self.layer, prim.GetPath())
         spec.specifier = Sdf.SpecifierOver
@@ -161,7 +200,20 @@ class OverlayWriter:
             attrs["m"] = Sdf.AttributeSpec(spec, OP_MATRIX, _T.Matrix4d)
         attrs["v"] = Sdf.AttributeSpec(spec, "physics:velocity", _T.Vector3f)
         attrs["w"] = Sdf.AttributeSpec(spec, "physics:angularVelocity", _T.Vector3f)
-        return dict(prim=prim, reset=reset, trs=trs, attrs=attrs, S=S)
+        return dict(prim=prim, reset=reset, trs=trs, attrs=attrs, S=S, carrier=carrier)
+
+    def _carrier(self, prim):
+        """(body index, parent-to-body matrix) of the nearest simulated body above
+        ``prim``, whose simulated pose moves ``prim``'s parent; None when there is none
+        (the input stage's parents are then the parents)."""
+        p = prim.GetParent()
+        while p and not p.IsPseudoRoot():
+            b = self.body_at.get(str(p.GetPath()))
+            if b is not None:
+                rel = UsdGeom.XformCache(self.t0).ComputeRelativeTransform(prim.GetParent(), p)
+                return b, _np(rel[0])
+            p = p.GetParent()
+        return None
 
     def _parent_animated(self, prim) -> bool:
         p = prim.GetParent()
@@ -206,8 +258,13 @@ class OverlayWriter:
         animated = self._parent_animated(info["prim"])
         P = None
         a = info["attrs"]
+        carrier = info["carrier"]
         for k, t in enumerate(times):
-            if P is None or animated:
+            if carrier is not None:
+                c, rel = carrier
+                P = rel @ self._world(c, frames.x[k, c], frames.q[k, c],
+                                      np.asarray(self.shot.bodies[c].stretch))
+            elif P is None or animated:
                 P = self._parent(info["prim"], t, info["reset"])
             W = self._world(b, frames.x[k, b], frames.q[k, b], info["S"])
             L = W @ np.linalg.inv(P)
@@ -282,28 +339,60 @@ class OverlayWriter:
         """Leave out redundant samples, as usd/animation.py does: an attribute equal at
         every frame gets a default value only; inside a run of equal samples only its
         ends are kept (linear interpolation between equal values is exact). A body
-        asleep writes nothing while it sleeps."""
+        asleep writes nothing while it sleeps.
+
+        A velocity keeps the sample times of the pose it is the rate of (RATE_OF): USD
+        refuses velocities not sampled where the positions are (and warns at every
+        read). Where a body's pose equals the frame's before or after, the body is
+        still and its velocity there is zero: what is left is the solver's float
+        noise (about 1e-11), which would otherwise be written."""
         layer = self.layer
-        paths = []
-        layer.Traverse(layer.pseudoRoot.path,
-                       lambda p: paths.append(p) if p.IsPropertyPath() else None)
+        by_prim: dict = {}
+        layer.Traverse(layer.pseudoRoot.path, lambda p: by_prim.setdefault(
+            p.GetPrimPath(), {}).__setitem__(p.name, p) if p.IsPropertyPath() else None)
         with Sdf.ChangeBlock():
-            for path in paths:
-                times = layer.ListTimeSamplesForPath(path)
-                if len(times) < 2:
-                    continue
-                values = [layer.QueryTimeSample(path, t) for t in times]
-                if all(v == values[0] for v in values[1:]):
-                    spec = layer.GetAttributeAtPath(path)
-                    for t in times:
-                        layer.EraseTimeSample(path, t)
-                    spec.default = values[0]
-                    self.n_samples -= len(times)
-                    continue
-                for k in range(1, len(times) - 1):
-                    if values[k] == values[k - 1] and values[k] == values[k + 1]:
-                        layer.EraseTimeSample(path, times[k])
-                        self.n_samples -= 1
+            for attrs in by_prim.values():
+                timed = {n: p for n, p in attrs.items()
+                         if len(layer.ListTimeSamplesForPath(p)) >= 2}
+                follows: dict = {}
+                for rate, poses in RATE_OF.items():
+                    pose = next((n for n in poses if n in timed), None)
+                    if rate in timed and pose is not None:
+                        follows.setdefault(pose, []).append(timed[rate])
+                rates = {p for ps in follows.values() for p in ps}
+                for name, p in timed.items():
+                    if p not in rates:
+                        self._thin_with(p, follows.get(name, []))
+
+    def _thin_with(self, pose, rates: list) -> None:
+        """Thin ``pose`` on its runs of equal samples and ``rates`` at the same times,
+        zeroed where the pose is still."""
+        layer = self.layer
+        times = list(layer.ListTimeSamplesForPath(pose))
+        n = len(times)
+        rows = np.stack([_rows(layer.QueryTimeSample(pose, t)) for t in times])
+        # same_prev[k, i]: element i (an instance, or the prim) as at frame k - 1
+        same_prev = np.zeros(rows.shape[:2], bool)
+        same_prev[1:] = (rows[1:] == rows[:-1]).all(axis=2)
+        same_next = np.zeros_like(same_prev)
+        same_next[:-1] = same_prev[1:]
+        still = same_prev | same_next
+        constant = bool(same_prev[1:].all())
+        keep = [k for k in range(n) if k in (0, n - 1)
+                or not (same_prev[k].all() and same_next[k].all())]
+        for p in [pose, *rates]:
+            values = [layer.QueryTimeSample(p, t) for t in times]
+            if p != pose:
+                values = [_zeroed(v, still[k]) for k, v in enumerate(values)]
+            for t in times:
+                layer.EraseTimeSample(p, t)
+            self.n_samples -= n
+            if constant:
+                layer.GetAttributeAtPath(p).default = values[0]
+                continue
+            for k in keep:
+                layer.SetTimeSample(p, times[k], values[k])
+            self.n_samples += len(keep)
 
     def save(self) -> ExportInfo:
         """Write the layer atomically; returns ExportInfo."""

@@ -21,7 +21,8 @@ pxr = pytest.importorskip("pxr")
 from pxr import Sdf  # noqa: E402
 
 from dempipe.pipeline.bake import bake, partial_path  # noqa: E402
-from dempipe.pipeline.checkpoint import CheckpointError, work_dir  # noqa: E402
+from dempipe.pipeline.checkpoint import CheckpointError  # noqa: E402
+from dempipe.pipeline.lock import work_dir  # noqa: E402
 from processes import (  # noqa: E402
     assert_same_samples, cpu_seconds, dempipe, env, frames_done, run, wait_for)
 

@@ -798,7 +798,7 @@ def test_killed_stage_bake_resumes_to_the_same_overlay(tmp_path):
 
     from processes import assert_same_samples, dempipe, frames_done, run, wait_for
 
-    from dempipe.pipeline.checkpoint import work_dir
+    from dempipe.pipeline.lock import work_dir
 
     st = new_stage(tmp_path / "drop.usda", end=48)
     ground(st)
