@@ -8,6 +8,7 @@ import numpy as np
 
 from dempipe.sim import physics
 from dempipe.sim.kernels.contacts import CLOSE_REACH2
+from dempipe.sim.kernels.patches import BODY_PATCHES
 from dempipe.sim.laws import law, linear
 
 
@@ -39,6 +40,98 @@ def rolling(model, w_rel, n, out, mi, mj, inv_radius):
                                            model.onset_speed))
 
 
+def patch_sums(model, x, v, rest):
+    """Each dynamic body's contact patches this step (kernels/patches.py): body ->
+    (partner code -> [Σδ, Σδ²], [Σδ, Σδ²] of all, overflowed), summed in the kernels'
+    order (the body's spheres by index, each sphere's partners by index, a run of one
+    partner body's spheres summed first, then its walls), so that the shares come out
+    bit for bit. x, v: every sphere's position and velocity; rest: the rest counts."""
+    nb_all = model.body_mass.shape[0]
+    S = model.n_spheres
+    d = model.diameter
+    radius = 0.5 * d
+    sleep = model.sleep_steps
+    inv = model.body_inv_mass
+    out = {}
+    for b in range(nb_all):
+        if inv[b] == 0.0:
+            continue
+        row, total = {}, [0.0, 0.0]
+
+        def add(code, s1, s2):
+            total[0] += s1
+            total[1] += s2
+            if code in row:
+                row[code][0] += s1
+                row[code][1] += s2
+            else:
+                row[code] = [s1, s2]
+        asleep = sleep > 0 and rest[b] >= sleep
+        for i in range(model.body_sphere_start[b], model.body_sphere_start[b + 1]):
+            last, r1, r2 = -1, 0.0, 0.0
+            for j in range(S):
+                bj = int(model.sphere_body[j])
+                if bj == b:
+                    continue
+                if sleep > 0 and asleep and rest[bj] >= 0 and (
+                        inv[bj] == 0.0 or rest[bj] >= sleep):
+                    continue
+                rx, ry, rz = (float(c) for c in x[j] - x[i])
+                dvx, dvy, dvz = (float(c) for c in v[j] - v[i])
+                dist2 = rx * rx + ry * ry + rz * rz
+                if dist2 < d * d:
+                    ov = d - float(np.sqrt(dist2))
+                elif pair_closing(np.array([rx, ry, rz]), dist2, np.array([dvx, dvy, dvz]), d,
+                                  model.dt, model.onset_speed):
+                    dist = float(np.sqrt(dist2))
+                    ov = d - dist + (dvx * rx + dvy * ry + dvz * rz) / dist * model.dt
+                else:
+                    continue
+                if bj != last:
+                    if last >= 0:
+                        add(last, r1, r2)
+                    last, r1, r2 = bj, 0.0, 0.0
+                r1 += ov
+                r2 += ov * ov
+            if last >= 0:
+                add(last, r1, r2)
+            if asleep:
+                continue
+            for w in range(model.n_walls):
+                n = model.wall_normal[w]
+                dist = float(n[0] * x[i, 0] + n[1] * x[i, 1] + n[2] * x[i, 2]
+                             - model.wall_offset[w])
+                if np.any(x[i] < model.wall_lo[w]) or np.any(x[i] > model.wall_hi[w]) \
+                        or dist <= -model.wall_depth[w]:
+                    continue
+                ov = radius - dist
+                if dist >= radius:
+                    away = float(v[i, 0] * n[0] + v[i, 1] * n[1] + v[i, 2] * n[2])
+                    if not wall_closing(n, dist, v[i], d, model.dt, model.onset_speed):
+                        continue
+                    ov += away * model.dt
+                add(nb_all + w, ov, ov * ov)
+        out[b] = (row, total, len(row) > BODY_PATCHES)
+    return out
+
+
+def patch_share(patches, b, code):
+    """1/n_eff of body b's patch with partner ``code`` (kernels/patches.patch_share)."""
+    row, total, over = patches[b]
+    s1, s2 = total if over else row.get(code, total)
+    n = s1 * s1
+    return s2 / n if n > s2 and s2 > 0.0 else 1.0
+
+
+def owner_share(model, patches, i, j):
+    """The share a sphere pair (i, j) takes: its owner's body's (the sphere of lower
+    index, or the dynamic one when the other is static)."""
+    bi, bj = int(model.sphere_body[i]), int(model.sphere_body[j])
+    if model.body_inv_mass[bj] == 0.0 or i < j:
+        return patch_share(patches, bi, bj)
+    return patch_share(patches, bj, bi)
+
+
 def reference_step(model, state):
     """Advance a copy of ``state`` by one step of ``model``; returns the new State."""
     st = state.copy()
@@ -64,6 +157,7 @@ def reference_step(model, state):
         for i, h in zip(*np.nonzero(st.contact_partner)):
             spring[(int(i), int(st.contact_partner[i, h]) >> 1)] = st.contact_spring[i, h]
     f = np.zeros((S, 3)); t = np.zeros((S, 3)); tr = np.zeros((S, 3))
+    patches = patch_sums(model, x, v, st.body_rest)
     for i in range(S):
         bi = model.sphere_body[i]
         if model.body_inv_mass[bi] == 0.0:
@@ -85,6 +179,8 @@ def reference_step(model, state):
                                                          model.pair_damp, mi, mj, im,
                                                          model.kt_ratio, model.ks_ratio, model.dt,
                                                          d - dist)
+            share = owner_share(model, patches, i, j)
+            k, eta, kt, ks = k * share, eta * share, kt * share, ks * share
             mu = model.pair_mu[mi, mj] if model.features.friction else 0.0
             if (i, j + 1) in spring:
                 s0 = spring[(i, j + 1)]
@@ -111,6 +207,8 @@ def reference_step(model, state):
                 k, eta, kt, ks = law(model.contact_law).contact_coefficients(
                     model.pair_k[mi, mj], model.pair_damp, mi, mj, model.body_inv_mass[bi],
                     model.kt_ratio, model.ks_ratio, model.dt, d / 2 - dist)
+                share = patch_share(patches, bi, nb_all + w)
+                k, eta, kt, ks = k * share, eta * share, kt * share, ks * share
                 mu = model.pair_mu[mi, mj] if model.features.friction else 0.0
                 s0 = spring.get((i, S + w + 1), np.zeros(3))
                 out = physics.sphere_wall_force(*(-n), d / 2 - dist, d / 2, *v[i], *W[bi],

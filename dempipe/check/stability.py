@@ -418,9 +418,8 @@ def soft_contact(model: Model, closing: float, src: str) -> Finding | None:
         return None
     names = [m.name for m in model.materials]
     user_k = sorted({names[i] for i in pair if model.materials[i].stiffness is not None})
-    # An error only where a user stiffness sets the spring: this one-spring estimate
-    # overstates what a heavy body meets on a light material's auto spring (several
-    # contacts share it; the mass-ratio finding covers that case).
+    # An error only where a user stiffness sets the spring; under auto stiffness the
+    # depth past the guard is check.sinking's error (pipeline/check.py).
     level = ERROR if worst > OVERLAP_ERROR and user_k else WARNING
     return Finding(
         level, "soft-contact",

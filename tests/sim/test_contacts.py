@@ -21,7 +21,7 @@ from dempipe.sim.builder import ModelBuilder
 from dempipe.sim.simulator import Simulator
 from dempipe.sim.kernels.pairing import WALL_BITS
 from dempipe.sim.kernels.cpu.device import pairs_to_rows, rows_to_pairs
-from reference import pair_closing, wall_closing
+from reference import owner_share, pair_closing, patch_share, patch_sums, wall_closing
 from test_cuda import falling_model
 from test_neighbours import loose_balls
 from test_sleeping import pile
@@ -98,6 +98,8 @@ def own_forces(model, state, be):
     f = np.zeros((ns, 3))
     t = np.zeros((ns, 3))
     tr = np.zeros((ns, 3))
+    patches = patch_sums(model, x, v, rest)      # a pair takes its owner body's share
+    nb_all = model.body_mass.shape[0]
     for i in range(ns):
         bi = model.sphere_body[i]
         if model.body_inv_mass[bi] == 0.0 or asleep[bi]:
@@ -117,6 +119,8 @@ def own_forces(model, state, be):
                 model.pair_k[mi, mj], model.pair_damp, mi, mj,
                 model.body_inv_mass[bi] + model.body_inv_mass[bj], model.kt_ratio,
                 model.ks_ratio, model.dt, d - np.sqrt(dist2))
+            share = owner_share(model, patches, i, j)
+            k, eta, kt, ks = k * share, eta * share, kt * share, ks * share
             mu = model.pair_mu[mi, mj]
             s0 = owner_stretch(state, i, j)
             out = physics.sphere_pair_force(
@@ -153,6 +157,8 @@ def own_forces(model, state, be):
             k, eta, kt, ks = law(model.contact_law).contact_coefficients(
                 model.pair_k[mi, mj], model.pair_damp, mi, mj, model.body_inv_mass[bi],
                 model.kt_ratio, model.ks_ratio, model.dt, d / 2 - dist)
+            share = patch_share(patches, bi, nb_all + w)
+            k, eta, kt, ks = k * share, eta * share, kt * share, ks * share
             mu = model.pair_mu[mi, mj]
             s0 = owner_stretch(state, i, ns + w)
             out = physics.sphere_wall_force(*(-n), d / 2 - dist, d / 2, *v[i], *W[bi],

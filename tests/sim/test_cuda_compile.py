@@ -63,7 +63,7 @@ def test_every_feature_set_is_compiled(compiled):
     for r in compiled["rows"]:
         if r["variant"]:
             variants.setdefault(r["kernel"], set()).add(r["variant"])
-    assert set(variants) == {"k_pair_forces", "k_sphere_forces", "k_bodies"}
+    assert set(variants) == {"k_body_patches", "k_pair_forces", "k_sphere_forces", "k_bodies"}
     linear = {k: {t for t in v if "_" not in t} for k, v in variants.items()}
     assert all(len(v) == 16 for v in linear.values()), variants
     # the contact pass of every other law (laws.LAWS), with every feature on

@@ -174,8 +174,8 @@ def test_restitution_zero_does_not_rebound_at_dt_auto():
 
 
 def test_flat_tile_does_not_bounce_back_faster_than_e():
-    # A flat landing of 64 spheres at once: their dashpots add (docs/physics.md: flat faces
-    # bounce less than e), so the rebound must stay below e v (+5%: the one-sphere
+    # A flat landing of 64 spheres at once is one contact patch (docs/physics.md,
+    # "Contact patches"): the rebound must stay below e v (+5%: the one-sphere
     # discretization excess at 16 steps per contact is +4.9%, docs/stability.md).
     model, rest = drop((8, 8, 1), 0.5, fps=1000, n_frames=101)
     frames = Simulator(model).advance(model.initial_state())
