@@ -49,6 +49,7 @@ STAGES = ("1 body velocities (eq. 5-6)", "1 sphere positions into sorted slots (
           "2 rebuild: sphere positions + cell keys", "2 rebuild: counting sort (serial)",
           "2 rebuild: gather into sorted order (+ histories)",
           "3 rebuild: neighbour lists (27 cells), pair indices, walls in reach",
+          "4 contact patches: each body's contacts per partner (patches.py)",
           "3-4 contact forces, each computed once (its owner) + walls",
           "4 each sphere's sum over its list", "5-8 body momenta, positions, quaternions")
 
@@ -142,6 +143,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                          state.body_q, state.body_P, state.body_L, rest, b.body_wake,
                          b.body_still)
         after = (
+            lambda: k.stage_patches(cm, cs, b.drive.motion_now, m.body_sphere_start, b.slot_of),
             lambda: k.stage_contacts(cm, cs, b.drive.motion_now, s & 1, b.chunks,
                                      b.chunks.shape[0]),
             lambda: k.stage_sums(cm, cs, b.chunks, b.chunks.shape[0]),

@@ -124,12 +124,15 @@ def patch_share(patches, b, code):
 
 
 def owner_share(model, patches, i, j):
-    """The share a sphere pair (i, j) takes: its owner's body's (the sphere of lower
-    index, or the dynamic one when the other is static)."""
+    """The share a sphere pair (i, j) takes (kernels/patches.pair_share): its owner's
+    body's (the sphere of lower index, or the dynamic one when the other is static),
+    or the partner's when the owner's row overflowed and the partner's did not."""
     bi, bj = int(model.sphere_body[i]), int(model.sphere_body[j])
-    if model.body_inv_mass[bj] == 0.0 or i < j:
-        return patch_share(patches, bi, bj)
-    return patch_share(patches, bj, bi)
+    if not (model.body_inv_mass[bj] == 0.0 or i < j):
+        bi, bj = bj, bi                             # bi owns the pair
+    if patches[bi][2] and model.body_inv_mass[bj] > 0.0 and not patches[bj][2]:
+        return patch_share(patches, bj, bi)         # its row overflowed, bj's did not
+    return patch_share(patches, bi, bj)
 
 
 def reference_step(model, state):

@@ -377,8 +377,7 @@ class ModelBuilder:
                                      f"law only (contact_law is {law_name!r}; give stiffness)")
                 # equal spheres of diameter d (R* = d/4); a sphere on a wall (R* = d/2)
                 # would be √2 stiffer: walls take the pair's K
-                stiffness.append(law.stiffness_from_modulus(m.young_modulus, m.poisson_ratio,
-                                                            patch))
+                stiffness.append(law.stiffness_from_modulus(m.young_modulus, m.poisson_ratio, d))
             elif m.stiffness is None and used.any():
                 k = law.stiffness_for_overlap(float(m_corner[used].max()), v_imp, g, patch,
                                               target_overlap)

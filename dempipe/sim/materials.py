@@ -162,23 +162,32 @@ AUTO_TRAVEL = 0.25
 #: where the spheres are coarser than that.
 PATCH_RESOLUTION = 4.0
 
+#: The patch scale is at most this many diameters: at the default overlap target
+#: (0.02) a contact then overlaps at most 0.1 d, the depth `dempipe check` starts
+#: warning at, whatever the shape (a rod one sphere thick and 100 d long would
+#: otherwise take 25 d, and its contacts half a sphere deep).
+PATCH_MAX_DIAMETERS = 5.0
+
 
 def patch_scale(diameter: float, extents) -> float:
     """The length ℓ [m] the overlap target (stiffness_target_overlap) is a fraction
-    of: max(d, L / PATCH_RESOLUTION), L the longest extent of the smallest dynamic
-    shape ([m], ``extents``: each shape's; d alone when there is none).
+    of: L / PATCH_RESOLUTION within [d, PATCH_MAX_DIAMETERS d], L the longest extent
+    of the smallest dynamic shape ([m], ``extents``: each shape's; d alone when there
+    is none).
 
     A contact between two bodies is one patch however many sphere pairs make it up
     (kernels/patches.py), so its stiffness is the bodies' business, not the
     spheres': with ℓ = d, a finer set would be stiffer (k ∝ 1/d²) and its step
     shorter, for the same bodies. With ℓ fixed by the bodies, the auto stiffness and
-    the auto step do not depend on the resolution from PATCH_RESOLUTION spheres
-    across up; coarser sets keep the overlap a fraction of d.
+    the auto step do not depend on the resolution from PATCH_RESOLUTION up to
+    PATCH_RESOLUTION × PATCH_MAX_DIAMETERS (20) spheres across; coarser sets keep the
+    overlap a fraction of d, finer ones a fraction of 5 d.
     """
+    d = float(diameter)
     ext = [float(e) for e in extents if e > 0.0]
     if not ext:
-        return float(diameter)
-    return max(float(diameter), min(ext) / PATCH_RESOLUTION)
+        return d
+    return min(max(d, min(ext) / PATCH_RESOLUTION), PATCH_MAX_DIAMETERS * d)
 
 
 def auto_dt(omega_max: float, fps: float, steps_per_contact: float = STEPS_PER_CONTACT,

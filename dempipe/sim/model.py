@@ -235,8 +235,8 @@ class Model:
     law's contact frequency depends on it)."""
     patch_scale: float = 0.0
     """The length ℓ [m] the auto stiffness's overlap target is a fraction of
-    (materials.patch_scale: max(d, the smallest dynamic shape's extent / 4); 0 in a
-    Model built without bodies)."""
+    (materials.patch_scale: the smallest dynamic shape's extent / 4, within [d, 5 d];
+    d in a Model without dynamic bodies)."""
     pair_rolling: np.ndarray = None
     """(M, M): each material pair's rolling-friction coefficient μ_r [1]
     (materials.mix_rolling; physics.rolling_torque)."""

@@ -236,7 +236,7 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
             k, eta, kt, ks = contact_coefficients(  # noqa: F821 (the law's)
                 pair_k[mi, mj], pair_damp, mi, mj, imi + imj, kt_ratio, ks_ratio, dt,
                 diameter - dist)
-            share = patch_share(body_patch, bi, bj)  # noqa: F821 (its patch's share)
+            share = pair_share(body_patch, body_inv_mass, bi, bj)  # noqa: F821 (its patch's)
             k *= share
             eta *= share
             kt *= share

@@ -40,14 +40,17 @@ the share of the sums its owner made.
 ``body_patch[b]`` (BODY_PATCHES + 1, 3) float64: (partner code + 1, Σδ, Σδ²) per
 partner (0: empty), then (overflowed, Σδ, Σδ² over every partner). A partner
 code is the body's index, or the number of bodies + the wall's index for a
-wall. A body with more partners than its row holds is marked overflowed: each of
-its contacts then takes the share of all its contacts taken as one patch (softer
-than its own patch, never stiffer, and the same whatever the order the row was
-filled in).
+wall. A body with more partners than its row holds is marked overflowed: a pair
+it owns with a dynamic body whose row is whole takes that body's share for it
+(pair_share: the same patch, summed from the other side); its other contacts take
+the share of all its contacts taken as one patch (softer than their own patch,
+never stiffer, and the same whatever the order the row was filled in).
 """
 
-# The tests pair_forces makes, read by body_patches (compiled with these globals).
-from dempipe.sim.kernels.contacts import CLOSE_REACH2, pair_ended, wall_gap  # noqa: F401
+# body_patches calls pair_ended, wall_gap and entry_range (and the law's closing): each
+# target compiles it with its own compiled versions of them (compile.compile_contacts,
+# cpu/stages.py kernels()), which replace these names.
+from dempipe.sim.kernels.contacts import pair_ended, wall_gap  # noqa: F401
 from dempipe.sim.kernels.pairing import entry_range  # noqa: F401
 
 #: Partners a body's row holds: a one-sphere ball in a dense pile touches up to 12
@@ -211,5 +214,18 @@ def patch_share(body_patch, b, code):
     return 1.0
 
 
+def pair_share(body_patch, body_inv_mass, b, partner):
+    """The share of a sphere pair that body b owns with body ``partner``: b's row's
+    (patch_share), or, when b's row overflowed (a tray carrying more than
+    BODY_PATCHES pieces) and the partner is dynamic with a whole row, the partner's
+    row's for b: the same patch summed from the other side. So the pieces on a crowded
+    body keep their own patches whichever of the two owns the pairs."""
+    slots = body_patch.shape[1] - 1
+    if (body_patch[b, slots, 0] != 0.0 and not static_body(body_inv_mass[partner])  # noqa: F821
+            and body_patch[partner, slots, 0] == 0.0):
+        return patch_share(body_patch, partner, b)
+    return patch_share(body_patch, b, partner)
+
+
 #: The functions the targets compile from this module (callees first).
-KERNEL = ("patch_add", "body_patches", "patch_share")
+KERNEL = ("patch_add", "body_patches", "patch_share", "pair_share")

@@ -502,7 +502,7 @@ _STAGES = (stage_body_velocities, motion_row, driven_row, stage_motion, stage_dr
            sphere_state, stage_spheres,
            stage_spheres_sorted,
            contacts.wall_gap, contacts.pair_ended, patches.patch_add, patches.body_patches,
-           patches.patch_share, stage_patches,
+           patches.patch_share, patches.pair_share, stage_patches,
            contacts.pair_forces, contacts.sphere_forces, stage_contacts, stage_sums, body_update,
            stage_bodies, run_steps)
 _JITS = {
@@ -519,6 +519,7 @@ _JITS = {
     "patch_add": numba.njit(inline="always", cache=True),
     "body_patches": numba.njit(cache=True),
     "patch_share": numba.njit(inline="always", cache=True),
+    "pair_share": numba.njit(inline="always", cache=True),
     "stage_patches": numba.njit(parallel=True, cache=True),
     "pair_forces": numba.njit(cache=True),
     "sphere_forces": numba.njit(cache=True),

@@ -207,7 +207,7 @@ def scratch_layout(model, friction=None) -> dict:
         "ctl": ((CTL_SIZE,), i4),
         "sphere_f": ((ns, 3), f8), "sphere_t": ((ns, 3), f8), "sphere_overlap": ((ns,), f8),
         "sphere_tr": ((ns, 3), f8),
-        # each step's contacts per partner: by sphere, then by body (kernels/patches.py)
+        # each body's contacts this step per partner (kernels/patches.py)
         "body_patch": ((nb, BODY_PATCHES + 1, 3), f8),
         "max_out": ((1,), f8),
     }
@@ -529,9 +529,11 @@ class CudaBackend:
            overflow adds to ctl[CTL_OVER] and maxes ctl[CTL_MAXN]); then, unless
            a list overflowed, k_pair_slots, k_pair_mirror (pair indices, walls
            in reach) and k_load_pairs (the stretches from the rows).
-        4. k_pair_forces (each contact once, by its owner, and the walls), then
-           k_sphere_forces (each sphere's sum), both returning at once once
-           ctl[CTL_OVER] is set: the host carries on from there.
+        4. k_body_patches (each body's contacts per partner: the share each pair
+           takes, kernels/patches.py), k_pair_forces (each contact once, by its
+           owner, and the walls), then k_sphere_forces (each sphere's sum), all
+           returning at once once ctl[CTL_OVER] is set: the host carries on from
+           there.
         5. k_bodies: stages 5-8 (nothing once ctl[CTL_OVER] or ctl[CTL_IDLE] is
            set), each body awake for the next step adding 1 to ctl[CTL_AWAKE];
            its thread 0 counts the rebuild (ctl[CTL_REBUILDS]), the step done
