@@ -42,7 +42,7 @@ import numpy as np
 from dempipe import interrupt
 from dempipe.errors import DempipeError, ExportError
 from dempipe.pipeline.lock import LOCK_NAME, work_dir
-from dempipe.sim.frames import Frames, save_frames
+from dempipe.sim.frames import Frames, save_frames, save_npz
 from dempipe.sim.simulator import RunPoint, RunStats
 from dempipe.version import __version__
 
@@ -382,7 +382,7 @@ class BakeStore:
         arrays.update({f"backend.{n}": a for n, a in saved.items()})
         name = f"state-{self.frames_done:06d}.npz"
         try:
-            atomic_write(self.dir / name, lambda fh: np.savez(fh, **arrays))
+            atomic_write(self.dir / name, lambda fh: save_npz(fh, arrays))
             self.state_bytes, self.state_sha256 = file_digest(self.dir / name)
         except OSError as exc:
             raise write_error(self.dir / name, exc, "a checkpoint") from None

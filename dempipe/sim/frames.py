@@ -6,6 +6,7 @@ bodies only (static colliders never move), in scene order.
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,10 +67,21 @@ class Frames:
         )
 
 
+def save_npz(fh, arrays: dict) -> None:
+    """Write ``arrays`` (name -> array) to the open binary file ``fh`` as np.savez does
+    (an uncompressed .npz that np.load reads), the archive closed even when a write
+    fails: np.savez leaves it open on a full disk, and its finaliser then printed
+    "Exception ignored ... seek of closed file" to stderr after the one-line error."""
+    with zipfile.ZipFile(fh, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as z:
+        for name, a in arrays.items():
+            with z.open(name + ".npy", mode="w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(a), allow_pickle=False)
+
+
 def save_frames(fh, frames: Frames) -> None:
     """Write ``frames`` to the open binary file ``fh`` (.npz; what :func:`load_frames` reads)."""
-    np.savez(fh, frame_numbers=frames.frame_numbers, times=frames.times, x=frames.x,
-             q=frames.q, v=frames.v, w=frames.w)
+    save_npz(fh, dict(frame_numbers=frames.frame_numbers, times=frames.times, x=frames.x,
+                      q=frames.q, v=frames.v, w=frames.w))
 
 
 def load_frames(path) -> Frames:

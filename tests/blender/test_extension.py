@@ -242,10 +242,12 @@ def test_scene_toml_maps_blenders_settings(driven):
 
 def test_transform_cache_drive_puts_objects_where_the_keys_do(driven):
     """The panel's other Drive: each object under an empty with a Transform Cache
-    constraint on the baked USD. The places of the keys, to 2e-5 m: Blender's USD
+    constraint on the baked USD. The places of the keys, to 1e-4 m: Blender's USD
     reader drops a rotation whose float32 quaternion has a real part of exactly 1
-    (below about 7e-4 rad; measured here: 3.3e-5 rad, 4.6e-6 m on a 20 cm cube),
-    which the keys, built from the components, keep. Emitted bodies collapse to a
+    (below about 7e-4 rad), which the keys, built from the components, keep; a point
+    0.14 m from its object's origin (the torus's rim) then moves by up to 1e-4 m
+    (measured here: 3.4e-5 m on the torus, 4.6e-6 m on a 20 cm cube, depending on how
+    far the bodies turn). Emitted bodies collapse to a
     point before their start (the USD's zero scale), and Free Bake leaves no
     empty, cache file or change behind."""
     got, _ = driven
@@ -258,6 +260,6 @@ def test_transform_cache_drive_puts_objects_where_the_keys_do(driven):
                 assert np.ptp(verts, axis=0).max() < 1e-9, (frame, name)
                 continue
             keyed = np.array(got["frames"][frame][name]["vertices"])
-            np.testing.assert_allclose(verts, keyed, atol=2e-5, err_msg=f"{frame} {name}")
+            np.testing.assert_allclose(verts, keyed, atol=1e-4, err_msg=f"{frame} {name}")
     assert got["cache_left"] == [0, False, []]
     assert got["after_cache_free"] == got["before"]

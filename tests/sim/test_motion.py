@@ -347,3 +347,71 @@ def test_emit_layout_bad_values_name_the_key(extra, key, words):
     with pytest.raises(SceneError) as err:
         scene(bodies, "")
     assert f"bodies[0].{key}" in str(err.value) and words in str(err.value), str(err.value)
+
+
+EMITTED_BOX = """
+[[bodies]]
+name = "waiting"
+shape = "box"
+material = "m"
+position = [0.0, 0.0, 0.05]
+
+[[bodies]]
+name = "parcel"
+shape = "box"
+material = "m"
+position = [0.0, 0.0, 0.4]
+"""
+
+FLOORS = {
+    "plane": PLANE,
+    "box collider": """
+[[colliders]]
+type = "box"
+min = [-1.0, -1.0, 0.0]
+max = [1.0, 1.0, 2.0]
+material = "m"
+""",
+    "static mesh": """
+[[colliders]]
+type = "mesh"
+builtin = "box"
+size = [1.0, 1.0, 0.1]
+position = [0.0, 0.0, -0.05]
+material = "m"
+""",
+    "moving mesh": """
+[[colliders]]
+type = "mesh"
+builtin = "box"
+size = [1.0, 1.0, 0.1]
+position = [0.0, 0.0, -0.05]
+material = "m"
+[colliders.motion]
+angular_velocity = [0.0, 0.0, 0.5]
+""",
+}
+
+
+@pytest.mark.parametrize("sleeping", [True, False], ids=["sleeping", "no sleeping"])
+@pytest.mark.parametrize("floor", list(FLOORS))
+def test_an_emitted_body_meets_what_is_there_from_its_first_step(floor, sleeping):
+    """A box emitted at 0.1 s above another resting on the floor (a plane, a box
+    collider's floor, a static mesh, a mesh turning slowly) lands on it and rests
+    there, with sleeping on and off: from its first step its spheres move with it
+    and every contact sees it (a parked body's spheres are kept still until it
+    starts, and then must follow it whatever the sleeping)."""
+    sleep = "sleeping = true" if sleeping else "sleeping = false"
+    sc = scene(EMITTED_BOX, FLOORS[floor], duration=1.5, mu=0.5, sleep=sleep)
+    sc = with_group(sc, 1, start_time=0.1)
+    m, fr = bake(sc)
+    assert m.body_start[1] > 0
+    # waiting until 0.1 s exactly where it was placed, then falling
+    early = fr.times < 0.1 - 1e-9
+    assert np.all(fr.x[early, 1] == fr.x[0, 1])
+    # at the end: on the lower box (its base at the lower box's top, 0.1 m) and at rest,
+    # the lower box on the floor; within 5% of d (the contacts' overlap under the load)
+    assert fr.x[-1, 0, 2] == pytest.approx(0.05, abs=0.05 * m.diameter)
+    assert fr.x[-1, 1, 2] == pytest.approx(0.15, abs=0.05 * m.diameter)
+    if floor != "moving mesh":
+        assert np.linalg.norm(fr.v[-1], axis=-1).max() < 1e-3

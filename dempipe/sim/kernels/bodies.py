@@ -130,4 +130,5 @@ def body_update(b, bm, bs, step):
         body_wake[b] = 0
         body_still[b] = 0
         return 1 if r < sleep_steps else 0
+    body_still[b] = 0               # it moves: stage 1 places its spheres (parked until now)
     return 1
