@@ -225,7 +225,11 @@ def format_markdown(r: ReportResult) -> str:
         L.append("Each law at its own automatic step (docs/physics.md, \"Contact laws\"): "
                  "for the same error, the cheaper is the one with the smaller wall time. "
                  "The motion error is against the reference, which takes the last law "
-                 "given; a law's own stiffness is in its own units (Hertz: N/m^1.5).")
+                 "given; a law's own stiffness is in its own units (Hertz: N/m^1.5). "
+                 "Under either law a contact between two bodies is one patch: each sphere "
+                 "pair takes 1/n_eff of the law's constants, n_eff = (Σδ)²/Σδ² over the "
+                 "patch, so a face landing flat rebounds with the asked e (docs/physics.md, "
+                 "\"Contact patches\", with its limits).")
         L.append("")
     L.append("## Physics: closed forms against dt")
     L.append("")
