@@ -31,7 +31,6 @@ import numpy as np
 
 from dempipe.check.sizes import memory_estimate
 from dempipe.sim import laws
-from dempipe.sim import materials as mat
 from dempipe.sim.model import Model, rotational_mass_factor
 from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP, frame0_overlap
 

@@ -352,7 +352,7 @@ def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, pro
             kept = (f"the checkpoint at frame {store.frames_done} in {store.dir} is kept: "
                     f"free the space, then run the same bake with --resume to go on from it"
                     if store.state_file else
-                    f"no checkpoint was written yet: free the space and bake again")
+                    "no checkpoint was written yet: free the space and bake again")
             raise ExportError(f"{exc}; {kept}") from None
     elif point is not None:
         sim.stats = point.stats

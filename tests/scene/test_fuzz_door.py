@@ -153,7 +153,7 @@ def test_every_scene_value_mutated_is_read_or_one_line(tmp_path):
 
 
 def _stage(path, attr=None, value=None):
-    from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics
+    from pxr import Gf, Usd, UsdGeom, UsdPhysics
 
     st = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(st, "Z")
