@@ -65,6 +65,16 @@ def _checksum(arrays: dict) -> str:
     return h.hexdigest()
 
 
+def _checksum_all(arrays: dict) -> str:
+    h = hashlib.sha256()
+    for name in sorted(k for k in arrays if k != "checksum"):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(name.encode() + b"\0" + str(a.dtype).encode() + b"\0")
+        h.update(np.array(a.shape, dtype=np.int64).tobytes())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
 class _Corrupt(Exception):
     pass
 
@@ -186,6 +196,9 @@ class SphereCache:
         arrays["format_version"] = np.asarray(FORMAT_VERSION, dtype=np.int64)
         arrays["key"] = np.asarray(key)
         arrays["checksum"] = np.asarray(_checksum(arrays))
+        return self._write(path, arrays)
+
+    def _write(self, path: Path, arrays: dict) -> bool:
         tmp = None
         try:
             self.root.mkdir(parents=True, exist_ok=True)
@@ -206,6 +219,50 @@ class SphereCache:
                     os.unlink(tmp)
                 except OSError:
                     pass
+
+    # -- other entries (fractured shapes: dempipe.spheres.pieces) ------------------
+
+    def put_arrays(self, key: str, arrays: dict) -> bool:
+        """Store named arrays (no object dtype) under ``key`` atomically, with the
+        format version, the key and a checksum over every array. False when the
+        cache is unusable."""
+        if self._disabled:
+            return False
+        data = {k: np.asarray(v) for k, v in arrays.items()}
+        data["format_version"] = np.asarray(FORMAT_VERSION, dtype=np.int64)
+        data["key"] = np.asarray(key)
+        data["checksum"] = np.asarray(_checksum_all(data))
+        return self._write(self.path_for(key), data)
+
+    def get_arrays(self, key: str):
+        """The arrays stored by :meth:`put_arrays` under ``key`` (a dict), or None
+        (missing, or corrupt: deleted and warned)."""
+        if self._disabled:
+            return None
+        path = self.path_for(key)
+        if not path.is_file():
+            return None
+        try:
+            try:
+                with np.load(path, allow_pickle=False) as z:
+                    data = {name: z[name] for name in z.files}
+            except Exception as exc:  # zip/npy errors of a truncated or garbled file
+                raise _Corrupt(f"unreadable: {type(exc).__name__}") from None
+            for name in ("format_version", "key", "checksum"):
+                if name not in data:
+                    raise _Corrupt(f"missing {name}")
+            if int(data["format_version"]) != FORMAT_VERSION or str(data["key"]) != key:
+                raise _Corrupt("version or key mismatch")
+            if str(data["checksum"]) != _checksum_all(data):
+                raise _Corrupt("checksum mismatch")
+        except _Corrupt as exc:
+            warnings.warn(f"sphere cache: entry {path} was corrupt ({exc}); rebuilt", stacklevel=2)
+            try:
+                path.unlink()
+            except OSError:
+                pass
+            return None
+        return {k: v for k, v in data.items() if k not in ("format_version", "key", "checksum")}
 
     def _entries(self):
         if not self.root.is_dir():
