@@ -14,12 +14,19 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from dempipe.check.sizes import check_lattice, preflight_scene
+from dempipe.errors import SceneError
 from dempipe.mesh.shapes import build_shape, load_mesh
-from dempipe.scene.placement import collider_frame, expand_bodies, group_frame
+from dempipe.scene.placement import (
+    collider_frame,
+    expand_bodies,
+    group_frame,
+    split_into_pieces,
+)
 from dempipe.sim import laws
 from dempipe.sim.builder import ModelBuilder
 from dempipe.sim.model import Model, quat_to_matrix
 from dempipe.spheres.options import DEFAULT_MODE, BuildOptions
+from dempipe.spheres.pieces import build_pieces
 from dempipe.spheres.sphere_set import (
     build_sphere_set_with_info,
     diameter_for_resolution,
@@ -146,19 +153,40 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
             m = replace(m, young_modulus=m.young_modulus * o.stiffness_factor)
         material_index[name] = b.add_material(m)
     shape_index = {}
+    pieces = {}     # fractured shape -> [(piece shape name, com, volume)]
     for n in names:
+        if scene.shapes[n].fracture is not None:
+            fractured, info = build_pieces(meshes[n], d, scene.shapes[n].fracture, name=n,
+                                           cache=cache, options=sphere_options(scene, n, o))
+            hits.append((n, info.cache, info.seconds,
+                         sum(ps.count for ps in fractured.sphere_sets)))
+            pieces[n] = []
+            for k, (piece, ps) in enumerate(zip(fractured.pieces, fractured.sphere_sets)):
+                pn = f"{n}_piece_{k:02d}"
+                shape_index[pn] = b.add_shape(pn, piece.trimesh(), ps, inside_faces=piece.inside)
+                pieces[n].append((pn, ps.com, ps.volume))
+            continue
         ss, info = build_sphere_set_with_info(meshes[n], d, name=n, cache=cache,
                                               options=sphere_options(scene, n, o))
         hits.append((n, info.cache, info.seconds, ss.count))
         if scene.shapes[n].center_of_mass is not None:
             ss = with_center_of_mass(ss, scene.shapes[n].center_of_mass)
         shape_index[n] = b.add_shape(n, meshes[n], ss)
-    for g, placement in zip(scene.bodies, expand_bodies(scene)):
+    glue_next = 0
+    for gi, (g, placement) in enumerate(zip(scene.bodies, expand_bodies(scene))):
+        split = split_into_pieces(placement, pieces, glue_start=glue_next)
+        glue_next = int(split.glue.max()) + 1 if (split.glue >= 0).any() else glue_next
+        placement = split.placement
         n_g = len(placement.positions)
+        if g.inertia is not None and len(split.labels) != g.count:
+            raise SceneError(f"{src}: bodies[{gi}].inertia: not for a fractured shape "
+                             "(remove it: each piece's inertia comes from its mesh)")
+        # glue: the pieces of one fractured instance share an id in split.glue (-1:
+        # whole); pass glue=split.glue here once ModelBuilder.add_bodies takes it
         b.add_bodies(placement.name, [shape_index[n] for n in placement.body_shapes()],
                      material_index[placement.material], placement.positions,
                      placement.rotations, placement.velocities, placement.angular_velocities,
-                     masses=None if g.mass is None else np.full(n_g, float(g.mass)),
+                     masses=None if g.mass is None else float(g.mass) * split.mass_share,
                      inertias=(None if g.inertia is None
                                else np.broadcast_to(np.asarray(g.inertia, float), (n_g, 3, 3))),
                      asleep=np.full(n_g, bool(g.starts_asleep)),
@@ -166,7 +194,8 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
                      start_time=(placement.start_times if placement.start_times is not None
                                  else g.start_time),
                      group_frame=g.layout != "single",
-                     frame=group_frame(g, placement) if g.kinematic else None)
+                     frame=group_frame(g, placement) if g.kinematic else None,
+                     labels=split.labels)
     up = out.up_index
     for c in scene.colliders:
         kind = type(c).__name__

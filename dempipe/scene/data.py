@@ -171,6 +171,9 @@ class ShapeSpec:
     computed from the mesh (UsdPhysics MassAPI); None: the mesh's."""
     spheres: str | None = None
     """This shape's sphere-set mode, "lattice" or "surface"; None: the scene's."""
+    fracture: Any = None
+    """A ``dempipe.mesh.fracture.FractureSpec``: every body of this shape is its
+    pieces, placed with the body's pose; None: whole."""
 
 
 @dataclass(frozen=True)

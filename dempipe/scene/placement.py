@@ -140,3 +140,72 @@ def expand_bodies(scene: Scene) -> list[BodyPlacement]:
             start_times=(g.start_time + np.arange(n) / g.rate if g.layout == "emit" else None),
         ))
     return out
+
+
+# ---------------------------------------------------------------------- fracture
+
+
+@dataclass(frozen=True)
+class PieceBodies:
+    """A group's bodies with each fractured instance replaced by its pieces.
+
+    placement: one body per piece (``shape``: one shape name per body), at the
+        instance's pose; a piece moves with the instance as one rigid body would
+        (v + ω × r from the instance's centre of mass to the piece's).
+    labels: each body's name after its group's: "3" (whole) or "3_piece_07".
+    instance: (n,) int, the group's body each comes from.
+    glue: (n,) int, one id per fractured instance shared by its pieces (counted
+        from ``glue_start``), -1 for a whole body.
+    mass_share: (n,) float, the piece's share of its instance's volume (1: whole).
+    """
+
+    placement: BodyPlacement
+    labels: tuple
+    instance: np.ndarray
+    glue: np.ndarray
+    mass_share: np.ndarray
+
+
+def split_into_pieces(placement: BodyPlacement, pieces: dict, glue_start: int = 0) -> PieceBodies:
+    """``placement`` with every body of a fractured shape replaced by its pieces.
+
+    pieces: shape name -> list of (piece shape name, centre of mass (3,) in the
+    shape's own coordinates [m], volume [m^3]) for each fractured shape.
+    """
+    from dempipe.sim.model import quat_to_matrix
+
+    shapes, labels, inst, glue, share = [], [], [], [], []
+    rows = []
+    next_glue = glue_start
+    for i, name in enumerate(placement.body_shapes()):
+        if name not in pieces:
+            shapes.append(name)
+            labels.append(str(i))
+            inst.append(i)
+            glue.append(-1)
+            share.append(1.0)
+            rows.append(np.zeros(3))
+            continue
+        parts = pieces[name]
+        vol = np.array([p[2] for p in parts], np.float64)
+        com = np.array([p[1] for p in parts], np.float64).reshape(-1, 3)
+        parent_com = (vol[:, None] * com).sum(axis=0) / vol.sum()
+        R = quat_to_matrix(placement.rotations[i])
+        for k, (piece_name, c, v) in enumerate(parts):
+            shapes.append(piece_name)
+            labels.append(f"{i}_piece_{k:02d}")
+            inst.append(i)
+            glue.append(next_glue)
+            share.append(float(v / vol.sum()))
+            rows.append(R @ (np.asarray(c, np.float64) - parent_com))
+        next_glue += 1
+    inst = np.asarray(inst, np.int64)
+    r = np.asarray(rows, np.float64).reshape(-1, 3)
+    w = placement.angular_velocities[inst]
+    new = BodyPlacement(
+        name=placement.name, shape=tuple(shapes), material=placement.material,
+        positions=placement.positions[inst], rotations=placement.rotations[inst],
+        velocities=placement.velocities[inst] + np.cross(w, r), angular_velocities=w,
+        start_times=None if placement.start_times is None else placement.start_times[inst])
+    return PieceBodies(new, tuple(labels), inst, np.asarray(glue, np.int64),
+                       np.asarray(share, np.float64))

@@ -14,6 +14,7 @@ import difflib
 import math
 from typing import Any
 
+from dempipe.mesh.fracture import MAX_PIECES, FractureSpec
 from dempipe.scene.data import (
     BodyGroup,
     BoxCollider,
@@ -167,6 +168,13 @@ def _parse_shapes(ctx: _Ctx, d: Any, registry) -> dict[str, ShapeSpec]:
         if "spheres" in s:
             mode = ctx.string(s["spheres"], f"{key}.spheres", MODES)
             s = {k: v for k, v in s.items() if k != "spheres"}
+        fracture = None
+        if "fracture" in s:
+            if mode == "surface":
+                raise ctx.error(f"{key}.fracture", "a fractured shape needs lattice spheres",
+                                "remove spheres = \"surface\": the pieces share one lattice")
+            fracture = _parse_fracture(ctx, s["fracture"], f"{key}.fracture")
+            s = {k: v for k, v in s.items() if k != "fracture"}
         has_b, has_m = "builtin" in s, "mesh" in s
         if has_b and has_m:
             raise ctx.error(key, "both builtin and mesh are given", "give only one of them")
@@ -182,7 +190,7 @@ def _parse_shapes(ctx: _Ctx, d: Any, registry) -> dict[str, ShapeSpec]:
                 scale = ctx.number(s["scale"], f"{key}.scale", lo=0.0, lo_open=True)
             path = ctx.mesh_file(s["mesh"], f"{key}.mesh")
             out[name] = ShapeSpec(name=name, builtin=None, params={}, mesh_path=path, scale=scale,
-                                  spheres=mode)
+                                  spheres=mode, fracture=fracture)
         else:
             builtin = ctx.string(s["builtin"], f"{key}.builtin")
             params = {k: v for k, v in s.items() if k != "builtin"}
@@ -192,8 +200,35 @@ def _parse_shapes(ctx: _Ctx, d: Any, registry) -> dict[str, ShapeSpec]:
                                 "set the built-in shape's size parameters instead")
             params = _check_builtin(ctx, key, builtin, params, registry)
             out[name] = ShapeSpec(name=name, builtin=builtin, params=params, mesh_path=None,
-                                  scale=1.0, spheres=mode)
+                                  scale=1.0, spheres=mode, fracture=fracture)
     return out
+
+
+_FRACTURE_KEYS = ("pieces", "seed", "impact", "impact_share", "impact_radius")
+
+
+def _parse_fracture(ctx: _Ctx, f: Any, key: str) -> FractureSpec:
+    """``fracture = { pieces = N, seed = S, impact = [x, y, z], impact_share = f,
+    impact_radius = r }`` -> a FractureSpec (docs/scenes.md, "Fracture")."""
+    f = ctx.table(f, key)
+    ctx.check_keys(f, key, _FRACTURE_KEYS)
+    if "pieces" not in f:
+        raise ctx.error(key, "needs pieces", f"e.g. {key.rsplit('.', 1)[-1]} = {{ pieces = 12 }}")
+    kw: dict[str, Any] = dict(
+        pieces=ctx.integer(f["pieces"], f"{key}.pieces", lo=2, hi=MAX_PIECES))
+    if "seed" in f:
+        kw["seed"] = ctx.integer(f["seed"], f"{key}.seed", lo=0)
+    if "impact" in f:
+        kw["impact"] = ctx.vector(f["impact"], f"{key}.impact")
+    if "impact_share" in f:
+        if "impact" not in f:
+            raise ctx.error(f"{key}.impact_share", "given without impact",
+                            "add impact = [x, y, z] (the shape's own coordinates, m)")
+        kw["impact_share"] = ctx.number(f["impact_share"], f"{key}.impact_share", lo=0.0, hi=1.0)
+    if "impact_radius" in f:
+        kw["impact_radius"] = ctx.number(f["impact_radius"], f"{key}.impact_radius", lo=0.0,
+                                         lo_open=True, unit="m")
+    return FractureSpec(**kw)
 
 
 def _material_ref(ctx: _Ctx, v: Any, key: str, materials) -> str:

@@ -89,20 +89,23 @@ class ModelBuilder:
             return _frozen(c)
         return _frozen(c[surface_mask(c, self.diameter, self.contact_layers)])
 
-    def add_shape(self, name: str, mesh, sphere_set: "SphereSet") -> int:
+    def add_shape(self, name: str, mesh, sphere_set: "SphereSet", inside_faces=None) -> int:
         """Register a shape: its mesh (mesh coordinates) and its full sphere set;
-        the contact spheres are chosen by the builder's ``contact_layers``."""
+        the contact spheres are chosen by the builder's ``contact_layers``.
+        ``inside_faces``: (F,) bool, the faces of a fracture piece's broken surface."""
         com = np.asarray(sphere_set.com, dtype=np.float64)
         verts = np.asarray(mesh.vertices, dtype=np.float64) - com
+        inside = None if inside_faces is None else _frozen(
+            np.flatnonzero(np.asarray(inside_faces, bool)), np.int32)
         self._shapes.append(ShapeInstance(name, _frozen(verts), _frozen(mesh.faces, np.int32),
                                           _frozen(com), sphere_set,
-                                          self._contact_centers(sphere_set)))
+                                          self._contact_centers(sphere_set), inside))
         return len(self._shapes) - 1
 
     def add_bodies(self, group: str, shape, material: int, positions, rotations=None,
                    velocities=None, angular_velocities=None, *, masses=None, inertias=None,
                    asleep=None, kinematic: bool = False, motion=None, start_time: float = 0.0,
-                   group_frame: bool = False, frame=None) -> None:
+                   group_frame: bool = False, frame=None, labels=None) -> None:
         """Add a group of bodies.
 
         shape : a shape index for all, or one per body (a mixed group)
@@ -121,6 +124,8 @@ class ModelBuilder:
             pose, or for a group frame the mean of its mesh origins)
         start_time : the bodies enter the simulation at this time [s] (an emitter), one
             for all or (n,) one per body
+        labels : (n,) str, each body's name after the group's in the USD (default
+            its index in the group; a fracture piece "3_piece_07")
         """
         if kinematic and motion is None:
             raise SceneError(f"{group}: a kinematic group needs a motion")
@@ -141,7 +146,8 @@ class ModelBuilder:
             inertias=None if inertias is None else np.array(inertias, np.float64).reshape(n, 3, 3),
             kinematic=bool(kinematic), motion=motion,
             start_time=np.broadcast_to(np.asarray(start_time, dtype=np.float64), (n,)).copy(),
-            group_frame=bool(group_frame), frame=frame))
+            group_frame=bool(group_frame), frame=frame,
+            labels=tuple(str(i) for i in range(n)) if labels is None else tuple(map(str, labels))))
 
     def add_plane(self, point, normal, material: int = 0, motion=None) -> None:
         """An infinite plane through ``point`` facing ``normal``; ``motion`` (a
@@ -473,6 +479,7 @@ class ModelBuilder:
             body_inv_inertia=_frozen(all_inv_inertia), body_material=_frozen(all_mat, np.int32),
             body_sphere_start=_frozen(start, np.int32), body_shape=_frozen(body_shape, np.int32),
             body_group=_frozen(body_group, np.int32), body_group_index=_frozen(body_gidx, np.int32),
+            body_labels=tuple(lab for g in groups for lab in g["labels"]),
             body_radius=_frozen(body_radius),
             sphere_body=_frozen(sphere_body, np.int32), sphere_offset=_frozen(sphere_offset),
             wall_normal=_frozen(wall_arr(0, (0, 3)).reshape(-1, 3)),

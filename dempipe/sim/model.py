@@ -50,6 +50,8 @@ class ShapeInstance:
     com : (3,) centre of mass in the mesh's own coordinates [m]
     sphere_set : the full sphere set (its geometry error, counts and small-body
         checks describe the shape); mass properties are the mesh's
+    inside_faces : indices of the faces on a fracture piece's broken surface (int32),
+        or None for a whole shape (dempipe.mesh.fracture)
     contact_centers : (K, 3) body-frame centres of the spheres that take part in
         contacts [m]: the full set's within ``contact_layers`` layers of its
         surface (spheres.surface_mask), in the set's order; all of them when
@@ -62,6 +64,7 @@ class ShapeInstance:
     com: np.ndarray
     sphere_set: "SphereSet"
     contact_centers: np.ndarray = None
+    inside_faces: np.ndarray = None
 
     @property
     def contact_count(self) -> int:
@@ -128,7 +131,9 @@ class Model:
         frame, entries (xx, yy, zz, xy, xz, yz) [1/(kg m²)];
       body_material (B,) int32; body_sphere_start (B+1,) int32, spheres of body b
         are body_sphere_start[b]:body_sphere_start[b+1].
-    Per dynamic body (n_bodies,): body_shape, body_group, body_group_index.
+    Per dynamic body (n_bodies,): body_shape, body_group, body_group_index;
+      body_labels, each body's name after its group's (its index, or for a fracture
+      piece "3_piece_07"; empty: indices).
     Per sphere (S,): sphere_body int32; sphere_offset (S, 3) from the body's centre
       of mass, body frame [m].
     Walls (planes and box walls) as bounded half-spaces (W,): wall_normal (W, 3)
@@ -195,6 +200,7 @@ class Model:
     initial_w: np.ndarray
     stiffness_auto: tuple = ()
     build_info: dict = field(default_factory=dict)
+    body_labels: tuple = ()
     sleep_steps: int = 0
     sleep_linear: float = 0.0
     sleep_angular: float = 0.0

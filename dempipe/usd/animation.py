@@ -51,7 +51,13 @@ from dempipe.usd.authoring import (
     _unique_names,
 )
 from dempipe.usd.colliders import _author_colliders, collider_names
-from dempipe.usd.meshes import _PALETTE, _author_mesh, _shape_materials, _shape_points
+from dempipe.usd.meshes import (
+    _PALETTE,
+    _author_mesh,
+    _inside,
+    _shape_materials,
+    _shape_points,
+)
 from dempipe.usd.prescribed import first_shown_frame
 from dempipe.usd.samples import Scan, SparseTrack, as_source
 from dempipe.version import __version__
@@ -147,11 +153,13 @@ def write_usd(path, frames, model, *, layout: str = "instancer", overwrite: bool
     with Sdf.ChangeBlock():
         _author_metadata(layer, scan, model, layout)
         world = Sdf.PrimSpec(layer.pseudoRoot, "World", _DEF, "Xform")
-        materials, collider_material = _shape_materials(world, model)
+        materials, collider_material, inside = _shape_materials(world, model)
         if layout == "instancer":
-            n_samples = _author_instancer(layer, world, source, scan, model, sparse, materials)
+            n_samples = _author_instancer(layer, world, source, scan, model, sparse, materials,
+                                          inside)
         else:
-            n_samples = _author_xforms(layer, world, source, scan, model, sparse, materials)
+            n_samples = _author_xforms(layer, world, source, scan, model, sparse, materials,
+                                       inside)
         n_samples += _author_colliders(layer, world, source, scan, model, collider_material,
                                        sparse)
 
@@ -227,7 +235,8 @@ def _author_metadata(layer, scan, model, layout) -> None:
 # -------------------------------------------------------------------- instancer
 
 
-def _author_instancer(layer, world, source, scan, model, sparse, materials) -> int:
+def _author_instancer(layer, world, source, scan, model, sparse, materials,
+                      inside_material=None) -> int:
     mpu = float(model.meters_per_unit)
     bodies = Sdf.PrimSpec(world, "Bodies", _DEF, "PointInstancer")
     # The prototypes are the instancer's own children, with no Scope around them:
@@ -240,7 +249,8 @@ def _author_instancer(layer, world, source, scan, model, sparse, materials) -> i
     proto_paths = []
     for i, (shape, name, pts) in enumerate(zip(model.shapes, shape_names, points)):
         mesh = Sdf.PrimSpec(protos, name, _DEF, "Mesh")
-        _author_mesh(mesh, pts, shape.faces, _PALETTE[i % len(_PALETTE)], materials[i])
+        _author_mesh(mesh, pts, shape.faces, _PALETTE[i % len(_PALETTE)], materials[i],
+                     _inside(shape, inside_material))
         proto_paths.append(mesh.path)
     rel = Sdf.RelationshipSpec(bodies, "prototypes", custom=False)
     rel.targetPathList.explicitItems = proto_paths
@@ -399,7 +409,8 @@ class _ArrayPair:
 # ----------------------------------------------------------------------- xforms
 
 
-def _author_xforms(layer, world, source, scan, model, sparse, materials) -> int:
+def _author_xforms(layer, world, source, scan, model, sparse, materials,
+                   inside_material=None) -> int:
     mpu = float(model.meters_per_unit)
     # Prototypes: one class Xform per shape holding a Mesh child named after the
     # shape. Classes are abstract (not drawn, not imported as objects), and so is
@@ -410,7 +421,8 @@ def _author_xforms(layer, world, source, scan, model, sparse, materials) -> int:
     group_names = _unique_names(model.group_names)
     body_group = np.asarray(model.body_group)
     body_group_index = np.asarray(model.body_group_index)
-    body_names = [f"{group_names[int(g)]}_{int(i)}" for g, i in zip(body_group, body_group_index)]
+    labels = getattr(model, "body_labels", ()) or [str(int(i)) for i in body_group_index]
+    body_names = [f"{group_names[int(g)]}_{lab}" for g, lab in zip(body_group, labels)]
     shape_names = _unique_names(s.name for s in model.shapes)
     mesh_names_ = mesh_names(model, group_names + body_names)
     points = _shape_points(model, mpu)
@@ -418,7 +430,8 @@ def _author_xforms(layer, world, source, scan, model, sparse, materials) -> int:
     for i, (shape, name, pts) in enumerate(zip(model.shapes, shape_names, points)):
         cls = Sdf.PrimSpec(protos, name, _CLASS, "Xform")
         mesh = Sdf.PrimSpec(cls, mesh_names_[i], _DEF, "Mesh")
-        _author_mesh(mesh, pts, shape.faces, _PALETTE[i % len(_PALETTE)], materials[i])
+        _author_mesh(mesh, pts, shape.faces, _PALETTE[i % len(_PALETTE)], materials[i],
+                     _inside(shape, inside_material))
         proto_paths.append(cls.path)
 
     bodies = Sdf.PrimSpec(world, "Bodies", _DEF, "Xform")

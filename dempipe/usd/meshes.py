@@ -25,14 +25,18 @@ _PALETTE = np.array(
     dtype=np.float32,
 )
 _COLLIDER_COLOR = (0.55, 0.55, 0.55)
+# The broken faces of fracture pieces: a pale, rough fresh-break colour.
+_INSIDE_COLOR = (0.82, 0.78, 0.70)
 
 
-def _author_mesh(prim, vertices, faces, color, material=None) -> None:
+def _author_mesh(prim, vertices, faces, color, material=None, inside=None) -> None:
     """Points, topology, extent, normals, displayColor and material of a polygon mesh prim.
 
     ``material``: the path of a ``UsdShade.Material`` to bind (``material:binding``),
     so that DCC tools show ``color`` by default: most ignore ``displayColor`` unless a
     material reads it (Blender, Maya, Omniverse), and usdview draws the material too.
+    ``inside``: (face indices, material path) of a fracture piece's broken faces:
+    a ``GeomSubset`` "inside" of the materialBind family bound to that material.
     """
     pts = np.ascontiguousarray(vertices, dtype=np.float32)
     faces = np.asarray(faces, dtype=np.int32)
@@ -59,6 +63,23 @@ def _author_mesh(prim, vertices, faces, color, material=None) -> None:
         prim.SetInfo("apiSchemas", Sdf.TokenListOp.CreateExplicit(["MaterialBindingAPI"]))
         rel = Sdf.RelationshipSpec(prim, "material:binding", custom=False)
         rel.targetPathList.explicitItems = [material]
+    if inside is not None and len(inside[0]):
+        _author_subset(prim, "inside", inside[0], inside[1])
+
+
+def _author_subset(prim, name, face_indices, material) -> None:
+    """A face ``GeomSubset`` of the materialBind family bound to ``material``: how
+    every DCC and renderer reads per-face materials (UsdShade subsets)."""
+    _attr(prim, "subsetFamily:materialBind:familyType", _T.Token, "nonOverlapping",
+          uniform=True)
+    sub = Sdf.PrimSpec(prim, name, _DEF, "GeomSubset")
+    _attr(sub, "elementType", _T.Token, "face", uniform=True)
+    _attr(sub, "familyName", _T.Token, "materialBind", uniform=True)
+    _attr(sub, "indices", _T.IntArray,
+          Vt.IntArray.FromNumpy(np.ascontiguousarray(face_indices, dtype=np.int32)))
+    sub.SetInfo("apiSchemas", Sdf.TokenListOp.CreateExplicit(["MaterialBindingAPI"]))
+    rel = Sdf.RelationshipSpec(sub, "material:binding", custom=False)
+    rel.targetPathList.explicitItems = [material]
 
 
 #: Faces meeting at a smaller angle than this share their normals at a corner
@@ -129,13 +150,25 @@ def _author_material(looks, name, color):
 
 
 def _shape_materials(world, model):
-    """One material per shape (its palette colour), and one for the colliders:
-    ``(shape material paths, collider material path)`` under ``/World/Looks``."""
+    """One material per shape (its palette colour), one for the colliders and, when
+    a shape is a fracture piece, one for the broken faces: ``(shape material paths,
+    collider material path, inside material path or None)`` under ``/World/Looks``."""
     looks = Sdf.PrimSpec(world, "Looks", _DEF, "Scope")
-    names = _unique_names([f"{s.name}_mat" for s in model.shapes] + ["collider_mat"])
+    names = _unique_names([f"{s.name}_mat" for s in model.shapes]
+                          + ["collider_mat", "inside_mat"])
     paths = [_author_material(looks, n, _PALETTE[i % len(_PALETTE)])
-             for i, n in enumerate(names[:-1])]
-    return paths, _author_material(looks, names[-1], _COLLIDER_COLOR)
+             for i, n in enumerate(names[:-2])]
+    inside = None
+    if any(getattr(s, "inside_faces", None) is not None for s in model.shapes):
+        inside = _author_material(looks, names[-1], _INSIDE_COLOR)
+    return paths, _author_material(looks, names[-2], _COLLIDER_COLOR), inside
+
+
+def _inside(shape, inside_material):
+    """``_author_mesh``'s ``inside`` for a shape: its broken faces and their material."""
+    if inside_material is None or getattr(shape, "inside_faces", None) is None:
+        return None
+    return shape.inside_faces, inside_material
 
 
 def _shape_points(model, mpu):
