@@ -75,10 +75,16 @@ def _list_shapes() -> None:
               default=None, help="Sphere-set mode: lattice (solid voxelization), surface "
                                  "(centres on the surface's inward offset, round bodies roll) "
                                  "or both, one line each. Default: the library's default mode.")
+@click.option("--fracture", type=click.IntRange(2, None), default=None, metavar="N",
+              help="Cut each input into N Voronoi pieces and show them: per piece its "
+                   "volume, sphere count and whether it is watertight (-o: the pieces "
+                   "as USD, slightly exploded, broken faces in their own material).")
+@click.option("--seed", type=click.IntRange(0, None), default=0, show_default=True,
+              help="--fracture: the seed of the pieces' seed points.")
 @click.option("--errors/--no-errors", default=True, show_default=True,
               help="Measure the Hausdorff distance and bump height of the spheres' envelope.")
 def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_cache, list_shapes,
-            modes, errors):
+            modes, fracture, seed, errors):
     """Approximate meshes or built-in shapes by spheres of one diameter.
 
     MESH_OR_SHAPE is a mesh file (OBJ, STL, PLY, OFF, GLB/GLTF) or the name of a
@@ -111,6 +117,9 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
         if len(inputs) > 1 and "{name}" not in output:
             raise click.UsageError("with several inputs, -o must contain {name} "
                                    "(e.g. -o spheres_{name}.npz)")
+        if fracture is not None and suffix == ".npz":
+            raise click.BadParameter(f"{output}: pieces are written as USD (.usda, .usdc, .usd)",
+                                     param_hint="-o")
         if modes == "both" and "{mode}" not in output:
             raise click.UsageError("with --mode both, -o must contain {mode} "
                                    "(e.g. -o {name}_{mode}.npz)")
@@ -138,6 +147,10 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
         check_lattice(mesh, d, "--diameter" if diameter is not None else "--resolution",
                       "Fix: " + ("raise --diameter" if diameter is not None
                                  else "lower --resolution"), f"shape {name}")
+        if fracture is not None:
+            results.append(_fracture_rows(name, arg, mesh, d, fracture, seed, cache, output,
+                                          as_json))
+            continue
         for mode in mode_list:
             sphere_set, info = build_sphere_set_with_info(mesh, d, name=name, cache=cache,
                                                           options=BuildOptions(mode=mode))
@@ -172,6 +185,38 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
                 click.echo(_line(row))
     if as_json:
         click.echo(json.dumps(results, indent=2))
+
+
+def _fracture_rows(name, arg, mesh, d, n, seed, cache, output, as_json) -> dict:
+    """Cut one input into ``n`` pieces; print (unless JSON) and return its rows."""
+    from dempipe.mesh.fracture import FractureSpec
+    from dempipe.spheres.pieces import build_pieces
+    from dempipe.usd.sphere_set import save_fractured
+
+    fractured, info = build_pieces(mesh, d, FractureSpec(pieces=n, seed=seed), name=name,
+                                   cache=cache)
+    rows = []
+    for k, (piece, ss) in enumerate(zip(fractured.pieces, fractured.sphere_sets)):
+        rows.append({"piece": k, "volume": ss.volume, "count": ss.count,
+                     "watertight": bool(piece.trimesh().is_watertight),
+                     "inside_faces": int(piece.inside.sum())})
+    out = None
+    if output is not None:
+        out = _output_path(output, name)
+        _make_parent(out)
+        save_fractured(out, fractured, name=name)
+    result = {"name": name, "input": arg, "diameter": d, "pieces": rows,
+              "volume": float(sum(r["volume"] for r in rows)),
+              "count": int(sum(r["count"] for r in rows)), "build_seconds": info.seconds,
+              "cache": info.cache, "output": out}
+    if not as_json:
+        click.echo(f"{name}: {len(rows)} pieces of {result['count']} spheres of d={d:.6g} m, "
+                   f"volume {result['volume']:.6g} m^3, {info.seconds:.2f} s, cache {info.cache}"
+                   + (f" -> {out}" if out else ""))
+        for r in rows:
+            click.echo(f"  piece {r['piece']:02d}: volume {r['volume']:.6g} m^3, "
+                       f"{r['count']} spheres, watertight {'yes' if r['watertight'] else 'NO'}")
+    return result
 
 
 def _line(row) -> str:

@@ -106,3 +106,84 @@ def _write_usd(file_path, sphere_set: SphereSet, mesh, name: str) -> None:
     root.GetPrim().SetDocumentation(doc)
     if not stage.GetRootLayer().Export(str(file_path)):
         raise ExportError(f"{file_path}: USD export failed")
+
+
+def save_fractured(path, fractured, name=None, explode: float = 0.15) -> None:
+    """Write a fractured shape's pieces to look at (``.usda`` / ``.usdc`` / ``.usd``):
+    one Xform per piece (``piece_07``) holding its mesh, its broken faces as a
+    materialBind ``GeomSubset`` "inside" bound to their own material, and its
+    spheres (UsdGeomPoints), in the parent's coordinates [m], each piece moved out
+    from the parent's centre of mass by ``explode`` times its own offset so the
+    cuts show. Atomic; raises ExportError when the file cannot be written.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in USD_SUFFIXES:
+        raise ExportError(f"{path}: pieces are written as USD (use .usda, .usdc or .usd)")
+    tmp = None
+    try:
+        path, tmp = _atomic_target(path)
+        _write_pieces(tmp, fractured, name or path.stem, explode)
+        os.replace(tmp, path)
+        tmp = None
+    except OSError as exc:
+        raise ExportError(f"{path}: cannot write ({exc.strerror or exc})") from None
+    finally:
+        if tmp is not None:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+
+
+def _write_pieces(file_path, fractured, name: str, explode: float) -> None:
+    from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdShade, Vt
+
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    root = UsdGeom.Xform.Define(stage, Sdf.Path("/" + Tf.MakeValidIdentifier(str(name))))
+    stage.SetDefaultPrim(root.GetPrim())
+    looks = root.GetPath().AppendChild("Looks")
+
+    def material(label, color):
+        mat = UsdShade.Material.Define(stage, looks.AppendChild(label))
+        shader = UsdShade.Shader.Define(stage, mat.GetPath().AppendChild("PreviewSurface"))
+        shader.CreateIdAttr("UsdPreviewSurface")
+        shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*color))
+        mat.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
+        return mat
+
+    outside, inside = material("outside_mat", (0.6, 0.6, 0.65)), material("inside_mat", (0.82, 0.78, 0.70))
+    vols = np.array([s.volume for s in fractured.sphere_sets])
+    coms = np.array([s.com for s in fractured.sphere_sets]).reshape(-1, 3)
+    parent_com = (vols[:, None] * coms).sum(axis=0) / vols.sum()
+    for k, (piece, ss) in enumerate(zip(fractured.pieces, fractured.sphere_sets)):
+        xf = UsdGeom.Xform.Define(stage, root.GetPath().AppendChild(f"piece_{k:02d}"))
+        xf.AddTranslateOp().Set(Gf.Vec3d(*(explode * (coms[k] - parent_com)).tolist()))
+        geom = UsdGeom.Mesh.Define(stage, xf.GetPath().AppendChild("mesh"))
+        pts = Vt.Vec3fArray.FromNumpy(np.asarray(piece.vertices, dtype=np.float32))
+        faces = np.asarray(piece.faces, dtype=np.int32)
+        geom.CreatePointsAttr(pts)
+        geom.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
+        geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.ravel()))
+        geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        geom.CreateExtentAttr(UsdGeom.PointBased.ComputeExtent(pts))
+        UsdShade.MaterialBindingAPI.Apply(geom.GetPrim()).Bind(outside)
+        idx = np.flatnonzero(piece.inside).astype(np.int32)
+        if len(idx):
+            sub = UsdGeom.Subset.CreateGeomSubset(geom, "inside", UsdGeom.Tokens.face,
+                                                  Vt.IntArray.FromNumpy(idx),
+                                                  UsdShade.Tokens.materialBind,
+                                                  UsdGeom.Tokens.nonOverlapping)
+            UsdShade.MaterialBindingAPI.Apply(sub.GetPrim()).Bind(inside)
+        spheres = UsdGeom.Points.Define(stage, xf.GetPath().AppendChild("spheres"))
+        centers = Vt.Vec3fArray.FromNumpy(np.asarray(ss.centers + ss.com, dtype=np.float32))
+        widths = Vt.FloatArray.FromNumpy(np.full(ss.count, ss.diameter, dtype=np.float32))
+        spheres.CreatePointsAttr(centers)
+        spheres.CreateWidthsAttr(widths)
+        spheres.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+        spheres.CreateExtentAttr(UsdGeom.Points.ComputeExtent(centers, widths))
+        spheres.CreateVisibilityAttr(UsdGeom.Tokens.invisible)     # the meshes show the cut
+        xf.GetPrim().SetDocumentation(f"{ss.count} spheres; volume {ss.volume:.6g} m^3")
+    if not stage.GetRootLayer().Export(str(file_path)):
+        raise ExportError(f"{file_path}: USD export failed")
