@@ -125,7 +125,7 @@ def _manifold(mesh, label="mesh"):
     m.remove_unreferenced_vertices()
     solid = manifold3d.Manifold(manifold3d.Mesh64(
         vert_properties=np.ascontiguousarray(m.vertices, np.float64),
-        tri_verts=np.ascontiguousarray(m.faces, np.uint32)))
+        tri_verts=np.ascontiguousarray(m.faces, np.uint64)))
     if solid.status() != manifold3d.Error.NoError or solid.is_empty():
         raise MeshError(f"{label}: fracture needs a closed, manifold mesh "
                         f"(manifold3d: {solid.status().name}); repair the mesh or do not fracture it")
@@ -134,7 +134,7 @@ def _manifold(mesh, label="mesh"):
 
 def _piece(solid, parent_id) -> MeshPiece:
     g = solid.to_mesh64()
-    verts = np.asarray(g.vert_properties, dtype=np.float64)[:, :3]
+    verts = np.array(np.asarray(g.vert_properties, dtype=np.float64)[:, :3], copy=True)
     faces = np.asarray(g.tri_verts, dtype=np.int64).reshape(-1, 3)
     run_index = np.asarray(g.run_index, dtype=np.int64)
     run_id = np.asarray(g.run_original_id, dtype=np.int64)
