@@ -109,3 +109,29 @@ def test_baked_pieces_and_their_inside_material_read_back(tmp_path, scene_file, 
     if layout == "xforms":
         names = {p.GetName() for p in prims if p.GetParent().GetName() == "block"}
         assert {"block_0_piece_00", f"block_1_piece_{n_pieces - 1:02d}"} <= names
+
+
+def test_the_column_example_bakes_a_short_range_to_a_valid_stage(tmp_path):
+    """examples/column_drop.toml (README) in a real subprocess, the first frames:
+    16 piece bodies, a stage every USD validator passes (GeomSubsets included)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from pxr import UsdValidation
+
+    example = Path(__file__).resolve().parents[2] / "examples" / "column_drop.toml"
+    out = tmp_path / "out.usda"
+    proc = subprocess.run([sys.executable, "-m", "dempipe_cli.main", "bake", str(example),
+                           "-o", str(out), "--frames", "0:2", "-q", "--layout", "xforms"],
+                          capture_output=True, text=True, timeout=1200)
+    assert proc.returncode == 0, proc.stderr
+    stage = Usd.Stage.Open(str(out))
+    ctx = UsdValidation.ValidationContext(
+        UsdValidation.ValidationRegistry().GetOrLoadAllValidators())
+    errors = [e for e in ctx.Validate(stage)
+              if e.GetType() == UsdValidation.ValidationErrorType.Error]
+    assert not errors, [e.GetMessage() for e in errors]
+    bodies = stage.GetPrimAtPath("/World/Bodies/column").GetChildren()
+    assert [b.GetName() for b in bodies][:2] == ["column_0_piece_00", "column_0_piece_01"]
+    assert len(bodies) == 16
