@@ -156,12 +156,15 @@ def preflight_scene(scene, meshes: dict, diameter: float, available: int | None 
     for i, g in enumerate(scene.bodies):
         shapes = [g.shape] if isinstance(g.shape, str) else list(g.shape)
         per_body = max(spheres_of.get(s, 1.0) for s in shapes)
-        per_group.append((i, float(g.count), float(g.count) * per_body))
-    n_bodies = sum(c for _, c, _ in per_group)
-    n_spheres = sum(s for _, _, s in per_group)
+        # a fractured shape's body is its pieces: as many bodies, the same spheres
+        pieces = max(getattr(scene.shapes[s].fracture, "pieces", 1) if s in scene.shapes
+                     else 1 for s in shapes)
+        per_group.append((i, float(g.count), float(g.count) * per_body, float(pieces)))
+    n_bodies = sum(c * p for _, c, _, p in per_group)
+    n_spheres = sum(s for _, _, s, _ in per_group)
     need = memory_for(n_spheres, n_bodies, friction)["total"]
     if need > MEMORY_SHARE * have and per_group:
-        i, count, spheres = max(per_group, key=lambda r: r[2])
+        i, count, spheres, _ = max(per_group, key=lambda r: r[2])
         raise StabilityError(
             f"{src}: bodies[{i}].count = {int(count)}: {n_bodies:.3g} bodies of about "
             f"{n_spheres:.3g} spheres need about {_gib(need)}; this machine has "
