@@ -132,7 +132,10 @@ def _manifold(mesh, label="mesh"):
     return solid.as_original()
 
 
-def _piece(solid, parent_id) -> MeshPiece:
+def to_piece(solid, parent_id) -> MeshPiece:
+    """A solid of :func:`voronoi_cells` (or a union of them) as a MeshPiece: faces
+    whose source is not the parent (``parent_id``) are the inside faces. A union
+    (``a + b``) keeps each face's source, so joined pieces keep their flags."""
     g = solid.to_mesh64()
     verts = np.array(np.asarray(g.vert_properties, dtype=np.float64)[:, :3], copy=True)
     faces = np.asarray(g.tri_verts, dtype=np.int64).reshape(-1, 3)
@@ -208,13 +211,6 @@ def voronoi_cells(mesh, seeds, *, label="mesh"):
                 break
         cells.append(_components(cell))
     return cells, parent.original_id()
-
-
-def to_piece(solid, parent_id) -> MeshPiece:
-    """A solid of :func:`voronoi_cells` (or a union of them) as a MeshPiece: faces
-    whose source is not the parent (``parent_id``) are the inside faces. A union
-    (``a + b``) keeps each face's source, so joined pieces keep their flags."""
-    return _piece(solid, parent_id)
 
 
 def pieces_digest(pieces) -> str:

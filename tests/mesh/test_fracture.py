@@ -8,7 +8,7 @@ import manifold3d
 import numpy as np
 import pytest
 
-from dempipe.errors import ShapeError
+from dempipe.errors import MeshError, ShapeError
 from dempipe.mesh.fracture import (
     FractureSpec,
     fracture_seeds,
@@ -122,6 +122,6 @@ def test_bad_specs_are_refused_naming_the_field(kw, word):
 def test_an_open_mesh_is_refused():
     box = build_shape("box", size=[0.2, 0.2, 0.2])
     box.update_faces(np.arange(len(box.faces)) != 0)     # one triangle gone: open
-    with pytest.raises(Exception, match="closed, manifold mesh"):
+    with pytest.raises(MeshError, match="closed, manifold mesh"):
         voronoi_cells(box, fracture_seeds(build_shape("box", size=[0.2, 0.2, 0.2]),
                                           FractureSpec(pieces=3)))
