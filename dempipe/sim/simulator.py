@@ -23,6 +23,7 @@ import numpy as np
 from dempipe import interrupt
 from dempipe.errors import DeviceError, StabilityError
 from dempipe.sim.backend import Backend
+from dempipe.sim.cores import CoreShare
 from dempipe.sim.frames import Frames
 from dempipe.sim.kernels.cpu.backend import CpuBackend
 from dempipe.sim.laws import law
@@ -162,6 +163,9 @@ class Simulator:
             # more than numba may use here is an error there: use what there is
             numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
         self.backend = make_backend(model, self.device, features, specialize)
+        #: the CPU target's threads follow the cores other processes leave (sim.cores);
+        #: None on CUDA
+        self.cores = CoreShare(fixed=bool(threads)) if self.device == "cpu" else None
         self.stats = RunStats()
         nb = model.n_bodies
         #: (n_bodies,) [kg]: the bodies' masses, 0 for kinematic ones (carried by
@@ -318,6 +322,8 @@ class Simulator:
                             raise
                     else:
                         n = max(1, min(n, int(CALL_SECONDS / max(per_step, 1e-12))))
+                        if self.cores is not None:
+                            self.cores.adjust()
                         self.backend.step(state, n)
                     per_step = (time.perf_counter() - tc) / n
                     self.stats.steps += n
