@@ -149,7 +149,7 @@ def reference_step(model, state):
     for i in range(S):
         b = model.sphere_body[i]
         out = physics.sphere_kinematics(*st.body_x[b], *st.body_q[b], *V[b], *W[b],
-                                        *model.sphere_offset[i])
+                                        *model.sphere_offset[i], model.dt)
         x[i], v[i], r[i] = out[0:3], out[3:6], out[6:9]
     d = model.diameter
     # remembered tangential springs: (sphere, partner code) -> stretch; codes as in State.

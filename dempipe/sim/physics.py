@@ -94,19 +94,37 @@ def angular_velocity(qw, qx, qy, qz, ixx, iyy, izz, ixy, ixz, iyz, lx, ly, lz):
 # Stage 1: sphere state from the body (eq. 19-21)
 # ---------------------------------------------------------------------------
 
-def sphere_kinematics(X, Y, Z, qw, qx, qy, qz, VX, VY, VZ, WX, WY, WZ, ox, oy, oz):
+def chord_velocity(Vx, Vy, Vz, Wx, Wy, Wz, rx, ry, rz, h):
+    """The velocity [m/s] of a point at r [m] from an anchor moving at V [m/s] and
+    turning at W [rad/s], as the chord of its last step h [s]: V + W × r −
+    (h/2) W × (W × r), to second order in h (h = 0: the tangent V + W × r).
+
+    Every contact point's velocity is such a chord (sphere_kinematics, and a moving
+    wall's or kinematic body's surface): a dynamic body's V = P/M is exactly the
+    chord of its centre's last step (body_step moves X by V h). With tangents
+    instead, two surfaces turning together do not agree: a box carried round by a
+    turntable at ω sees the table's point beneath it slip by (h/2) ω² r every step
+    and creeps inwards at that speed (2e-4 m/s at ω = 2 rad/s, r = 0.3 m, h = 3.5e-4
+    s), and each of its points slips outwards from its centre at (h/2) ω² r'."""
+    cx = Wy * rz - Wz * ry
+    cy = Wz * rx - Wx * rz
+    cz = Wx * ry - Wy * rx
+    a = 0.5 * h
+    return (Vx + cx - a * (Wy * cz - Wz * cy), Vy + cy - a * (Wz * cx - Wx * cz),
+            Vz + cz - a * (Wx * cy - Wy * cx))
+
+
+def sphere_kinematics(X, Y, Z, qw, qx, qy, qz, VX, VY, VZ, WX, WY, WZ, ox, oy, oz, h):
     """Sphere centre, velocity and world-frame offset from its body (eq. 19-21).
 
     (ox, oy, oz) is the sphere's offset from the centre of mass in the body frame.
     Returns (x, y, z, vx, vy, vz, rx, ry, rz) with r' = R r (eq. 19),
-    x = X + r' (eq. 20) and v = V + W × r' (eq. 21).
+    x = X + r' (eq. 20) and v = V + W × r' (eq. 21) taken as the chord of the last
+    step h [s] (chord_velocity: V is one; h = 0 gives eq. 21 as written).
     """
     rx, ry, rz = quat_rotate(qw, qx, qy, qz, ox, oy, oz)
-    return (
-        X + rx, Y + ry, Z + rz,
-        VX + (WY * rz - WZ * ry), VY + (WZ * rx - WX * rz), VZ + (WX * ry - WY * rx),
-        rx, ry, rz,
-    )
+    vx, vy, vz = chord_velocity(VX, VY, VZ, WX, WY, WZ, rx, ry, rz, h)
+    return X + rx, Y + ry, Z + rz, vx, vy, vz, rx, ry, rz
 
 
 def static_body(inv_mass):

@@ -331,7 +331,7 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
                 Wz = 0.0
                 if m >= 0 and inside:       # a moving wall: its surface's velocity
                     nx, ny, nz, sux, suy, suz = anchor_surface(  # noqa: F821
-                        motion_now, m, nx, ny, nz, xi, yi, zi, dist)
+                        motion_now, m, nx, ny, nz, xi, yi, zi, dist, dt)
                     uxi -= sux
                     uyi -= suy
                     uzi -= suz
