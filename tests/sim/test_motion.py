@@ -142,7 +142,7 @@ def test_turntable_carries_box_round_at_omega_r_without_sliding_off():
     sticks, 1e-7 by 0.5 s), and that radius holds to 1e-5 r over the next 0.5 s.
     A tangential spring kept in fixed axes, or a table's surface velocity taken
     as the tangent ω × r while the box's is a chord of its step, let it creep
-    inwards at up to (dt/2) ω² r, 1.2e-4 r in that time."""
+    inwards at (dt/2) ω² r, 3.5e-4 r in that time."""
     omega, r, m, fr = turntable(1.0)
     late = fr.times >= 0.5
     radius = np.linalg.norm(fr.x[late, 0, :2], axis=1)
