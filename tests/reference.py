@@ -149,7 +149,7 @@ def reference_step(model, state):
     for i in range(S):
         b = model.sphere_body[i]
         out = physics.sphere_kinematics(*st.body_x[b], *st.body_q[b], *V[b], *W[b],
-                                        *model.sphere_offset[i])
+                                        *model.sphere_offset[i], model.dt)
         x[i], v[i], r[i] = out[0:3], out[3:6], out[6:9]
     d = model.diameter
     # remembered tangential springs: (sphere, partner code) -> stretch; codes as in State.
@@ -215,8 +215,8 @@ def reference_step(model, state):
                 mu = model.pair_mu[mi, mj] if model.features.friction else 0.0
                 s0 = spring.get((i, S + w + 1), np.zeros(3))
                 out = physics.sphere_wall_force(*(-n), d / 2 - dist, d / 2, *v[i], *W[bi],
-                                                k, eta, kt, ks, mu, *s0, model.dt,
-                                            model.onset_speed)
+                                                0.0, 0.0, 0.0, k, eta, kt, ks, mu, *s0,
+                                                model.dt, model.onset_speed)
                 f[i] += out[0:3]; t[i] += out[3:6]
                 tr[i] += rolling(model, W[bi], n, out, mi, mj, model.body_inv_radius[bi])
     for b in range(model.n_bodies):

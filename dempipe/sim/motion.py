@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dempipe.sim.physics import quat_rotate, quat_rotate_inv
+from dempipe.sim.physics import chord_velocity, quat_rotate, quat_rotate_inv
 
 #: Motion kinds in the packed arrays.
 RATES, LINEAR, SMOOTH = 0, 1, 2
@@ -242,20 +242,18 @@ def anchor_local(motion_now, m, x, y, z):
                            z - motion_now[m, 2])
 
 
-def anchor_surface(motion_now, m, nx, ny, nz, x, y, z, dist):
+def anchor_surface(motion_now, m, nx, ny, nz, x, y, z, dist, h):
     """A moving wall at a sphere: its normal (nx, ny, nz), given in anchor m's frame,
-    in the world, and the surface velocity V + W × (p − P) [m/s] at p, the sphere's
-    centre (x, y, z) moved ``dist`` [m] along the normal onto the surface."""
+    in the world, and the surface velocity at p, the sphere's centre (x, y, z) moved
+    ``dist`` [m] along the normal onto the surface: V + W × (p − P) [m/s] as the
+    chord of the step h [s] (physics.chord_velocity)."""
     wnx, wny, wnz = quat_rotate(motion_now[m, 3], motion_now[m, 4], motion_now[m, 5],
                                 motion_now[m, 6], nx, ny, nz)
-    rx = x - wnx * dist - motion_now[m, 0]
-    ry = y - wny * dist - motion_now[m, 1]
-    rz = z - wnz * dist - motion_now[m, 2]
-    Wx = motion_now[m, 10]
-    Wy = motion_now[m, 11]
-    Wz = motion_now[m, 12]
-    return (wnx, wny, wnz, motion_now[m, 7] + Wy * rz - Wz * ry,
-            motion_now[m, 8] + Wz * rx - Wx * rz, motion_now[m, 9] + Wx * ry - Wy * rx)
+    vx, vy, vz = chord_velocity(
+        motion_now[m, 7], motion_now[m, 8], motion_now[m, 9], motion_now[m, 10],
+        motion_now[m, 11], motion_now[m, 12], x - wnx * dist - motion_now[m, 0],
+        y - wny * dist - motion_now[m, 1], z - wnz * dist - motion_now[m, 2], h)
+    return wnx, wny, wnz, vx, vy, vz
 
 
 #: The functions above in dependency order, for kernels/compile.py (which compiles

@@ -94,19 +94,37 @@ def angular_velocity(qw, qx, qy, qz, ixx, iyy, izz, ixy, ixz, iyz, lx, ly, lz):
 # Stage 1: sphere state from the body (eq. 19-21)
 # ---------------------------------------------------------------------------
 
-def sphere_kinematics(X, Y, Z, qw, qx, qy, qz, VX, VY, VZ, WX, WY, WZ, ox, oy, oz):
+def chord_velocity(Vx, Vy, Vz, Wx, Wy, Wz, rx, ry, rz, h):
+    """The velocity [m/s] of a point at r [m] from an anchor moving at V [m/s] and
+    turning at W [rad/s], as the chord of its last step h [s]: V + W × r −
+    (h/2) W × (W × r), to second order in h (h = 0: the tangent V + W × r).
+
+    Every contact point's velocity is such a chord (sphere_kinematics, and a moving
+    wall's or kinematic body's surface): a dynamic body's V = P/M is exactly the
+    chord of its centre's last step (body_step moves X by V h). With tangents
+    instead, two surfaces turning together do not agree: a box carried round by a
+    turntable at ω sees the table's point beneath it slip by (h/2) ω² r every step
+    and creeps inwards at that speed (2e-4 m/s at ω = 2 rad/s, r = 0.3 m, h = 3.5e-4
+    s), and each of its points slips outwards from its centre at (h/2) ω² r'."""
+    cx = Wy * rz - Wz * ry
+    cy = Wz * rx - Wx * rz
+    cz = Wx * ry - Wy * rx
+    a = 0.5 * h
+    return (Vx + cx - a * (Wy * cz - Wz * cy), Vy + cy - a * (Wz * cx - Wx * cz),
+            Vz + cz - a * (Wx * cy - Wy * cx))
+
+
+def sphere_kinematics(X, Y, Z, qw, qx, qy, qz, VX, VY, VZ, WX, WY, WZ, ox, oy, oz, h):
     """Sphere centre, velocity and world-frame offset from its body (eq. 19-21).
 
     (ox, oy, oz) is the sphere's offset from the centre of mass in the body frame.
     Returns (x, y, z, vx, vy, vz, rx, ry, rz) with r' = R r (eq. 19),
-    x = X + r' (eq. 20) and v = V + W × r' (eq. 21).
+    x = X + r' (eq. 20) and v = V + W × r' (eq. 21) taken as the chord of the last
+    step h [s] (chord_velocity: V is one; h = 0 gives eq. 21 as written).
     """
     rx, ry, rz = quat_rotate(qw, qx, qy, qz, ox, oy, oz)
-    return (
-        X + rx, Y + ry, Z + rz,
-        VX + (WY * rz - WZ * ry), VY + (WZ * rx - WX * rz), VZ + (WX * ry - WY * rx),
-        rx, ry, rz,
-    )
+    vx, vy, vz = chord_velocity(VX, VY, VZ, WX, WY, WZ, rx, ry, rz, h)
+    return X + rx, Y + ry, Z + rz, vx, vy, vz, rx, ry, rz
 
 
 def static_body(inv_mass):
@@ -121,7 +139,7 @@ def static_body(inv_mass):
 # Stage 4: contact force between two spheres, or a sphere and a wall (eq. 11-14)
 # ---------------------------------------------------------------------------
 
-def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, sz, dt,
+def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, sz, spin, dt,
                   vc=0.0):
     """Force on sphere i from one contact (eq. 11-14), with a Coulomb cap and a
     tangential spring for static friction (Cundall and Strack 1979).
@@ -133,7 +151,9 @@ def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, s
     k : normal spring [N/m]; eta : normal dashpot [N s/m];
     kt : tangential dashpot [N s/m]; ks : tangential spring [N/m] (0: none);
     mu : Coulomb friction; s : the contact's tangential spring stretch [m] from
-    the last step (0 for a new contact); dt : the step [s]; vc : the onset speed
+    the last step (0 for a new contact); spin : the rate [rad/s] at which the
+    contact turns about n, the two sides' mean angular velocity along n
+    (ω_i + ω_j)/2 · n; dt : the step [s]; vc : the onset speed
     [m/s] (the law's normal_force: a contact that begins or ends slower is resting).
     Returns (fx, fy, fz, sx, sy, sz): the force [N] and the new stretch.
 
@@ -144,15 +164,20 @@ def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, s
     Tangential: the paper's viscous kt u_t (eq. 13) plus a spring ks s, where
     s integrates the tangential slip u_t dt while the contact lasts. The spring
     is what holds a box on a slope: a viscous force vanishes with the speed,
-    so it can only slow a creep, never stop it. Each step s is first turned
-    into the current tangent plane (projected, length kept), then grown by
-    u_t dt. The sum is capped by Coulomb |f_t| ≤ μ |f_n| with |f_n| the
+    so it can only slow a creep, never stop it. Each step s is first carried
+    with the contact, as if fixed to it (Luding 2008's objective spring): turned
+    by spin dt about n, then into the current tangent plane (projected, length
+    kept; this turns it with the normal's own rotation), and only then grown
+    by u_t dt. Kept in fixed world axes instead, the spring of a contact
+    turning at ω about its normal (a box carried on a turntable) lags by ω s
+    per unit time, and only a slip u_t = ω × s keeps it pointing where the
+    force must: the box creeps. The sum is capped by Coulomb |f_t| ≤ μ |f_n| with |f_n| the
     compressive part of the normal force; when the cap binds the contact
     slides, and s is reset to what the capped force needs, so the spring
     never stores more than μ |f_n| / ks.
 
-    Antisymmetric in IEEE arithmetic: swapping i and j negates n, u and s and
-    gives exactly the negated force and stretch, so gathered sums conserve
+    Antisymmetric in IEEE arithmetic: swapping i and j negates n, u, s and
+    spin and gives exactly the negated force and stretch, so gathered sums conserve
     momentum and both sides' histories stay exact opposites.
     """
     un = ux * nx + uy * ny + uz * nz
@@ -166,8 +191,18 @@ def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, s
         tz = uz - un * nz
         cap = -mu * fn if fn < 0.0 else 0.0
         if ks > 0.0 and cap > 0.0:
-            # turn the stretch into the tangent plane, keeping its length
+            # carry the stretch with the contact: turned by spin dt about n (to first
+            # order; the rescaling below restores its length, leaving an angle
+            # atan(spin dt), short by a third of (spin dt)² of it), then into the
+            # tangent plane, keeping its length
             s2 = sx * sx + sy * sy + sz * sz
+            a = spin * dt
+            rx = a * (ny * sz - nz * sy)
+            ry = a * (nz * sx - nx * sz)
+            rz = a * (nx * sy - ny * sx)
+            sx += rx
+            sy += ry
+            sz += rz
             sn = sx * nx + sy * ny + sz * nz
             sx -= sn * nx
             sy -= sn * ny
@@ -220,7 +255,8 @@ def sphere_pair_force(rx, ry, rz, dist, diameter, dvx, dvy, dvz, wsx, wsy, wsz,
     r = x_j - x_i with |r| = dist < diameter; dv = v_j - v_i (centre velocities);
     ws = W_i + W_j, the sum of the two bodies' angular velocities, which gives the
     contact-point velocities: the contact point lies a radius from each centre,
-    so u = dv - radius (ws × n). s : the stretch from the last step [m].
+    so u = dv - radius (ws × n), and the contact turns about n at ws·n / 2 (the
+    mean spin: contact_force). s : the stretch from the last step [m].
     Returns (fx, fy, fz, tx, ty, tz, sx, sy, sz): the torque (radius n) × f is
     what the force adds about the sphere's own centre (the paper's eq. 16 uses
     the centre only, which cannot make a single sphere roll; see docs/physics.md).
@@ -238,28 +274,32 @@ def sphere_pair_force(rx, ry, rz, dist, diameter, dvx, dvy, dvz, wsx, wsy, wsz,
     ux = dvx - radius * (wsy * nz - wsz * ny)
     uy = dvy - radius * (wsz * nx - wsx * nz)
     uz = dvz - radius * (wsx * ny - wsy * nx)
+    spin = 0.5 * (wsx * nx + wsy * ny + wsz * nz)
     fx, fy, fz, sx, sy, sz = contact_force(nx, ny, nz, diameter - dist, ux, uy, uz,
-                                           k, eta, kt, ks, mu, sx, sy, sz, dt, vc)
+                                           k, eta, kt, ks, mu, sx, sy, sz, spin, dt, vc)
     return (fx, fy, fz,
             radius * (ny * fz - nz * fy), radius * (nz * fx - nx * fz), radius * (nx * fy - ny * fx),
             sx, sy, sz)
 
 
-def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz,
+def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz, Wx, Wy, Wz,
                       k, eta, kt, ks, mu, sx, sy, sz, dt, vc=0.0):
-    """Force on a sphere from a static wall, its torque about the sphere's centre,
-    and the new tangential stretch (as sphere_pair_force).
+    """Force on a sphere from a wall, its torque about the sphere's centre, and
+    the new tangential stretch (as sphere_pair_force).
 
     n : unit normal from the sphere towards the wall (minus the wall's outward normal).
-    v, w : the sphere's centre velocity and its body's angular velocity.
-    The wall does not move, so the relative contact velocity is
-    u = -(v + w × (radius n)).
+    v : the sphere's centre velocity relative to the wall's surface under it [m/s]
+    (its own for a still wall); w : its body's angular velocity [rad/s]; W : the
+    wall's angular velocity [rad/s] (0 for a still wall). The relative contact
+    velocity is u = -(v + w × (radius n)), and the contact turns about n at
+    (w + W)·n / 2 (the mean spin: contact_force).
     """
     ux = -(vx + radius * (wy * nz - wz * ny))
     uy = -(vy + radius * (wz * nx - wx * nz))
     uz = -(vz + radius * (wx * ny - wy * nx))
+    spin = 0.5 * ((wx + Wx) * nx + (wy + Wy) * ny + (wz + Wz) * nz)
     fx, fy, fz, sx, sy, sz = contact_force(nx, ny, nz, overlap, ux, uy, uz,
-                                           k, eta, kt, ks, mu, sx, sy, sz, dt, vc)
+                                           k, eta, kt, ks, mu, sx, sy, sz, spin, dt, vc)
     return (fx, fy, fz,
             radius * (ny * fz - nz * fy), radius * (nz * fx - nx * fz), radius * (nx * fy - ny * fx),
             sx, sy, sz)

@@ -162,7 +162,8 @@ def own_forces(model, state, be):
             mu = model.pair_mu[mi, mj]
             s0 = owner_stretch(state, i, ns + w)
             out = physics.sphere_wall_force(*(-n), d / 2 - dist, d / 2, *v[i], *W[bi],
-                                            k, eta, kt, ks, mu, *s0, model.dt, model.onset_speed)
+                                            0.0, 0.0, 0.0, k, eta, kt, ks, mu, *s0, model.dt,
+                                            model.onset_speed)
             for c in range(3):
                 wf[c] += out[c]
                 if mu > 0.0:

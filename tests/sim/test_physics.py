@@ -65,16 +65,17 @@ def test_pair_force_is_exactly_antisymmetric():
 
 def test_spring_and_coulomb_cap():
     # pure overlap, no motion: f = -k δ n (eq. 11)
-    f = physics.contact_force(1.0, 0.0, 0.0, 1e-4, 0, 0, 0, 1e4, 5.0, 3.0, 0.0, 0.5, 0, 0, 0, 1e-5)
+    f = physics.contact_force(1.0, 0.0, 0.0, 1e-4, 0, 0, 0, 1e4, 5.0, 3.0, 0.0, 0.5,
+                              0, 0, 0, 0.0, 1e-5)
     assert f[:3] == pytest.approx((-1.0, 0.0, 0.0))
     # fast sliding: tangential force is capped at μ |f_n|
     f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 5.0, 0.0, 0.0, 1e4, 0.0, 100.0, 0.0, 0.3,
-                              0, 0, 0, 1e-5)
+                              0, 0, 0, 0.0, 1e-5)
     assert f[2] == pytest.approx(-1.0)
     assert f[0] == pytest.approx(0.3)        # along the partner's relative motion
     # slow sliding: viscous kt v_t (eq. 13) below the cap
     f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 1e-3, 0.0, 0.0, 1e4, 0.0, 100.0, 0.0, 0.3,
-                              0, 0, 0, 1e-5)
+                              0, 0, 0, 0.0, 1e-5)
     assert f[0] == pytest.approx(0.1)
 
 
@@ -83,25 +84,42 @@ def test_tangential_spring_holds_and_slides():
     # at rest with a stretch below the cap: the spring alone pulls back, the
     # stretch is kept (static friction: no velocity needed)
     f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 0, 0, 0, k, 0.0, kt, ks, mu,
-                              1e-4, 0.0, 0.0, dt)
+                              1e-4, 0.0, 0.0, 0.0, dt)
     assert f[0] == pytest.approx(ks * 1e-4) and f[3] == pytest.approx(1e-4)
     # slip grows the stretch by u_t dt
     f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 1e-3, 0, 0, k, 0.0, kt, ks, mu,
-                              0.0, 0.0, 0.0, dt)
+                              0.0, 0.0, 0.0, 0.0, dt)
     assert f[3] == pytest.approx(1e-3 * dt)
     # a stretch with a normal part is turned into the tangent plane, length kept
     f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 0, 0, 0, k, 0.0, kt, ks, mu,
-                              3e-5, 0.0, 4e-5, dt)
+                              3e-5, 0.0, 4e-5, 0.0, dt)
     assert f[3:] == pytest.approx((5e-5, 0.0, 0.0))
     # beyond the cap it slides: |f_t| = μ|f_n| and the stretch is what that force needs
     f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 0, 0, 0, k, 0.0, kt, ks, mu,
-                              1e-2, 0.0, 0.0, dt)
+                              1e-2, 0.0, 0.0, 0.0, dt)
     assert f[0] == pytest.approx(mu * k * 1e-4)
     assert f[3] == pytest.approx(mu * k * 1e-4 / ks)
     # no normal load: no friction and no stored stretch
     f = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 0, 0, 1.0, k, 1e3, kt, ks, mu,
-                              1e-4, 0.0, 0.0, dt)
+                              1e-4, 0.0, 0.0, 0.0, dt)
     assert f[0] == 0.0 and f[3:] == (0.0, 0.0, 0.0)
+
+
+def test_tangential_spring_turns_with_a_contact_spinning_about_its_normal():
+    """A contact turning at ω about its normal with no slip (a box carried on a
+    turntable) carries its stretch round with it: after N steps of dt it is the
+    first stretch turned by ω N dt, length kept. Each step turns by atan(ω dt)
+    instead of ω dt, a third of (ω dt)² short: over 1000 steps of ω dt = 2e-3,
+    2.7e-6 rad in all, hence the 1e-5 rad allowed."""
+    k, ks, kt, mu, dt, omega = 1e4, 2e3, 10.0, 0.5, 1e-3, 2.0
+    s = (1e-4, 0.0, 0.0)
+    for _ in range(1000):
+        s = physics.contact_force(0.0, 0.0, 1.0, 1e-4, 0, 0, 0, k, 0.0, kt, ks, mu,
+                                  *s, omega, dt)[3:]
+    angle = omega * 1000 * dt
+    assert math.hypot(*s) == pytest.approx(1e-4, rel=1e-12)
+    assert s[2] == 0.0
+    assert abs(math.atan2(s[1], s[0]) - angle) < 1e-5
 
 
 @pytest.mark.parametrize("e", [0.05, 0.2, 0.5, 0.9, 0.99])

@@ -24,6 +24,7 @@ FORMULAS = (
     "quat_integrate",
     "sym_mat_vec",
     "angular_velocity",
+    "chord_velocity",
     "sphere_kinematics",
     "static_body",
     "contact_force",

@@ -326,12 +326,18 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
                 uxi = vxi                   # the sphere's velocity relative to the wall
                 uyi = vyi
                 uzi = vzi
+                Wx = 0.0                    # and the wall's spin
+                Wy = 0.0
+                Wz = 0.0
                 if m >= 0 and inside:       # a moving wall: its surface's velocity
                     nx, ny, nz, sux, suy, suz = anchor_surface(  # noqa: F821
-                        motion_now, m, nx, ny, nz, xi, yi, zi, dist)
+                        motion_now, m, nx, ny, nz, xi, yi, zi, dist, dt)
                     uxi -= sux
                     uyi -= suy
                     uzi -= suz
+                    Wx = motion_now[m, 10]
+                    Wy = motion_now[m, 11]
+                    Wz = motion_now[m, 12]
                 away = uxi * nx + uyi * ny + uzi * nz   # its speed away from the wall [m/s]
                 if (not inside or dist <= -wall_depth[w]
                         or (dist >= radius and not (away > onset_speed and closing(  # noqa: F821
@@ -388,7 +394,7 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
                     body_wake[bi] = 1       # never asleep on a moving surface
                 (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(  # noqa: F821
                     -nx, -ny, -nz, radius - dist, radius, uxi, uyi, uzi, wxi, wyi, wzi,
-                    k, eta, kt, ks, mu, sx, sy, sz, dt, onset_speed)
+                    Wx, Wy, Wz, k, eta, kt, ks, mu, sx, sy, sz, dt, onset_speed)
                 if FRICTION and friction:  # noqa: F821
                     if walls == -1:
                         history_store(hist_partner, hist_spring, h, slot, code,  # noqa: F821
@@ -413,13 +419,9 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
                     ty += pty
                     tz += ptz
                 if ROTATION and FRICTION and rolling and pair_rolling[mi, mj] > 0.0:  # noqa: F821
-                    rwx = wxi                   # the spin relative to the wall's
-                    rwy = wyi
-                    rwz = wzi
-                    if m >= 0 and inside:
-                        rwx -= motion_now[m, 10]
-                        rwy -= motion_now[m, 11]
-                        rwz -= motion_now[m, 12]
+                    rwx = wxi - Wx              # the spin relative to the wall's
+                    rwy = wyi - Wy
+                    rwz = wzi - Wz
                     rtx, rty, rtz = rolling_torque(  # noqa: F821 (a wall rolls as flat)
                         rwx, rwy, rwz, nx, ny, nz, 1.0, pfx * nx + pfy * ny + pfz * nz,
                         pair_rolling[mi, mj], body_inv_radius[bi], onset_speed)

@@ -178,7 +178,7 @@ def body_patches(b, cm, cs, motion_now, body_sphere_start, slot_of):
                 uzi = vzi
                 if m >= 0 and inside:
                     nx, ny, nz, sux, suy, suz = anchor_surface(  # noqa: F821
-                        motion_now, m, nx, ny, nz, xi, yi, zi, dist)
+                        motion_now, m, nx, ny, nz, xi, yi, zi, dist, dt)
                     uxi -= sux
                     uyi -= suy
                     uzi -= suz

@@ -34,10 +34,12 @@ def motion_row(m, t, motion_kind, motion_v, motion_w, motion_pivot, key_start, k
 
 
 def driven_row(k, driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now, body_x,
-               body_q, body_v, body_w, body_rest, body_still):
+               body_q, body_v, body_w, body_rest, body_still, h):
     """The k-th carried body (a kinematic body, a moving mesh collider) where its
     motion puts it (motion.carried_state), with its velocities, so that stage 1
-    gives its spheres the surface velocity. Its rest count is -1 while it moves
+    gives its spheres the surface velocity. Its centre's velocity is the chord of
+    the step h [s] (motion.chord_velocity), as a dynamic body's is; h = 0 gives
+    the tangent, what a frame records. Its rest count is -1 while it moves
     (the contact pass then wakes what it touches) and 0 when it holds still;
     stage 1 recomputes its spheres at every step (body_still = 0)."""
     b = driven_body[k]
@@ -55,6 +57,11 @@ def driven_row(k, driven_body, body_motion, body_anchor_c, body_anchor_q, motion
     body_q[b, 1] = qx
     body_q[b, 2] = qy
     body_q[b, 3] = qz
+    if h > 0.0:
+        vx, vy, vz = chord_velocity(  # noqa: F821
+            motion_now[m, 7], motion_now[m, 8], motion_now[m, 9], motion_now[m, 10],
+            motion_now[m, 11], motion_now[m, 12], x - motion_now[m, 0], y - motion_now[m, 1],
+            z - motion_now[m, 2], h)
     body_v[b, 0] = vx
     body_v[b, 1] = vy
     body_v[b, 2] = vz

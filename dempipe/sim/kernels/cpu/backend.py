@@ -168,7 +168,8 @@ class CpuBackend:
                                      self.body_w)
         self._drive_now(state)
         self.k.stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q,
-                             self.body_v, self.body_w, 1.0 / cell_size(m.diameter), self.grid,
+                             self.body_v, self.body_w, m.dt, 1.0 / cell_size(m.diameter),
+                             self.grid,
                              self.sphere_x, self.sphere_v, self.sphere_r, self.sphere_key,
                              self.sphere_hash)
         stage_grid_sort(self.sphere_hash, state.body_x, 1.0 / cell_size(m.diameter), self.grid,
@@ -237,7 +238,8 @@ class CpuBackend:
                                 d.key_q, d.motion_now)
             self.k.stage_driven(d.driven_body, d.body_motion, d.body_anchor_c,
                                 d.body_anchor_q, d.motion_now, state.body_x, state.body_q,
-                                self.body_v, self.body_w, self.rest(state), self.body_still)
+                                self.body_v, self.body_w, self.rest(state), self.body_still,
+                                0.0)
 
     def save_arrays(self, state, names) -> dict:
         """The arrays ``names`` this backend has (Backend.save_arrays)."""

@@ -41,6 +41,7 @@ anchor_state = F.anchor_state
 carried_state = F.carried_state
 anchor_local = F.anchor_local
 anchor_surface = F.anchor_surface
+chord_velocity = F.chord_velocity
 sqrt = np.sqrt
 P = compile_pairing(numba.njit(inline="always", cache=False), F)
 entry_range = P.entry_range

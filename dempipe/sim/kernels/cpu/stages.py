@@ -36,7 +36,7 @@ from dempipe.sim.kernels.contacts import CLOSE_REACH2  # noqa: F401
 from dempipe.sim.kernels.pairing import UNPAIRED  # noqa: F401
 from dempipe.sim.kernels.cpu.device import (  # noqa: F401
     HIST_BY_SLOT, LIST_ROWS, PAIR_ROWS, WALL_ROWS, anchor_local, anchor_state,
-    anchor_surface, body_step, carried_state, contact_coefficients, entry_range,
+    anchor_surface, body_step, carried_state, chord_velocity, contact_coefficients, entry_range,
     history_recall, history_store, rest_steps, rolling_scale, rolling_torque,
     sphere_pair_force, sphere_wall_force, sqrt, closing)
 
@@ -102,15 +102,17 @@ def stage_motion(t, motion_kind, motion_v, motion_w, motion_pivot, key_start, ke
 
 
 def stage_driven(driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now, body_x,
-                 body_q, body_v, body_w, body_rest, body_still):
-    """The carried bodies where their motions put them (prescribed.driven_row)."""
+                 body_q, body_v, body_w, body_rest, body_still, h):
+    """The carried bodies where their motions put them (prescribed.driven_row; h [s]:
+    their velocities as chords of that step, 0 for the tangent)."""
     for k in range(driven_body.shape[0]):
         driven_row(k, driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now,
-                   body_x, body_q, body_v, body_w, body_rest, body_still)
+                   body_x, body_q, body_v, body_w, body_rest, body_still, h)
 
 
-def sphere_state(i, sphere_body, sphere_offset, body_x, body_q, body_v, body_w):
-    """Stage 1 for sphere i (eq. 19-21): (x, v, R r') [m, m/s, m], world frame."""
+def sphere_state(i, sphere_body, sphere_offset, body_x, body_q, body_v, body_w, h):
+    """Stage 1 for sphere i (eq. 19-21): (x, v, R r') [m, m/s, m], world frame; v
+    the chord of the step h [s] (physics.sphere_kinematics)."""
     b = sphere_body[i]
     q = body_q[b]
     if ROTATION:
@@ -118,7 +120,7 @@ def sphere_state(i, sphere_body, sphere_offset, body_x, body_q, body_v, body_w):
             body_x[b, 0], body_x[b, 1], body_x[b, 2], q[0], q[1], q[2], q[3],
             body_v[b, 0], body_v[b, 1], body_v[b, 2],
             body_w[b, 0], body_w[b, 1], body_w[b, 2],
-            sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2])
+            sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2], h)
     # W = 0: sphere_kinematics with the W × r' term dropped
     rx, ry, rz = quat_rotate(q[0], q[1], q[2], q[3], sphere_offset[i, 0],
                              sphere_offset[i, 1], sphere_offset[i, 2])
@@ -126,12 +128,13 @@ def sphere_state(i, sphere_body, sphere_offset, body_x, body_q, body_v, body_w):
             body_v[b, 0], body_v[b, 1], body_v[b, 2], rx, ry, rz)
 
 
-def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_cell, grid,
-                  sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash):
-    """Stage 1 (eq. 19-21) in sphere order, and each sphere's grid cell (stage 2's input)."""
+def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, h, inv_cell,
+                  grid, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash):
+    """Stage 1 (eq. 19-21) in sphere order (velocities: chords of the step h [s]), and
+    each sphere's grid cell (stage 2's input)."""
     for i in prange(sphere_body.shape[0]):
         x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset, body_x,
-                                                       body_q, body_v, body_w)
+                                                       body_q, body_v, body_w, h)
         sphere_x[i, 0] = x
         sphere_x[i, 1] = y
         sphere_x[i, 2] = z
@@ -149,7 +152,8 @@ def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, in
 
 
 def stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x, body_q, body_v,
-                         body_w, body_still, built_x, rebuild_at2, sorted_x, sorted_v, sphere_r):
+                         body_w, h, body_still, built_x, rebuild_at2, sorted_x, sorted_v,
+                         sphere_r):
     """Stage 1 (eq. 19-21) between rebuilds: straight into the sorted slots of the
     last rebuild (no grid, no sort; slot_of[i] is sphere i's). Returns how many
     spheres have moved sqrt(rebuild_at2) [m] or more since (then the lists must
@@ -170,7 +174,7 @@ def stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x, body_q, bo
         if body_still[sphere_body[i]] != 0:
             continue
         x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset, body_x,
-                                                       body_q, body_v, body_w)
+                                                       body_q, body_v, body_w, h)
         moved += slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r,
                             built_x, rebuild_at2)
     return moved
@@ -398,10 +402,10 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
                          drive.key_q, drive.motion_now)
             stage_driven(drive.driven_body, drive.body_motion, drive.body_anchor_c,
                          drive.body_anchor_q, drive.motion_now, body_x, body_q, body_v, body_w,
-                         body_rest, body_still)
+                         body_rest, body_still, dt)
         if not rebuild:
             rebuild = stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x,
-                                           body_q, body_v, body_w, body_still, built_x,
+                                           body_q, body_v, body_w, dt, body_still, built_x,
                                            half_skin * half_skin, sorted_x, sorted_v,
                                            sphere_r) > 0
             moved = rebuild
@@ -418,8 +422,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
                                     pair_f, wall_mask, wall_start, wall_s)
                 stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
                                          contact_partner, contact_spring)
-            stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_cell,
-                          grid, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash)
+            stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, dt,
+                          inv_cell, grid, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash)
             stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start,
                             bucket_start, bucket_fill, body_key, sorted_idx, slot_of, grid_idx,
                             grid_slot)
@@ -488,7 +492,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
                      drive.key_p, drive.key_q, drive.motion_now)
         stage_driven(drive.driven_body, drive.body_motion, drive.body_anchor_c,
                      drive.body_anchor_q, drive.motion_now, body_x, body_q, body_v, body_w,
-                     body_rest, body_still)
+                     body_rest, body_still, 0.0)
     stage_unsort(sorted_idx, sorted_x, sphere_x)
     if FRICTION and friction:
         stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f,

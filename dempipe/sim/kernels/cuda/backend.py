@@ -371,7 +371,7 @@ class CudaBackend:
             k_driven[_blocks(n_k, THREADS), THREADS](
                 d["driven_body"], d["body_motion"], d["body_anchor_c"], d["body_anchor_q"],
                 d["motion_now"], d["body_x"], d["body_q"], d["body_v"], d["body_w"],
-                d["body_rest"], d["body_still"])
+                d["body_rest"], d["body_still"], self.model.dt if t < 0.0 else 0.0)
 
     def _idle_check(self):
         # a moving wall may wake a sleeper: no step is idle while one moves
@@ -391,7 +391,7 @@ class CudaBackend:
         half_skin = 0.5 * SKIN * m.diameter
         k_spheres_sorted[_blocks(m.n_spheres, THREADS), THREADS](
             d["sorted_idx"], d["sphere_body"], d["sphere_offset"], d["body_x"], d["body_q"],
-            d["body_v"], d["body_w"], d["built_x"], half_skin * half_skin, d["sorted_x"],
+            d["body_v"], d["body_w"], m.dt, d["built_x"], half_skin * half_skin, d["sorted_x"],
             d["sorted_v"], d["sphere_r"], d["ctl"])
 
     def _spheres(self):
@@ -402,7 +402,8 @@ class CudaBackend:
                                                               d["bucket_fill"], d["ctl"])
         k_spheres[_blocks(m.n_spheres, THREADS), THREADS](
             d["sphere_body"], d["sphere_offset"], d["body_x"], d["body_q"], d["body_v"],
-            d["body_w"], 1.0 / cell_size(m.diameter), d["grid"], d["sphere_x"], d["sphere_v"],
+            d["body_w"], m.dt, 1.0 / cell_size(m.diameter), d["grid"], d["sphere_x"],
+            d["sphere_v"],
             d["sphere_r"], d["sphere_key"], d["sphere_hash"], d["bucket_start"], d["ctl"])
 
     def _grid_sort(self):

@@ -155,7 +155,8 @@ def compile_body_stage(consts: dict):
     given = dict(consts, static_body=F.static_body, body_step=F.body_step,
                  angular_velocity=F.angular_velocity, rest_steps=F.rest_steps,
                  rolling_scale=F.rolling_scale,
-                 anchor_state=F.anchor_state, carried_state=F.carried_state)
+                 anchor_state=F.anchor_state, carried_state=F.carried_state,
+                 chord_velocity=F.chord_velocity)
     b = compile_chain(bodies, ("body_update",), _device_jit(), given)
     r = compile_chain(prescribed, ("motion_row", "driven_row"), _device_jit(), given)
     return b.body_update, r.motion_row, r.driven_row

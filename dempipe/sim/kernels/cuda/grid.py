@@ -31,7 +31,7 @@ from dempipe.sim.kernels.cuda.device import (
 
 @cuda.jit
 def k_spheres_sorted(sorted_idx, sphere_body, sphere_offset, body_x, body_q, body_v, body_w,
-                     built_x, rebuild_at2, sorted_x, sorted_v, sphere_r, ctl):
+                     h, built_x, rebuild_at2, sorted_x, sorted_v, sphere_r, ctl):
     """Stage 1 (eq. 19-21) between rebuilds: straight into the sorted slots of the
     last rebuild (kernels.cpu.stages.stage_spheres_sorted). Counts the spheres that moved
     sqrt(rebuild_at2) [m] or more since (integer atomic add into ctl[CTL_MOVED]):
@@ -46,7 +46,7 @@ def k_spheres_sorted(sorted_idx, sphere_body, sphere_offset, body_x, body_q, bod
         body_x[b, 0], body_x[b, 1], body_x[b, 2],
         body_q[b, 0], body_q[b, 1], body_q[b, 2], body_q[b, 3],
         body_v[b, 0], body_v[b, 1], body_v[b, 2], body_w[b, 0], body_w[b, 1], body_w[b, 2],
-        sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2])
+        sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2], h)
     if slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r, built_x,
                   rebuild_at2):
         cuda.atomic.add(ctl, CTL_MOVED, 1)       # integer: order-independent
@@ -65,7 +65,7 @@ def k_zero_buckets(bucket_start, bucket_fill, ctl):
 
 
 @cuda.jit
-def k_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_cell, grid,
+def k_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, h, inv_cell, grid,
               sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash, bucket_start, ctl):
     """Stage 1 (eq. 19-21) in sphere order at a rebuild, each sphere's grid cell,
     and the bucket counts."""
@@ -77,7 +77,7 @@ def k_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, inv_ce
         body_x[b, 0], body_x[b, 1], body_x[b, 2],
         body_q[b, 0], body_q[b, 1], body_q[b, 2], body_q[b, 3],
         body_v[b, 0], body_v[b, 1], body_v[b, 2], body_w[b, 0], body_w[b, 1], body_w[b, 2],
-        sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2])
+        sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2], h)
     sphere_x[i, 0] = x
     sphere_x[i, 1] = y
     sphere_x[i, 2] = z

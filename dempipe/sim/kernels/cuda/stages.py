@@ -167,14 +167,15 @@ def k_motion(t, dt, motion_kind, motion_v, motion_w, motion_pivot, key_start, ke
 
 @cuda.jit
 def k_driven(driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now, body_x,
-             body_q, body_v, body_w, body_rest, body_still):
+             body_q, body_v, body_w, body_rest, body_still, h):
     """The carried bodies where their motions put them (prescribed.driven_row, a
-    thread each), after k_motion."""
+    thread each; h [s]: velocities as chords of that step, 0 for the tangent),
+    after k_motion."""
     k = cuda.grid(1)
     if k >= driven_body.shape[0]:
         return
     driven_row(k, driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now, body_x,
-               body_q, body_v, body_w, body_rest, body_still)
+               body_q, body_v, body_w, body_rest, body_still, h)
 
 
 @cuda.jit
