@@ -141,8 +141,8 @@ class MaterialSpec:
     pieces (``[[bodies]] glue = true``): a bonded sphere pair breaks above σ d²."""
     glue_stiffness: Union[float, str] = "auto"
     """A glue bond's whole spring [N/m] > 0, or "auto": the contact's (sim/glue.py)."""
-    glue_damping: float = 1.0
-    """Damping ratio ζ [1] ≥ 0 of a glue bond (1: critical)."""
+    glue_damping: float = 0.7
+    """Damping ratio ζ [1] ≥ 0 of a glue bond (1: critical; sim.glue.GLUE_DAMPING)."""
 
     def to_material(self):
         """The :class:`dempipe.sim.materials.Material` (stiffness None for "auto")."""

@@ -432,7 +432,6 @@ class ModelBuilder:
             for (a, b), k, n in zip(bonds.bond_body, bonds.bond_k, np.diff(bonds.bond_start)):
                 inv_c = sum(all_inv_mass[c] * (1.0 + body_rot[c]) for c in (a, b) if c < n_dyn)
                 omega_max = max(omega_max, math.sqrt(k * n * inv_c))
-                zeta_min = min(zeta_min, self._materials[all_mat[a]].glue_damping)
         # free spin and fast surfaces bound dt further (a face landing flat is one
         # contact patch, kernels/patches.py: no stiffer than a corner)
         dt_max = math.inf
@@ -445,6 +444,12 @@ class ModelBuilder:
             # a launched or spinning body's fastest point (|v| + |w| r) crosses at most
             # AUTO_TRAVEL of a diameter per step, in free flight too (the travel guard)
             dt_max = min(dt_max, mat.AUTO_TRAVEL * d / float(launch.max()))
+        # the bonds' dashpots are explicit: a body's, summed over its bonds (each
+        # counted twice: its partner may move the other way), times dt stays below its
+        # corner mass (glue.dashpot_step)
+        dt_glue = glue.dashpot_step(bonds, np.concatenate([
+            np.where(kin, np.inf, mass / (1.0 + body_rot)), np.full(n_static, np.inf)]))
+        dt_max = min(dt_max, dt_glue)
         if isinstance(dt, str):
             if dt != "auto":
                 raise SceneError(f"{where}: expected \"auto\" or seconds, got {dt!r}")
@@ -455,6 +460,11 @@ class ModelBuilder:
                 raise SceneError(f"{where}: dt must be positive seconds, got {dt!r}")
             if not force:
                 mat.check_dt(float(dt), omega_max, zeta_min, where, law)
+                if dt > dt_glue:
+                    raise StabilityError(
+                        f"{where}: dt = {dt:g} s is above {dt_glue:.3g} s, the longest step "
+                        f"the glue bonds' dashpots are stable at; use dt = \"auto\", a "
+                        f"shorter dt, or a lower glue_damping")
             spf = max(1, round((1.0 / fps) / dt))
             dt_v = 1.0 / fps / spf
             if abs(dt_v - dt) > 1e-9 * dt and abs(dt_v - dt) / dt > 0.01:

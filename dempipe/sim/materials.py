@@ -82,7 +82,7 @@ class Material:
     rolling_friction: float = ROLLING_FRICTION
     glue_strength: float | None = None
     glue_stiffness: float | None = None
-    glue_damping: float = 1.0
+    glue_damping: float = 0.7
 
 
 DEFAULT_MATERIAL = Material("default")
