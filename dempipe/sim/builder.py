@@ -426,12 +426,11 @@ class ModelBuilder:
                      else np.zeros(0, np.int64))
         bonds = self._bonds(body_glue, all_x, all_q, sphere_offset, sphere_body, all_inv_mass,
                             mass, body_rot, all_mat, table, law, v_imp)
-        if bonds.n_bonds:
-            # each bond's stiffest mode, on the corner masses as a contact's (glue.py: by
-            # default no stiffer than a contact between the two pieces)
-            for (a, b), k, n in zip(bonds.bond_body, bonds.bond_k, np.diff(bonds.bond_start)):
-                inv_c = sum(all_inv_mass[c] * (1.0 + body_rot[c]) for c in (a, b) if c < n_dyn)
-                omega_max = max(omega_max, math.sqrt(k * n * inv_c))
+        # each bond's stiffest mode, on the corner masses as a contact's (glue.py: by
+        # default no stiffer than a contact between the two pieces)
+        corner = np.concatenate([np.where(kin, np.inf, mass / (1.0 + body_rot)),
+                                 np.full(n_static, np.inf)])
+        omega_max = max(omega_max, glue.bond_omega(bonds, corner))
         # free spin and fast surfaces bound dt further (a face landing flat is one
         # contact patch, kernels/patches.py: no stiffer than a corner)
         dt_max = math.inf
@@ -447,8 +446,7 @@ class ModelBuilder:
         # the bonds' dashpots are explicit: a body's, summed over its bonds (each
         # counted twice: its partner may move the other way), times dt stays below its
         # corner mass (glue.dashpot_step)
-        dt_glue = glue.dashpot_step(bonds, np.concatenate([
-            np.where(kin, np.inf, mass / (1.0 + body_rot)), np.full(n_static, np.inf)]))
+        dt_glue = glue.dashpot_step(bonds, corner)
         dt_max = min(dt_max, dt_glue)
         if isinstance(dt, str):
             if dt != "auto":

@@ -205,3 +205,15 @@ def dashpot_step(bonds: Bonds, corner_mass) -> float:
         step = DASHPOT_STEP * np.asarray(corner_mass) / total
     step = step[(total > 0) & np.isfinite(step)]
     return float(step.min()) if step.size else math.inf
+
+
+def bond_omega(bonds: Bonds, corner_mass) -> float:
+    """The stiffest bond's frequency [rad/s]: √(K (1/m_a + 1/m_b)) over the bonds, K the
+    whole bond's spring, m the bodies' corner masses [kg] (``corner_mass``, (B,), inf for
+    static and kinematic ones), as a contact's (ModelBuilder.finalize); 0 without bonds."""
+    if bonds.n_bonds == 0:
+        return 0.0
+    inv = 1.0 / np.asarray(corner_mass, np.float64)
+    K = bonds.bond_k * np.diff(bonds.bond_start)
+    w2 = K * (inv[bonds.bond_body[:, 0]] + inv[bonds.bond_body[:, 1]])
+    return float(np.sqrt(w2.max()))

@@ -6,8 +6,6 @@ whole lattice cells, its spheres the parent's, so the spheres of two pieces
 facing each other across a cut touch at exactly d, as fracture leaves them.
 """
 
-import math
-
 import numpy as np
 import pytest
 import trimesh

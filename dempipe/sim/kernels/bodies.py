@@ -78,7 +78,7 @@ def body_update(b, bm, bs, step):
                 TX += ry * fz - rz * fy
                 TY += rz * fx - rx * fz
                 TZ += rx * fy - ry * fx
-    if GLUE:                        # its bonds' sum (kernels/glue.py)
+    if GLUE:  # noqa: F821 (its bonds' sum: kernels/glue.py)
         FX += body_glue[b, 0]
         FY += body_glue[b, 1]
         FZ += body_glue[b, 2]

@@ -148,7 +148,7 @@ def cpu_scratch(model, friction: bool) -> dict:
         "body_still": ((nb,), i4),               # static colliders: stage 1 keeps them
         # glue (kernels/glue.py): each bonded pair's force, torque, shear stretch; each
         # body's sum of them
-        "glue_f": ((max(model.bonds.n_pairs if model.bonds is not None else 0, 1), 9), f8),
+        "glue_f": ((max(getattr(getattr(model, "bonds", None), "n_pairs", 0), 1), 9), f8),
         "body_glue": ((nb, 6), f8),
         # the contact passes' work: every chunk of slots, or a sleeping pile's
         "chunks": ((n_chunks, 2), i8), "spans": ((n_chunks, 2), i8),

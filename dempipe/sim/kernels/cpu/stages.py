@@ -294,7 +294,8 @@ def stage_glue(gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w, body_in
     returns how many broke this step (an integer sum: any thread count)."""
     broke = 0
     for n in prange(gm.bond_body.shape[0]):
-        broke += bond_forces(n, gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w,
+        broke += bond_forces(n, gm, gs, sphere_body, slot_of, sorted_x, sorted_v,  # noqa: F821
+                             body_w,
                              body_inv_mass, body_rest, body_wake, sleep_steps, dt)
     return broke
 
@@ -303,14 +304,15 @@ def stage_glue_contacts(gm, gs, slot_of, sorted_body, body_inv_mass, pair_start,
                         pair_f):
     """A holding bond's sphere pairs are not also contacts (glue.bond_contacts)."""
     for n in prange(gm.bond_body.shape[0]):
-        bond_contacts(n, gm, gs, slot_of, sorted_body, body_inv_mass, pair_start, pair_t,
+        bond_contacts(n, gm, gs, slot_of, sorted_body, body_inv_mass, pair_start,  # noqa: F821
+                      pair_t,
                       pair_f)
 
 
 def stage_glue_bodies(n_bodies, gm, gs, sphere_body, sphere_r):
     """Each body's bonds summed into body_glue (glue.body_glue_sum)."""
     for b in prange(n_bodies):
-        body_glue_sum(b, gm, gs, sphere_body, sphere_r)
+        body_glue_sum(b, gm, gs, sphere_body, sphere_r)  # noqa: F821 (specialize's)
 
 
 def stage_bodies(n_bodies, bm, bs, step):
