@@ -15,13 +15,14 @@ kernels/patches.py): by default the law's stiffness of a contact between the two
 pieces (K = m ω², ω the law's contact frequency for the reduced mass m at the
 scene's impact speed), so a bond is no stiffer than a contact and the auto step
 does not shrink; its dashpot gives the bond's translation the damping ratio
-``glue_damping`` (eta = 2 ζ √(K m) / n).
+``glue_damping`` (eta = 2 ζ √(K m) / n), less where the step could not keep a
+piece's dashpots stable (cap_dashpots).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -38,7 +39,7 @@ TOUCH_TOLERANCE = 1e-9
 #: Default damping ratio of a bond's translation (glue_damping): a load applied at
 #: once overshoots by exp(-π ζ / √(1 - ζ²)) = 4.6 % (a hanging piece's bond sees at
 #: most 1.046 times its weight's share). Critical damping (1) would not overshoot, but
-#: a piece with several bonds then needs a shorter step (dashpot_step).
+#: a piece with several bonds is then more often damped less (cap_dashpots).
 GLUE_DAMPING = 0.7
 
 #: A body's bond dashpots times dt stay below this multiple of its corner mass
@@ -217,3 +218,24 @@ def bond_omega(bonds: Bonds, corner_mass) -> float:
     K = bonds.bond_k * np.diff(bonds.bond_start)
     w2 = K * (inv[bonds.bond_body[:, 0]] + inv[bonds.bond_body[:, 1]])
     return float(np.sqrt(w2.max()))
+
+
+def cap_dashpots(bonds: Bonds, corner_mass, dt: float) -> Bonds:
+    """``bonds`` with each dashpot lowered where needed so that every body's, summed
+    over its bonds, times ``dt`` [s] stays below DASHPOT_STEP × its corner mass
+    (dashpot_step): a bond takes the smaller of its two bodies' factors. The springs,
+    hence the step, are unchanged; a piece with many stiff bonds is damped less than
+    glue_damping asks (dempipe check reports how many)."""
+    if bonds.n_bonds == 0:
+        return bonds
+    eta = bonds.bond_eta * np.diff(bonds.bond_start)
+    total = np.zeros(np.asarray(corner_mass).shape[0])
+    np.add.at(total, bonds.bond_body[:, 0], eta)
+    np.add.at(total, bonds.bond_body[:, 1], eta)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        factor = np.where(total * dt > DASHPOT_STEP * np.asarray(corner_mass),
+                          DASHPOT_STEP * np.asarray(corner_mass) / (total * dt), 1.0)
+    f = np.minimum(factor[bonds.bond_body[:, 0]], factor[bonds.bond_body[:, 1]])
+    if (f >= 1.0).all():
+        return bonds
+    return replace(bonds, bond_eta=bonds.bond_eta * np.minimum(f, 1.0))
