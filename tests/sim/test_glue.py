@@ -360,3 +360,22 @@ def test_glued_pieces_do_not_depend_on_the_thread_count():
     assert 0 < one.bond_broken.sum() < one.bond_broken.size    # the weak broke, not all
     for name in ("body_x", "body_q", "body_P", "body_L", "bond_broken", "bond_shear"):
         np.testing.assert_array_equal(getattr(one, name), getattr(two, name), err_msg=name)
+
+
+def test_a_compressed_bond_is_not_also_a_contact():
+    # The upper half of a 2 x 2 x 6 bar glued onto its kinematic lower half: its weight
+    # W presses the bond's 4 pairs together, which then overlap. The bond alone carries
+    # it (glue.bond_contacts cancels their contacts): it settles W / K lower, to 1 %
+    # (with the contacts too it would settle W / (K + k) lower, half as far at the
+    # default K = k).
+    weight = RHO * 12 * D ** 3 * G
+    b = ModelBuilder(D, gravity=(0.0, 0.0, -G))
+    m = b.add_material(Material("glued", density=RHO, friction=0.5, glue_strength=1e6))
+    add_piece(b, "anchor", (0, 0, 0), (2, 2, 3), m, kinematic=True,
+              motion=mo.Motion(velocity=(0.0, 0.0, 0.0)))
+    add_piece(b, "up", (0, 0, 3), (2, 2, 6), m)
+    model = b.finalize(fps=24, n_frames=13)
+    state = model.initial_state()
+    out = Simulator(model).advance(state, 13)
+    K = model.bonds.bond_k[0] * 4
+    assert out.x[0, 1, 2] - out.x[-1, 1, 2] == pytest.approx(weight / K, rel=0.01)
