@@ -6,6 +6,8 @@ whole lattice cells, its spheres the parent's, so the spheres of two pieces
 facing each other across a cut touch at exactly d, as fracture leaves them.
 """
 
+import math
+
 import numpy as np
 import pytest
 import trimesh
@@ -379,3 +381,39 @@ def test_a_compressed_bond_is_not_also_a_contact():
     out = Simulator(model).advance(state, 13)
     K = model.bonds.bond_k[0] * 4
     assert out.x[0, 1, 2] - out.x[-1, 1, 2] == pytest.approx(weight / K, rel=0.01)
+
+
+def cantilever(factor, frames=13):
+    """A 2 x 2-sphere beam sticking out along +x from a kinematic root piece: three
+    glued 2 x 2 x 2 pieces, each of weight w at 1, 3 and 5 d from the root's cut. The
+    root bond carries V = 3 w and M = 9 w d (statically determinate); its pairs sit at
+    ±d/2 about the neutral axis, so the top two carry the tension F = M / (2 d) and
+    each pair a quarter of V: load √(F² + (V/4)²). Strength: ``factor`` × that / d²."""
+    w = RHO * 8 * D ** 3 * G
+    load = math.hypot(9 * w * D / (2 * D), 3 * w / 4)
+    b = ModelBuilder(D, gravity=(0.0, 0.0, -G))
+    m = b.add_material(Material("glued", density=RHO, friction=0.5,
+                                glue_strength=factor * load / (D * D)))
+    add_piece(b, "root", (-2, 0, 0), (0, 2, 2), m, kinematic=True,
+              motion=mo.Motion(velocity=(0.0, 0.0, 0.0)))
+    for k in range(3):
+        add_piece(b, f"p{k}", (2 * k, 0, 0), (2 * k + 2, 2, 2), m)
+    model = b.finalize(fps=24, n_frames=frames + 1)
+    state = model.initial_state()
+    Simulator(model).advance(state, frames)
+    return model, state
+
+
+def test_cantilever_root_breaks_at_the_beam_load():
+    # The root bond's outer pairs carry the beam's bending load (the outer-fibre
+    # rule): 10 % less strength and the root bond breaks. Gravity is applied at once,
+    # and the beam's bending mode is lightly damped (the bonds' dashpots act on the
+    # pairs' small lever arms, the beam's inertia is large): the load overshoots,
+    # at most twice the static one for a damped linear system, so 2.2 times the
+    # strength holds it (measured: 1.1 times does not; the hanging bar's translation,
+    # damped at glue_damping, holds at 1.1).
+    model, state = cantilever(2.2)
+    assert not state.bond_broken.any()
+    model, state = cantilever(0.9, frames=3)
+    root = [n for n, (a, b_) in enumerate(model.bonds.bond_body) if 0 in (a, b_)]
+    assert state.bond_broken[root].all()
