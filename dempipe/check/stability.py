@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from dempipe.check.sizes import memory_estimate
-from dempipe.sim import laws
+from dempipe.sim import glue, laws
 from dempipe.sim.model import Model, rotational_mass_factor
 from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP, frame0_overlap
 
@@ -129,6 +129,10 @@ class StabilityReport:
     prescribed: dict = field(default_factory=dict)
     """Prescribed inputs: moving colliders, kinematic bodies, emitters and the
     fastest prescribed surface speed [m/s] (counted in closing and impact speeds)."""
+    glue: dict = field(default_factory=dict)
+    """Glue bonds (sim/glue.py): bonds, sphere pairs, the stiffest bond's frequency
+    omega [rad/s] (in omega_max) and the longest step their dashpots allow [s]
+    (dashpot_step); empty without glue."""
 
     @property
     def ok(self) -> bool:
@@ -182,6 +186,12 @@ class StabilityReport:
             f"  speed        fastest body {self.max_speed:.3g} m/s, closing {self.closing_speed:.3g} "
             f"m/s: {self.step_travel:.2%} of a diameter per step (auto stiffness assumed an "
             f"impact at {self.impact_speed:.3g} m/s)")
+        if self.glue:
+            g = self.glue
+            lines.append(
+                f"  glue         {g['bonds']:,} bonds of {g['pairs']:,} sphere pairs; stiffest "
+                f"ω = {g['omega']:.4g} rad/s, dashpots stable below dt = "
+                f"{_s(g['dashpot_step'])} ({g['damped_less']} damped less than asked)")
         pr = self.prescribed
         if pr:
             parts = []
@@ -453,6 +463,26 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
     factors = shape_rotational_factors(model)
     step = float(model.dt if dt is None else dt)
     pairs, omega_max, zeta_min = pair_stability(model, factors, step)
+    glue_info = {}
+    if model.n_bonds:
+        corner = np.full(model.body_mass.shape[0], np.inf)
+        moves = ~np.asarray(model.body_static)[:n]
+        corner[:n][moves] = (np.asarray(model.body_mass[:n])[moves]
+                             / (1.0 + factors[np.asarray(model.body_shape)][moves]))
+        zeta = np.array([model.materials[model.body_material[a]].glue_damping
+                         for a in model.bonds.bond_body[:, 0]])
+        K = model.bonds.bond_k * np.diff(model.bonds.bond_start)
+        inv = 1.0 / np.concatenate([np.asarray(model.body_mass[:n])
+                                    / np.where(moves, 1.0, np.inf), np.full(
+                                        model.body_mass.shape[0] - n, np.inf)])
+        m_red = 1.0 / (inv[model.bonds.bond_body[:, 0]] + inv[model.bonds.bond_body[:, 1]])
+        asked = 2.0 * zeta * np.sqrt(K * m_red) / np.diff(model.bonds.bond_start)
+        glue_info = dict(bonds=model.n_bonds, pairs=model.bonds.n_pairs,
+                         omega=glue.bond_omega(model.bonds, corner),
+                         dashpot_step=glue.dashpot_step(model.bonds, corner),
+                         damped_less=int(np.count_nonzero(
+                             model.bonds.bond_eta < asked * (1.0 - 1e-9))))
+        omega_max = max(omega_max, glue_info["omega"])
     crit = critical_step(omega_max, zeta_min, model.contact_law)
     ratio = step / crit if math.isfinite(crit) else 0.0
     fastest, closing, impact = expected_speeds(model)
@@ -489,6 +519,20 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
             f"{src}: dt = {step:.3g} s is {ratio:.3g}× the critical step {crit:.3g} s of "
             "the stiffest contact; the integration diverges",
             "use dt = \"auto\", a smaller dt, or softer materials"))
+
+    if glue_info and step > glue_info["dashpot_step"] * (1.0 + 1e-9):
+        findings.append(Finding(
+            ERROR, "glue-dashpot",
+            f"{src}: dt = {step:.3g} s is above {glue_info['dashpot_step']:.3g} s, the longest "
+            f"step the glue bonds' dashpots are stable at; the integration diverges",
+            "use dt = \"auto\" or the scene's dt (the bake lowers the dashpots for it)"))
+    elif glue_info and glue_info["damped_less"]:
+        findings.append(Finding(
+            WARNING, "glue-damped-less",
+            f"{src}: {glue_info['damped_less']} of {glue_info['bonds']} glue bonds are damped "
+            f"less than glue_damping asks: at dt = {step:.3g} s their pieces' dashpots "
+            f"would be unstable (glue.cap_dashpots)",
+            "glued pieces may ring a little longer; a smaller dt restores the damping"))
 
     # 2. tunnelling: distance per step against the diameter
     found = tunnelling(model, step, closing, setting, src)
@@ -570,7 +614,7 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
         dt_ratio=ratio, stiffness_auto={k: float(v) for k, v in model.stiffness_auto},
         max_speed=fastest, closing_speed=closing, impact_speed=impact, step_travel=travel,
         overlap=overlap, overlap_body=name, shapes=shapes, findings=findings,
-        prescribed=_prescribed(model))
+        prescribed=_prescribed(model), glue=glue_info)
 
 
 def _prescribed(model: Model) -> dict:

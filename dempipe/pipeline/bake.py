@@ -370,6 +370,10 @@ def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, pro
         sphere_steps_per_second=(model.n_spheres * (sim.stats.steps - sim.stats.steps_skipped)
                                  / sim.stats.wall_seconds if sim.stats.wall_seconds else 0.0),
         max_overlap=sim.stats.max_overlap / model.diameter,
+        # glue: the bonds, and how many broke in each frame (from the frame before)
+        bonds=model.n_bonds,
+        bonds_broken_per_frame=[b - a for a, b in zip([0] + sim.stats.bonds_broken,
+                                                      sim.stats.bonds_broken)],
         sphere_build_seconds=model.build_info.get("sphere_build_seconds", 0.0),
         sphere_cache=[dict(shape=n, cache=c, seconds=s, spheres=k)
                       for n, c, s, k in model.build_info.get("shapes", [])],

@@ -61,7 +61,7 @@ CHECKPOINT_SECONDS = 60.0
 PERSISTENT = ("body_wake", "body_still", "skin_ctl")
 #: The State's arrays (state.State), saved when present.
 STATE_ARRAYS = ("body_x", "body_q", "body_P", "body_L", "contact_partner", "contact_spring",
-                "body_rest")
+                "body_rest", "bond_broken", "bond_shear")
 
 
 class CheckpointError(DempipeError):

@@ -181,8 +181,6 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
         if g.inertia is not None and len(split.labels) != g.count:
             raise SceneError(f"{src}: bodies[{gi}].inertia: not for a fractured shape "
                              "(remove it: each piece's inertia comes from its mesh)")
-        # glue: the pieces of one fractured instance share an id in split.glue (-1:
-        # whole); pass glue=split.glue here once ModelBuilder.add_bodies takes it
         b.add_bodies(placement.name, [shape_index[n] for n in placement.body_shapes()],
                      material_index[placement.material], placement.positions,
                      placement.rotations, placement.velocities, placement.angular_velocities,
@@ -195,7 +193,9 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
                                  else g.start_time),
                      group_frame=g.layout != "single",
                      frame=group_frame(g, placement) if g.kinematic else None,
-                     labels=split.labels)
+                     labels=split.labels,
+                     # the pieces of one fractured instance share a glue id (-1: whole)
+                     glue=split.glue if g.glue else None)
     up = out.up_index
     for c in scene.colliders:
         kind = type(c).__name__

@@ -136,6 +136,13 @@ class MaterialSpec:
     rolling_friction: Optional[float] = None
     """Rolling-resistance coefficient μ_r [1], ≥ 0 (0: off); None: the default
     (materials.ROLLING_FRICTION). A ball rolling at v stops after 7 v² / (10 μ_r g)."""
+    glue_strength: Optional[float] = None
+    """Tensile strength σ [Pa] > 0 of the glue between this material's fractured
+    pieces (``[[bodies]] glue = true``): a bonded sphere pair breaks above σ d²."""
+    glue_stiffness: Union[float, str] = "auto"
+    """A glue bond's whole spring [N/m] > 0, or "auto": the contact's (sim/glue.py)."""
+    glue_damping: float = 0.7
+    """Damping ratio ζ [1] ≥ 0 of a glue bond (1: critical; sim.glue.GLUE_DAMPING)."""
 
     def to_material(self):
         """The :class:`dempipe.sim.materials.Material` (stiffness None for "auto")."""
@@ -146,7 +153,10 @@ class MaterialSpec:
                         None if self.young_modulus is None else float(self.young_modulus),
                         float(self.poisson_ratio),
                         ROLLING_FRICTION if self.rolling_friction is None
-                        else float(self.rolling_friction))
+                        else float(self.rolling_friction),
+                        None if self.glue_strength is None else float(self.glue_strength),
+                        None if self.glue_stiffness == "auto" else float(self.glue_stiffness),
+                        float(self.glue_damping))
 
 
 @dataclass(frozen=True)
@@ -228,6 +238,9 @@ class BodyGroup:
     rate: float | None = None
     """emit: bodies released per second [1/s] from start_time on, body i at
     start_time + i / rate, each at a random place in the region (seeded)."""
+    glue: bool = False
+    """Whether the pieces of each body of a fractured shape start glued to their
+    neighbours (sim/glue.py; the material's glue_strength)."""
 
 
 @dataclass(frozen=True)

@@ -36,9 +36,10 @@ from dempipe.spheres.options import MODES
 #: The top-level tables of a scene file.
 TOP_KEYS = ("output", "simulation", "materials", "shapes", "bodies", "colliders", "usd")
 _MATERIAL_KEYS = ("density", "restitution", "friction", "stiffness", "young_modulus",
-                  "poisson_ratio", "rolling_friction")
+                  "poisson_ratio", "rolling_friction", "glue_strength", "glue_stiffness",
+                  "glue_damping")
 _BODY_COMMON = ("name", "shape", "material", "count", "layout", "rotation", "velocity",
-                "angular_velocity", "kinematic", "motion", "start_time")
+                "angular_velocity", "kinematic", "motion", "start_time", "glue")
 _LAYOUT_KEYS = {
     "single": ("position",),
     "grid": ("origin", "dims", "spacing"),
@@ -108,6 +109,23 @@ def _parse_materials(ctx: _Ctx, d: Any) -> dict[str, MaterialSpec]:
                                 "add young_modulus in Pa, or remove poisson_ratio")
             kw["poisson_ratio"] = ctx.number(m["poisson_ratio"], f"{key}.poisson_ratio",
                                              lo=0.0, hi=0.4999)
+        if "glue_strength" in m:
+            kw["glue_strength"] = ctx.number(m["glue_strength"], f"{key}.glue_strength",
+                                             lo=0.0, lo_open=True, unit="Pa")
+        if "glue_stiffness" in m:
+            v = m["glue_stiffness"]
+            if isinstance(v, str):
+                kw["glue_stiffness"] = ctx.string(v, f"{key}.glue_stiffness", ("auto",))
+            else:
+                kw["glue_stiffness"] = ctx.number(v, f"{key}.glue_stiffness", lo=0.0,
+                                                  lo_open=True, unit='N/m, or "auto"')
+        if "glue_damping" in m:
+            kw["glue_damping"] = ctx.number(m["glue_damping"], f"{key}.glue_damping", lo=0.0)
+        for k in ("glue_stiffness", "glue_damping"):
+            if k in m and "glue_strength" not in m:
+                raise ctx.error(f"{key}.{k}", "given without glue_strength",
+                                "add glue_strength in Pa (the glue's tensile strength), "
+                                f"or remove {k}")
         out[name] = MaterialSpec(name, **kw)
     return out
 
@@ -412,6 +430,19 @@ def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
     if "start_time" in b:
         kw["start_time"] = ctx.number(b["start_time"], f"{key}.start_time", lo=0.0,
                                       unit="seconds")
+    if "glue" in b and ctx.boolean(b["glue"], f"{key}.glue"):
+        for n in ((shape,) if isinstance(shape, str) else shape):
+            if shapes[n].fracture is None:
+                raise ctx.error(f"{key}.glue", f"shape {n!r} is not fractured: only the "
+                                "pieces of a fractured shape are glued",
+                                f"add fracture = {{ pieces = 8 }} to [shapes.{n}], or "
+                                "remove glue")
+        mat = materials[kw.get("material", "default")]
+        if mat.glue_strength is None:
+            raise ctx.error(f"{key}.glue", f"material {mat.name!r} has no glue_strength",
+                            f"add glue_strength in Pa to [materials.{mat.name}], e.g. "
+                            "glue_strength = 2.0e5")
+        kw["glue"] = True
     kinematic = "kinematic" in b and ctx.boolean(b["kinematic"], f"{key}.kinematic")
     if kinematic and layout == "emit":
         raise ctx.error(f"{key}.kinematic", 'a group with layout = "emit" cannot be kinematic',

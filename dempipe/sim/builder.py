@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dempipe.errors import SceneError, StabilityError
-from dempipe.sim import laws
+from dempipe.sim import glue, laws
 from dempipe.sim import materials as mat
 from dempipe.sim import motion as mo
 from dempipe.sim.model import (
@@ -105,7 +105,7 @@ class ModelBuilder:
     def add_bodies(self, group: str, shape, material: int, positions, rotations=None,
                    velocities=None, angular_velocities=None, *, masses=None, inertias=None,
                    asleep=None, kinematic: bool = False, motion=None, start_time: float = 0.0,
-                   group_frame: bool = False, frame=None, labels=None) -> None:
+                   group_frame: bool = False, frame=None, labels=None, glue=None) -> None:
         """Add a group of bodies.
 
         shape : a shape index for all, or one per body (a mixed group)
@@ -126,6 +126,9 @@ class ModelBuilder:
             for all or (n,) one per body
         labels : (n,) str, each body's name after the group's in the USD (default
             its index in the group; a fracture piece "3_piece_07")
+        glue : (n,) int, each body's glue id (-1: none; default none): bodies with the
+            same id, of any group, are bonded where their spheres touch (sim/glue.py;
+            their material needs a glue_strength)
         """
         if kinematic and motion is None:
             raise SceneError(f"{group}: a kinematic group needs a motion")
@@ -147,7 +150,9 @@ class ModelBuilder:
             kinematic=bool(kinematic), motion=motion,
             start_time=np.broadcast_to(np.asarray(start_time, dtype=np.float64), (n,)).copy(),
             group_frame=bool(group_frame), frame=frame,
-            labels=tuple(str(i) for i in range(n)) if labels is None else tuple(map(str, labels))))
+            labels=tuple(str(i) for i in range(n)) if labels is None else tuple(map(str, labels)),
+            glue=(np.full(n, -1, np.int64) if glue is None
+                  else np.broadcast_to(np.asarray(glue, np.int64), (n,)).copy())))
 
     def add_plane(self, point, normal, material: int = 0, motion=None) -> None:
         """An infinite plane through ``point`` facing ``normal``; ``motion`` (a
@@ -417,6 +422,15 @@ class ModelBuilder:
                     half = 0.5 if (n_dyn > 1 and mj in dyn_present) else 1.0
                     contacts.append((k, m_eff * half, table.zeta[mi, mj]))
         omega_max, zeta_min, zeta_max = laws.stiffest(contacts, law_name, v_imp)
+        body_glue = (np.concatenate([g["glue"] for g in groups]) if groups
+                     else np.zeros(0, np.int64))
+        bonds = self._bonds(body_glue, all_x, all_q, sphere_offset, sphere_body, all_inv_mass,
+                            mass, body_rot, all_mat, table, law, v_imp)
+        # each bond's stiffest mode, on the corner masses as a contact's (glue.py: by
+        # default no stiffer than a contact between the two pieces)
+        corner = np.concatenate([np.where(kin, np.inf, mass / (1.0 + body_rot)),
+                                 np.full(n_static, np.inf)])
+        omega_max = max(omega_max, glue.bond_omega(bonds, corner))
         # free spin and fast surfaces bound dt further (a face landing flat is one
         # contact patch, kernels/patches.py: no stiffer than a corner)
         dt_max = math.inf
@@ -446,6 +460,10 @@ class ModelBuilder:
                     f"{where}: dt = {dt:g} s does not divide a frame (1/{fps:g} s) into whole "
                     f"steps; use {dt_v:.6g} s ({spf} steps per frame)")
 
+        # the bonds' dashpots are explicit: a body's, summed over its bonds, times dt
+        # stays below its corner mass; where it would not, its bonds are damped less
+        # (glue.cap_dashpots) rather than the step shortened
+        bonds = glue.cap_dashpots(bonds, corner, float(dt_v))
         walls = driven["walls"]
         wall_arr = lambda i, shape: (np.array([w[i] for w in walls], dtype=np.float64)
                                      if walls else np.zeros(shape))
@@ -515,7 +533,59 @@ class ModelBuilder:
             body_kinematic=_frozen(kin, bool),
             collider_motions=tuple(driven["colliders"]), surface_speed=float(surface_speed),
             pair_rolling=_frozen(table.mu_r), body_inv_radius=_frozen(inv_radius),
+            bonds=bonds if bonds.n_bonds else None,
+            body_glue=_frozen(body_glue, np.int32),
         )
+
+    def _bonds(self, body_glue, all_x, all_q, sphere_offset, sphere_body, inv_mass, mass,
+               body_rot, body_mat, table, law, v_imp) -> glue.Bonds:
+        """The glue bonds (sim/glue.py) between bodies of equal glue id, their springs
+        and strengths from the bodies' materials."""
+        n_all = all_x.shape[0]
+        if not (body_glue >= 0).any():
+            return glue.no_bonds(n_all)
+        d = self.diameter
+        for gdict in self._groups:
+            m = self._materials[gdict["material"]]
+            if (gdict["glue"] >= 0).any() and m.glue_strength is None:
+                raise SceneError(f"materials.{m.name}.glue_strength: bodies '{gdict['name']}' "
+                                 f"are glued but their material has no glue strength (add "
+                                 f"glue_strength in Pa, or remove glue)")
+            if (gdict["glue"] >= 0).any() and not (
+                    m.glue_strength > 0 and math.isfinite(m.glue_strength)
+                    and (m.glue_stiffness is None
+                         or (m.glue_stiffness > 0 and math.isfinite(m.glue_stiffness)))
+                    and m.glue_damping >= 0 and math.isfinite(m.glue_damping)):
+                raise SceneError(f"materials.{m.name}: glue_strength [Pa] and glue_stiffness "
+                                 f"[N/m] must be positive numbers, glue_damping a number >= 0")
+        glue_all = np.concatenate([body_glue, np.full(n_all - body_glue.shape[0], -1)])
+        R = np.stack([quat_to_matrix(q) for q in all_q])
+        world = all_x[sphere_body] + np.einsum("sij,sj->si", R[sphere_body], sphere_offset)
+        i, j, dist = glue.find_pairs(world, sphere_body, glue_all, d)
+        mats = self._materials
+
+        def m_red(a, b):
+            inv = inv_mass[a] + inv_mass[b]
+            return 1.0 / inv if inv > 0 else math.inf
+
+        def stiffness(a, b):
+            ma, mb = mats[body_mat[a]], mats[body_mat[b]]
+            given = [m.glue_stiffness for m in (ma, mb) if m.glue_stiffness is not None]
+            if given:
+                return float(min(given))
+            m = m_red(a, b)
+            if not math.isfinite(m):
+                return 0.0          # two carried pieces: nothing to hold
+            return m * law.omega(table.k[body_mat[a], body_mat[b]], m, v_imp) ** 2
+
+        def damping(a, b, K):
+            zeta = min(mats[body_mat[a]].glue_damping, mats[body_mat[b]].glue_damping)
+            return glue.bond_damping(K, m_red(a, b), zeta)
+
+        def limit(a, b):
+            return min(mats[body_mat[a]].glue_strength, mats[body_mat[b]].glue_strength) * d * d
+
+        return glue.build_bonds(i, j, dist, sphere_body, n_all, stiffness, damping, limit)
 
     def _prescribed(self, groups, x0, q0, all_x, all_q, body_radius, n_dyn, n_static, fps,
                     n_frames) -> dict:

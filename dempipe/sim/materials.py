@@ -64,6 +64,12 @@ class Material:
         poisson_ratio ν (laws.hertz.stiffness_from_modulus) instead of "auto"
     rolling_friction : rolling-resistance coefficient μ_r ≥ 0 [1] (0 turns it off;
         physics.rolling_torque)
+    glue_strength : tensile strength σ [Pa] of the glue between fractured pieces of
+        this material: a bonded sphere pair carries at most σ d² (sim/glue.py); None:
+        bodies of this material cannot be glued
+    glue_stiffness : a bond's whole spring K [N/m], or None: the law's contact
+        stiffness between the two pieces (sim/glue.py)
+    glue_damping : damping ratio ζ [1] of a bond's translation (sim.glue.GLUE_DAMPING)
     """
 
     name: str
@@ -74,6 +80,9 @@ class Material:
     young_modulus: float | None = None
     poisson_ratio: float = 0.3
     rolling_friction: float = ROLLING_FRICTION
+    glue_strength: float | None = None
+    glue_stiffness: float | None = None
+    glue_damping: float = 0.7
 
 
 DEFAULT_MATERIAL = Material("default")

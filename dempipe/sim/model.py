@@ -249,6 +249,16 @@ class Model:
     body_inv_radius: np.ndarray = None
     """(B,) [1/m]: 1 / each dynamic body's radius (its rolling radius; the pair's is
     1 / (1/R_i + 1/R_j)); 0 for static and kinematic bodies, which roll as a wall."""
+    bonds: Any = None
+    """The glue between fractured pieces (sim.glue.Bonds), None without glue."""
+    body_glue: np.ndarray = None
+    """(n_bodies,) int32: each body's glue id (-1: not glued); bodies with the same id
+    are bonded where their spheres touch (sim.glue)."""
+
+    @property
+    def n_bonds(self) -> int:
+        """Glue bonds (body pairs) of the scene."""
+        return 0 if self.bonds is None else self.bonds.n_bonds
 
     @property
     def onset_speed(self) -> float:
@@ -299,6 +309,9 @@ class Model:
             state.body_rest[:self.n_bodies][self.initial_asleep] = self.sleep_steps
         if self.features.friction:
             state.ensure_contacts(self.n_spheres)
+        if self.n_bonds:
+            state.bond_broken = np.zeros(self.bonds.n_bonds, dtype=np.int32)
+            state.bond_shear = np.zeros((self.bonds.n_pairs, 3))
         return state
 
 

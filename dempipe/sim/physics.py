@@ -380,6 +380,74 @@ def rolling_scale(wx, wy, wz, dwx, dwy, dwz, tx, ty, tz):
 
 
 # ---------------------------------------------------------------------------
+# Glue: a bond between two sphere pieces (sim/glue.py finds them)
+# ---------------------------------------------------------------------------
+
+def glue_force(rx, ry, rz, dist, rest, dvx, dvy, dvz, wsx, wsy, wsz, k, eta, sx, sy, sz, dt):
+    """Force on sphere i from its glue bond with sphere j, its torque about i's
+    centre, the bond's new shear stretch, and its elastic load.
+
+    r = x_j - x_i [m] with |r| = dist > 0; rest : the bond's rest length [m] (the
+    distance at which it was glued); dv = v_j - v_i [m/s] (centre velocities); ws =
+    W_i + W_j [rad/s]. The bond point is the midpoint, half the distance from each
+    centre, so its relative velocity is u = dv - (dist/2) (ws × n).
+    k : the bond's spring [N/m], normal and shear alike; eta : its dashpot [N s/m];
+    s : the shear stretch from the last step [m] (0 when glued); dt : the step [s].
+
+    Normal: k (dist - rest) n + eta (u·n) n, in tension and compression. Shear:
+    the stretch s, turned into the current tangent plane (length kept) and grown
+    by u_t dt, gives k s + eta u_t, with no Coulomb cap (glue does not slide).
+    Returns (fx, fy, fz, tx, ty, tz, sx, sy, sz, load): the torque (dist/2) n × f
+    and load = |max(k (dist - rest), 0) n + k s| [N], the spring's force without the
+    dashpot and without compression: what sim/glue.py compares with σ d² (glue
+    breaks in tension and shear; crushing is not modelled).
+
+    Antisymmetric in IEEE arithmetic, as contact_force: from j's side r, dv and s
+    are negated, so the force is exactly negated and the torque equal; with the
+    bond point at the midpoint, the pair keeps angular momentum too.
+    """
+    inv = 1.0 / dist
+    nx = rx * inv
+    ny = ry * inv
+    nz = rz * inv
+    half = 0.5 * dist
+    ux = dvx - half * (wsy * nz - wsz * ny)
+    uy = dvy - half * (wsz * nx - wsx * nz)
+    uz = dvz - half * (wsx * ny - wsy * nx)
+    un = ux * nx + uy * ny + uz * nz
+    tx = ux - un * nx
+    ty = uy - un * ny
+    tz = uz - un * nz
+    s2 = sx * sx + sy * sy + sz * sz
+    sn = sx * nx + sy * ny + sz * nz
+    sx -= sn * nx
+    sy -= sn * ny
+    sz -= sn * nz
+    p2 = sx * sx + sy * sy + sz * sz
+    if p2 > 0.0:
+        keep = sqrt(s2 / p2)
+        sx *= keep
+        sy *= keep
+        sz *= keep
+    sx += tx * dt
+    sy += ty * dt
+    sz += tz * dt
+    fe = k * (dist - rest)
+    fn = fe + eta * un
+    ftx = k * sx + eta * tx
+    fty = k * sy + eta * ty
+    ftz = k * sz + eta * tz
+    pull = fe if fe > 0.0 else 0.0
+    lx = pull * nx + k * sx
+    ly = pull * ny + k * sy
+    lz = pull * nz + k * sz
+    load = sqrt(lx * lx + ly * ly + lz * lz)
+    return (fn * nx + ftx, fn * ny + fty, fn * nz + ftz,
+            half * (ny * ftz - nz * fty), half * (nz * ftx - nx * ftz),
+            half * (nx * fty - ny * ftx), sx, sy, sz, load)
+
+
+# ---------------------------------------------------------------------------
 # Contact history (static friction): each sphere remembers its own contacts
 # ---------------------------------------------------------------------------
 

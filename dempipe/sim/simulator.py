@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -98,6 +98,8 @@ class RunStats:
     steps_skipped: int = 0
     wall_seconds: float = 0.0
     max_overlap: float = 0.0          # [m]
+    #: Glue bonds broken by each frame recorded (cumulative; empty without glue).
+    bonds_broken: list = field(default_factory=list)
 
     @property
     def seconds_per_step(self) -> float:
@@ -282,6 +284,7 @@ class Simulator:
         per_step = None          # seconds per step of the last call (None: not yet timed)
         with interrupt.deferred():
             if self.frames_done == 0:
+                self._count_bonds(state)
                 record(0, self.first_number, state, *vw)
                 self.frames_done = 1
                 if progress:
@@ -339,6 +342,7 @@ class Simulator:
                     exc = BakeFailure(problem, None)
                     exc.frames_done = k
                     raise exc
+                self._count_bonds(state)
                 record(k, self.first_number + k, state, *vw)
                 self.frames_done = k + 1
                 if progress:
@@ -347,6 +351,11 @@ class Simulator:
                     after_frame(k, state)
 
     _skipped_before = 0
+
+    def _count_bonds(self, state) -> None:
+        """Note how many glue bonds have broken by this frame (RunStats.bonds_broken)."""
+        if state.bond_broken is not None:
+            self.stats.bonds_broken.append(int(np.count_nonzero(state.bond_broken)))
 
     def _emission_check(self, state, k: int) -> str | None:
         """The frame-0 overlap check for the bodies an emitter starts at this step."""

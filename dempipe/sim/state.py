@@ -31,6 +31,10 @@ class State:
     Both are None until a backend that needs them (friction) allocates them.
     body_rest : (B,) int32, steps each body has been at rest (sleeping); a body is
         asleep when it reaches Model.sleep_steps. None until a backend allocates it.
+    bond_broken : (N,) int32, 1 for each glue bond (sim/glue.py) that has broken, for
+        good; None in a scene without glue
+    bond_shear : (P,) x 3 float64, each bonded sphere pair's shear stretch, world
+        frame [m] (physics.glue_force); None without glue
     """
 
     body_x: np.ndarray
@@ -42,13 +46,17 @@ class State:
     contact_partner: np.ndarray | None = None
     contact_spring: np.ndarray | None = None
     body_rest: np.ndarray | None = None
+    bond_broken: np.ndarray | None = None
+    bond_shear: np.ndarray | None = None
 
     def copy(self) -> "State":
         return State(self.body_x.copy(), self.body_q.copy(), self.body_P.copy(),
                      self.body_L.copy(), self.time, self.step,
                      None if self.contact_partner is None else self.contact_partner.copy(),
                      None if self.contact_spring is None else self.contact_spring.copy(),
-                     None if self.body_rest is None else self.body_rest.copy())
+                     None if self.body_rest is None else self.body_rest.copy(),
+                     None if self.bond_broken is None else self.bond_broken.copy(),
+                     None if self.bond_shear is None else self.bond_shear.copy())
 
     def ensure_rest(self, n_bodies: int) -> None:
         """Allocate rest counts (every body awake, not yet at rest)."""

@@ -313,7 +313,8 @@ ROOT = __import__("pathlib").Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.parametrize("example, moving", [("conveyor.toml", "roller0"),
-                                             ("wrecking_ball.toml", None)])
+                                             ("wrecking_ball.toml", None),
+                                             ("wall_breach.toml", None)])
 def test_examples_bake_a_short_range(tmp_path, example, moving):
     """The README's prescribed-motion examples bake (a real subprocess, the first
     frames) to a stage that validates, with the moving colliders animated."""

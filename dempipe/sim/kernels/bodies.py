@@ -7,7 +7,8 @@ targets run the one body stage and stay bit-identical.
 """
 
 # The names this module reads but does not define (static_body, body_step,
-# angular_velocity, rest_steps, rolling_scale, ROTATION, FRICTION, SLEEPING) are the
+# angular_velocity, rest_steps, rolling_scale, ROTATION, FRICTION, SLEEPING,
+# GLUE) are the
 # target's:
 # its compiled formulas and feature flags, given when it is compiled.
 
@@ -29,7 +30,7 @@ def body_update(b, bm, bs, step):
     (dt, gravity, body_sphere_start, body_mass, body_inv_mass, body_inv_inertia, sleep_steps,
      v_sleep, w_sleep, body_start, rolling) = bm
     (sphere_f, sphere_t, sphere_tr, sphere_r, body_x, body_q, body_P, body_L, body_rest,
-     body_wake, body_still) = bs
+     body_wake, body_still, body_glue) = bs
     if static_body(body_inv_mass[b]):
         return 1 if body_rest[b] < 0 else 0
     if body_start[b] > step:
@@ -77,6 +78,14 @@ def body_update(b, bm, bs, step):
                 TX += ry * fz - rz * fy
                 TY += rz * fx - rx * fz
                 TZ += rx * fy - ry * fx
+    if GLUE:  # noqa: F821 (its bonds' sum: kernels/glue.py)
+        FX += body_glue[b, 0]
+        FY += body_glue[b, 1]
+        FZ += body_glue[b, 2]
+        if ROTATION:
+            TX += body_glue[b, 3]
+            TY += body_glue[b, 4]
+            TZ += body_glue[b, 5]
     ii = body_inv_inertia[b]
     x = body_x[b]
     q = body_q[b]

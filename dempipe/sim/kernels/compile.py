@@ -32,6 +32,7 @@ FORMULAS = (
     "sphere_wall_force",
     "rolling_torque",
     "rolling_scale",
+    "glue_force",
     "body_step",
     "history_recall",
     "history_store",

@@ -146,6 +146,10 @@ def cpu_scratch(model, friction: bool) -> dict:
         "body_patch": ((nb, BODY_PATCHES + 1, 3), f8),
         "body_wake": ((nb,), i4),
         "body_still": ((nb,), i4),               # static colliders: stage 1 keeps them
+        # glue (kernels/glue.py): each bonded pair's force, torque, shear stretch; each
+        # body's sum of them
+        "glue_f": ((max(getattr(getattr(model, "bonds", None), "n_pairs", 0), 1), 9), f8),
+        "body_glue": ((nb, 6), f8),
         # the contact passes' work: every chunk of slots, or a sleeping pile's
         "chunks": ((n_chunks, 2), i8), "spans": ((n_chunks, 2), i8),
         "span_ctl": ((2,), i8),
@@ -454,7 +458,9 @@ class BodyScratch(NamedTuple):
     their centres [N m] and offsets from the centre of mass in the world [m]
     (sphere_r), their rolling torques [N m] (sphere_tr: summed, then limited per
     body), the State's x, q, P, L and rest counts, the wake flags and body_still
-    (the backend's)."""
+    (the backend's), and each body's glue force and torque about its centre of
+    mass (body_glue (B, 6) [N], [N m]: kernels/glue.py; read only by a kernel
+    compiled with GLUE, a stand-in otherwise)."""
 
     sphere_f: Any
     sphere_t: Any
@@ -467,6 +473,7 @@ class BodyScratch(NamedTuple):
     body_rest: Any
     body_wake: Any
     body_still: Any
+    body_glue: Any
 
 
 def body_model(model, body_start, friction: bool, arrays=None) -> BodyModel:
@@ -519,3 +526,49 @@ def step_model(model, friction: bool) -> StepModel:
 def scratch_of(backend) -> Scratch:
     """The Scratch of a backend holding ``cpu_scratch``'s arrays as attributes."""
     return Scratch(*(getattr(backend, n) for n in Scratch._fields))
+
+
+# ---------------------------------------------------------------------------
+# Glue (kernels/glue.py): the bonds as the glue passes read them
+# ---------------------------------------------------------------------------
+
+class GlueModel(NamedTuple):
+    """The Model's bonds (sim.glue.Bonds, same names and units): pair_i, pair_j,
+    pair_rest [m], bond_start, bond_body, bond_k [N/m], bond_eta [N s/m],
+    bond_limit [N], body_bond_start, body_bond."""
+    pair_i: Any
+    pair_j: Any
+    pair_rest: Any
+    bond_start: Any
+    bond_body: Any
+    bond_k: Any
+    bond_eta: Any
+    bond_limit: Any
+    body_bond_start: Any
+    body_bond: Any
+
+
+class GlueScratch(NamedTuple):
+    """What the glue passes write: the State's bond_broken and bond_shear [m], and
+    the backend's glue_f (per pair: force on pair_i [N], its torque about pair_i's
+    centre [N m], the new shear stretch [m]) and body_glue (per body: force [N],
+    torque about its centre of mass [N m])."""
+    bond_broken: Any
+    bond_shear: Any
+    glue_f: Any
+    body_glue: Any
+
+
+def glue_model(model) -> GlueModel:
+    """The GlueModel of ``model`` (empty arrays of the right kinds without glue)."""
+    from dempipe.sim.glue import no_bonds
+    b = model.bonds if model.bonds is not None else no_bonds(model.body_mass.shape[0])
+    return GlueModel(*(getattr(b, n) for n in GlueModel._fields))
+
+
+def glue_scratch(state, backend) -> GlueScratch:
+    """The GlueScratch of ``state`` and a backend holding cpu_scratch's arrays (one-row
+    stand-ins for a State without glue)."""
+    broken = state.bond_broken if state.bond_broken is not None else np.zeros(1, np.int32)
+    shear = state.bond_shear if state.bond_shear is not None else np.zeros((1, 3))
+    return GlueScratch(broken, shear, backend.glue_f, backend.body_glue)

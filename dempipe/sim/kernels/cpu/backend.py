@@ -25,6 +25,8 @@ from dempipe.sim.kernels.layout import (
     contact_model,
     cpu_scratch,
     fit_grid,
+    glue_model,
+    glue_scratch,
     grid_table,
     run_flags,
     scene_features,
@@ -53,7 +55,9 @@ class CpuBackend:
         self.steps_skipped = 0
         self.features = scene_features(model, features)
         self.flags = run_flags(self.features, specialize)
-        self.k = kernels(self.flags, model.contact_law)
+        self.k = kernels(self.flags, model.contact_law, glue=model.n_bonds > 0)
+        #: The glue bonds as the kernels read them (layout.GlueModel).
+        self.glue_model = glue_model(model)
         # every array, by name (layout.cpu_scratch: what memory_estimate counts and a
         # checkpoint walks), zeroed; then the ones that start otherwise
         for name, (shape, dtype) in cpu_scratch(model, self.features.friction).items():
@@ -102,7 +106,7 @@ class CpuBackend:
                 left, int(state.step), self.grid, float(self.quiet_share), self.step_model,
                 StepState(state.body_x, state.body_q, state.body_P, state.body_L,
                           self.rest(state), partner, spring),
-                self._scratch(), self.drive)
+                self._scratch(), self.drive, self.glue_model, glue_scratch(state, self))
             state.step += int(done)
             state.time = state.step * m.dt
             left -= int(done)

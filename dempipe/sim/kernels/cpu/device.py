@@ -34,6 +34,7 @@ body_step = F.body_step
 history_recall = F.history_recall
 history_store = F.history_store
 rest_steps = F.rest_steps
+glue_force = F.glue_force
 contact_coefficients = F.contact_coefficients
 closing = F.closing
 static_body = F.static_body

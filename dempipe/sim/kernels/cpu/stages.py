@@ -16,7 +16,7 @@ import types
 import numba
 from numba import prange
 
-from dempipe.sim.kernels import contacts, patches
+from dempipe.sim.kernels import contacts, glue, patches
 from dempipe.sim.kernels.bodies import body_update
 from dempipe.sim.kernels.prescribed import driven_row, motion_row
 from dempipe.sim.kernels.compile import compile_formulas, invalidate_stale_cache, specialize
@@ -38,11 +38,12 @@ from dempipe.sim.kernels.cpu.device import (  # noqa: F401
     HIST_BY_SLOT, LIST_ROWS, PAIR_ROWS, WALL_ROWS, anchor_local, anchor_state,
     anchor_surface, body_step, carried_state, chord_velocity, contact_coefficients, entry_range,
     history_recall, history_store, rest_steps, rolling_scale, rolling_torque,
-    sphere_pair_force, sphere_wall_force, sqrt, closing)
+    sphere_pair_force, sphere_wall_force, sqrt, closing, glue_force)
 
 invalidate_stale_cache(__file__)
 invalidate_stale_cache(contacts.__file__)   # pair_forces, sphere_forces: cached under its name
 invalidate_stale_cache(patches.__file__)
+invalidate_stale_cache(glue.__file__)
 
 # ---------------------------------------------------------------------------
 # Specialization. The stage drivers below are plain functions reading the flags
@@ -67,6 +68,9 @@ FRICTION = True
 ROTATION = True
 SLEEPING = True
 WALLS = True
+# Glue bonds (kernels/glue.py): not one of FLAGS but its own axis, as the law is
+# (kernels(flags, law, glue)): only a scene with bonds compiles their passes.
+GLUE = False
 
 
 
@@ -288,6 +292,33 @@ def stage_sums(cm, cs, spans, n_spans):
         sphere_forces(spans[c, 0], spans[c, 1], cm, cs)
 
 
+def stage_glue(gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w, body_inv_mass,
+               body_rest, body_wake, sleep_steps, dt):
+    """The bonds' forces, each bond by one thread (kernels/glue.py bond_forces);
+    returns how many broke this step (an integer sum: any thread count)."""
+    broke = 0
+    for n in prange(gm.bond_body.shape[0]):
+        broke += bond_forces(n, gm, gs, sphere_body, slot_of, sorted_x, sorted_v,  # noqa: F821
+                             body_w,
+                             body_inv_mass, body_rest, body_wake, sleep_steps, dt)
+    return broke
+
+
+def stage_glue_contacts(gm, gs, slot_of, sorted_body, body_inv_mass, pair_start, pair_t,
+                        pair_f):
+    """A holding bond's sphere pairs are not also contacts (glue.bond_contacts)."""
+    for n in prange(gm.bond_body.shape[0]):
+        bond_contacts(n, gm, gs, slot_of, sorted_body, body_inv_mass, pair_start,  # noqa: F821
+                      pair_t,
+                      pair_f)
+
+
+def stage_glue_bodies(n_bodies, gm, gs, sphere_body, sphere_r):
+    """Each body's bonds summed into body_glue (glue.body_glue_sum)."""
+    for b in prange(n_bodies):
+        body_glue_sum(b, gm, gs, sphere_body, sphere_r)  # noqa: F821 (specialize's)
+
+
 def stage_bodies(n_bodies, bm, bs, step):
     """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10).
 
@@ -311,7 +342,7 @@ def stage_bodies(n_bodies, bm, bs, step):
     return awake, woke, quiet, calmed
 
 
-def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, drive):
+def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, drive, gm, gs):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
     compiled code. Returns (steps done, steps computed). Done is fewer than
     n_steps only when a rebuild found a neighbour list longer than nbr holds
@@ -345,7 +376,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
     backend's), drive (control.Drive): the prescribed motions, evaluated at the start of
     each step (stage_motion, stage_driven) and once more at the end, so the State
     holds the carried bodies where they are at its time; and the emitters' start
-    steps (a call never spans one: the backend splits it there).
+    steps (a call never spans one: the backend splits it there). gm, gs
+    (layout.GlueModel, GlueScratch): the glue bonds, read only with GLUE.
     """
     # the structured arguments (layout.StepModel, StepState, Scratch; control.Drive),
     # under the names the stages take them by
@@ -373,7 +405,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
     bm = BodyModel(dt, gravity, body_sphere_start, body_mass, body_inv_mass, body_inv_inertia,
                    sleep_steps, v_sleep, w_sleep, drive.body_start, rolling)
     bs = BodyScratch(sphere_f, sphere_t, sphere_tr, sphere_r, body_x, body_q, body_P, body_L,
-                     body_rest, body_wake, body_still)
+                     body_rest, body_wake, body_still, gs.body_glue)
     if n_steps <= 0:
         return 0, 0  # nothing sorted yet: the unsort below would scramble the State's rows
     skin = skin_ctl[0]
@@ -461,7 +493,14 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
             span_ctl[0] += 1
         stage_patches(cm, cs, drive.motion_now, body_sphere_start, slot_of)
         stage_contacts(cm, cs, drive.motion_now, step & 1, work, n_work)
+        if GLUE:
+            stage_glue(gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w,
+                       body_inv_mass, body_rest, body_wake, sleep_steps, dt)
+            stage_glue_contacts(gm, gs, slot_of, sorted_body, body_inv_mass, pair_start,
+                                pair_t, pair_f)
         stage_sums(cm, cs, work, n_work)
+        if GLUE:
+            stage_glue_bodies(n_bodies, gm, gs, sphere_body, sphere_r)
         awake, woke, quiet, calmed = stage_bodies(n_bodies, bm, bs, step)
         since_search += 1
         calmed_since += calmed
@@ -507,8 +546,9 @@ _STAGES = (stage_body_velocities, motion_row, driven_row, stage_motion, stage_dr
            stage_spheres_sorted,
            contacts.wall_gap, contacts.pair_ended, patches.patch_add, patches.body_patches,
            patches.patch_share, patches.pair_share, stage_patches,
-           contacts.pair_forces, contacts.sphere_forces, stage_contacts, stage_sums, body_update,
-           stage_bodies, run_steps)
+           contacts.pair_forces, contacts.sphere_forces, stage_contacts, stage_sums,
+           glue.bond_forces, glue.bond_contacts, glue.body_glue_sum, stage_glue,
+           stage_glue_contacts, stage_glue_bodies, body_update, stage_bodies, run_steps)
 _JITS = {
     "stage_body_velocities": numba.njit(parallel=True, cache=True),
     "motion_row": numba.njit(inline="always", cache=True),
@@ -529,6 +569,12 @@ _JITS = {
     "sphere_forces": numba.njit(cache=True),
     "stage_contacts": numba.njit(parallel=True, cache=True),
     "stage_sums": numba.njit(parallel=True, cache=True),
+    "bond_forces": numba.njit(cache=True),
+    "bond_contacts": numba.njit(inline="always", cache=True),
+    "body_glue_sum": numba.njit(cache=True),
+    "stage_glue": numba.njit(parallel=True, cache=True),
+    "stage_glue_contacts": numba.njit(parallel=True, cache=True),
+    "stage_glue_bodies": numba.njit(parallel=True, cache=True),
     "body_update": numba.njit(cache=True),
     "stage_bodies": numba.njit(parallel=True, cache=True),
     "run_steps": numba.njit(cache=True),
@@ -536,22 +582,28 @@ _JITS = {
 _VARIANTS: dict = {}
 
 
-def kernels(flags, law: str = "linear") -> "types.SimpleNamespace":
+def kernels(flags, law: str = "linear", glue: bool = False) -> "types.SimpleNamespace":
     """The stage drivers compiled for ``flags`` (friction, rotation, sleeping, walls)
     and the contact ``law`` (laws.LAWS; the module's formulas are the linear law's,
-    another law's are compiled and overlaid), created on first use; numba compiles
-    each (or loads it from its disk cache) at its first call."""
+    another law's are compiled and overlaid), with the glue passes when ``glue``
+    (kernels/glue.py), created on first use; numba compiles each (or loads it from
+    its disk cache) at its first call."""
     flags = tuple(bool(f) for f in flags)
     key = flags if law == "linear" else (flags, law)
+    if glue:
+        key = (key, "glue")
     if key not in _VARIANTS:
         tag = "".join(f"{n[0].upper()}{int(f)}" for n, f in zip(FLAGS, flags))
         consts = {n.upper(): f for n, f in zip(FLAGS, flags)}
+        consts["GLUE"] = bool(glue)
         if law != "linear":
             tag += f"_{law}"
             fl = compile_formulas(numba.njit(inline="always", cache=False), law)
             consts.update(sphere_pair_force=fl.sphere_pair_force,
                           sphere_wall_force=fl.sphere_wall_force,
                           contact_coefficients=fl.contact_coefficients, closing=fl.closing)
+        if glue:
+            tag += "_glue"
         _VARIANTS[key] = specialize(_STAGES, _JITS, consts, tag, globals())
     return _VARIANTS[key]
 

@@ -268,6 +268,9 @@ class CudaBackend:
         # As CpuBackend: the contact and body kernels compiled for the features the
         # scene uses (``kernels(flags)``), or with specialize=False the general ones.
         self.model = model
+        if model.n_bonds:
+            raise DeviceError("device cuda: this scene has glue bonds, which run on the CPU "
+                              "only so far (bake it with --device cpu)")
         self.features = scene_features(model, features)
         self.flags = run_flags(self.features, specialize)
         self.k = kernels(self.flags, model.contact_law)
@@ -486,7 +489,8 @@ class CudaBackend:
 
     def _bodies(self):
         m, d = self.model, self.d
-        bs = BodyScratch(*(d[n] for n in BodyScratch._fields))
+        # no glue on CUDA yet (GLUE off): wall_f stands in for body_glue, unread
+        bs = BodyScratch(*(d[n] for n in BodyScratch._fields[:-1]), body_glue=d["wall_f"])
         self.k.k_bodies[_blocks(m.n_bodies, THREADS), THREADS](
             m.n_bodies, body_model(m, d["body_start"], self.features.friction, arrays=d), bs,
             d["ctl"])

@@ -152,7 +152,7 @@ body_patches = C.body_patches
 def compile_body_stage(consts: dict):
     """kernels/bodies.py's body_update and kernels/prescribed.py's motion_row,
     driven_row as device functions with the feature flags ``consts``."""
-    given = dict(consts, static_body=F.static_body, body_step=F.body_step,
+    given = dict(dict(GLUE=False, **consts), static_body=F.static_body, body_step=F.body_step,
                  angular_velocity=F.angular_velocity, rest_steps=F.rest_steps,
                  rolling_scale=F.rolling_scale,
                  anchor_state=F.anchor_state, carried_state=F.carried_state,
