@@ -113,18 +113,18 @@ def main(argv=None) -> int:
         run(scene, 1, "fixed", 0.5)             # compile (or load) the kernels once
     print(f"# {os.cpu_count()} cores, {platform.processor() or platform.machine()}, numba "
           f"{numba.__version__} ({numba.config.NUMBA_NUM_THREADS} threads)")
-    print("| scene | mode | alone ms/step | each of two at once (threads at the end) | "
+    print("| scene | mode | alone ms/step (threads at the end) | each of two at once | "
           "vs the ideal (2× alone) | alone vs fixed's |")
     print("|---|---|---:|---|---:|---:|")
     for scene in args.scenes:
         base = None
         for mode in args.modes:
-            (alone, _), = run(scene, 1, mode, args.window)
+            (alone, n_alone), = run(scene, 1, mode, args.window)
             together = run(scene, 2, mode, args.window)
             base = alone if base is None else base
             each = " / ".join(f"{ms:.3f} ({n})" for ms, n in together)
             worst = max(ms for ms, _ in together)
-            print(f"| {scene} | {mode} | {alone:.3f} | {each} | {worst / (2 * alone):.2f}× | "
+            print(f"| {scene} | {mode} | {alone:.3f} ({n_alone}) | {each} | {worst / (2 * alone):.2f}× | "
                   f"{base / alone:.2f}× |", flush=True)
     print(f"# {time.perf_counter() - t0:.0f} s")
     return 0
