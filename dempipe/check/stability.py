@@ -472,9 +472,8 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
         zeta = np.array([model.materials[model.body_material[a]].glue_damping
                          for a in model.bonds.bond_body[:, 0]])
         K = model.bonds.bond_k * np.diff(model.bonds.bond_start)
-        inv = 1.0 / np.concatenate([np.asarray(model.body_mass[:n])
-                                    / np.where(moves, 1.0, np.inf), np.full(
-                                        model.body_mass.shape[0] - n, np.inf)])
+        inv = np.zeros(model.body_mass.shape[0])        # 1/m [1/kg], 0: never moved
+        inv[:n][moves] = 1.0 / np.asarray(model.body_mass[:n])[moves]
         m_red = 1.0 / (inv[model.bonds.bond_body[:, 0]] + inv[model.bonds.bond_body[:, 1]])
         asked = 2.0 * zeta * np.sqrt(K * m_red) / np.diff(model.bonds.bond_start)
         glue_info = dict(bonds=model.n_bonds, pairs=model.bonds.n_pairs,
