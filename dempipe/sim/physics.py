@@ -254,14 +254,19 @@ def sphere_pair_force(rx, ry, rz, dist, diameter, dvx, dvy, dvz, wsx, wsy, wsz,
 
     r = x_j - x_i with |r| = dist < diameter; dv = v_j - v_i (centre velocities);
     ws = W_i + W_j, the sum of the two bodies' angular velocities, which gives the
-    contact-point velocities: the contact point lies a radius from each centre,
-    so u = dv - radius (ws × n), and the contact turns about n at ws·n / 2 (the
-    mean spin: contact_force). s : the stretch from the last step [m].
-    Returns (fx, fy, fz, tx, ty, tz, sx, sy, sz): the torque (radius n) × f is
+    contact-point velocities: the contact point c lies midway across the overlap,
+    dist/2 from each centre, and each side's velocity there is the chord of the
+    step dt [s] (chord_velocity, with each side's W taken as ws/2):
+    u = dv - (dist/2) (ws × n) + (dt/8) dist ws × (ws × n). So two bodies turning
+    together do not slip at a contact tilted from their spin axis (a point a
+    radius out on each side would: the two are the overlap apart). The contact
+    turns about n at ws·n / 2 (the mean spin: contact_force). s : the stretch
+    from the last step [m].
+    Returns (fx, fy, fz, tx, ty, tz, sx, sy, sz): the torque (dist/2) n × f is
     what the force adds about the sphere's own centre (the paper's eq. 16 uses
-    the centre only, which cannot make a single sphere roll; see docs/physics.md).
+    the centre only, which cannot make a single sphere roll; see docs/physics.md);
+    the same on both sides, so the pair keeps angular momentum exactly.
     """
-    radius = 0.5 * diameter
     if dist > 0.0:
         inv = 1.0 / dist
         nx = rx * inv
@@ -271,14 +276,19 @@ def sphere_pair_force(rx, ry, rz, dist, diameter, dvx, dvy, dvz, wsx, wsy, wsz,
         nx = 0.0
         ny = 0.0
         nz = 1.0
-    ux = dvx - radius * (wsy * nz - wsz * ny)
-    uy = dvy - radius * (wsz * nx - wsx * nz)
-    uz = dvz - radius * (wsx * ny - wsy * nx)
+    arm = 0.5 * dist
+    cx = wsy * nz - wsz * ny
+    cy = wsz * nx - wsx * nz
+    cz = wsx * ny - wsy * nx
+    a = 0.25 * dt * arm
+    ux = dvx - arm * cx + a * (wsy * cz - wsz * cy)
+    uy = dvy - arm * cy + a * (wsz * cx - wsx * cz)
+    uz = dvz - arm * cz + a * (wsx * cy - wsy * cx)
     spin = 0.5 * (wsx * nx + wsy * ny + wsz * nz)
     fx, fy, fz, sx, sy, sz = contact_force(nx, ny, nz, diameter - dist, ux, uy, uz,
                                            k, eta, kt, ks, mu, sx, sy, sz, spin, dt, vc)
     return (fx, fy, fz,
-            radius * (ny * fz - nz * fy), radius * (nz * fx - nx * fz), radius * (nx * fy - ny * fx),
+            arm * (ny * fz - nz * fy), arm * (nz * fx - nx * fz), arm * (nx * fy - ny * fx),
             sx, sy, sz)
 
 
@@ -290,18 +300,20 @@ def sphere_wall_force(nx, ny, nz, overlap, radius, vx, vy, vz, wx, wy, wz, Wx, W
     n : unit normal from the sphere towards the wall (minus the wall's outward normal).
     v : the sphere's centre velocity relative to the wall's surface under it [m/s]
     (its own for a still wall); w : its body's angular velocity [rad/s]; W : the
-    wall's angular velocity [rad/s] (0 for a still wall). The relative contact
-    velocity is u = -(v + w × (radius n)), and the contact turns about n at
+    wall's angular velocity [rad/s] (0 for a still wall). The contact point is on
+    the wall's surface, a = radius - overlap from the sphere's centre along n,
+    where the wall's velocity is taken (motion.anchor_surface): the relative
+    contact velocity is u = -(v + w × (a n)), as the chord of the step dt
+    (chord_velocity), the torque is a n × f, and the contact turns about n at
     (w + W)·n / 2 (the mean spin: contact_force).
     """
-    ux = -(vx + radius * (wy * nz - wz * ny))
-    uy = -(vy + radius * (wz * nx - wx * nz))
-    uz = -(vz + radius * (wx * ny - wy * nx))
+    arm = radius - overlap
+    ux, uy, uz = chord_velocity(vx, vy, vz, wx, wy, wz, arm * nx, arm * ny, arm * nz, dt)
     spin = 0.5 * ((wx + Wx) * nx + (wy + Wy) * ny + (wz + Wz) * nz)
-    fx, fy, fz, sx, sy, sz = contact_force(nx, ny, nz, overlap, ux, uy, uz,
+    fx, fy, fz, sx, sy, sz = contact_force(nx, ny, nz, overlap, -ux, -uy, -uz,
                                            k, eta, kt, ks, mu, sx, sy, sz, spin, dt, vc)
     return (fx, fy, fz,
-            radius * (ny * fz - nz * fy), radius * (nz * fx - nx * fz), radius * (nx * fy - ny * fx),
+            arm * (ny * fz - nz * fy), arm * (nz * fx - nx * fz), arm * (nx * fy - ny * fx),
             sx, sy, sz)
 
 
