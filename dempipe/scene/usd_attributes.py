@@ -25,8 +25,8 @@ import numpy as np
 from dempipe.errors import SceneError, ShapeError
 from dempipe.mesh.fracture import MAX_PIECES, FractureSpec
 
-__all__ = ["BODY_ATTRIBUTES", "MATERIAL_ATTRIBUTES", "fracture_of", "glue_of",
-           "glue_material"]
+__all__ = ["BODY_ATTRIBUTES", "MATERIAL_ATTRIBUTES", "fracture_and_glue", "fracture_of",
+           "glue_of", "glue_material"]
 
 NAMESPACE = "dempipe:"
 FRACTURE = "dempipe:fracture:"
@@ -170,3 +170,45 @@ def glue_material(prim, where: str) -> dict:
         raise SceneError(f"{where}: {given} without dempipe:glueStrength (add double "
                          "dempipe:glueStrength, the glue's tensile strength in Pa, e.g. 2e5)")
     return kw
+
+
+def fracture_and_glue(prim, where: str, stretch, mpu: float, instanced: bool, material,
+                      material_path: str | None):
+    """(FractureSpec | None, glue) of a body prim, refused where its pieces could not be
+    written back or glued.
+
+    instanced : the prim is a PointInstancer's prototype; material : the body's
+    MaterialSpec (its contacts' and glue's), bound at ``material_path`` (None: dempipe's
+    default material, no binding).
+    """
+    from pxr import Usd, UsdPhysics
+
+    spec = fracture_of(prim, where, stretch, mpu)
+    glue = glue_of(prim, where)
+    if spec is None:
+        if glue:
+            raise SceneError(f"{where}: dempipe:glue = true on a body that is not fractured: "
+                             "only the pieces of a fractured body are glued (add int "
+                             "dempipe:fracture:pieces = 8, or remove dempipe:glue)")
+        return None, False
+    if instanced:
+        raise SceneError(f"{where}: dempipe:fracture:* on a PointInstancer's prototype "
+                         f"({prim.GetPath()}): not supported (make the body a prim of its "
+                         "own, or remove the fracture attributes)")
+    if UsdPhysics.RigidBodyAPI(prim).GetKinematicEnabledAttr().Get():
+        raise SceneError(f"{where}: dempipe:fracture:* on a kinematic body: its pieces would "
+                         "not move apart (remove the fracture attributes or "
+                         "physics:kinematicEnabled)")
+    nested = [str(p.GetPath()) for p in Usd.PrimRange(prim)
+              if p != prim and p.HasAPI(UsdPhysics.RigidBodyAPI)]
+    if nested:
+        raise SceneError(f"{where}: a fractured body holds another body ({nested[0]}): its "
+                         "pieces replace the whole prim in the overlay (move the nested body "
+                         "out from under it)")
+    if glue and material.glue_strength is None:
+        fix = (f"add double dempipe:glueStrength (Pa, e.g. 2e5) to {material_path}"
+               if material_path else "bind a physics material with dempipe:glueStrength "
+               "(Pa, e.g. 2e5) to its collision shapes")
+        raise SceneError(f"{where}: dempipe:glue = true, but its material has no glue "
+                         f"strength ({fix})")
+    return spec, glue

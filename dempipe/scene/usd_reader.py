@@ -39,7 +39,7 @@ from dempipe.scene.data import (
     SimulationSettings,
 )
 from dempipe.scene.settings import parse_simulation
-from dempipe.scene.usd_attributes import fracture_of, glue_material, glue_of
+from dempipe.scene.usd_attributes import fracture_and_glue, glue_material
 from dempipe.scene.usd_stage import (
     MAX_FRICTION,
     MAX_GRAVITY,
@@ -481,7 +481,9 @@ class _Reader:
                               "largest shape's, and the mass sums each shape's")
 
         mass, com, inertia = self.mass_properties(prim, parts, S, where)
-        fracture, glue = self.fracture(prim, where, S, instancer, mat)
+        fracture, glue = fracture_and_glue(
+            prim, where, S, self.mpu, instancer is not None, self.materials[mat],
+            next((p for p, n in self.material_of_prim.items() if n == mat), None))
         if fracture is not None and (com is not None or inertia is not None):
             self.notes.append(f"{where}: a fractured body; its physics:centerOfMass and "
                               "physics:diagonalInertia are not used (each piece's come from "
@@ -514,42 +516,6 @@ class _Reader:
             starts_asleep=bool(rb.GetStartsAsleepAttr().Get()), glue=glue))
         self.bodies.append(UsdBody(prim=instancer or str(prim.GetPath()), instance=instance,
                                    stretch=S, fractured=fracture is not None))
-
-    def fracture(self, prim, where, S, instancer, mat):
-        """(FractureSpec | None, glue) of a body from its ``dempipe:`` attributes
-        (scene.usd_attributes), refused where the overlay could not show the pieces."""
-        from pxr import Usd, UsdPhysics
-
-        spec = fracture_of(prim, where, S, self.mpu)
-        glue = glue_of(prim, where)
-        if spec is None:
-            if glue:
-                raise SceneError(f"{where}: dempipe:glue = true on a body that is not "
-                                 "fractured: only the pieces of a fractured body are glued "
-                                 "(add int dempipe:fracture:pieces = 8, or remove dempipe:glue)")
-            return None, False
-        if instancer is not None:
-            raise SceneError(f"{where}: dempipe:fracture:* on a PointInstancer's prototype "
-                             f"({prim.GetPath()}): not supported (make the body a prim of its "
-                             "own, or remove the fracture attributes)")
-        if UsdPhysics.RigidBodyAPI(prim).GetKinematicEnabledAttr().Get():
-            raise SceneError(f"{where}: dempipe:fracture:* on a kinematic body: its pieces "
-                             "would not move apart (remove the fracture attributes or "
-                             "physics:kinematicEnabled)")
-        nested = [str(p.GetPath()) for p in Usd.PrimRange(prim)
-                  if p != prim and p.HasAPI(UsdPhysics.RigidBodyAPI)]
-        if nested:
-            raise SceneError(f"{where}: a fractured body holds another body ({nested[0]}): "
-                             "its pieces replace the whole prim in the overlay (move the "
-                             "nested body out from under it)")
-        if glue and self.materials[mat].glue_strength is None:
-            which = next((p for p, n in self.material_of_prim.items() if n == mat), None)
-            fix = (f"add double dempipe:glueStrength (Pa, e.g. 2e5) to {which}" if which
-                   else "bind a physics material with dempipe:glueStrength (Pa, e.g. 2e5) "
-                   "to its collision shapes")
-            raise SceneError(f"{where}: dempipe:glue = true, but its material has no glue "
-                             f"strength ({fix})")
-        return spec, glue
 
     def read_kinematic(self, prim):
         """A kinematic body: a single-body group with ``kinematic = True`` whose Motion

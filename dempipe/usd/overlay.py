@@ -2,7 +2,7 @@
 
 The layer's ``subLayers`` hold the input stage (by a path relative to the overlay),
 and it authors nothing but the animation of the input's own body prims, as ``over``
-specs: no geometry, no copies of prims. Opening the overlay shows the input shot,
+specs: no geometry, no copies of prims, but for a fractured body's pieces. Opening the overlay shows the input shot,
 animated; a DCC can also load it as a layer on top of its own stage.
 
 Per body prim (see docs/usd-input.md, "The overlay"):
@@ -19,6 +19,11 @@ Per body prim (see docs/usd-input.md, "The overlay"):
   A prim that resets the transform stack keeps ``!resetXformStack!``.
 * ``physics:velocity`` and ``physics:angularVelocity`` (degrees per second), in the
   parent's space as the schema has them.
+
+A fractured body (``dempipe:fracture:*``, scene.usd_attributes) is its pieces: its prim
+is made inactive and its pieces are defined beside it, under ``<name>_pieces``, one
+Mesh body prim each with the ops above, the broken faces bound to an inside material
+(``OverlayWriter._prepare_pieces`` says why inactive, not invisible).
 
 Kinematic bodies (``kinematicEnabled``) are left out: the input's own animation
 is what they follow (dempipe.scene.usd_reader reads it as their keys), so the overlay
