@@ -173,16 +173,24 @@ def glue_material(prim, where: str) -> dict:
 
 
 def fracture_and_glue(prim, where: str, stretch, mpu: float, instanced: bool, material,
-                      material_path: str | None):
+                      material_path: str | None, shapes=()):
     """(FractureSpec | None, glue) of a body prim, refused where its pieces could not be
     written back or glued.
 
     instanced : the prim is a PointInstancer's prototype; material : the body's
     MaterialSpec (its contacts' and glue's), bound at ``material_path`` (None: dempipe's
-    default material, no binding).
+    default material, no binding); shapes : its collision prims, where a body's
+    attribute put on the shape instead (a DCC's habit) is refused, not ignored.
     """
     from pxr import Usd, UsdPhysics
 
+    for c in shapes:
+        stray = [a.GetName() for a in c.GetAttributes() if c != prim
+                 and a.GetName() in BODY_ATTRIBUTES and a.HasAuthoredValue()]
+        if stray:
+            raise SceneError(f"{where}: {stray[0]} is on its collision shape {c.GetPath()}, "
+                             f"not on the body (move it to {prim.GetPath()}, the prim with "
+                             "PhysicsRigidBodyAPI)")
     spec = fracture_of(prim, where, stretch, mpu)
     glue = glue_of(prim, where)
     if spec is None:

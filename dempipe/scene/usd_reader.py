@@ -483,7 +483,7 @@ class _Reader:
         mass, com, inertia = self.mass_properties(prim, parts, S, where)
         fracture, glue = fracture_and_glue(
             prim, where, S, self.mpu, instancer is not None, self.materials[mat],
-            next((p for p, n in self.material_of_prim.items() if n == mat), None))
+            next((p for p, n in self.material_of_prim.items() if n == mat), None), prims)
         if fracture is not None and (com is not None or inertia is not None):
             self.notes.append(f"{where}: a fractured body; its physics:centerOfMass and "
                               "physics:diagonalInertia are not used (each piece's come from "

@@ -123,6 +123,15 @@ def _set(prim, name, type_name, value):
     prim.CreateAttribute(name, type_name).Set(value)
 
 
+def _on_the_shape(st, p, m):
+    """The attributes on a collision child of an Xform body, not on the body."""
+    xf = UsdGeom.Xform.Define(st, "/World/Rig")
+    UsdPhysics.RigidBodyAPI.Apply(xf.GetPrim())
+    c = UsdGeom.Cube.Define(st, "/World/Rig/Shape")
+    UsdPhysics.CollisionAPI.Apply(c.GetPrim())
+    _set(c.GetPrim(), "dempipe:fracture:pieces", _T.Int, 8)
+
+
 def _instancer_proto(st, p, m):
     pi = UsdGeom.PointInstancer.Define(st, "/World/Crates")
     proto = UsdGeom.Cube.Define(st, "/World/Crates/Protos/Crate")
@@ -159,6 +168,7 @@ REFUSALS = [
     (lambda st, p, m: UsdPhysics.RigidBodyAPI(p).CreateKinematicEnabledAttr(True),
      "/World/Block", "kinematic", "physics:kinematicEnabled"),
     (_instancer_proto, "/World/Crates[0]", "PointInstancer", "a prim of its own"),
+    (_on_the_shape, "/World/Rig/Shape", "dempipe:fracture:pieces", "move it to /World/Rig"),
 ]
 
 
@@ -166,7 +176,7 @@ REFUSALS = [
                          ids=["glue-unfractured", "negative-strength", "non-integer-pieces",
                               "one-piece", "typo", "glue-without-strength",
                               "damping-without-strength", "share-without-impact",
-                              "kinematic", "instancer"])
+                              "kinematic", "instancer", "on-the-shape"])
 def test_bad_attributes_are_refused_naming_prim_and_attribute(tmp_path, author, prim,
                                                               attribute, fix):
     text = _refusal(tmp_path, author)
