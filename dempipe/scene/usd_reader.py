@@ -485,9 +485,9 @@ class _Reader:
             prim, where, S, self.mpu, instancer is not None, self.materials[mat],
             next((p for p, n in self.material_of_prim.items() if n == mat), None), prims)
         if fracture is not None and (com is not None or inertia is not None):
-            self.notes.append(f"{where}: a fractured body; its physics:centerOfMass and "
-                              "physics:diagonalInertia are not used (each piece's come from "
-                              "its mesh, its mass shared by volume)")
+            self.notes.append(f"{where}: a fractured body: each piece's centre of mass and "
+                              "inertia come from its mesh at one density (physics:centerOfMass"
+                              ", diagonalInertia or unequal shape densities are not used)")
             com = inertia = None
         group = _name(instancer + f"_{instance}" if instancer else str(prim.GetPath()),
                       self.names)

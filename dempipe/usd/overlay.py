@@ -2,8 +2,9 @@
 
 The layer's ``subLayers`` hold the input stage (by a path relative to the overlay),
 and it authors nothing but the animation of the input's own body prims, as ``over``
-specs: no geometry, no copies of prims, but for a fractured body's pieces. Opening the overlay shows the input shot,
-animated; a DCC can also load it as a layer on top of its own stage.
+specs: no geometry, no copies of prims, but for a fractured body's pieces. Opening the
+overlay shows the input shot, animated; a DCC can also load it as a layer on top of
+its own stage.
 
 Per body prim (see docs/usd-input.md, "The overlay"):
 
