@@ -39,6 +39,7 @@ from dempipe.scene.data import (
     SimulationSettings,
 )
 from dempipe.scene.settings import parse_simulation
+from dempipe.scene.usd_attributes import fracture_and_glue, glue_material
 from dempipe.scene.usd_stage import (
     MAX_FRICTION,
     MAX_GRAVITY,
@@ -95,6 +96,8 @@ class UsdBody:
     com : (3,) centre of mass in the body's stretched local frame [m] (what dempipe
         puts at the body origin); filled in from the Model by the overlay writer.
     kinematic : whether the body follows its authored animation (not written back).
+    fractured : whether the body is its pieces (``dempipe:fracture:*``, its group's
+        bodies in the Model).
     """
 
     prim: str
@@ -103,6 +106,9 @@ class UsdBody:
     kinematic: bool = False
     """A kinematic body (``kinematicEnabled``): it follows the prim's own animation,
     which the overlay leaves as it is."""
+    fractured: bool = False
+    """A fractured body (``dempipe:fracture:pieces``): the Model has a body per piece
+    (of the group this body is), which the overlay writes as prims of their own."""
 
 
 @dataclass(frozen=True)
@@ -110,7 +116,8 @@ class UsdShot:
     """A stage read for baking: what the overlay writer needs besides Frames.
 
     stage_path : absolute path of the input stage (the overlay's subLayer).
-    bodies : one UsdBody per dynamic body, in Model order.
+    bodies : one UsdBody per body group of the Scene (and the Model's body_group): a
+        whole body is one Model body, a fractured one its pieces.
     instancers : {instancer path: (n_instances, proto transform matrices (n,4,4) of
         each instance's prototype root local xform)} for instancers of bodies.
     meters_per_unit, kilograms_per_unit, up_axis : the stage's.
@@ -228,9 +235,10 @@ class _Reader:
             raise SceneError(f"{key}: physics:dynamicFriction = {mu:g} (expected a number in "
                              f"[0, {MAX_FRICTION:g}])")
         rho = density_of(m.GetDensityAttr(), self.kpu, self.mpu, key)
+        glue = glue_material(mat.GetPrim(), key)
         name = _name(p, self.names)
         spec = MaterialSpec(name, density=rho if rho > 0 else DEFAULT_DENSITY, restitution=e,
-                            friction=mu)
+                            friction=mu, **glue)
         self.materials[name] = spec
         self.material_of_prim[p] = name
         # remember whether the density was authored for the mass rules
@@ -473,9 +481,17 @@ class _Reader:
                               "largest shape's, and the mass sums each shape's")
 
         mass, com, inertia = self.mass_properties(prim, parts, S, where)
+        fracture, glue = fracture_and_glue(
+            prim, where, S, self.mpu, instancer is not None, self.materials[mat],
+            next((p for p, n in self.material_of_prim.items() if n == mat), None), prims)
+        if fracture is not None and (com is not None or inertia is not None):
+            self.notes.append(f"{where}: a fractured body: each piece's centre of mass and "
+                              "inertia come from its mesh at one density (physics:centerOfMass"
+                              ", diagonalInertia or unequal shape densities are not used)")
+            com = inertia = None
         group = _name(instancer + f"_{instance}" if instancer else str(prim.GetPath()),
                       self.names)
-        self.shapes[group] = ShapeSpec(name=group, mesh=mesh,
+        self.shapes[group] = ShapeSpec(name=group, mesh=mesh, fracture=fracture,
                                        center_of_mass=None if com is None else tuple(com))
         rb = UsdPhysics.RigidBodyAPI(prim)
         if velocity is None:
@@ -497,9 +513,9 @@ class _Reader:
             name=group, shape=group, material=mat, position=tuple(W_body[3, :3] * self.mpu),
             rotation=tuple(q), velocity=tuple(v * self.mpu), angular_velocity=tuple(np.radians(w)),
             mass=mass, inertia=None if inertia is None else tuple(map(tuple, inertia)),
-            starts_asleep=bool(rb.GetStartsAsleepAttr().Get())))
+            starts_asleep=bool(rb.GetStartsAsleepAttr().Get()), glue=glue))
         self.bodies.append(UsdBody(prim=instancer or str(prim.GetPath()), instance=instance,
-                                   stretch=S))
+                                   stretch=S, fractured=fracture is not None))
 
     def read_kinematic(self, prim):
         """A kinematic body: a single-body group with ``kinematic = True`` whose Motion

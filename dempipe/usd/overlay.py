@@ -2,8 +2,9 @@
 
 The layer's ``subLayers`` hold the input stage (by a path relative to the overlay),
 and it authors nothing but the animation of the input's own body prims, as ``over``
-specs: no geometry, no copies of prims. Opening the overlay shows the input shot,
-animated; a DCC can also load it as a layer on top of its own stage.
+specs: no geometry, no copies of prims, but for a fractured body's pieces. Opening the
+overlay shows the input shot, animated; a DCC can also load it as a layer on top of
+its own stage.
 
 Per body prim (see docs/usd-input.md, "The overlay"):
 
@@ -19,6 +20,11 @@ Per body prim (see docs/usd-input.md, "The overlay"):
   A prim that resets the transform stack keeps ``!resetXformStack!``.
 * ``physics:velocity`` and ``physics:angularVelocity`` (degrees per second), in the
   parent's space as the schema has them.
+
+A fractured body (``dempipe:fracture:*``, scene.usd_attributes) is its pieces: its prim
+is made inactive and its pieces are defined beside it, under ``<name>_pieces``, one
+Mesh body prim each with the ops above, the broken faces bound to an inside material
+(``OverlayWriter._prepare_pieces`` says why inactive, not invisible).
 
 Kinematic bodies (``kinematicEnabled``) are left out: the input's own animation
 is what they follow (dempipe.scene.usd_reader reads it as their keys), so the overlay
@@ -48,6 +54,14 @@ from dempipe.errors import ExportError
 from dempipe.scene.usd_geometry import matrix_to_quat, polar
 from dempipe.sim.model import quat_to_matrix
 from dempipe.usd.animation import EXTENSIONS, ExportInfo, save_atomically
+from dempipe.usd.authoring import _attr
+from dempipe.usd.meshes import (
+    _INSIDE_COLOR,
+    _PALETTE,
+    _author_material,
+    _author_mesh,
+    _inside,
+)
 from dempipe.version import __version__
 
 __all__ = ["OverlayWriter", "write_overlay"]
@@ -122,10 +136,12 @@ class OverlayWriter:
         if self.path.resolve() == Path(shot.stage_path).resolve():
             raise ExportError(f"{self.path}: is the input stage; write the overlay to "
                               "another file")
-        if len(shot.bodies) != model.n_bodies:
+        if len(shot.bodies) != len(model.group_names):
             raise ExportError(f"the shot has {len(shot.bodies)} bodies, the model "
-                              f"{model.n_bodies}")
+                              f"{len(model.group_names)} body groups")
         self.model, self.shot = model, shot
+        #: each Model body's shot body (its group: a fractured body's pieces share one)
+        self.of = [shot.bodies[int(g)] for g in np.asarray(model.body_group)[:model.n_bodies]]
         self.mpu = float(shot.meters_per_unit)
         self.stage = Usd.Stage.Open(str(shot.stage_path), Usd.Stage.LoadAll)
         self.t0 = Usd.TimeCode(shot.start)
@@ -136,17 +152,24 @@ class OverlayWriter:
                     for b in range(model.n_bodies)]
         self.layer = Sdf.Layer.CreateAnonymous("overlay" + self.path.suffix.lower())
         self._author_header()
-        self.prims, self.instanced = {}, {}
+        self.prims, self.instanced, pieces = {}, {}, {}
         #: body prim path -> body index, for a body nested under another one
-        self.body_at = {body.prim: b for b, body in enumerate(shot.bodies)
-                        if body.instance < 0 and not getattr(body, "kinematic", False)}
-        for b, body in enumerate(shot.bodies):
-            if getattr(body, "kinematic", False):
+        self.body_at = {body.prim: b for b, body in enumerate(self.of)
+                        if body.instance < 0 and not body.kinematic and not body.fractured}
+        for b, body in enumerate(self.of):
+            if body.kinematic:
                 continue        # it follows the input's own animation: left as authored
-            if body.instance >= 0:
+            if body.fractured:
+                pieces.setdefault(body.prim, []).append(b)
+            elif body.instance >= 0:
                 self.instanced.setdefault(body.prim, []).append(b)
             else:
-                self.prims[b] = self._prepare_prim(body)
+                prim = self.stage.GetPrimAtPath(body.prim)
+                spec = Sdf.CreatePrimInLayer(self.layer, prim.GetPath())
+                spec.specifier = Sdf.SpecifierOver
+                self.prims[b] = self._prepare_prim(prim, spec, np.asarray(body.stretch))
+        for path, bodies in pieces.items():
+            self._prepare_pieces(self.stage.GetPrimAtPath(path), bodies)
 
     # -- layer header ------------------------------------------------------------
     def _author_header(self):
@@ -170,11 +193,12 @@ class OverlayWriter:
                                f"{Path(self.shot.stage_path).name}")
 
     # -- body prims --------------------------------------------------------------
-    def _prepare_prim(self, body):
-        prim = self.stage.GetPrimAtPath(body.prim)
+    def _prepare_prim(self, prim, spec, S, own_reset: bool = True):
+        """The attribute specs of a body written at ``spec``: an over of the input's
+        ``prim``, or a piece beside it (``own_reset`` False: its parent holds the
+        input's ``!resetXformStack!``); ``prim``'s parents are the parents."""
         xf = UsdGeom.Xformable(prim)
         reset = bool(xf.GetResetXformStack())
-        S = np.asarray(body.stretch)
         times = np.arange(int(round(self.shot.start)), int(round(self.shot.end)) + 1)
         parents = [self._parent(prim, t, reset) for t in times[:1]]
         if self._parent_animated(prim):
@@ -182,15 +206,14 @@ class OverlayWriter:
         carrier = None if reset else self._carrier(prim)
         if carrier is not None:     # the parent turns with a simulated body
             c, rel = carrier
-            parents = [rel @ np.block([[np.asarray(self.shot.bodies[c].stretch), np.zeros((3, 1))],
+            parents = [rel @ np.block([[np.asarray(self.of[c].stretch), np.zeros((3, 1))],
                                        [np.zeros((1, 3)), np.ones((1, 1))]])]
         trs = _diagonal(S) and all(_conformal(P[:3, :3]) for P in parents)
-        spec = Sdf.CreatePrimInLayer(self.layer, prim.GetPath())
-        spec.specifier = Sdf.SpecifierOver
         ops = list(OPS_TRS if trs else (OP_MATRIX,))
         order = Sdf.AttributeSpec(spec, "xformOpOrder", _T.TokenArray,
                                   variability=Sdf.VariabilityUniform)
-        order.default = Vt.TokenArray((["!resetXformStack!"] if reset else []) + ops)
+        order.default = Vt.TokenArray((["!resetXformStack!"] if reset and own_reset else [])
+                                      + ops)
         attrs = {}
         if trs:
             attrs["t"] = Sdf.AttributeSpec(spec, OPS_TRS[0], _T.Double3)
@@ -201,6 +224,58 @@ class OverlayWriter:
         attrs["v"] = Sdf.AttributeSpec(spec, "physics:velocity", _T.Vector3f)
         attrs["w"] = Sdf.AttributeSpec(spec, "physics:angularVelocity", _T.Vector3f)
         return dict(prim=prim, reset=reset, trs=trs, attrs=attrs, S=S, carrier=carrier)
+
+    # -- fractured bodies ----------------------------------------------------------
+    def _prepare_pieces(self, prim, bodies):
+        """A fractured body: the input's prim deactivated, its pieces beside it.
+
+        ``active = false`` rather than ``visibility = invisible``: the whole body leaves
+        the composed stage with everything below it (its render meshes, its collision
+        shapes and RigidBodyAPI), so neither a renderer nor a physics engine reading
+        the composed stage finds the whole body over its pieces (an invisible prim
+        still collides, and is still exported by a DCC). The pieces go under a new
+        Xform beside it, ``<name>_pieces`` (so they keep its parents, and the input's
+        prim is still there to turn back on): one Mesh per piece with RigidBodyAPI,
+        CollisionAPI and its mass, the piece's mesh about its centre of mass, the
+        broken faces a GeomSubset bound to an inside material (as usd/meshes.py writes
+        a TOML scene's pieces), the outside bound to the input's own render material
+        when it has one, and the physics material of its shapes bound for physics.
+        """
+        over = Sdf.CreatePrimInLayer(self.layer, prim.GetPath())
+        over.specifier = Sdf.SpecifierOver
+        over.active = False
+        parent = prim.GetParent()
+        name, k = f"{prim.GetName()}_pieces", 1
+        while parent.GetChild(name) or self.layer.GetPrimAtPath(
+                parent.GetPath().AppendChild(name)):
+            name, k = f"{prim.GetName()}_pieces_{k}", k + 1
+        group = Sdf.CreatePrimInLayer(self.layer, parent.GetPath().AppendChild(name))
+        group.specifier = Sdf.SpecifierDef
+        group.typeName = "Xform"
+        if UsdGeom.Xformable(prim).GetResetXformStack():
+            _attr(group, "xformOpOrder", _T.TokenArray, Vt.TokenArray(["!resetXformStack!"]),
+                  uniform=True)
+        colour, outside, physics = _looks_of(prim)
+        looks = Sdf.PrimSpec(group, "Looks", Sdf.SpecifierDef, "Scope")
+        if outside is None:
+            outside = _author_material(looks, "outside_mat", colour)
+        inside = _author_material(looks, "inside_mat", _INSIDE_COLOR)
+        kpu = float(self.shot.kilograms_per_unit)
+        for k, b in enumerate(bodies):
+            shape = self.model.shapes[self.model.body_shape[b]]
+            spec = Sdf.PrimSpec(group, f"piece_{k:02d}", Sdf.SpecifierDef, "Mesh")
+            _author_mesh(spec, np.asarray(shape.vertices) / self.mpu, shape.faces, colour,
+                         outside, _inside(shape, inside))
+            spec.SetInfo("apiSchemas", Sdf.TokenListOp.CreateExplicit(
+                ["MaterialBindingAPI", "PhysicsRigidBodyAPI", "PhysicsCollisionAPI",
+                 "PhysicsMassAPI"]))
+            _attr(spec, "physics:mass", _T.Float, float(self.model.body_mass[b]) / kpu)
+            if physics is not None:
+                rel = Sdf.RelationshipSpec(spec, "material:binding:physics", custom=False)
+                rel.targetPathList.explicitItems = [physics]
+            # the piece's mesh is about its centre of mass, in the body's stretched frame
+            self.com[b] = np.zeros(3)
+            self.prims[b] = self._prepare_prim(prim, spec, np.eye(3), own_reset=False)
 
     def _carrier(self, prim):
         """(body index, parent-to-body matrix) of the nearest simulated body above
@@ -263,7 +338,7 @@ class OverlayWriter:
             if carrier is not None:
                 c, rel = carrier
                 P = rel @ self._world(c, frames.x[k, c], frames.q[k, c],
-                                      np.asarray(self.shot.bodies[c].stretch))
+                                      np.asarray(self.of[c].stretch))
             elif P is None or animated:
                 P = self._parent(info["prim"], t, info["reset"])
             W = self._world(b, frames.x[k, b], frames.q[k, b], info["S"])
@@ -316,9 +391,9 @@ class OverlayWriter:
             if len(ang) != n:
                 ang = np.zeros((n, 3))
             for b in bodies:
-                i = self.shot.bodies[b].instance
+                i = self.of[b].instance
                 W = self._world(b, frames.x[k, b], frames.q[k, b],
-                                np.asarray(self.shot.bodies[b].stretch))
+                                np.asarray(self.of[b].stretch))
                 K = inv_proto[i] @ W @ inv_inst          # scale · orient · translate
                 _, R_i = polar(K[:3, :3])
                 q = matrix_to_quat(R_i.T)
@@ -404,6 +479,30 @@ class OverlayWriter:
         save_atomically(self.layer, self.path)
         return ExportInfo(path=self.path, seconds=time.perf_counter() - t0,
                           n_time_samples=self.n_samples, bytes=self.path.stat().st_size)
+
+
+def _looks_of(prim):
+    """(display colour, render material path or None, physics material path or None)
+    of a body prim: its own bindings or, failing those, the first gprim's below it."""
+    from pxr import UsdPhysics, UsdShade
+
+    colour, render, physics = tuple(_PALETTE[0]), None, None
+    for p in Usd.PrimRange(prim):
+        if p.IsA(UsdGeom.Gprim) and colour == tuple(_PALETTE[0]):
+            c = UsdGeom.Gprim(p).GetDisplayColorAttr().Get()
+            if c is not None and len(c):
+                colour = tuple(float(x) for x in c[0])
+        api = UsdShade.MaterialBindingAPI(p)
+        if render is None:
+            m = api.ComputeBoundMaterial()[0]
+            # a material that draws: a physics-only one would hide the display colour
+            if m and m.GetSurfaceOutput() and m.GetSurfaceOutput().HasConnectedSource():
+                render = m.GetPath()
+        if physics is None and p.HasAPI(UsdPhysics.CollisionAPI):
+            m = api.ComputeBoundMaterial("physics")[0] or api.ComputeBoundMaterial()[0]
+            if m and m.GetPrim().HasAPI(UsdPhysics.MaterialAPI):
+                physics = m.GetPath()
+    return colour, render, physics
 
 
 def write_overlay(path, frames, model, shot) -> ExportInfo:

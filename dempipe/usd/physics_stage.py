@@ -3,7 +3,8 @@
 So a TOML user can move a scene to a DCC and back: reading the written stage with
 :func:`dempipe.scene.usd_reader.load_usd_scene` gives the same bodies (mesh-origin
 positions, orientations, velocities, masses), materials (restitution, friction,
-density), gravity, timing and plane and mesh colliders.
+density, glue), fracture and glue (dempipe's own ``dempipe:`` attributes), gravity,
+timing and plane and mesh colliders.
 
 Layout: ``/World/PhysicsScene``; ``/World/Looks/<material>`` (PhysicsMaterialAPI);
 ``/World/Bodies/<group>/<group>_<i>``: one Mesh per body with translate and orient
@@ -136,6 +137,13 @@ def write_physics_stage(scene, path) -> Path:
         api.CreateDynamicFrictionAttr(float(spec.friction))
         api.CreateStaticFrictionAttr(float(spec.friction))
         api.CreateDensityAttr(float(spec.density) * mpu ** 3)       # kg per unit³
+        if spec.glue_strength is not None:      # dempipe's own attributes, in SI
+            glue = {"dempipe:glueStrength": spec.glue_strength,
+                    "dempipe:glueDamping": spec.glue_damping}
+            if spec.glue_stiffness != "auto":
+                glue["dempipe:glueStiffness"] = spec.glue_stiffness
+            for key, value in glue.items():
+                mat.GetPrim().CreateAttribute(key, Sdf.ValueTypeNames.Double).Set(float(value))
         if spec.stiffness != "auto":
             warnings.warn(f"materials.{name}.stiffness = {spec.stiffness:g} N/m has no "
                           "UsdPhysics attribute; the stage leaves it to 'auto'", stacklevel=2)
@@ -181,6 +189,7 @@ def write_physics_stage(scene, path) -> Path:
                 rb.CreateAngularVelocityAttr(
                     Gf.Vec3f(*np.degrees(placement.angular_velocities[i])))
             bind(prim, placement.material)
+            _fracture(prim, scene.shapes[shape].fracture, group.glue, mpu)
 
     UsdGeom.Scope.Define(stage, "/World/Colliders")
     for c in scene.colliders:
@@ -230,6 +239,27 @@ def write_physics_stage(scene, path) -> Path:
             bind(prim, c.material)
     save_atomically(layer, path)
     return path
+
+
+def _fracture(prim, spec, glue: bool, mpu: float) -> None:
+    """A fractured shape's FractureSpec and its group's glue as the body prim's
+    ``dempipe:`` attributes (scene/usd_attributes.py); the prim's local space is the
+    shape's own coordinates in stage units."""
+    if spec is None:
+        return
+    T = Sdf.ValueTypeNames
+    prim.CreateAttribute("dempipe:fracture:pieces", T.Int).Set(int(spec.pieces))
+    prim.CreateAttribute("dempipe:fracture:seed", T.Int).Set(int(spec.seed))
+    if spec.impact is not None:
+        prim.CreateAttribute("dempipe:fracture:impact", T.Point3d).Set(
+            Gf.Vec3d(*(np.asarray(spec.impact, float) / mpu)))
+        prim.CreateAttribute("dempipe:fracture:impactShare", T.Double).Set(
+            float(spec.impact_share))
+        if spec.impact_radius is not None:
+            prim.CreateAttribute("dempipe:fracture:impactRadius", T.Double).Set(
+                float(spec.impact_radius) / mpu)
+    if glue:
+        prim.CreateAttribute("dempipe:glue", T.Bool).Set(True)
 
 
 def _moving_collider(xf, motion, origin, rotation, out, mpu):
