@@ -27,6 +27,7 @@ FORMULAS = (
     "chord_velocity",
     "sphere_kinematics",
     "static_body",
+    "carry_stretch",
     "contact_force",
     "sphere_pair_force",
     "sphere_wall_force",
