@@ -7,7 +7,7 @@ Two steps, each in its own process (numba reads ``NUMBA_ENABLE_CUDASIM`` once, a
 its first import of ``numba.cuda``):
 
 1. **Record** (CUDA simulator): small scenes covering every feature switch
-   (friction, walls, sleeping, one-sphere bodies, static mesh colliders) are
+   (friction, walls, sleeping, one-sphere bodies, static mesh colliders, glue) are
    stepped, probed and grown by ``CudaBackend`` running its general kernels;
    every kernel launch is recorded with the numba types of its arguments. So
    the signatures are the ones the backend really launches, never a
@@ -118,6 +118,17 @@ def _scenes():
               motion=Motion(velocity=(0.02, 0, 0)))
     moving = b.finalize(fps=60, n_frames=1, sleep=(1.0, 100.0, 1e-9))
     out.append(("prescribed motion", replace(moving, sleep_steps=2), None))
+    # glue: three pieces of one lattice, glued where their spheres touch (the glue passes)
+    b = ModelBuilder(d)
+    ss, mesh = box_set(2, 1, 1, d)
+    s = b.add_shape("s", mesh, ss)
+    m = b.add_material(Material("m", density=1000, restitution=0.5, friction=0.4,
+                                glue_strength=1e3))
+    b.add_bodies("g", s, m, [[0, 0, 0.0051], [0.02, 0, 0.0051], [0.04, 0, 0.0051]],
+                 angular_velocities=[[0, 0, 1.0]] * 3, glue=[0, 0, 0])
+    b.add_plane([0, 0, 0], [0, 0, 1], m)
+    glued = b.finalize(fps=60, n_frames=1, sleep=(1.0, 100.0, 1e-9))
+    out.append(("glue", replace(glued, sleep_steps=2), None))
     return out
 
 
@@ -252,10 +263,12 @@ def compile_kernel(pyfunc, types, cc, ptxas: str, workdir: str) -> dict:
 
 
 def jobs(records: dict) -> list[tuple]:
-    """(kernel, flags or None, signature index, contact law) of every kernel variant to
-    compile: each recorded kernel as launched, each SPECIALIZED one for every feature
-    set, and the contact pass (the one kernel a law changes) for every other law
-    with every feature on (its most demanding variant: the others are subsets)."""
+    """(kernel, flags or None, signature index, contact law, glue) of every kernel
+    variant to compile: each recorded kernel as launched, each SPECIALIZED one for
+    every feature set, the contact pass (the one kernel a law changes) for every
+    other law with every feature on (its most demanding variant: the others are
+    subsets), and k_bodies with the bonds' sums (glue, every feature on; the glue
+    passes themselves are recorded as launched, their general kernels)."""
     import itertools
 
     from dempipe.sim import laws
@@ -264,12 +277,15 @@ def jobs(records: dict) -> list[tuple]:
     for name, sigs in records.items():
         for i in range(len(sigs)):
             if name in kc.SPECIALIZED:
-                out += [(name, flags, i, laws.DEFAULT)
+                out += [(name, flags, i, laws.DEFAULT, False)
                         for flags in itertools.product((False, True), repeat=4)]
             else:
-                out.append((name, None, i, laws.DEFAULT))
+                out.append((name, None, i, laws.DEFAULT, False))
             if name == "k_pair_forces":
-                out += [(name, (True,) * 4, i, law) for law in laws.LAWS if law != laws.DEFAULT]
+                out += [(name, (True,) * 4, i, law, False) for law in laws.LAWS
+                        if law != laws.DEFAULT]
+            if name == "k_bodies":
+                out.append((name, (True,) * 4, i, laws.DEFAULT, True))
     return out
 
 
@@ -281,12 +297,13 @@ def compile_jobs(records: dict, todo: list, cc=(9, 0)) -> list[dict]:
         raise RuntimeError("ptxas not found (install the CUDA toolkit, or put it on PATH)")
     rows = []
     with tempfile.TemporaryDirectory() as work:
-        for name, flags, i, law in todo:
+        for name, flags, i, law, glue in todo:
             kernel = getattr(kc, name) if flags is None else \
-                getattr(kc.kernels(flags, law), name)
+                getattr(kc.kernels(flags, law, glue), name)
             row = compile_kernel(kernel.py_func, tuple(records[name][i]), cc, ptxas, work)
             tag = kc.variant_tag(flags) if flags else ""
-            row.update(kernel=name, variant=tag + ("" if law == "linear" else f"_{law}"),
+            row.update(kernel=name, variant=tag + ("" if law == "linear" else f"_{law}")
+                       + ("_glue" if glue else ""),
                        signature=", ".join(str(t) for t in records[name][i]))
             rows.append(row)
     return rows
@@ -404,8 +421,8 @@ def table(result: dict) -> str:
     if tags:
         lines += ["", "The kernels specialized to the scene, per feature set (F friction, "
                   "R rotation, S sleeping, W walls; 1 compiled in; _hertz: the contact pass "
-                  "of that law, the others' kernels do not depend on it): registers / stack "
-                  "frame [B].",
+                  "of that law, the others' kernels do not depend on it; _glue: the body "
+                  "stage adding the glue bonds' sums): registers / stack frame [B].",
                   "", "| variant | " + " | ".join(f"`{k}`" for k in special) + " |",
                   "|---|" + "---:|" * len(special)]
         cell = {(r["kernel"], r["variant"]): r for r in result["rows"]}

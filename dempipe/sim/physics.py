@@ -139,6 +139,42 @@ def static_body(inv_mass):
 # Stage 4: contact force between two spheres, or a sphere and a wall (eq. 11-14)
 # ---------------------------------------------------------------------------
 
+def carry_stretch(nx, ny, nz, sx, sy, sz, spin, dt):
+    """A tangential stretch s [m] carried one step dt [s] with the contact or bond
+    it belongs to, as if fixed to it (Luding 2008's objective spring): turned by
+    spin dt about the unit normal n, spin [rad/s] being the two sides' mean
+    angular velocity along n, then projected into the current tangent plane (the
+    plane normal to n), its length kept. The projection turns it with the
+    normal's own rotation; the turn about n, with a pair twisting about its
+    normal. Returns the carried s, world frame [m].
+
+    The turn is to first order (s + spin dt n × s); the rescaling restores the
+    length, leaving an angle atan(spin dt), short by a third of (spin dt)² of it.
+    Kept in fixed axes instead, the spring of a pair turning at ω about its normal
+    lags by ω s per unit time, and only a slip ω × s keeps it pointing where the
+    force must: a box carried on a turntable creeps, a glued piece twisting about
+    its bond keeps its shear in stale axes. Odd in (n, s, spin) together: the other
+    side's carry is the exact negation (contact_force, glue_force)."""
+    s2 = sx * sx + sy * sy + sz * sz
+    a = spin * dt
+    rx = a * (ny * sz - nz * sy)
+    ry = a * (nz * sx - nx * sz)
+    rz = a * (nx * sy - ny * sx)
+    sx += rx
+    sy += ry
+    sz += rz
+    sn = sx * nx + sy * ny + sz * nz
+    sx -= sn * nx
+    sy -= sn * ny
+    sz -= sn * nz
+    p2 = sx * sx + sy * sy + sz * sz
+    if p2 > 0.0:
+        keep = sqrt(s2 / p2)
+        sx *= keep
+        sy *= keep
+        sz *= keep
+    return sx, sy, sz
+
 def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, sz, spin, dt,
                   vc=0.0):
     """Force on sphere i from one contact (eq. 11-14), with a Coulomb cap and a
@@ -165,16 +201,13 @@ def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, s
     s integrates the tangential slip u_t dt while the contact lasts. The spring
     is what holds a box on a slope: a viscous force vanishes with the speed,
     so it can only slow a creep, never stop it. Each step s is first carried
-    with the contact, as if fixed to it (Luding 2008's objective spring): turned
-    by spin dt about n, then into the current tangent plane (projected, length
-    kept; this turns it with the normal's own rotation), and only then grown
-    by u_t dt. Kept in fixed world axes instead, the spring of a contact
-    turning at ω about its normal (a box carried on a turntable) lags by ω s
-    per unit time, and only a slip u_t = ω × s keeps it pointing where the
-    force must: the box creeps. The sum is capped by Coulomb |f_t| ≤ μ |f_n| with |f_n| the
-    compressive part of the normal force; when the cap binds the contact
-    slides, and s is reset to what the capped force needs, so the spring
-    never stores more than μ |f_n| / ks.
+    with the contact, as if fixed to it (carry_stretch: turned by spin dt about
+    n, then into the current tangent plane, length kept), and only then grown
+    by u_t dt; in fixed world axes a box carried on a turntable would creep.
+    The sum is capped by Coulomb |f_t| ≤ μ |f_n| with |f_n| the compressive
+    part of the normal force; when the cap binds the contact slides, and s is
+    reset to what the capped force needs, so the spring never stores more than
+    μ |f_n| / ks.
 
     Antisymmetric in IEEE arithmetic: swapping i and j negates n, u, s and
     spin and gives exactly the negated force and stretch, so gathered sums conserve
@@ -191,28 +224,7 @@ def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, s
         tz = uz - un * nz
         cap = -mu * fn if fn < 0.0 else 0.0
         if ks > 0.0 and cap > 0.0:
-            # carry the stretch with the contact: turned by spin dt about n (to first
-            # order; the rescaling below restores its length, leaving an angle
-            # atan(spin dt), short by a third of (spin dt)² of it), then into the
-            # tangent plane, keeping its length
-            s2 = sx * sx + sy * sy + sz * sz
-            a = spin * dt
-            rx = a * (ny * sz - nz * sy)
-            ry = a * (nz * sx - nx * sz)
-            rz = a * (nx * sy - ny * sx)
-            sx += rx
-            sy += ry
-            sz += rz
-            sn = sx * nx + sy * ny + sz * nz
-            sx -= sn * nx
-            sy -= sn * ny
-            sz -= sn * nz
-            p2 = sx * sx + sy * sy + sz * sz
-            if p2 > 0.0:
-                keep = sqrt(s2 / p2)
-                sx *= keep
-                sy *= keep
-                sz *= keep
+            sx, sy, sz = carry_stretch(nx, ny, nz, sx, sy, sz, spin, dt)
             sx += tx * dt
             sy += ty * dt
             sz += tz * dt
@@ -407,8 +419,10 @@ def glue_force(rx, ry, rz, dist, rest, dvx, dvy, dvz, wsx, wsy, wsz, k, eta, sx,
     s : the shear stretch from the last step [m] (0 when glued); dt : the step [s].
 
     Normal: k (dist - rest) n + eta (u·n) n, in tension and compression. Shear:
-    the stretch s, turned into the current tangent plane (length kept) and grown
-    by u_t dt, gives k s + eta u_t, with no Coulomb cap (glue does not slide).
+    the stretch s, carried with the bond (carry_stretch: turned by the pair's mean
+    spin about n, (W_i + W_j)·n / 2 = ws·n / 2, then into the current tangent
+    plane, length kept) and grown by u_t dt, gives k s + eta u_t, with no Coulomb
+    cap (glue does not slide).
     Returns (fx, fy, fz, tx, ty, tz, sx, sy, sz, load): the torque (dist/2) n × f
     and load = |max(k (dist - rest), 0) n + k s| [N], the spring's force without the
     dashpot and without compression: what sim/glue.py compares with σ d² (glue
@@ -430,17 +444,8 @@ def glue_force(rx, ry, rz, dist, rest, dvx, dvy, dvz, wsx, wsy, wsz, k, eta, sx,
     tx = ux - un * nx
     ty = uy - un * ny
     tz = uz - un * nz
-    s2 = sx * sx + sy * sy + sz * sz
-    sn = sx * nx + sy * ny + sz * nz
-    sx -= sn * nx
-    sy -= sn * ny
-    sz -= sn * nz
-    p2 = sx * sx + sy * sy + sz * sz
-    if p2 > 0.0:
-        keep = sqrt(s2 / p2)
-        sx *= keep
-        sy *= keep
-        sz *= keep
+    spin = 0.5 * (wsx * nx + wsy * ny + wsz * nz)
+    sx, sy, sz = carry_stretch(nx, ny, nz, sx, sy, sz, spin, dt)
     sx += tx * dt
     sy += ty * dt
     sz += tz * dt

@@ -122,6 +122,31 @@ def test_tangential_spring_turns_with_a_contact_spinning_about_its_normal():
     assert abs(math.atan2(s[1], s[0]) - angle) < 1e-5
 
 
+def test_bond_shear_turns_with_a_pair_spinning_about_its_normal():
+    """A glue bond whose two sides spin together at ω about its normal (ws = 2ω n:
+    the bond point does not slip, u = 0) carries its shear stretch round with it,
+    as a contact does: after N steps of dt it is the first stretch turned by
+    ω N dt, length kept, still in the tangent plane, and its load the same. The
+    1e-5 rad allowed is the carry's atan(ω dt) per step, as for a contact (2.7e-6
+    rad in all here). Before the carry turned it, the stretch stayed at angle 0."""
+    k, eta, dt, omega, rest = 1e4, 5.0, 1e-3, 2.0, 0.01
+    s = (1e-4, 0.0, 0.0)
+    for _ in range(1000):
+        out = physics.glue_force(0.0, 0.0, rest, rest, rest, 0.0, 0.0, 0.0,
+                                 0.0, 0.0, 2.0 * omega, k, eta, *s, dt)
+        s = out[6:9]
+    angle = omega * 1000 * dt
+    assert math.hypot(*s) == pytest.approx(1e-4, rel=1e-12)
+    assert s[2] == 0.0
+    assert abs(math.atan2(s[1], s[0]) - angle) < 1e-5
+    assert out[9] == pytest.approx(k * 1e-4, rel=1e-12)
+    # seen from the other sphere (r, s negated; ws the same) it is the exact negation
+    back = physics.glue_force(0.0, 0.0, -rest, rest, rest, 0.0, 0.0, 0.0,
+                              0.0, 0.0, 2.0 * omega, k, eta, *(-c for c in s), dt)
+    assert back[6:9] == tuple(-c for c in physics.glue_force(
+        0.0, 0.0, rest, rest, rest, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0 * omega, k, eta, *s, dt)[6:9])
+
+
 @pytest.mark.parametrize("e", [0.05, 0.2, 0.5, 0.9, 0.99])
 def test_damping_ratio_inverts_restitution(e):
     z = materials.damping_ratio(e)

@@ -15,7 +15,7 @@ import os
 import types
 
 from dempipe.sim import laws, motion, physics
-from dempipe.sim.kernels import contacts, neighbours, pairing, patches
+from dempipe.sim.kernels import contacts, glue, neighbours, pairing, patches
 
 #: physics.py functions in dependency order (callees before callers).
 FORMULAS = (
@@ -27,6 +27,7 @@ FORMULAS = (
     "chord_velocity",
     "sphere_kinematics",
     "static_body",
+    "carry_stretch",
     "contact_force",
     "sphere_pair_force",
     "sphere_wall_force",
@@ -106,6 +107,18 @@ def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNam
     pt = compile_chain(patches, patches.KERNEL, jit, given)
     given.update(vars(pt))
     return compile_chain(contacts, ("pair_forces", "sphere_forces"), jit, given)
+
+
+def compile_glue(jit, formulas, pairing, constants: dict) -> types.SimpleNamespace:
+    """kernels/glue.py's passes (bond_forces, bond_contacts, body_glue_sum) compiled
+    with ``jit``, calling ``formulas`` (the target's compile_formulas: glue_force,
+    static_body) and ``pairing``'s entry_range (its compile_pairing), and reading
+    ``constants`` (the flags ROTATION, SLEEPING, PAIR_ROWS, and sqrt) as globals.
+    The CPU compiles them with compile.specialize instead."""
+    given = dict(glue_force=formulas.glue_force, static_body=formulas.static_body,
+                 entry_range=pairing.entry_range)
+    given.update(constants)
+    return compile_chain(glue, ("bond_forces", "bond_contacts", "body_glue_sum"), jit, given)
 
 
 def compile_formulas(jit, law: str = laws.DEFAULT) -> types.SimpleNamespace:

@@ -19,8 +19,9 @@ the body stage (kernels/bodies.py), only in a kernel compiled with GLUE:
    order, into body_glue[b], which the body stage adds to its spheres' sum.
 
 Plain functions: the CPU compiles them with kernels/cpu/stages.py's globals
-(compile.specialize); the names they read that are not defined here (glue_force,
-static_body, FRICTION, ROTATION, SLEEPING) are the target's.
+(compile.specialize), CUDA with compile.compile_glue; the names they read that are
+not defined here (glue_force, static_body, entry_range, sqrt, ROTATION, SLEEPING,
+PAIR_ROWS) are the target's.
 """
 
 
@@ -104,10 +105,13 @@ def bond_forces(n, gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w, bod
 
 
 def bond_contacts(n, gm, gs, slot_of, sorted_body, body_inv_mass, pair_start,
-                  pair_t, pair_f):
-    """Pass 2 for bond n (the CPU's packed pair rows, contacts.py PAIR_ROWS): while
-    it holds, the contact rows of its sphere pairs are zeroed (force, torque,
-    friction stretch), so that the second contact pass sums nothing for them."""
+                  pair_t, nbr, nbr_n, pidx, pair_f):
+    """Pass 2 for bond n: while it holds, the contact rows of its sphere pairs are
+    zeroed (force, torque, friction stretch), so that the second contact pass sums
+    nothing for them. The owner's rows are found as the first pass walks them
+    (contacts.py PAIR_ROWS): the CPU's packed rows pair_start[s] .. with their
+    partners in pair_t, or (CUDA) the owner's list nbr[s, :nbr_n[s]] with its rows
+    in pidx (the partner's entries, pidx < 0, skipped)."""
     (pair_i, pair_j, _pair_rest, bond_start, _bond_body, _bond_k, _bond_eta, _bond_limit,
      _body_bond_start, _body_bond) = gm
     bond_broken = gs.bond_broken
@@ -118,10 +122,17 @@ def bond_contacts(n, gm, gs, slot_of, sorted_body, body_inv_mass, pair_start,
         t = slot_of[pair_j[p]]
         if static_body(body_inv_mass[sorted_body[s]]):  # noqa: F821
             s, t = t, s             # the dynamic side owns (pairing.owns; pair_i < pair_j)
-        for e in range(pair_start[s], pair_start[s + 1]):
-            if pair_t[e] == t:
+        e0, e1 = entry_range(PAIR_ROWS, pair_start, nbr_n, s)  # noqa: F821
+        for e in range(e0, e1):
+            if PAIR_ROWS:  # noqa: F821
+                row = e
+                u = pair_t[e]
+            else:
+                row = pidx[s, e]
+                u = nbr[s, e]
+            if u == t and row >= 0:
                 for c in range(pair_f.shape[1]):
-                    pair_f[e, c] = 0.0
+                    pair_f[row, c] = 0.0
                 break
 
 

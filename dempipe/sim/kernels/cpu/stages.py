@@ -305,12 +305,11 @@ def stage_glue(gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w, body_in
 
 
 def stage_glue_contacts(gm, gs, slot_of, sorted_body, body_inv_mass, pair_start, pair_t,
-                        pair_f):
+                        nbr, nbr_n, pidx, pair_f):
     """A holding bond's sphere pairs are not also contacts (glue.bond_contacts)."""
     for n in prange(gm.bond_body.shape[0]):
         bond_contacts(n, gm, gs, slot_of, sorted_body, body_inv_mass, pair_start,  # noqa: F821
-                      pair_t,
-                      pair_f)
+                      pair_t, nbr, nbr_n, pidx, pair_f)
 
 
 def stage_glue_bodies(n_bodies, gm, gs, sphere_body, sphere_r):
@@ -497,7 +496,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
             stage_glue(gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w,
                        body_inv_mass, body_rest, body_wake, sleep_steps, dt)
             stage_glue_contacts(gm, gs, slot_of, sorted_body, body_inv_mass, pair_start,
-                                pair_t, pair_f)
+                                pair_t, nbr, nbr_n, pidx, pair_f)
         stage_sums(cm, cs, work, n_work)
         if GLUE:
             stage_glue_bodies(n_bodies, gm, gs, sphere_body, sphere_r)

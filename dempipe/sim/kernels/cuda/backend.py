@@ -44,12 +44,13 @@ from dempipe.errors import DeviceError
 from dempipe.sim.laws.linear import DAMP_TERMS
 from dempipe.sim.state import CONTACT_SLOTS
 from dempipe.sim.backend import copy_matching
-from dempipe.sim.kernels.compile import compile_contacts, compile_formulas
+from dempipe.sim.kernels.compile import compile_contacts, compile_formulas, compile_glue
 from dempipe.sim.kernels.pairing import PAIR_COLS, WALL_SLACK
 from dempipe.sim.kernels.patches import BODY_PATCHES
 from dempipe.sim.kernels.layout import (
-    CUDA_LAYOUT, FLAGS, GENERAL, ContactScratch, BodyScratch, body_model, layout_bytes,
-    contact_model, fit_grid, grid_table, run_flags, scene_features, static_extent)
+    CUDA_LAYOUT, FLAGS, GENERAL, ContactScratch, BodyScratch, GlueModel, GlueScratch,
+    body_model, layout_bytes, contact_model, fit_grid, glue_model, grid_table, run_flags,
+    scene_features, static_extent)
 from dempipe.sim.kernels.neighbours import NEIGHBOURS, SKIN, cell_size
 # The device side, by stage (each module's docstring says what it holds); the kernels
 # are imported here by name, so that the backend's launches read them from this
@@ -64,9 +65,11 @@ from dempipe.sim.kernels.cuda.grid import (
 from dempipe.sim.kernels.cuda.stages import (
     k_begin_call, k_body_velocities, k_driven, k_fill, k_idle_check, k_load_pairs, k_motion,
     k_pair_mirror, k_pair_slots, k_save_pairs, k_take_max)
-# SPECIALIZED: kernels() looks them up through globals()
+# SPECIALIZED, GLUE_KERNELS: kernels() looks them up through globals()
 from dempipe.sim.kernels.cuda.stages import (  # noqa: F401
-    k_bodies, k_body_patches, k_pair_forces, k_sphere_forces)
+    k_bodies, k_body_glue, k_body_patches, k_bond_contacts, k_bond_forces, k_pair_forces,
+    k_sphere_forces)
+from dempipe.sim.kernels.cuda import stages as _stages
 
 
 # ---------------------------------------------------------------------------
@@ -75,6 +78,9 @@ from dempipe.sim.kernels.cuda.stages import (  # noqa: F401
 
 #: The kernels compiled per feature set (FLAGS); the others read no flag.
 SPECIALIZED = ("k_body_patches", "k_pair_forces", "k_sphere_forces", "k_bodies")
+#: The glue passes (kernels/glue.py), in a scene with bonds only: compiled per feature
+#: set as SPECIALIZED, and k_bodies then adds the bonds' sums (GLUE).
+GLUE_KERNELS = ("k_bond_forces", "k_bond_contacts", "k_body_glue")
 _VARIANTS: dict = {}
 
 
@@ -83,36 +89,47 @@ def variant_tag(flags) -> str:
     return "".join(f"{n[0].upper()}{int(f)}" for n, f in zip(FLAGS, flags))
 
 
-def kernels(flags, law: str = "linear") -> types.SimpleNamespace:
-    """The SPECIALIZED kernels compiled for ``flags`` (friction, rotation, sleeping,
-    walls), created on first use (numba-cuda compiles each at its first launch):
-    contacts.pair_forces / sphere_forces compiled with those flags as constants,
-    and the kernels re-created with their modules' globals overlaid by them and by
-    the flags (compile.specialize's rebinding, for cuda.jit). ``GENERAL`` gives
-    the module's own kernels; a ``law`` other than the linear one (laws.LAWS) has its
-    formulas compiled into the contact passes."""
+def kernels(flags, law: str = "linear", glue: bool = False) -> types.SimpleNamespace:
+    """The SPECIALIZED kernels (and with ``glue`` the GLUE_KERNELS) compiled for
+    ``flags`` (friction, rotation, sleeping, walls), created on first use
+    (numba-cuda compiles each at its first launch): contacts.pair_forces /
+    sphere_forces and glue.py's passes compiled with those flags as constants, and
+    the kernels re-created with their modules' globals overlaid by them and by the
+    flags (compile.specialize's rebinding, for cuda.jit). ``GENERAL`` gives the
+    module's own kernels (with ``glue``, k_bodies re-created to add the bonds'
+    sums: the module's own leaves them out); a ``law`` other than the linear one
+    (laws.LAWS) has its formulas compiled into the contact passes."""
     flags = tuple(bool(f) for f in flags)
-    if flags == GENERAL and law == "linear":
-        return types.SimpleNamespace(**{n: globals()[n] for n in SPECIALIZED})
-    key = flags if law == "linear" else (flags, law)
+    names = SPECIALIZED + (GLUE_KERNELS if glue else ())
+    general = flags == GENERAL and law == "linear"
+    if general and not glue:
+        return types.SimpleNamespace(**{n: globals()[n] for n in names})
+    key = (flags, law, bool(glue))
     if key not in _VARIANTS:
         consts = {n.upper(): f for n, f in zip(FLAGS, flags)}
         formulas = F if law == "linear" else compile_formulas(_device_jit(), law)
-        c = compile_contacts(_device_jit(), formulas, P,
-                             dict(consts, sqrt=math.sqrt, **CUDA_LAYOUT))
-        body_update, _, _ = compile_body_stage(consts)
+        layout = dict(consts, sqrt=math.sqrt, **CUDA_LAYOUT)
+        c = compile_contacts(_device_jit(), formulas, P, layout)
+        g = compile_glue(_device_jit(), formulas, P, layout) if glue else None
+        body_update, _, _ = compile_body_stage(dict(consts, GLUE=bool(glue)))
         out = {}
-        for name in SPECIALIZED:
-            py = globals()[name].py_func
+        for name in names:
+            if general and name != "k_bodies":
+                out[name] = globals()[name]
+                continue
+            py = getattr(_stages, name).py_func
             glb = dict(py.__globals__)
             glb.update(consts)
             glb.update(pair_forces=c.pair_forces, sphere_forces=c.sphere_forces,
                        body_patches=c.body_patches,
                        body_update=body_update)
+            if glue:
+                glb.update(bond_forces=g.bond_forces, bond_contacts=g.bond_contacts,
+                           body_glue_sum=g.body_glue_sum)
             fn = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__,
                                     py.__closure__)
             fn.__qualname__ = f"{name}__{variant_tag(flags)}" + \
-                ("" if law == "linear" else f"_{law}")
+                ("" if law == "linear" else f"_{law}") + ("_glue" if glue else "")
             fn.__doc__ = py.__doc__
             out[name] = cuda.jit(fn)
         _VARIANTS[key] = types.SimpleNamespace(**out)
@@ -227,6 +244,16 @@ def scratch_layout(model, friction=None) -> dict:
             lay[name] = (a.shape, a.dtype)
     for lvl, n in enumerate(_scan_levels(table + 1)[1:]):
         lay[f"scan_{lvl + 1}"] = ((n,), i8)
+    if model.n_bonds:
+        # the bonds (layout.GlueModel: the Model's), the State's bond_broken and
+        # bond_shear, and what the glue passes write (layout.GlueScratch)
+        for name, a in glue_model(model)._asdict().items():
+            lay[name] = (a.shape, a.dtype)
+        n_pairs = int(model.bonds.n_pairs)
+        lay["bond_broken"] = ((int(model.n_bonds),), i4)
+        lay["bond_shear"] = ((n_pairs, 3), f8)
+        lay["glue_f"] = ((n_pairs, 9), f8)
+        lay["body_glue"] = ((nb, 6), f8)
     return lay
 
 
@@ -268,12 +295,11 @@ class CudaBackend:
         # As CpuBackend: the contact and body kernels compiled for the features the
         # scene uses (``kernels(flags)``), or with specialize=False the general ones.
         self.model = model
-        if model.n_bonds:
-            raise DeviceError("device cuda: this scene has glue bonds, which run on the CPU "
-                              "only so far (bake it with --device cpu)")
+        #: Whether the scene has glue bonds: the glue passes run (GLUE_KERNELS).
+        self.glue = model.n_bonds > 0
         self.features = scene_features(model, features)
         self.flags = run_flags(self.features, specialize)
-        self.k = kernels(self.flags, model.contact_law)
+        self.k = kernels(self.flags, model.contact_law, glue=self.glue)
         layout = scratch_layout(model, self.features.friction)
         ctx = cuda.current_context()
         free, total = ctx.get_memory_info()
@@ -293,6 +319,9 @@ class CudaBackend:
             a = np.ascontiguousarray(getattr(model, name), dtype=dt).reshape(shape)
             d[name] = cuda.to_device(a)
         d["grid"] = cuda.to_device(self.grid)
+        if self.glue:                   # the bonds (layout.GlueModel), as the CPU's
+            for name, a in glue_model(model)._asdict().items():
+                d[name] = cuda.to_device(np.ascontiguousarray(a))
         # the prescribed inputs (control.Drive, as the CPU's)
         self.drive = drive(model)
         self._starts = np.unique(self.drive.body_start[self.drive.body_start > 0])
@@ -321,6 +350,9 @@ class CudaBackend:
             self.d["contact_spring"].copy_to_device(state.contact_spring)
         state.ensure_rest(int(self.model.body_mass.shape[0]))
         self.d["body_rest"].copy_to_device(state.body_rest)
+        if self.glue:
+            for name in ("bond_broken", "bond_shear"):
+                self.d[name].copy_to_device(np.ascontiguousarray(getattr(state, name)))
         self.d["body_wake"].copy_to_device(np.zeros_like(state.body_rest))
         self._resident = (state, state.body_x, state.body_q, state.body_P, state.body_L)
 
@@ -332,12 +364,16 @@ class CudaBackend:
             self.upload(state)
 
     def download(self, state, contacts: bool = False) -> None:
-        """Copy the device body arrays into ``state``'s host arrays.
+        """Copy the device body arrays into ``state``'s host arrays, and the bonds'
+        state (bond_broken, bond_shear: the Simulator counts the broken bonds of
+        each frame).
 
         The contact histories (S x 12 slots, the largest arrays) stay on the
         device between calls; ``contacts=True`` copies them back too, for a
         checkpoint or a comparison."""
         names = ["body_x", "body_q", "body_P", "body_L", "body_rest"]
+        if self.glue:
+            names += ["bond_broken", "bond_shear"]
         if contacts and self.features.friction:
             names += ["contact_partner", "contact_spring"]
         for name in names:
@@ -464,7 +500,11 @@ class CudaBackend:
     def _scan(self, data, level):
         device_scan(data, self.scan_sizes, self.scan_sums, level, self.d["ctl"])
 
-    def _contacts(self, parity: int = 0, partner=None, spring=None, wake=None):
+    def _contacts(self, parity: int = 0, partner=None, spring=None, wake=None,
+                  bonds: bool = True):
+        """Stage 4: the contact patches, the contact passes and, between them, the
+        glue passes 1-2 of a scene with bonds (unless ``bonds`` is False: the
+        probe's contacts move nothing, bonds included)."""
         m, d = self.model, self.d
         cm = contact_model(m, self.features.friction, d["wall_motion"], arrays=d)
         # the CPU's packed rows (PAIR_ROWS, WALL_ROWS, LIST_ROWS are off here): stand-ins
@@ -485,12 +525,35 @@ class CudaBackend:
             cm, cs, d["motion_now"], d["body_sphere_start"], d["slot_of"], d["ctl"])
         self.k.k_pair_forces[_blocks(m.n_spheres, CONTACT_THREADS), CONTACT_THREADS](
             cm, cs, d["motion_now"], parity, d["ctl"])
+        if self.glue and bonds:
+            gm, gs = self._glue_args()
+            n = int(m.n_bonds)
+            self.k.k_bond_forces[_blocks(n, THREADS), THREADS](
+                gm, gs, d["sphere_body"], d["slot_of"], d["sorted_x"], d["sorted_v"],
+                d["body_w"], d["body_inv_mass"], d["body_rest"], d["body_wake"],
+                int(m.sleep_steps), float(m.dt), d["ctl"])
+            self.k.k_bond_contacts[_blocks(n, THREADS), THREADS](
+                gm, gs, d["slot_of"], d["sorted_body"], d["body_inv_mass"], d["nbr"],
+                d["nbr_n"], d["pidx"], d["pair_f"], d["ctl"])
         self.k.k_sphere_forces[_blocks(m.n_spheres, THREADS), THREADS](cm, cs, d["ctl"])
 
+    def _glue_args(self):
+        """(layout.GlueModel, GlueScratch) of the device's bonds."""
+        d = self.d
+        return (GlueModel(*(d[n] for n in GlueModel._fields)),
+                GlueScratch(*(d[n] for n in GlueScratch._fields)))
+
     def _bodies(self):
+        """Stages 5-8 (k_bodies), after glue pass 3 (k_body_glue) in a scene with bonds."""
         m, d = self.model, self.d
-        # no glue on CUDA yet (GLUE off): wall_f stands in for body_glue, unread
-        bs = BodyScratch(*(d[n] for n in BodyScratch._fields[:-1]), body_glue=d["wall_f"])
+        if self.glue:
+            gm, gs = self._glue_args()
+            self.k.k_body_glue[_blocks(m.n_bodies, THREADS), THREADS](
+                m.n_bodies, gm, gs, d["sphere_body"], d["sphere_r"], d["ctl"])
+            body_glue = d["body_glue"]
+        else:
+            body_glue = d["wall_f"]     # GLUE off: a stand-in, unread
+        bs = BodyScratch(*(d[n] for n in BodyScratch._fields[:-1]), body_glue=body_glue)
         self.k.k_bodies[_blocks(m.n_bodies, THREADS), THREADS](
             m.n_bodies, body_model(m, d["body_start"], self.features.friction, arrays=d), bs,
             d["ctl"])
@@ -536,10 +599,12 @@ class CudaBackend:
            in reach) and k_load_pairs (the stretches from the rows).
         4. k_body_patches (each body's contacts per partner: the share each pair
            takes, kernels/patches.py), k_pair_forces (each contact once, by its
-           owner, and the walls), then k_sphere_forces (each sphere's sum), all
+           owner, and the walls), with glue bonds k_bond_forces (each bond's
+           pairs, shear and break) and k_bond_contacts (a holding bond's pairs'
+           contact rows zeroed), then k_sphere_forces (each sphere's sum), all
            returning at once once ctl[CTL_OVER] is set: the host carries on from
            there.
-        5. k_bodies: stages 5-8 (nothing once ctl[CTL_OVER] or ctl[CTL_IDLE] is
+        5. with glue bonds k_body_glue (each body's bonds summed), then k_bodies: stages 5-8 (nothing once ctl[CTL_OVER] or ctl[CTL_IDLE] is
            set), each body awake for the next step adding 1 to ctl[CTL_AWAKE];
            its thread 0 counts the rebuild (ctl[CTL_REBUILDS]), the step done
            (ctl[CTL_DONE], unless overflowed) and an idle one
@@ -656,7 +721,7 @@ class CudaBackend:
             copies[name].copy_to_device(d[name])          # device to device
         self._pairs(copies["contact_partner"], copies["contact_spring"])
         self._contacts(state.step & 1, copies["contact_partner"], copies["contact_spring"],
-                       copies["body_wake"])
+                       copies["body_wake"], bonds=False)
 
     def velocities(self, state):
         """(V, W) of the dynamic bodies for ``state`` [m/s], [rad/s], world frame."""

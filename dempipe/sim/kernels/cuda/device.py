@@ -1,7 +1,7 @@
 """Device functions and constants of the CUDA target: the formulas (physics.py,
-the contact law) and the shared kernels' code (neighbours.py, contacts.py)
-compiled as device functions, the grid's cell functions, the control array's
-slots (CTL_*) and the launch sizes. The kernels live by stage in cuda/grid.py,
+the contact law) and the shared kernels' code (neighbours.py, contacts.py, the glue
+passes of glue.py) compiled as device functions, the grid's cell functions, the
+control array's slots (CTL_*) and the launch sizes. The kernels live by stage in cuda/grid.py,
 cuda/stages.py; the backend in cuda.py. See docs/cuda.md.
 """
 
@@ -18,6 +18,7 @@ from dempipe.sim.kernels.compile import (
     compile_chain,
     compile_contacts,
     compile_formulas,
+    compile_glue,
     compile_pairing,
     compile_slot_store,
     compile_walk,
@@ -147,12 +148,20 @@ C = compile_contacts(_device_jit(), F, P, dict(FRICTION=True, ROTATION=True, SLE
 pair_forces = C.pair_forces
 sphere_forces = C.sphere_forces
 body_patches = C.body_patches
+#: The glue passes (kernels/glue.py), general: launched only for a scene with bonds.
+G = compile_glue(_device_jit(), F, P, dict(FRICTION=True, ROTATION=True, SLEEPING=True,
+                                           WALLS=True, sqrt=math.sqrt, **CUDA_LAYOUT))
+bond_forces = G.bond_forces
+bond_contacts = G.bond_contacts
+body_glue_sum = G.body_glue_sum
 
 
 def compile_body_stage(consts: dict):
     """kernels/bodies.py's body_update and kernels/prescribed.py's motion_row,
-    driven_row as device functions with the feature flags ``consts``."""
-    given = dict(dict(GLUE=False, **consts), static_body=F.static_body, body_step=F.body_step,
+    driven_row as device functions with the feature flags ``consts`` (and GLUE: the
+    bonds' sum, kernels/glue.py, added to each body's; off unless given)."""
+    given = dict(dict(dict(GLUE=False), **consts), static_body=F.static_body,
+                 body_step=F.body_step,
                  angular_velocity=F.angular_velocity, rest_steps=F.rest_steps,
                  rolling_scale=F.rolling_scale,
                  anchor_state=F.anchor_state, carried_state=F.carried_state,

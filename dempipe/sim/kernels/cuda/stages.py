@@ -1,7 +1,7 @@
 """Stages 4-8 on the device, the twin of cpu/stages.py: the contact kernels (the pairs
 at a rebuild: pair rows, walls in reach, the histories in and out; the two contact
 passes, contacts.py compiled by cuda/device.py and specialized per feature set by
-cuda/backend.py's kernels), then the body kernels (the step's control: begin, idle;
+cuda/backend.py's kernels; the glue passes of a scene with bonds), then the body kernels (the step's control: begin, idle;
 body velocities, the body update with rest counts, small reductions).
 
 Launched by cuda/backend.py; see docs/cuda.md.
@@ -22,8 +22,11 @@ from dempipe.sim.kernels.cuda.device import (
     CTL_REBUILDS,
     CTL_STEP,
     angular_velocity,
+    body_glue_sum,
     body_patches,
     body_update,
+    bond_contacts,
+    bond_forces,
     driven_row,
     motion_row,
     pair_forces,
@@ -124,6 +127,45 @@ def k_sphere_forces(cm, cs, ctl):
     if s >= cs.sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
     sphere_forces(s, s + 1, cm, cs)
+
+
+@cuda.jit
+def k_bond_forces(gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w, body_inv_mass,
+                  body_rest, body_wake, sleep_steps, dt, ctl):
+    """Glue, pass 1 (glue.bond_forces, a thread per bond), after k_pair_forces: each
+    bond's pairs' forces into glue_f, its shear stretch into bond_shear, its break
+    into bond_broken; each thread writes only its bond's rows (the wake flags it
+    sets are the same value from any thread). gm, gs: layout.GlueModel,
+    GlueScratch. Nothing after an overflow or once every body sleeps."""
+    n = cuda.grid(1)
+    if n >= gm.bond_body.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
+        return
+    bond_forces(n, gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w, body_inv_mass,
+                body_rest, body_wake, sleep_steps, dt)
+
+
+@cuda.jit
+def k_bond_contacts(gm, gs, slot_of, sorted_body, body_inv_mass, nbr, nbr_n, pidx, pair_f,
+                    ctl):
+    """Glue, pass 2 (glue.bond_contacts, a thread per bond), after k_bond_forces and
+    before k_sphere_forces: a holding bond's sphere pairs' contact rows of pair_f
+    zeroed (each pair is one bond's: no two threads write a row)."""
+    n = cuda.grid(1)
+    if n >= gm.bond_body.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
+        return
+    # the CPU's packed rows (PAIR_ROWS is off here): nbr_n stands in, unread
+    bond_contacts(n, gm, gs, slot_of, sorted_body, body_inv_mass, nbr_n, nbr_n, nbr, nbr_n,
+                  pidx, pair_f)
+
+
+@cuda.jit
+def k_body_glue(n_bodies, gm, gs, sphere_body, sphere_r, ctl):
+    """Glue, pass 3 (glue.body_glue_sum, a thread per body), before k_bodies: each
+    body's bonds' force and torque into body_glue, in its bonds' order."""
+    b = cuda.grid(1)
+    if b >= n_bodies or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
+        return
+    body_glue_sum(b, gm, gs, sphere_body, sphere_r)
 
 
 @cuda.jit
