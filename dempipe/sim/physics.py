@@ -175,6 +175,25 @@ def carry_stretch(nx, ny, nz, sx, sy, sz, spin, dt):
         sz *= keep
     return sx, sy, sz
 
+def midpoint_velocity(dvx, dvy, dvz, wsx, wsy, wsz, nx, ny, nz, arm, dt):
+    """The velocity [m/s] of j's side relative to i's at the point midway between two
+    spheres, arm = dist/2 [m] from each centre along the unit normal n (i to j):
+    dv = v_j - v_i [m/s] (centre velocities, chords of the step dt [s]), ws = W_i +
+    W_j [rad/s]. Each side's W × (±arm n) is taken as the chord of the step too
+    (chord_velocity), with each side's W as their mean ws/2:
+    u = dv - arm (ws × n) + (dt/4) arm ws × (ws × n). Exact for two bodies turning
+    together, whose u is then 0 (a point a radius out on each side would slip:
+    the two are the overlap apart), and second order in their spins' difference
+    otherwise. Negated exactly when n and dv are (the other side's view)."""
+    cx = wsy * nz - wsz * ny
+    cy = wsz * nx - wsx * nz
+    cz = wsx * ny - wsy * nx
+    a = 0.25 * dt * arm
+    return (dvx - arm * cx + a * (wsy * cz - wsz * cy),
+            dvy - arm * cy + a * (wsz * cx - wsx * cz),
+            dvz - arm * cz + a * (wsx * cy - wsy * cx))
+
+
 def contact_force(nx, ny, nz, overlap, ux, uy, uz, k, eta, kt, ks, mu, sx, sy, sz, spin, dt,
                   vc=0.0):
     """Force on sphere i from one contact (eq. 11-14), with a Coulomb cap and a
@@ -268,7 +287,7 @@ def sphere_pair_force(rx, ry, rz, dist, diameter, dvx, dvy, dvz, wsx, wsy, wsz,
     ws = W_i + W_j, the sum of the two bodies' angular velocities, which gives the
     contact-point velocities: the contact point c lies midway across the overlap,
     dist/2 from each centre, and each side's velocity there is the chord of the
-    step dt [s] (chord_velocity, with each side's W taken as ws/2):
+    step dt [s] (midpoint_velocity):
     u = dv - (dist/2) (ws × n) + (dt/8) dist ws × (ws × n). So two bodies turning
     together do not slip at a contact tilted from their spin axis (a point a
     radius out on each side would: the two are the overlap apart). The contact
@@ -289,13 +308,7 @@ def sphere_pair_force(rx, ry, rz, dist, diameter, dvx, dvy, dvz, wsx, wsy, wsz,
         ny = 0.0
         nz = 1.0
     arm = 0.5 * dist
-    cx = wsy * nz - wsz * ny
-    cy = wsz * nx - wsx * nz
-    cz = wsx * ny - wsy * nx
-    a = 0.25 * dt * arm
-    ux = dvx - arm * cx + a * (wsy * cz - wsz * cy)
-    uy = dvy - arm * cy + a * (wsz * cx - wsx * cz)
-    uz = dvz - arm * cz + a * (wsx * cy - wsy * cx)
+    ux, uy, uz = midpoint_velocity(dvx, dvy, dvz, wsx, wsy, wsz, nx, ny, nz, arm, dt)
     spin = 0.5 * (wsx * nx + wsy * ny + wsz * nz)
     fx, fy, fz, sx, sy, sz = contact_force(nx, ny, nz, diameter - dist, ux, uy, uz,
                                            k, eta, kt, ks, mu, sx, sy, sz, spin, dt, vc)
@@ -414,7 +427,8 @@ def glue_force(rx, ry, rz, dist, rest, dvx, dvy, dvz, wsx, wsy, wsz, k, eta, sx,
     r = x_j - x_i [m] with |r| = dist > 0; rest : the bond's rest length [m] (the
     distance at which it was glued); dv = v_j - v_i [m/s] (centre velocities); ws =
     W_i + W_j [rad/s]. The bond point is the midpoint, half the distance from each
-    centre, so its relative velocity is u = dv - (dist/2) (ws × n).
+    centre, so its relative velocity is u = dv - (dist/2) (ws × n), as the chord of
+    the step (midpoint_velocity).
     k : the bond's spring [N/m], normal and shear alike; eta : its dashpot [N s/m];
     s : the shear stretch from the last step [m] (0 when glued); dt : the step [s].
 
@@ -437,9 +451,7 @@ def glue_force(rx, ry, rz, dist, rest, dvx, dvy, dvz, wsx, wsy, wsz, k, eta, sx,
     ny = ry * inv
     nz = rz * inv
     half = 0.5 * dist
-    ux = dvx - half * (wsy * nz - wsz * ny)
-    uy = dvy - half * (wsz * nx - wsx * nz)
-    uz = dvz - half * (wsx * ny - wsy * nx)
+    ux, uy, uz = midpoint_velocity(dvx, dvy, dvz, wsx, wsy, wsz, nx, ny, nz, half, dt)
     un = ux * nx + uy * ny + uz * nz
     tx = ux - un * nx
     ty = uy - un * ny

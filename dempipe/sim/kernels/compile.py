@@ -28,6 +28,7 @@ FORMULAS = (
     "sphere_kinematics",
     "static_body",
     "carry_stretch",
+    "midpoint_velocity",
     "contact_force",
     "sphere_pair_force",
     "sphere_wall_force",
