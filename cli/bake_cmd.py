@@ -146,4 +146,15 @@ def bake(scene, output, device, layout, frames, threads, report_path, cache_dir,
             + (f"; {r['steps_skipped_asleep']} skipped, every body asleep"
                if r.get("steps_skipped_asleep") else "")
             + "), largest overlap "
-            f"{r['max_overlap']:.1%} of a diameter", err=True)
+            f"{r['max_overlap']:.1%} of a diameter" + _bonds_text(r), err=True)
+
+
+def _bonds_text(r) -> str:
+    """The summary's glue part: how many bonds broke (per frame: --report's
+    bonds_broken_per_frame)."""
+    if not r.get("bonds"):
+        return ""
+    broken = sum(r.get("bonds_broken_per_frame") or [])
+    most = max(r.get("bonds_broken_per_frame") or [0])
+    return (f"; {broken} of {r['bonds']} glue bonds broke"
+            + (f", at most {most} in one frame" if broken else ""))

@@ -260,3 +260,49 @@ def test_cli_bake_report_and_frames(tmp_path):
     assert r["frames"] == 3 and r["device"] == "cpu"
     stage = Usd.Stage.Open(str(tmp_path / "o.usdc"))
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (3, 5)
+
+
+GLUED = """
+[output]
+fps = 24
+duration = 0.5
+[simulation]
+resolution = 6
+[materials.m]
+density = 1000.0
+friction = 0.5
+glue_strength = {strength}
+[shapes.block]
+builtin = "box"
+size = [0.3, 0.1, 0.1]
+fracture = {{ pieces = 3, seed = 1 }}
+[[bodies]]
+name = "block"
+shape = "block"
+material = "m"
+position = [0.0, 0.0, 0.4]
+glue = true
+[[colliders]]
+type = "plane"
+"""
+
+
+@pytest.mark.parametrize("strength,breaks", [(1.0, True), (1e12, False)])
+def test_cli_bake_says_how_many_glue_bonds_broke(tmp_path, strength, breaks):
+    # a block of three glued pieces lands from 0.35 m: glue of 1 Pa holds a sphere
+    # pair to 1e-4 of the landing's load and breaks, 1e12 Pa holds everything
+    scene = tmp_path / "s.toml"
+    scene.write_text(GLUED.format(strength=strength))
+    res = CliRunner().invoke(app, ["bake", str(scene), "-o", str(tmp_path / "o.usdc"),
+                                   "--report", str(tmp_path / "r.json"), "--threads", "1",
+                                   "--device", "cpu", "--cache-dir", str(tmp_path / "c")])
+    assert res.exit_code == 0, res.output
+    import json
+    import re
+    r = json.loads((tmp_path / "r.json").read_text())
+    m = re.search(r"; (\d+) of (\d+) glue bonds broke", res.output)
+    assert m, res.output
+    assert int(m.group(2)) == r["bonds"] > 0
+    assert int(m.group(1)) == sum(r["bonds_broken_per_frame"])
+    assert (int(m.group(1)) > 0) == breaks
+    assert ("in one frame" in res.output) == breaks
