@@ -175,6 +175,7 @@ def carry_stretch(nx, ny, nz, sx, sy, sz, spin, dt):
         sz *= keep
     return sx, sy, sz
 
+
 def midpoint_velocity(dvx, dvy, dvz, wsx, wsy, wsz, nx, ny, nz, arm, dt):
     """The velocity [m/s] of j's side relative to i's at the point midway between two
     spheres, arm = dist/2 [m] from each centre along the unit normal n (i to j):
@@ -427,8 +428,8 @@ def glue_force(rx, ry, rz, dist, rest, dvx, dvy, dvz, wsx, wsy, wsz, k, eta, sx,
     r = x_j - x_i [m] with |r| = dist > 0; rest : the bond's rest length [m] (the
     distance at which it was glued); dv = v_j - v_i [m/s] (centre velocities); ws =
     W_i + W_j [rad/s]. The bond point is the midpoint, half the distance from each
-    centre, so its relative velocity is u = dv - (dist/2) (ws × n), as the chord of
-    the step (midpoint_velocity).
+    centre, so its relative velocity is u = dv - (dist/2) (ws × n) + (dt/8) dist
+    ws × (ws × n), the chord of the step (midpoint_velocity).
     k : the bond's spring [N/m], normal and shear alike; eta : its dashpot [N s/m];
     s : the shear stretch from the last step [m] (0 when glued); dt : the step [s].
 

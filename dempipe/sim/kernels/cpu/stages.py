@@ -57,7 +57,7 @@ invalidate_stale_cache(glue.__file__)
 #
 # TORQUE_NOTE: a contact without friction pushes along the line of centres and
 # has no torque about the sphere's centre; physics.sphere_pair_force's
-# radius (n × f) rounds to ±1 ulp instead of 0 for a third of the contacts, which
+# (dist/2) n × f rounds to ±1 ulp instead of 0 for a third of the contacts, which
 # would spin a one-sphere ball. The kernels add a contact's own torque only
 # when its mu > 0, so a frictionless ball keeps L = 0 exactly whichever variant
 # runs it, and the variants without friction never read or write sphere_t.
