@@ -34,6 +34,7 @@ BENCHMARKS = {
     "startup": (["--repeat", "2"], []),
     "output_size": (["--quick"], []),
     "sleeping": (["--duration", "2"], []),
+    "glue_cost": (["--duration", "1"], []),
     "sleeping_pile": (["--spheres", "25000", "--steps", "300"], []),
     "restitution_vs_dt": ([], []),
     "steps_per_contact": (["--quick", "--steps", "10"], []),
