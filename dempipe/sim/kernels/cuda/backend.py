@@ -97,7 +97,8 @@ def kernels(flags, law: str = "linear", glue: bool = False) -> types.SimpleNames
     the kernels re-created with their modules' globals overlaid by them and by the
     flags (compile.specialize's rebinding, for cuda.jit). ``GENERAL`` gives the
     module's own kernels (with ``glue``, k_bodies re-created to add the bonds'
-    sums: the module's own leaves them out); a ``law`` other than the linear one
+    sums: the module's own leaves them out). With ``glue`` the contact passes are
+    the unglued variant's own objects (one compile for both); a ``law`` other than the linear one
     (laws.LAWS) has its formulas compiled into the contact passes."""
     flags = tuple(bool(f) for f in flags)
     names = SPECIALIZED + (GLUE_KERNELS if glue else ())
@@ -106,6 +107,9 @@ def kernels(flags, law: str = "linear", glue: bool = False) -> types.SimpleNames
         return types.SimpleNamespace(**{n: globals()[n] for n in names})
     key = (flags, law, bool(glue))
     if key not in _VARIANTS:
+        # the contact passes know nothing of glue: a glued scene shares them with the
+        # unglued variant of its flags, compiled once (only k_bodies adds the bonds)
+        shared = kernels(flags, law) if glue else None
         consts = {n.upper(): f for n, f in zip(FLAGS, flags)}
         formulas = F if law == "linear" else compile_formulas(_device_jit(), law)
         layout = dict(consts, sqrt=math.sqrt, **CUDA_LAYOUT)
@@ -116,6 +120,9 @@ def kernels(flags, law: str = "linear", glue: bool = False) -> types.SimpleNames
         for name in names:
             if general and name != "k_bodies":
                 out[name] = globals()[name]
+                continue
+            if shared is not None and name in SPECIALIZED and name != "k_bodies":
+                out[name] = getattr(shared, name)
                 continue
             py = getattr(_stages, name).py_func
             glb = dict(py.__globals__)
