@@ -436,8 +436,8 @@ def test_overlay_composes_to_the_simulated_pose_under_any_parents(tmp_path):
     using orientationsf."""
     from dempipe.scene.build import build_model
     from dempipe.usd.overlay import OP_MATRIX, write_overlay
-    from dempipe.sim.frames import Frames
     from dempipe.sim.model import quat_to_matrix
+    from moved import moved_frames
 
     st = new_stage(tmp_path / "p.usda", mpu=0.01, end=2)
     squash = UsdGeom.Xform.Define(st, "/World/Squash")
@@ -480,18 +480,8 @@ def test_overlay_composes_to_the_simulated_pose_under_any_parents(tmp_path):
     n = model.n_bodies
     assert n == 5
     # frame 0: the initial pose; frames 1, 2: moved and turned by known amounts
-    x = np.repeat(np.asarray(model.initial_x)[None, :n], 3, axis=0)
-    q = np.repeat(np.asarray(model.initial_q)[None, :n], 3, axis=0)
-    turn = np.array([math.cos(0.4), 0.3, -0.5, 0.8])
-    turn /= np.linalg.norm(turn)
-    for f in (1, 2):
-        x[f] += [0.01 * f, -0.02, 0.03 * f]
-        for k in range(n):
-            w1, v1 = turn[0], turn[1:]
-            w2, v2 = q[f - 1, k, 0], q[f - 1, k, 1:]
-            q[f, k] = [w1 * w2 - v1 @ v2, *(w1 * v2 + w2 * v1 + np.cross(v1, v2))]
-    frames = Frames(np.arange(3), np.arange(3) / 24.0, x, q, np.zeros((3, n, 3)),
-                    np.zeros((3, n, 3)))
+    frames = moved_frames(model)
+    x, q = frames.x, frames.q
     out = tmp_path / "out" / "p_baked.usdc"
     write_overlay(out, frames, model, scene.usd)
 
