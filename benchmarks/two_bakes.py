@@ -13,7 +13,11 @@ one alone. Modes (each row of the table):
 - shared: what a bake does now: between stepping calls dempipe.sim.cores.CoreShare
   sets the thread count to the cores the other processes leave;
 - passive: every thread, OMP_WAIT_POLICY=PASSIVE (threads sleep at once), for
-  comparison.
+  comparison;
+- one: one thread per copy (NUMBA_NUM_THREADS=1): what the machine itself gives two
+  processes at once, whatever the threading. Its "vs the ideal" column is the ideal
+  for one-thread copies on their own cores, 1× alone; above it is the cores'
+  shared caches, memory and, on a VM, the host.
 
 For each scene and mode, fresh processes build the scene and warm up, then all start
 together and step the same 30 steps over and over for a window of seconds, printing
@@ -64,7 +68,7 @@ while time.perf_counter() - t0 < {window}:
 print((time.perf_counter() - t0) / steps * 1e3, share.threads)
 """
 
-MODES = ("fixed", "shared", "passive")
+MODES = ("fixed", "shared", "passive", "one")
 
 
 def environment(mode: str) -> dict:
@@ -73,6 +77,8 @@ def environment(mode: str) -> dict:
            if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "NUMBA_NUM_THREADS")}
     if mode == "passive":
         env["OMP_WAIT_POLICY"] = "PASSIVE"
+    if mode == "one":
+        env["NUMBA_NUM_THREADS"] = "1"
     return env
 
 
@@ -102,7 +108,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=["pile", "small", "quickstart"],
                     choices=["pile", "small", "quickstart"])
-    ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
+    ap.add_argument("--modes", nargs="+", default=list(MODES[:3]), choices=MODES)
     ap.add_argument("--window", type=float, default=4.0,
                     help="seconds each copy steps for, the copies' windows aligned")
     args = ap.parse_args(argv)
@@ -124,7 +130,8 @@ def main(argv=None) -> int:
             base = alone if base is None else base
             each = " / ".join(f"{ms:.3f} ({n})" for ms, n in together)
             worst = max(ms for ms, _ in together)
-            print(f"| {scene} | {mode} | {alone:.3f} ({n_alone}) | {each} | {worst / (2 * alone):.2f}× | "
+            ideal = alone if mode == "one" else 2 * alone
+            print(f"| {scene} | {mode} | {alone:.3f} ({n_alone}) | {each} | {worst / ideal:.2f}× | "
                   f"{base / alone:.2f}× |", flush=True)
     print(f"# {time.perf_counter() - t0:.0f} s")
     return 0
