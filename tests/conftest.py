@@ -4,7 +4,8 @@ The tests mirror the package (tests/sim/ for dempipe/sim/, ...); the helpers the
 share sit here, at the top of tests/, importable by name since pytest puts this folder
 on sys.path: ``bodies`` (exact sphere lattices for physics without meshes),
 ``reference`` (the all-pairs NumPy oracle for one step), ``processes`` (real
-`dempipe` processes and sample-by-sample USD comparison).
+`dempipe` processes and sample-by-sample USD comparison), ``cudasim`` (a CUDA test
+file run under Numba's simulator), ``moved`` (frames of known motion).
 
 Tiers: ``python -m pytest -m "not slow"`` is the inner loop; the whole suite is what
 CI runs. Both run their files on all cores with pytest-xdist (``-n auto --dist

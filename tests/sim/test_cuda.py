@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cudasim import cuda_env, simulator_results
 
 from dempipe.sim.kernels.layout import grid_table
 
@@ -46,17 +47,6 @@ D = 0.01
 PARITY_RTOL = 1e-9
 #: Steps of the falling-box case in one call (the simulator is slow: keep it short).
 FALL_STEPS = 24
-
-
-def _env(sim: bool) -> dict:
-    env = dict(os.environ)
-    env.pop("NUMBA_ENABLE_CUDASIM", None)
-    if sim:
-        env["NUMBA_ENABLE_CUDASIM"] = "1"
-    env.setdefault("NUMBA_NUM_THREADS", "1")
-    env["PYTHONPATH"] = os.pathsep.join([str(HERE), str(TESTS), str(ROOT),
-                                         env.get("PYTHONPATH", "")])
-    return env
 
 
 # ---------------------------------------------------------------------------
@@ -435,11 +425,7 @@ def _sim_main() -> dict:
 
 @pytest.fixture(scope="module")
 def sim():
-    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--sim"],
-                          env=_env(sim=True), capture_output=True, text=True, timeout=900)
-    if proc.returncode != 0:
-        pytest.fail(f"simulator script failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-6000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    return simulator_results(__file__, timeout=900)
 
 
 def test_sim_grid_table_is_the_cpus(sim):
@@ -559,7 +545,7 @@ def test_import_dempipe_and_cpu_path_do_not_import_numba_cuda():
         "print(sorted(k for k in sys.modules if k == 'numba.cuda' or k.startswith('numba.cuda.')"
         " or k == 'dempipe.sim.kernels.cuda.backend'))\n"
     )
-    proc = subprocess.run([sys.executable, "-c", code], env=_env(sim=False), capture_output=True,
+    proc = subprocess.run([sys.executable, "-c", code], env=cuda_env(sim=False), capture_output=True,
                           text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-4000:]
     assert proc.stdout.strip().splitlines()[-1] == "[]"
@@ -581,7 +567,7 @@ def _gpu_present() -> bool:
             try:
                 proc = subprocess.run(
                     [sys.executable, "-c", "from numba import cuda; print(cuda.is_available())"],
-                    env=_env(sim=False), capture_output=True, text=True, timeout=120)
+                    env=cuda_env(sim=False), capture_output=True, text=True, timeout=120)
                 _GPU = proc.returncode == 0 and proc.stdout.strip().endswith("True")
             except (OSError, subprocess.TimeoutExpired):
                 _GPU = False

@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cudasim import simulator_results
 
 # the simulator runs every thread of a launch in Python: not in the fast tier
 pytestmark = pytest.mark.slow
@@ -47,17 +47,6 @@ STEPS_SPLIT = (3, 7, 10)
 SPIN = (0.0, 0.0, 20.0)
 GLUE_STRENGTH = 200.0
 STATE = ("body_x", "body_q", "body_P", "body_L", "body_rest", "bond_broken", "bond_shear")
-
-
-def _env(sim: bool) -> dict:
-    env = dict(os.environ)
-    env.pop("NUMBA_ENABLE_CUDASIM", None)
-    if sim:
-        env["NUMBA_ENABLE_CUDASIM"] = "1"
-    env.setdefault("NUMBA_NUM_THREADS", "1")
-    env["PYTHONPATH"] = os.pathsep.join([str(HERE), str(TESTS), str(ROOT),
-                                         env.get("PYTHONPATH", "")])
-    return env
 
 
 def glued_model(fps=None, n_frames=2):
@@ -178,11 +167,7 @@ def _sim_main() -> dict:
 
 @pytest.fixture(scope="module")
 def sim():
-    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--sim"],
-                          env=_env(sim=True), capture_output=True, text=True, timeout=1800)
-    if proc.returncode != 0:
-        pytest.fail(f"simulator script failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-6000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    return simulator_results(__file__, timeout=1800)
 
 
 def test_sim_scene_exercises_bonds_contacts_and_breaks(sim):
