@@ -41,14 +41,16 @@ sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 from cpu_bench import dense_pile  # noqa: E402
 
 from dempipe.sim.kernels.cpu import stages as cpu  # noqa: E402
-from dempipe.sim.kernels.layout import BodyScratch, body_model  # noqa: E402
+from dempipe.sim.kernels.layout import BodyScratch, body_model, glue_scratch  # noqa: E402
 from dempipe.sim.kernels.neighbours import cell_size  # noqa: E402
 from dempipe.sim.simulator import Simulator  # noqa: E402
 
 STAGES = ("1 body velocities (eq. 5-6)", "1 sphere positions into sorted slots (eq. 19-21)",
           "2 rebuild: sphere positions + cell keys", "2 rebuild: counting sort (serial)",
-          "2 rebuild: gather into sorted order (+ histories)",
+          "2 rebuild: gather into sorted order",
+          "2 rebuild: contact histories between sphere and slot order",
           "3 rebuild: neighbour lists (27 cells), pair indices, walls in reach",
+          "3 rebuild: contact histories between rows and pairs",
           "4 contact patches: each body's contacts per partner (patches.py)",
           "3-4 contact forces, each computed once (its owner) + walls",
           "4 each sphere's sum over its list", "5-8 body momenta, positions, quaternions")
@@ -66,7 +68,6 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
     hp, hs = (b.hist_partner, b.hist_spring) if fr else (partner, spring)
     rest = b.rest(state)
     inv_cell = 1.0 / cell_size(m.diameter)
-    g = m.gravity
     half = 0.5 * cpu.SKIN * m.diameter
     t = np.zeros(len(STAGES))
     rebuilds = 0
@@ -74,7 +75,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
         def sorted_positions():
             return k.stage_spheres_sorted(b.slot_of, m.sphere_body, m.sphere_offset,
                                           state.body_x, state.body_q, b.body_v, b.body_w,
-                                          b.body_still, b.built_x, half * half, b.sorted_x,
+                                          m.dt, b.body_still, b.built_x, half * half, b.sorted_x,
                                           b.sorted_v, b.sphere_r)
         every = (
             lambda: k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
@@ -84,16 +85,16 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
         )
         rebuild = (
             lambda: k.stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q,
-                                    b.body_v, b.body_w, inv_cell, b.grid, b.sphere_x, b.sphere_v,
+                                    b.body_v, b.body_w, m.dt, inv_cell, b.grid, b.sphere_x, b.sphere_v,
                                     b.sphere_r, b.sphere_key, b.sphere_hash),
             lambda: cpu.stage_grid_sort(b.sphere_hash, state.body_x, inv_cell, b.grid,
                                         m.body_sphere_start, b.bucket_start, b.bucket_fill,
                                         b.body_key, b.sorted_idx, b.slot_of, b.grid_idx,
                                         b.grid_slot),
-            lambda: (cpu.stage_grid_gather(b.sorted_idx, b.grid_idx, b.sphere_x, b.sphere_v,
-                                           b.sphere_key, m.sphere_body, b.sorted_x, b.sorted_v,
-                                           b.sorted_body, b.grid_x, b.grid_key, b.grid_body),
-                     fr and cpu.stage_history_to_slots(b.sorted_idx, partner, spring, hp, hs)),
+            lambda: cpu.stage_grid_gather(b.sorted_idx, b.grid_idx, b.sphere_x, b.sphere_v,
+                                          b.sphere_key, m.sphere_body, b.sorted_x, b.sorted_v,
+                                          b.sorted_body, b.grid_x, b.grid_key, b.grid_body),
+            lambda: fr and cpu.stage_history_to_slots(b.sorted_idx, partner, spring, hp, hs),
             lambda: (cpu.stage_neighbours(m.diameter, cpu.SKIN, b.grid, b.bucket_start,
                                           b.grid_idx, b.grid_x, b.grid_key, b.grid_body,
                                           b.grid_slot, b.sorted_idx, b.sorted_x, b.sorted_body,
@@ -107,11 +108,10 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                              m.wall_depth, b.wall_mask, b.wall_start,
                                              hp.shape[1] if fr else 0, b.wall_s.shape[0],
                                              b.drive.wall_motion, b.sorted_body,
-                                             b.drive.body_start, s)
-                     or (fr and cpu.stage_rows_to_pairs(b.nbr, b.nbr_n, b.pidx, b.sorted_idx,
-                                                        b.sorted_body, m.body_inv_mass,
-                                                        b.wall_mask, hp, hs, b.pair_f,
-                                                        b.wall_start, b.wall_s))),
+                                             b.drive.body_start, s)),
+            lambda: fr and cpu.stage_rows_to_pairs(b.nbr, b.nbr_n, b.pidx, b.sorted_idx,
+                                                   b.sorted_body, m.body_inv_mass, b.wall_mask,
+                                                   hp, hs, b.pair_f, b.wall_start, b.wall_s),
         )
         t0 = time.perf_counter()
         every[0]()
@@ -127,21 +127,23 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                 t0 = time.perf_counter()
                 cpu.stage_pairs_to_rows(b.nbr, b.nbr_n, b.pidx, b.sorted_idx, hp, hs, b.pair_f,
                                         b.wall_mask, b.wall_start, b.wall_s)
+                t1 = time.perf_counter()
                 cpu.stage_history_to_spheres(b.sorted_idx, hp, hs, partner, spring)
-                t[4] += time.perf_counter() - t0
+                t[7] += t1 - t0
+                t[5] += time.perf_counter() - t1
             for i, call in enumerate(rebuild):
                 t0 = time.perf_counter()
                 over = call()
+                while i == 4 and over:  # a list overflowed: grow, as CpuBackend.step does
+                    b.grow_neighbours()
+                    over = call()
                 t[2 + i] += time.perf_counter() - t0
-            while over:          # a list overflowed: grow, as CpuBackend.step does
-                b.grow_neighbours()
-                over = rebuild[-1]()
         # after any rebuild: a list that grew is a new array
         cm, cs = b.contact_args(state, hist_partner=hp, hist_spring=hs)
         bm = body_model(m, b.drive.body_start, fr)
         bs = BodyScratch(b.sphere_f, b.sphere_t, b.sphere_tr, b.sphere_r, state.body_x,
                          state.body_q, state.body_P, state.body_L, rest, b.body_wake,
-                         b.body_still)
+                         b.body_still, glue_scratch(state, b).body_glue)
         after = (
             lambda: k.stage_patches(cm, cs, b.drive.motion_now, m.body_sphere_start, b.slot_of),
             lambda: k.stage_contacts(cm, cs, b.drive.motion_now, s & 1, b.chunks,
@@ -152,7 +154,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
         for i, call in enumerate(after):
             t0 = time.perf_counter()
             call()
-            t[6 + i] += time.perf_counter() - t0
+            t[8 + i] += time.perf_counter() - t0
     if fr:
         cpu.stage_pairs_to_rows(b.nbr, b.nbr_n, b.pidx, b.sorted_idx, hp, hs, b.pair_f,
                                         b.wall_mask, b.wall_start, b.wall_s)
