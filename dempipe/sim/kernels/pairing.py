@@ -146,7 +146,7 @@ def rows_to_pairs(s, h, n_spheres, nbr, nbr_n, pidx, sorted_idx, sorted_body, bo
     walls = wall_mask[s]
     for c in range(hist_partner.shape[1]):
         code = (hist_partner[h, c] >> 1) - 1 - n_spheres     # the wall, or < 0: a sphere
-        if code < 0 or (walls != -1 and (walls >> code) & 1 == 0):
+        if hist_partner[h, c] != 0 and (code < 0 or (walls != -1 and (walls >> code) & 1 == 0)):
             hist_partner[h, c] = 0          # an empty slot holds no stretch: the
             hist_spring[h, c, 0] = 0.0      # State's rows do not depend on when
             hist_spring[h, c, 1] = 0.0      # the lists were rebuilt
@@ -198,10 +198,11 @@ def walls_to_front(hist_partner, hist_spring, h):
         hist_spring[h, j, 2] = sz
         nw += 1
     for c in range(nw, cap):
-        hist_partner[h, c] = 0
-        hist_spring[h, c, 0] = 0.0
-        hist_spring[h, c, 1] = 0.0
-        hist_spring[h, c, 2] = 0.0
+        if hist_partner[h, c] != 0:     # (an empty column's stretch is already 0)
+            hist_partner[h, c] = 0
+            hist_spring[h, c, 0] = 0.0
+            hist_spring[h, c, 1] = 0.0
+            hist_spring[h, c, 2] = 0.0
     return nw
 
 
@@ -247,10 +248,11 @@ def pairs_to_rows(s, h, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
         hist_spring[h, keep + j, 1] = hist_spring[h, j, 1]
         hist_spring[h, keep + j, 2] = hist_spring[h, j, 2]
     for c in range(keep + nw, cap):
-        hist_partner[h, c] = 0
-        hist_spring[h, c, 0] = 0.0
-        hist_spring[h, c, 1] = 0.0
-        hist_spring[h, c, 2] = 0.0
+        if hist_partner[h, c] != 0:
+            hist_partner[h, c] = 0
+            hist_spring[h, c, 0] = 0.0
+            hist_spring[h, c, 1] = 0.0
+            hist_spring[h, c, 2] = 0.0
     c = 0
     for e in range(nbr_n[s]):
         if c >= keep:
