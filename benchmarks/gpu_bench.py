@@ -145,7 +145,6 @@ def balls_model(count: int):
     m = b.add_material(Material("glass", density=2500, restitution=0.5, friction=0.3))
     n = int(np.ceil(np.cbrt(count / 4)))
     nx, ny = 2 * n, 2 * n
-    nz = int(np.ceil(count / (nx * ny)))
     idx = np.arange(count)
     pos = np.stack([idx % nx, (idx // nx) % ny, idx // (nx * ny)], -1) * (1.2 * d)
     pos = pos + [0, 0, d]

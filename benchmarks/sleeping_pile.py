@@ -84,7 +84,7 @@ def main() -> int:
             best[name] = min(best.get(name, t), t)
             ends[name] = state
             awake[name] = nb - int(state.asleep(model.sleep_steps)[:nb].sum())
-    base, fast = best["every chunk (baseline)"], best["spans (default)"]
+    base = best["every chunk (baseline)"]
     a, b = ends["every chunk (baseline)"], ends["spans (default)"]
     same = all(np.array_equal(getattr(a, f), getattr(b, f))
                for f in ("body_x", "body_q", "body_P", "body_L", "body_rest",
