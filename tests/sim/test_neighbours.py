@@ -234,3 +234,27 @@ def test_an_overflow_in_the_middle_of_a_call_keeps_the_histories():
         for name in ("body_x", "body_q", "body_P", "body_L", "body_rest",
                      "contact_partner", "contact_spring"):
             assert np.array_equal(getattr(st, name), getattr(ref, name)), (split, name)
+
+
+def test_an_empty_history_column_holds_no_stretch():
+    # A rebuild moves and clears only the filled columns of the contact histories
+    # (kernels/cpu/grid.py history_row_copy, pairing.walls_to_front): that is exact
+    # only while every empty column (partner 0) holds a zero stretch, in the State's
+    # rows and in the backend's rows in slot order, and while the State's rows keep
+    # their filled columns first (the copy itself is held to the State of other
+    # rebuild times by the two tests above). Balls thrown about a box rebuild every
+    # few steps and touch each other and the walls.
+    model = loose_balls()
+    st = model.initial_state()
+    be = Simulator(model).backend
+    touched = 0
+    for n in (1, 7, model.steps_per_frame, 2 * model.steps_per_frame):
+        be.step(st, n)
+        for partner, spring in ((st.contact_partner, st.contact_spring),
+                                (be.hist_partner, be.hist_spring)):
+            empty = partner == 0
+            assert not spring[empty].any()
+            touched += int((~empty).sum())
+        filled = st.contact_partner != 0
+        assert not (filled[:, 1:] & ~filled[:, :-1]).any()   # no gap before a filled column
+    assert touched > 0 and be.skin_ctl[3] > 10
