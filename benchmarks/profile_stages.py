@@ -85,8 +85,8 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
         )
         rebuild = (
             lambda: k.stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q,
-                                    b.body_v, b.body_w, m.dt, inv_cell, b.grid, b.sphere_x, b.sphere_v,
-                                    b.sphere_r, b.sphere_key, b.sphere_hash),
+                                    b.body_v, b.body_w, m.dt, inv_cell, b.grid, b.sphere_x,
+                                    b.sphere_v, b.sphere_r, b.sphere_key, b.sphere_hash),
             lambda: cpu.stage_grid_sort(b.sphere_hash, state.body_x, inv_cell, b.grid,
                                         m.body_sphere_start, b.bucket_start, b.bucket_fill,
                                         b.body_key, b.sorted_idx, b.slot_of, b.grid_idx,
