@@ -335,11 +335,14 @@ def rolling_error(material, diameter: float, stiffness: float, rule: DtRule) -> 
 
 #: The incline case (:func:`incline_rolling_error`): a ball of INCLINE_BALL metres
 #: across on a slope of INCLINE_DEGREES, its x(t) fitted from INCLINE_FIT_FROM
-#: seconds (the 0.1 mm drop onto the slope has rung out) to INCLINE_SECONDS.
+#: seconds (the 0.1 mm drop onto the slope has rung out) to INCLINE_SECONDS, by when
+#: it rolls at about 1.2 m/s. A surface set's contact loses energy in proportion to
+#: the speed, like a viscous drag: a fit that ends at 0.12 s (0.3 m/s) showed 0.06 %
+#: where one to 0.5 s shows 5 % (8 across, e = 0.5).
 INCLINE_BALL = 0.1
 INCLINE_DEGREES = 20.0
 INCLINE_FIT_FROM = 0.03
-INCLINE_SECONDS = 0.12
+INCLINE_SECONDS = 0.5
 
 
 def incline_rolling_error(material, resolution: int, mode: str, rule: DtRule,
@@ -353,8 +356,9 @@ def incline_rolling_error(material, resolution: int, mode: str, rule: DtRule,
 
     Unlike :func:`rolling_error` (one sphere, the contact law alone), this measures
     what the sphere set does to rolling: a lattice ball is a polyhedron that tips from
-    facet to facet (about 0.2–0.5 of the closed form at 8 across), a surface set rolls
-    within a few per cent (docs/spheres.md, "Rolling"). The material's density,
+    facet to facet or stays on one (off by 0.34 at 4 across, 1.0 at 8: it does not
+    roll), a surface set rolls within about 6 % at 8 and at 16 across, its contact
+    dragging in proportion to the speed (docs/accuracy.md). The material's density,
     restitution and friction with automatic stiffness for the ball's mass (a scene's
     own stiffness is for its bodies), dt by ``rule``. NaN for a frictionless material.
     """
