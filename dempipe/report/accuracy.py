@@ -338,7 +338,7 @@ def rolling_error(material, diameter: float, stiffness: float, rule: DtRule) -> 
 #: seconds (the 0.1 mm drop onto the slope has rung out) to INCLINE_SECONDS, by when
 #: it rolls at about 1.2 m/s. A surface set's contact loses energy in proportion to
 #: the speed, like a viscous drag: a fit that ends at 0.12 s (0.3 m/s) showed 0.06 %
-#: where one to 0.5 s shows 5 % (8 across, e = 0.5).
+#: where one to 0.5 s shows 6 % (8 across, e = 0.5, μ_r = 0).
 INCLINE_BALL = 0.1
 INCLINE_DEGREES = 20.0
 INCLINE_FIT_FROM = 0.03
