@@ -43,6 +43,8 @@ BENCHMARKS = {
     "sphere_table": (["--resolutions", "8", "--repeat", "1"], []),
     "wedge": (["--quick"], []),
     "sphere_modes": (["--resolutions", "8", "--shapes", "sphere", "box"], []),
+    "surface_rolling": (["--shapes", "ball", "--resolutions", "8", "--spacings", "0.3",
+                         "--restitutions", "0.5"], []),
     "bake_memory": (["--balls", "400", "--durations", "1", "10", "--overhead", "--repeat", "1"],
                     ["--overhead"]),
 }

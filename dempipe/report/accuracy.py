@@ -16,8 +16,8 @@ motion
 physics
     :func:`bounce_error`, :func:`rolling_error`, :func:`incline_rolling_error`,
     :func:`spin_drift`: small ModelBuilder scenes with closed-form answers (rebound
-    apex e² h, rolling at 5/7 v0, a ball of a sphere-set mode rolling down an incline
-    at 5/7 g sin θ, conserved |L| and energy of a torque-free spin), run at a given
+    apex e² h, rolling at 5/7 v0, a ball (or a cylinder on its side) of a sphere-set
+    mode rolling down an incline at 5/7 (2/3) g sin θ, conserved |L| and energy of a torque-free spin), run at a given
     dt rule.
 
 Lengths are in metres; every error is dimensionless unless its name says otherwise
@@ -336,49 +336,81 @@ def rolling_error(material, diameter: float, stiffness: float, rule: DtRule) -> 
 #: The incline case (:func:`incline_rolling_error`): a ball of INCLINE_BALL metres
 #: across on a slope of INCLINE_DEGREES, its x(t) fitted from INCLINE_FIT_FROM
 #: seconds (the 0.1 mm drop onto the slope has rung out) to INCLINE_SECONDS, by when
-#: it rolls at about 1.2 m/s. A surface set's contact loses energy in proportion to
-#: the speed, like a viscous drag: a fit that ends at 0.12 s (0.3 m/s) showed 0.06 %
-#: where one to 0.5 s shows 6 % (8 across, e = 0.5, μ_r = 0).
+#: it rolls at about 1.2 m/s. A surface set loses more the faster it rolls: from about
+#: √(g R cos θ) (0.7 m/s here) it hops from bump to bump of its envelope and each
+#: landing loses what the restitution takes (docs/spheres.md, "Rolling"). A fit that
+#: ends at 0.12 s (0.3 m/s) showed 0.06 % where one to 0.5 s shows 6 % (8 across,
+#: e = 0.5, μ_r = 0).
 INCLINE_BALL = 0.1
 INCLINE_DEGREES = 20.0
 INCLINE_FIT_FROM = 0.03
 INCLINE_SECONDS = 0.5
+#: The bodies the incline rolls, INCLINE_BALL across: (built-in shape, its parameters,
+#: rotation about x [degrees] that lays it on the slope rolling along x, I / (m R²)
+#: about the rolling axis). The cylinder is as long as it is across, on its side.
+INCLINE_SHAPES = {
+    "ball": ("sphere", {"diameter": INCLINE_BALL}, 0.0, 0.4),
+    "cylinder": ("cylinder", {"diameter": INCLINE_BALL, "height": INCLINE_BALL}, 90.0, 0.5),
+}
 
 
 def incline_rolling_error(material, resolution: int, mode: str, rule: DtRule,
-                          cache=None) -> float:
-    """A ball of ``resolution`` spheres across, built in sphere-set ``mode``
-    ("lattice" or "surface"), released on an incline (tilted gravity over a plane)
-    in ``material``: |a / a_closed − 1| for its acceleration down the slope, fitted
-    to x(t). The closed form is rolling, 5/7 g (sin θ − μ_r cos θ) (I = 2/5 m r², μ_r
-    the material's rolling friction), when the friction holds it
-    (μ ≥ 2/7 tan θ + 5/7 μ_r), else sliding, g (sin θ − μ cos θ).
+                          cache=None, shape: str = "ball",
+                          spacing: float | None = None) -> float:
+    """A round body (INCLINE_SHAPES: ``"ball"`` or a ``"cylinder"`` on its side) of
+    ``resolution`` spheres across, built in sphere-set ``mode`` ("lattice" or
+    "surface"; a surface set's ``spacing`` in diameters, None: the default), released on
+    an incline (tilted gravity over a plane) in ``material``: |a / a_closed − 1| for its
+    acceleration down the slope, fitted to x(t) (:func:`incline_run`).
 
     Unlike :func:`rolling_error` (one sphere, the contact law alone), this measures
     what the sphere set does to rolling: a lattice ball is a polyhedron that tips from
     facet to facet or stays on one (off by 0.34 at 4 across, 1.0 at 8: it does not
-    roll), a surface set rolls within about 6 % at 8 and at 16 across, its contact
-    dragging in proportion to the speed (docs/accuracy.md). The material's density,
-    restitution and friction with automatic stiffness for the ball's mass (a scene's
-    own stiffness is for its bodies), dt by ``rule``. NaN for a frictionless material.
+    roll), a surface set rolls within about 6 % at 8 and at 16 across at e = 0.5, less
+    with a livelier material (its envelope's bumps make it hop: INCLINE_SECONDS).
+    NaN for a frictionless material.
+    """
+    if material.friction <= 0:
+        return math.nan
+    run = incline_run(material, resolution, mode, rule, cache, shape, spacing)
+    return abs(run.accel / run.closed - 1.0)
+
+
+def incline_run(material, resolution: int, mode: str, rule: DtRule, cache=None,
+                shape: str = "ball", spacing: float | None = None) -> types.SimpleNamespace:
+    """The incline case of :func:`incline_rolling_error`, run: a namespace of ``accel``
+    (fitted from INCLINE_FIT_FROM to INCLINE_SECONDS) and ``closed`` [m/s²], ``frames``,
+    ``spheres`` (the set's count) and ``rest_z`` (the centre's height at release [m]).
+
+    The closed form is rolling, g (sin θ − μ_r cos θ) / (1 + κ) with κ = I / (m R²)
+    (a = 5/7 g sin θ for the ball, 2/3 g sin θ for the cylinder at μ_r = 0; μ_r the
+    material's rolling friction), when the friction μ holds it
+    (μ ≥ (κ tan θ + μ_r) / (1 + κ)), else sliding, g (sin θ − μ cos θ). The material's
+    density, restitution and friction with automatic stiffness for the body's mass (a
+    scene's own stiffness is for its bodies), dt by ``rule``.
     """
     from dataclasses import replace
 
+    import trimesh
 
     mu = material.friction
-    if mu <= 0:
-        return math.nan
+    name, params, tilt, kappa = INCLINE_SHAPES[shape]
     theta = math.radians(INCLINE_DEGREES)
     g = 9.81
-    mesh = build_shape("sphere", diameter=INCLINE_BALL)
+    mesh = build_shape(name, **params)
+    if tilt:
+        mesh.apply_translation(-mesh.center_mass)
+        mesh.apply_transform(trimesh.transformations.rotation_matrix(math.radians(tilt),
+                                                                     [1.0, 0.0, 0.0]))
     d = INCLINE_BALL / float(resolution)
-    ss = build_sphere_set(mesh, d, name="incline-ball", cache=cache,
-                          options=BuildOptions(mode=mode))
+    options = BuildOptions(mode=mode) if spacing is None else BuildOptions(mode=mode,
+                                                                           spacing=spacing)
+    ss = build_sphere_set(mesh, d, name=f"incline-{shape}", cache=cache, options=options)
     b = ModelBuilder(d, gravity=(g * math.sin(theta), 0.0, -g * math.cos(theta)))
-    s = b.add_shape("ball", mesh, ss)
+    s = b.add_shape(shape, mesh, ss)
     m = b.add_material(replace(material, name="incline", stiffness=None))
     low = float(-np.asarray(ss.centers)[:, 2].min()) + 0.5 * d
-    b.add_bodies("ball", s, m, [[0.0, 0.0, low + 1e-3 * d]])
+    b.add_bodies(shape, s, m, [[0.0, 0.0, low + 1e-3 * d]])
     b.add_plane([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], m)
     fps = 400.0
     model = b.finalize(fps=fps, n_frames=int(INCLINE_SECONDS * fps) + 1, sleep=None,
@@ -388,12 +420,13 @@ def incline_rolling_error(material, resolution: int, mode: str, rule: DtRule,
     sel = t >= INCLINE_FIT_FROM
     a = 2.0 * float(np.polyfit(t[sel], fr.x[sel, 0, 0], 2)[0])
     mu_r = material.rolling_friction
-    if mu >= 2.0 / 7.0 * math.tan(theta) + 5.0 / 7.0 * mu_r:
-        # rolling, held back by the rolling friction's torque μ_r r m g cos θ
-        closed = 5.0 / 7.0 * g * (math.sin(theta) - mu_r * math.cos(theta))
+    if mu >= (kappa * math.tan(theta) + mu_r) / (1.0 + kappa):
+        # rolling, held back by the rolling friction's torque μ_r R m g cos θ
+        closed = g * (math.sin(theta) - mu_r * math.cos(theta)) / (1.0 + kappa)
     else:
         closed = g * (math.sin(theta) - mu * math.cos(theta))
-    return abs(a / closed - 1.0)
+    return types.SimpleNamespace(accel=a, closed=closed, frames=fr, spheres=len(ss.centers),
+                                 rest_z=low)
 
 
 def spin_drift(shape, dt: float, seconds: float = 0.2) -> tuple[float, float]:
