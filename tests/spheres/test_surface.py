@@ -317,9 +317,10 @@ def test_report_sweeps_the_mode(tmp_path):
     md = (tmp_path / "out" / "report.md").read_text()
     assert "## Sphere-set modes" in md and "r4 dt×1 k×1 lattice" in md
     # the incline: a ball of 4 spheres across rolls down 20° within 15 % of 5/7 g sin θ
-    # as a surface set (10.0 % measured over the case's 0.5 s: its contact drags in
-    # proportion to the speed); the lattice ball (a polyhedron) is off by more (0.32
-    # measured), so a rolling tolerance makes the recommendation the surface run
+    # as a surface set (10.0 % measured over the case's 0.5 s: once fast it hops over
+    # its envelope's bumps, docs/spheres.md "Rolling"); the lattice ball (a polyhedron)
+    # is off by more (0.32 measured), so a rolling tolerance makes the recommendation
+    # the surface run
     assert float(sur["incline"]) < 0.15 < 0.25 < float(lat["incline"])
     assert "incline roll" in md
     runs = {u.mode: u for u in result.runs}
