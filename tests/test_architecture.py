@@ -137,6 +137,52 @@ def test_no_module_level_getattr_but_the_front_door():
     assert shims == []
 
 
+def _private_imports(path: Path, modules: dict) -> list[str]:
+    """``module.name`` for each underscore name ``path`` takes from another dempipe
+    module: imported by name, or read as an attribute of an imported module (a
+    namedtuple's ``_fields`` and the like are public API, not private)."""
+    tree = ast.parse(path.read_text())
+    mods, out = {}, []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and not node.level and node.module \
+                and node.module.split(".")[0] == "dempipe":
+            for a in node.names:
+                sub = f"{node.module}.{a.name}"
+                if sub in modules:
+                    mods[a.asname or a.name] = sub
+                elif a.name.startswith("_") and not a.name.startswith("__"):
+                    out.append(sub)
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name in modules and a.asname:
+                    mods[a.asname] = a.name
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
+                and node.value.id in mods and node.attr.startswith("_")
+                and not node.attr.startswith("__")):
+            out.append(f"{mods[node.value.id]}.{node.attr}")
+    return out
+
+
+def test_no_module_reaches_into_another_modules_private_names():
+    # a name another module needs is part of its module's interface: named without
+    # the underscore, where a reader looks for what the module offers
+    modules = _modules()
+    found = {str(p.relative_to(ROOT)): names for p in PACKAGE.rglob("*.py")
+             if (names := _private_imports(p, modules))}
+    assert found == {}
+
+
+def test_the_private_name_check_finds_both_kinds(tmp_path):
+    modules = _modules()
+    f = tmp_path / "m.py"
+    f.write_text("from dempipe.usd.authoring import SDF_TYPES, _hidden\n"
+                 "from dempipe.sim import physics as ph\n"
+                 "x = ph._secret(1)\n")
+    assert _private_imports(f, modules) == ["dempipe.usd.authoring._hidden",
+                                            "dempipe.sim.physics._secret"]
+
+
 def test_front_door_names_resolve_without_importing_pxr_or_cuda():
     code = ("import sys, dempipe\n"
             "heavy = [m for m in ('pxr', 'numba.cuda') if m in sys.modules]\n"

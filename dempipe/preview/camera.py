@@ -23,7 +23,7 @@ PRESETS = {
 }
 
 
-def _to_stage(v, up_axis: str) -> np.ndarray:
+def to_stage(v, up_axis: str) -> np.ndarray:
     """A Z-up direction in the stage's axes ((x, y, z) → (x, z, -y) for Y-up)."""
     x, y, z = v
     return np.array((x, z, -y) if up_axis == "Y" else (x, y, z), dtype=np.float64)
@@ -85,7 +85,7 @@ def frame_box(preset: str, lo, hi, up_axis: str, width: int, height: int,
     size = max(float(np.linalg.norm(hi - lo)), 1e-6)
     lo, hi = lo - 0.02 * size, hi + 0.02 * size      # a flat box still has some room
     centre = (lo + hi) / 2
-    direction, screen_up = (_to_stage(v, up_axis) for v in PRESETS[preset])
+    direction, screen_up = (to_stage(v, up_axis) for v in PRESETS[preset])
     fwd = -direction / np.linalg.norm(direction)
     right = np.cross(fwd, screen_up)
     right /= np.linalg.norm(right)

@@ -18,7 +18,7 @@ import sys
 
 import numpy as np
 
-from dempipe.preview.camera import Camera, _to_stage
+from dempipe.preview.camera import Camera, to_stage
 from dempipe.preview.reader import Batch, Geometry, PreviewError
 
 INSTALL_HINT = ("pip install 'dempipe[preview]'")
@@ -213,8 +213,8 @@ class Renderer:
         ``light_box``: what the shadow map covers; ``ground``: a grid to draw under the
         bodies (:func:`ground_grid`), or None."""
         ctx = self.ctx
-        up = _to_stage((0, 0, 1), up_axis)
-        sun = _to_stage((0.35, -0.25, 1.0), up_axis)
+        up = to_stage((0, 0, 1), up_axis)
+        sun = to_stage((0.35, -0.25, 1.0), up_axis)
         sun /= np.linalg.norm(sun)
         bodies = [b for b in batches if b.body]
         statics = [b for b in batches if not b.body]
@@ -260,9 +260,9 @@ class Renderer:
         return np.ascontiguousarray(img[::-1])
 
     def _draw_ground(self, prog, up_axis, height, step, half, centre):
-        gx = _to_stage((1, 0, 0), up_axis)
-        gy = _to_stage((0, 1, 0), up_axis)
-        up = _to_stage((0, 0, 1), up_axis)
+        gx = to_stage((1, 0, 0), up_axis)
+        gy = to_stage((0, 1, 0), up_axis)
+        up = to_stage((0, 0, 1), up_axis)
         if self._quad is None:
             pts = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)
             self._quad = Geometry("__ground__", pts, np.array([[0, 1, 2], [0, 2, 3]], np.int32))
@@ -284,7 +284,7 @@ def _light_matrix(sun, up_axis, lo, hi):
     radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-6) * 1.05
     eye = centre + sun * 2 * radius
     f = -sun
-    helper = _to_stage((0, 1, 0), up_axis)
+    helper = to_stage((0, 1, 0), up_axis)
     r = np.cross(f, helper)
     r /= np.linalg.norm(r)
     u = np.cross(r, f)

@@ -3,7 +3,7 @@
     files = plot_report(result, Path("report/"))   # error_vs_time.png, error_vs_setting.png
 
 matplotlib is optional (the `report` extra) and imported only here, when a plot is
-drawn; ``_require_matplotlib`` says so up front, before any run is baked.
+drawn; ``require_matplotlib`` says so up front, before any run is baked.
 """
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ import io
 import math
 from pathlib import Path
 
-from dempipe.report.results import ReportError, ReportResult, _atomic_write
+from dempipe.report.results import ReportError, ReportResult, write_atomically
 
 
-def _require_matplotlib():
+def require_matplotlib():
     try:
         import matplotlib  # noqa: F401
     except ImportError:
@@ -29,7 +29,7 @@ def _save(fig, path: Path) -> Path:
     FigureCanvasAgg(fig)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
-    return _atomic_write(path, buf.getvalue())
+    return write_atomically(path, buf.getvalue())
 
 
 def _log_axes(ax, xticks=None) -> None:

@@ -4,11 +4,11 @@
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from dempipe.errors import DempipeError
+from dempipe.pipeline.checkpoint import atomic_write
 
 
 class ReportError(DempipeError):
@@ -127,12 +127,12 @@ def chaos_floor(r: ReportResult):
     return min(same, key=lambda u: u.dt_factor) if same else None
 
 
-def _atomic_write(path: Path, data: bytes) -> Path:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+def write_atomically(path: Path, data: bytes) -> Path:
+    """``data`` into ``path`` whole or not at all (pipeline.checkpoint.atomic_write:
+    a temporary file beside it, fsync, rename); a ReportError naming the path when
+    the OS refuses."""
     try:
-        tmp.write_bytes(data)
-        os.replace(tmp, path)
+        atomic_write(path, lambda fh: fh.write(data))
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
         raise ReportError(f"{path}: cannot write ({exc.strerror or exc})") from None
     return path

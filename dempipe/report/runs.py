@@ -29,13 +29,13 @@ from dempipe.check.sizes import MAX_FRAMES, check_run_time, memory_estimate
 from dempipe.errors import StabilityError
 from dempipe.farm.cluster import failure_reason
 from dempipe.report import accuracy as acc
-from dempipe.report.plots import _require_matplotlib, plot_report
+from dempipe.report.plots import require_matplotlib, plot_report
 from dempipe.report.results import (
     HORIZON_AFTER_CONTACT,
     ReportError,
     ReportResult,
     Run,
-    _atomic_write,
+    write_atomically,
 )
 from dempipe.report.tables import format_markdown, write_csv
 from dempipe.scene.build import Overrides, shape_mesh, build_model
@@ -287,7 +287,7 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
     t_start = time.perf_counter()
     say = progress or (lambda line: None)
     if sweep.plots:
-        _require_matplotlib()
+        require_matplotlib()
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ReportError(f"{out}: exists and is not a folder")
@@ -410,11 +410,11 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
                and Path(scene_path).suffix.lower() in (".usd", ".usda", ".usdc") else None),
         target_overlap=scene.simulation.stiffness_target_overlap or 0.02)
     out.mkdir(parents=True, exist_ok=True)
-    result.files.append(_atomic_write(out / "report.csv", write_csv(runs).encode()))
+    result.files.append(write_atomically(out / "report.csv", write_csv(runs).encode()))
     if sweep.plots:
         result.files += plot_report(result, out)
     result.wall_s = time.perf_counter() - t_start
-    result.files.insert(0, _atomic_write(out / "report.md", format_markdown(result).encode()))
+    result.files.insert(0, write_atomically(out / "report.md", format_markdown(result).encode()))
     return result
 
 

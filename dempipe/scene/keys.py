@@ -1,13 +1,13 @@
 """Reading a scene's tables: typed values, and errors that name the key path.
 
-    ctx = _Ctx(path, "shot.toml")
+    ctx = SceneKeys(path, "shot.toml")
     fps = ctx.integer(d.get("fps", 24), "output.fps", lo=1)
     raise ctx.error("bodies[2].shape", "unknown shape 'pwn'", "known: pawn, rook")
 
 Every problem is a :class:`~dempipe.errors.SceneError` with a one-line message
 ``"<file>: <key.path>: <problem> (<fix or known values>)"``: the value found is
-described (``_describe``), a misspelt name gets the closest known one
-(``_suggest``). scene.py's table parsers read every value through a ``_Ctx``.
+described (``describe_value``), a misspelt name gets the closest known one
+(``suggestion``). scene.py's table parsers read every value through a ``SceneKeys``.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ MIN_MAGNITUDE = 1e-15
 MAX_INTEGER = 2**53
 
 
-def _describe(v: Any) -> str:
+def describe_value(v: Any) -> str:
     if isinstance(v, bool):
         return f"boolean {str(v).lower()}"
     if isinstance(v, str):
@@ -52,19 +52,19 @@ def _describe(v: Any) -> str:
     return type(v).__name__
 
 
-def _known(names) -> str:
+def known_names(names) -> str:
     names = list(names)
     return ", ".join(names) if names else "none defined"
 
 
-def _suggest(word: str, names) -> str:
+def suggestion(word: str, names) -> str:
     names = list(names)
     close = difflib.get_close_matches(word, names, n=1, cutoff=0.6)
     hint = f"did you mean {close[0]!r}? " if close else ""
-    return f"{hint}known: {_known(names)}"
+    return f"{hint}known: {known_names(names)}"
 
 
-class _Ctx:
+class SceneKeys:
     """Error reporting for one scene file."""
 
     def __init__(self, path: Path | None, name: str):
@@ -82,7 +82,7 @@ class _Ctx:
 
     def table(self, d: Any, key: str) -> dict:
         if not isinstance(d, dict):
-            raise self.error(key, f"expected a table, got {_describe(d)}",
+            raise self.error(key, f"expected a table, got {describe_value(d)}",
                              f"write it as [{key}]" if key else None)
         return d
 
@@ -90,7 +90,7 @@ class _Ctx:
         allowed = list(allowed)
         for k in d:
             if k not in allowed:
-                raise self.error(_join(key, k), f"unknown {what}", _suggest(k, allowed))
+                raise self.error(_join(key, k), f"unknown {what}", suggestion(k, allowed))
 
     def require(self, d: dict, key: str, k: str, hint: str | None = None):
         if k not in d:
@@ -104,7 +104,7 @@ class _Ctx:
         rng = _range_text(lo, hi, lo_open, hi_open)
         expect = f"a number{rng and ' ' + rng}{unit and ' (' + unit + ')'}"
         if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise self.error(key, f"expected {expect}, got {_describe(v)}",
+            raise self.error(key, f"expected {expect}, got {describe_value(v)}",
                              "write a number without quotes" if isinstance(v, str) else None)
         v = float(v)
         if not math.isfinite(v):
@@ -127,7 +127,7 @@ class _Ctx:
                 fix = f"write {int(v)} without a decimal point"
             elif isinstance(v, str):
                 fix = "write an integer without quotes"
-            raise self.error(key, f"expected {what}, got {_describe(v)}", fix)
+            raise self.error(key, f"expected {what}, got {describe_value(v)}", fix)
         if lo is not None and v < lo:
             raise self.error(key, f"{v} is out of range", f"expected {what} >= {lo}")
         top = MAX_INTEGER if hi is None else hi
@@ -138,21 +138,21 @@ class _Ctx:
 
     def boolean(self, v: Any, key: str) -> bool:
         if not isinstance(v, bool):
-            raise self.error(key, f"expected a boolean, got {_describe(v)}",
+            raise self.error(key, f"expected a boolean, got {describe_value(v)}",
                              "write true or false without quotes")
         return v
 
     def string(self, v: Any, key: str, choices=None) -> str:
         if not isinstance(v, str):
-            known = f"one of: {_known(choices)}" if choices else None
-            raise self.error(key, f"expected a string, got {_describe(v)}", known)
+            known = f"one of: {known_names(choices)}" if choices else None
+            raise self.error(key, f"expected a string, got {describe_value(v)}", known)
         if choices is not None and v not in choices:
-            raise self.error(key, f"unknown value {v!r}", _suggest(v, choices))
+            raise self.error(key, f"unknown value {v!r}", suggestion(v, choices))
         return v
 
     def vector(self, v: Any, key: str, n: int = 3, *, what: str = "number") -> tuple[float, ...]:
         if not isinstance(v, list) or len(v) != n:
-            raise self.error(key, f"expected an array of {n} numbers, got {_describe(v)}",
+            raise self.error(key, f"expected an array of {n} numbers, got {describe_value(v)}",
                              f"e.g. {key.rsplit('.', 1)[-1]} = [{', '.join(['0.0'] * n)}]")
         return tuple(self.number(x, f"{key}[{i}]") for i, x in enumerate(v))
 

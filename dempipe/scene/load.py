@@ -18,7 +18,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
 
 from dempipe.errors import SceneError
 from dempipe.scene.data import Scene
-from dempipe.scene.keys import _Ctx
+from dempipe.scene.keys import SceneKeys
 from dempipe.scene.toml_reader import TOP_KEYS, read_tables
 from dempipe.scene.usd_reader import load_usd_scene, load_usd_settings
 
@@ -37,7 +37,7 @@ def parse_scene(text: str, path: str | Path | None = None) -> Scene:
     paths (the current directory when None). Raises SceneError on any problem.
     """
     p = Path(path).expanduser().resolve() if path is not None else None
-    ctx = _Ctx(p, p.name if p is not None else "<scene>")
+    ctx = SceneKeys(p, p.name if p is not None else "<scene>")
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

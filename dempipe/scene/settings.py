@@ -11,7 +11,7 @@ from dempipe.scene.data import (
     SimulationSettings,
     SleepSettings,
 )
-from dempipe.scene.keys import _Ctx
+from dempipe.scene.keys import SceneKeys
 from dempipe.sim.laws import LAWS
 from dempipe.spheres.options import MODES
 
@@ -27,7 +27,7 @@ _SLEEP_KEYS = ("linear_speed", "angular_speed", "time")
 MAX_START_FRAME = 10**9
 
 
-def parse_output(ctx: _Ctx, d: Any) -> OutputSettings:
+def parse_output(ctx: SceneKeys, d: Any) -> OutputSettings:
     d = ctx.table(d, "output")
     ctx.check_keys(d, "output", _OUTPUT_KEYS)
     kw: dict[str, Any] = {}
@@ -49,7 +49,7 @@ def parse_output(ctx: _Ctx, d: Any) -> OutputSettings:
     return OutputSettings(**kw)
 
 
-def parse_simulation(ctx: _Ctx, d: Any, up_axis: str) -> SimulationSettings:
+def parse_simulation(ctx: SceneKeys, d: Any, up_axis: str) -> SimulationSettings:
     d = ctx.table(d, "simulation")
     ctx.check_keys(d, "simulation", _SIM_KEYS)
     kw: dict[str, Any] = {}

@@ -25,7 +25,7 @@ from dempipe.scene.data import (
     Scene,
     ShapeSpec,
 )
-from dempipe.scene.keys import _Ctx, _describe, _known, _suggest
+from dempipe.scene.keys import SceneKeys, describe_value, known_names, suggestion
 from dempipe.scene.settings import parse_output, parse_simulation
 from dempipe.sim.motion import Key, Motion
 from dempipe.spheres.options import MODES
@@ -70,7 +70,7 @@ def _load_shape_registry():
 
 
 
-def _parse_materials(ctx: _Ctx, d: Any) -> dict[str, MaterialSpec]:
+def _parse_materials(ctx: SceneKeys, d: Any) -> dict[str, MaterialSpec]:
     d = ctx.table(d, "materials")
     out = {"default": MaterialSpec("default")}
     for name, m in d.items():
@@ -130,7 +130,7 @@ def _parse_materials(ctx: _Ctx, d: Any) -> dict[str, MaterialSpec]:
     return out
 
 
-def _check_builtin(ctx: _Ctx, key: str, builtin: str, params: dict, registry) -> dict:
+def _check_builtin(ctx: SceneKeys, key: str, builtin: str, params: dict, registry) -> dict:
     """Check a built-in shape's name, parameter names and values against ``SHAPES``.
 
     Returns the parameters with values normalized by kind (float lengths, tuples of
@@ -140,12 +140,12 @@ def _check_builtin(ctx: _Ctx, key: str, builtin: str, params: dict, registry) ->
         if isinstance(v, float) and not math.isfinite(v):
             raise ctx.error(f"{key}.{k}", f"expected a finite number, got {v!r}")
         if isinstance(v, dict):
-            raise ctx.error(f"{key}.{k}", f"expected a parameter value, got {_describe(v)}")
+            raise ctx.error(f"{key}.{k}", f"expected a parameter value, got {describe_value(v)}")
     if registry is None:
         return dict(params)
     if builtin not in registry:
         raise ctx.error(f"{key}.builtin", f"unknown built-in shape {builtin!r}",
-                        _suggest(builtin, sorted(registry)))
+                        suggestion(builtin, sorted(registry)))
     known = getattr(registry[builtin], "params", None)
     if known is None:
         return dict(params)
@@ -155,7 +155,7 @@ def _check_builtin(ctx: _Ctx, key: str, builtin: str, params: dict, registry) ->
             close = difflib.get_close_matches(k, list(known), n=1, cutoff=0.6)
             hint = f"did you mean {close[0]!r}? " if close else ""
             raise ctx.error(f"{key}.{k}", f"unknown parameter for {builtin!r}",
-                            f"{hint}known: {_known(known)}")
+                            f"{hint}known: {known_names(known)}")
         kind = getattr(known[k], "kind", None)
         if kind == "length":
             v = ctx.number(v, f"{key}.{k}", lo=0.0, lo_open=True, unit="metres")
@@ -175,7 +175,7 @@ def _check_builtin(ctx: _Ctx, key: str, builtin: str, params: dict, registry) ->
     return out
 
 
-def _parse_shapes(ctx: _Ctx, d: Any, registry) -> dict[str, ShapeSpec]:
+def _parse_shapes(ctx: SceneKeys, d: Any, registry) -> dict[str, ShapeSpec]:
     d = ctx.table(d, "shapes")
     out = {}
     for name, s in d.items():
@@ -199,7 +199,7 @@ def _parse_shapes(ctx: _Ctx, d: Any, registry) -> dict[str, ShapeSpec]:
         if not (has_b or has_m):
             hint = "add builtin = \"<shape>\" or mesh = \"<file>\""
             if registry is not None:
-                hint += f"; built-in shapes: {_known(sorted(registry))}"
+                hint += f"; built-in shapes: {known_names(sorted(registry))}"
             raise ctx.error(key, "needs builtin or mesh", hint)
         if has_m:
             ctx.check_keys(s, key, ("mesh", "scale"))
@@ -225,7 +225,7 @@ def _parse_shapes(ctx: _Ctx, d: Any, registry) -> dict[str, ShapeSpec]:
 _FRACTURE_KEYS = ("pieces", "seed", "impact", "impact_share", "impact_radius")
 
 
-def _parse_fracture(ctx: _Ctx, f: Any, key: str) -> FractureSpec:
+def _parse_fracture(ctx: SceneKeys, f: Any, key: str) -> FractureSpec:
     """``fracture = { pieces = N, seed = S, impact = [x, y, z], impact_share = f,
     impact_radius = r }`` -> a FractureSpec (docs/scenes.md, "Fracture")."""
     f = ctx.table(f, key)
@@ -249,14 +249,14 @@ def _parse_fracture(ctx: _Ctx, f: Any, key: str) -> FractureSpec:
     return FractureSpec(**kw)
 
 
-def _material_ref(ctx: _Ctx, v: Any, key: str, materials) -> str:
+def _material_ref(ctx: SceneKeys, v: Any, key: str, materials) -> str:
     v = ctx.string(v, key)
     if v not in materials:
-        raise ctx.error(key, f"unknown material {v!r}", _suggest(v, list(materials)))
+        raise ctx.error(key, f"unknown material {v!r}", suggestion(v, list(materials)))
     return v
 
 
-def _parse_motion(ctx: _Ctx, m: Any, key: str, origin, rotation, owner: str) -> Motion:
+def _parse_motion(ctx: SceneKeys, m: Any, key: str, origin, rotation, owner: str) -> Motion:
     """``[<key>]`` (``[colliders.motion]``, ``[bodies.motion]``) -> a Motion.
 
     ``origin`` [m] and ``rotation`` (w, x, y, z, or None where unknown at parse
@@ -285,7 +285,7 @@ def _parse_motion(ctx: _Ctx, m: Any, key: str, origin, rotation, owner: str) -> 
         return Motion(**kw)
     raw = m["keys"]
     if not isinstance(raw, list) or not raw:
-        what = "an empty array" if isinstance(raw, list) else _describe(raw)
+        what = "an empty array" if isinstance(raw, list) else describe_value(raw)
         raise ctx.error(f"{key}.keys", f"expected an array of one or more keys, got {what}",
                         "e.g. keys = [{ time = 0.0, position = [0, 0, 1] }, "
                         "{ time = 1.0, position = [1, 0, 1] }]")
@@ -293,7 +293,7 @@ def _parse_motion(ctx: _Ctx, m: Any, key: str, origin, rotation, owner: str) -> 
     for j, k in enumerate(raw):
         kk = f"{key}.keys[{j}]"
         if not isinstance(k, dict):
-            raise ctx.error(kk, f"expected a table, got {_describe(k)}",
+            raise ctx.error(kk, f"expected a table, got {describe_value(k)}",
                             "write each key as { time = 0.0, position = [x, y, z], "
                             "rotation = [w, x, y, z] }")
         ctx.check_keys(k, kk, _KEY_KEYS)
@@ -321,7 +321,7 @@ def _parse_motion(ctx: _Ctx, m: Any, key: str, origin, rotation, owner: str) -> 
     return Motion(keys=tuple(keys), interpolation=interp)
 
 
-def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
+def _parse_body(ctx: SceneKeys, i: int, b: Any, shapes, materials) -> BodyGroup:
     key = f"bodies[{i}]"
     b = ctx.table(b, key)
     layout = "single"
@@ -334,24 +334,24 @@ def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
             if other:
                 raise ctx.error(f"{key}.{k}", f"only used with layout = {other[0]!r}",
                                 f"this group has layout = {layout!r}")
-            raise ctx.error(f"{key}.{k}", "unknown key", _suggest(k, allowed))
+            raise ctx.error(f"{key}.{k}", "unknown key", suggestion(k, allowed))
     name = ctx.usd_name(ctx.require(b, key, "name", 'e.g. name = "pawns"'), f"{key}.name")
-    raw = ctx.require(b, key, "shape", f"known: {_known(shapes)}")
+    raw = ctx.require(b, key, "shape", f"known: {known_names(shapes)}")
     if isinstance(raw, list):
         # a mixed group: body i takes shape[i % len(shape)] (a chess set in one group)
         if not raw:
-            raise ctx.error(f"{key}.shape", "empty list of shapes", f"known: {_known(shapes)}")
+            raise ctx.error(f"{key}.shape", "empty list of shapes", f"known: {known_names(shapes)}")
         names = [ctx.string(x, f"{key}.shape[{j}]") for j, x in enumerate(raw)]
         for j, n in enumerate(names):
             if n not in shapes:
                 raise ctx.error(f"{key}.shape[{j}]", f"unknown shape {n!r}",
-                                _suggest(n, list(shapes)))
+                                suggestion(n, list(shapes)))
         shape = names[0] if len(names) == 1 else tuple(names)
     else:
         shape = ctx.string(raw, f"{key}.shape")
         if shape not in shapes:
             raise ctx.error(f"{key}.shape", f"unknown shape {shape!r}",
-                            _suggest(shape, list(shapes)))
+                            suggestion(shape, list(shapes)))
     kw: dict[str, Any] = {"name": name, "shape": shape, "layout": layout}
     if "material" in b:
         kw["material"] = _material_ref(ctx, b["material"], f"{key}.material", materials)
@@ -371,8 +371,8 @@ def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
                         else (0.0, 0.0, 0.0))
         dims_v = ctx.require(b, key, "dims", "e.g. dims = [4, 4, 2]")
         if not isinstance(dims_v, list) or len(dims_v) != 3:
-            raise ctx.error(f"{key}.dims", f"expected an array of 3 integers, got {_describe(dims_v)}",
-                            "e.g. dims = [4, 4, 2]")
+            raise ctx.error(f"{key}.dims", "expected an array of 3 integers, got "
+                            f"{describe_value(dims_v)}", "e.g. dims = [4, 4, 2]")
         dims = tuple(ctx.integer(x, f"{key}.dims[{j}]", lo=1, what="a positive integer")
                      for j, x in enumerate(dims_v))
         kw["dims"] = dims
@@ -422,7 +422,7 @@ def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
             kw["rotation"] = ctx.quaternion(r, f"{key}.rotation")
         else:
             raise ctx.error(f"{key}.rotation", f"expected \"identity\", \"random\" or [w, x, y, z], "
-                            f"got {_describe(r)}", "e.g. rotation = [1.0, 0.0, 0.0, 0.0]")
+                            f"got {describe_value(r)}", "e.g. rotation = [1.0, 0.0, 0.0, 0.0]")
     if "velocity" in b:
         kw["velocity"] = ctx.vector(b["velocity"], f"{key}.velocity")
     if "angular_velocity" in b:
@@ -478,7 +478,7 @@ def _parse_body(ctx: _Ctx, i: int, b: Any, shapes, materials) -> BodyGroup:
     return BodyGroup(**kw)
 
 
-def _parse_collider(ctx: _Ctx, i: int, c: Any, materials, registry, up_axis: str) -> Collider:
+def _parse_collider(ctx: SceneKeys, i: int, c: Any, materials, registry, up_axis: str) -> Collider:
     key = f"colliders[{i}]"
     c = ctx.table(c, key)
     ctype = ctx.string(ctx.require(c, key, "type", 'one of: "plane", "box", "mesh"'),
@@ -549,7 +549,7 @@ def _parse_collider(ctx: _Ctx, i: int, c: Any, materials, registry, up_axis: str
     return MeshCollider(**kw)
 
 
-def _collider_motion(ctx: _Ctx, c: dict, key: str, kw: dict, origin,
+def _collider_motion(ctx: SceneKeys, c: dict, key: str, kw: dict, origin,
                      rotation=(1.0, 0.0, 0.0, 0.0)) -> None:
     """``[colliders.motion]`` into ``kw["motion"]``, if given (``origin``,
     ``rotation``: the collider's frame, scene.collider_frame)."""
@@ -557,17 +557,17 @@ def _collider_motion(ctx: _Ctx, c: dict, key: str, kw: dict, origin,
         kw["motion"] = _parse_motion(ctx, c["motion"], f"{key}.motion", origin, rotation, key)
 
 
-def _array_of_tables(ctx: _Ctx, v: Any, key: str) -> list:
+def _array_of_tables(ctx: SceneKeys, v: Any, key: str) -> list:
     if isinstance(v, dict):
         raise ctx.error(key, "expected an array of tables, got a single table",
                         f"write each entry as [[{key}]]")
     if not isinstance(v, list):
-        raise ctx.error(key, f"expected an array of tables, got {_describe(v)}",
+        raise ctx.error(key, f"expected an array of tables, got {describe_value(v)}",
                         f"write each entry as [[{key}]]")
     return v
 
 
-def read_tables(ctx: _Ctx, data: dict) -> Scene:
+def read_tables(ctx: SceneKeys, data: dict) -> Scene:
     """The Scene of a TOML scene's decoded tables (SceneError naming the key)."""
     ctx.check_keys(data, "", TOP_KEYS, what="section")
     output = parse_output(ctx, data.get("output", {}))

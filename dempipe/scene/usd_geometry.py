@@ -22,7 +22,7 @@ import numpy as np
 from dempipe.errors import SceneError
 from dempipe.sim.model import quat_to_matrix
 
-__all__ = ["polar", "matrix_to_quat"]
+__all__ = ["polar", "matrix_to_quat", "matrix_array", "quat_matrix"]
 
 #: Segments of tessellated round gprims (Sphere: icosphere subdivisions instead).
 ROUND_SECTIONS = 48
@@ -69,7 +69,7 @@ def matrix_to_quat(Rc: np.ndarray) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
-def _np(m) -> np.ndarray:
+def matrix_array(m) -> np.ndarray:
     return np.array(m, dtype=np.float64).reshape(4, 4)
 
 
@@ -169,7 +169,7 @@ def gprim_mesh(prim, where: str):
     return None
 
 
-def _quat_matrix(q) -> np.ndarray:
+def quat_matrix(q) -> np.ndarray:
     """Column-convention rotation matrix of the quaternion (w, x, y, z), normalised
     first: an authored quatf (MassAPI principalAxes) need not be exactly unit."""
     q = np.asarray(q, float)

@@ -56,8 +56,8 @@ from dempipe.scene.usd_stage import (
 from dempipe.scene.usd_geometry import (
     MAX_COORDINATE,
     gprim_mesh,
-    _np,
-    _quat_matrix,
+    matrix_array,
+    quat_matrix,
     matrix_to_quat,
     polar,
 )
@@ -203,7 +203,7 @@ class _Reader:
         return f"{self.src}: {prim.GetPath()}"
 
     def world(self, prim) -> np.ndarray:
-        W = _np(self.xf.GetLocalToWorldTransform(prim))
+        W = matrix_array(self.xf.GetLocalToWorldTransform(prim))
         if not (np.isfinite(W).all() and np.abs(W).max() <= MAX_COORDINATE):
             raise SceneError(f"{self.where(prim)}: its transform (or a parent's) holds a "
                              f"non-finite or huge number (beyond ±{MAX_COORDINATE:g}); fix "
@@ -436,8 +436,8 @@ class _Reader:
     def relative(self, c, body_prim, W_body, inv_body):
         """Transform from collision prim ``c``'s local space to the body prim's."""
         if self._proto_root is not None:
-            return _np(self.xf.ComputeRelativeTransform(c, body_prim)[0]) if c != body_prim \
-                else np.eye(4)
+            return (np.eye(4) if c == body_prim
+                    else matrix_array(self.xf.ComputeRelativeTransform(c, body_prim)[0]))
         return self.world(c) @ inv_body
 
     _proto_root = None
@@ -497,7 +497,7 @@ class _Reader:
         if velocity is None:
             # "in the same space as the node's xform": the parent's space
             parent = self.xf.GetParentToWorldTransform(prim)
-            P3 = _np(parent)[:3, :3]
+            P3 = matrix_array(parent)[:3, :3]
             v = finite_vector(rb.GetVelocityAttr().Get() or (0, 0, 0), where,
                                "physics:velocity") @ P3
             _, Rp = polar(P3)
@@ -540,7 +540,7 @@ class _Reader:
         S0 = self.bodies[-1].stretch
         keys, scaled = [], False
         for code in codes:
-            W = _np(UsdGeom.XformCache(Usd.TimeCode(code)).GetLocalToWorldTransform(prim))
+            W = matrix_array(UsdGeom.XformCache(Usd.TimeCode(code)).GetLocalToWorldTransform(prim))
             S, R = polar(W[:3, :3])
             scaled |= bool(np.abs(S - S0).max() > 1e-6 * max(np.abs(S0).max(), 1e-300))
             keys.append(Key(time=(code - origin) / self.tcps,
@@ -584,7 +584,7 @@ class _Reader:
                 Rpa = np.eye(3)
                 if pa is not None and pa.GetLength() > 0:
                     im = pa.GetImaginary()
-                    Rpa = _quat_matrix([pa.GetReal(), im[0], im[1], im[2]])
+                    Rpa = quat_matrix([pa.GetReal(), im[0], im[1], im[2]])
                 inertia = Rpa @ np.diag(np.asarray(dg, float)) @ Rpa.T * self.kpu * self.mpu ** 2
         if body_mass is not None:
             return body_mass, com, inertia      # the shapes' inertia, scaled to the mass
@@ -654,11 +654,11 @@ class _Reader:
         for i in range(n):
             k = int(proto_idx[i])
             root = targets[k]
-            proto_local[i] = _np(UsdGeom.Xformable(root).GetLocalTransformation(self.t0)) \
-                if root.IsA(UsdGeom.Xformable) else np.eye(4)
+            proto_local[i] = (np.eye(4) if not root.IsA(UsdGeom.Xformable) else
+                              matrix_array(UsdGeom.Xformable(root).GetLocalTransformation(self.t0)))
             if not is_body[k]:
                 continue
-            W = _np(xforms[i]) @ W_inst
+            W = matrix_array(xforms[i]) @ W_inst
             v = (np.asarray(vel[i], float) if vel and len(vel) > i else np.zeros(3)) \
                 @ W_inst[:3, :3]
             _, Ri = polar(W_inst[:3, :3])

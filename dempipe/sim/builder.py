@@ -35,7 +35,7 @@ from dempipe.sim.model import (
     Model,
     ShapeInstance,
     StaticMesh,
-    _frozen,
+    frozen,
     quat_to_matrix,
     rotational_mass_factor,
     sleep_defaults,
@@ -86,8 +86,8 @@ class ModelBuilder:
     def _contact_centers(self, sphere_set) -> np.ndarray:
         c = np.asarray(sphere_set.centers, dtype=np.float64).reshape(-1, 3)
         if self.contact_layers == 0:
-            return _frozen(c)
-        return _frozen(c[surface_mask(c, self.diameter, self.contact_layers)])
+            return frozen(c)
+        return frozen(c[surface_mask(c, self.diameter, self.contact_layers)])
 
     def add_shape(self, name: str, mesh, sphere_set: "SphereSet", inside_faces=None) -> int:
         """Register a shape: its mesh (mesh coordinates) and its full sphere set;
@@ -95,10 +95,10 @@ class ModelBuilder:
         ``inside_faces``: (F,) bool, the faces of a fracture piece's broken surface."""
         com = np.asarray(sphere_set.com, dtype=np.float64)
         verts = np.asarray(mesh.vertices, dtype=np.float64) - com
-        inside = None if inside_faces is None else _frozen(
+        inside = None if inside_faces is None else frozen(
             np.flatnonzero(np.asarray(inside_faces, bool)), np.int32)
-        self._shapes.append(ShapeInstance(name, _frozen(verts), _frozen(mesh.faces, np.int32),
-                                          _frozen(com), sphere_set,
+        self._shapes.append(ShapeInstance(name, frozen(verts), frozen(mesh.faces, np.int32),
+                                          frozen(com), sphere_set,
                                           self._contact_centers(sphere_set), inside))
         return len(self._shapes) - 1
 
@@ -176,7 +176,7 @@ class ModelBuilder:
         lo = np.asarray(lo, dtype=np.float64)
         hi = np.asarray(hi, dtype=np.float64)
         t = float(thickness) if thickness else PLANE_DEPTH_DIAMETERS * self.diameter
-        self._boxes.append(BoxCollider(_frozen(lo), _frozen(hi), open_top, t, material))
+        self._boxes.append(BoxCollider(frozen(lo), frozen(hi), open_top, t, material))
         r = 0.5 * self.diameter
         for axis in range(3):
             for sign in (+1.0, -1.0):
@@ -308,7 +308,7 @@ class ModelBuilder:
         for k, (name, mesh, ss, m, _) in enumerate(self._static):
             st_x.append(np.asarray(ss.com, dtype=np.float64))
             st_mat.append(m)
-            static_meshes.append(StaticMesh(name, _frozen(mesh.vertices), _frozen(mesh.faces,
+            static_meshes.append(StaticMesh(name, frozen(mesh.vertices), frozen(mesh.faces,
                                             np.int32), n_dyn + k))
         n_static = len(static_meshes)
         kin = (np.concatenate([np.full(g["p"].shape[0], g["kinematic"]) for g in groups])
@@ -493,48 +493,48 @@ class ModelBuilder:
             diameter=d, sleep_steps=int(sleep_steps), sleep_linear=float(sleep_lin),
             sleep_angular=float(sleep_ang), n_bodies=n_dyn, n_static=n_static, shapes=tuple(self._shapes),
             materials=tuple(self._materials), group_names=tuple(g["name"] for g in groups),
-            body_mass=_frozen(all_mass), body_inv_mass=_frozen(all_inv_mass),
-            body_inv_inertia=_frozen(all_inv_inertia), body_material=_frozen(all_mat, np.int32),
-            body_sphere_start=_frozen(start, np.int32), body_shape=_frozen(body_shape, np.int32),
-            body_group=_frozen(body_group, np.int32), body_group_index=_frozen(body_gidx, np.int32),
+            body_mass=frozen(all_mass), body_inv_mass=frozen(all_inv_mass),
+            body_inv_inertia=frozen(all_inv_inertia), body_material=frozen(all_mat, np.int32),
+            body_sphere_start=frozen(start, np.int32), body_shape=frozen(body_shape, np.int32),
+            body_group=frozen(body_group, np.int32), body_group_index=frozen(body_gidx, np.int32),
             body_labels=tuple(lab for g in groups for lab in g["labels"]),
-            body_radius=_frozen(body_radius),
-            sphere_body=_frozen(sphere_body, np.int32), sphere_offset=_frozen(sphere_offset),
-            wall_normal=_frozen(wall_arr(0, (0, 3)).reshape(-1, 3)),
-            wall_offset=_frozen(wall_arr(1, (0,))),
-            wall_lo=_frozen(wall_arr(2, (0, 3)).reshape(-1, 3)),
-            wall_hi=_frozen(wall_arr(3, (0, 3)).reshape(-1, 3)),
-            wall_depth=_frozen(wall_arr(4, (0,))),
-            wall_material=_frozen(np.array([w[5] for w in walls], dtype=np.int32), np.int32),
-            plane_point=_frozen(np.array([p for p, _ in self._planes]).reshape(-1, 3)),
-            plane_normal=_frozen(np.array([n for _, n in self._planes]).reshape(-1, 3)),
+            body_radius=frozen(body_radius),
+            sphere_body=frozen(sphere_body, np.int32), sphere_offset=frozen(sphere_offset),
+            wall_normal=frozen(wall_arr(0, (0, 3)).reshape(-1, 3)),
+            wall_offset=frozen(wall_arr(1, (0,))),
+            wall_lo=frozen(wall_arr(2, (0, 3)).reshape(-1, 3)),
+            wall_hi=frozen(wall_arr(3, (0, 3)).reshape(-1, 3)),
+            wall_depth=frozen(wall_arr(4, (0,))),
+            wall_material=frozen(np.array([w[5] for w in walls], dtype=np.int32), np.int32),
+            plane_point=frozen(np.array([p for p, _ in self._planes]).reshape(-1, 3)),
+            plane_normal=frozen(np.array([n for _, n in self._planes]).reshape(-1, 3)),
             boxes=tuple(self._boxes), static_meshes=tuple(static_meshes),
-            pair_k=_frozen(table.k), pair_zeta=_frozen(table.zeta),
-            pair_damp=_frozen(law.damping_table(table.zeta)), pair_mu=_frozen(table.mu),
-            kt_ratio=table.kt_ratio, ks_ratio=table.ks_ratio, gravity=_frozen(self.gravity), dt=float(dt_v),
+            pair_k=frozen(table.k), pair_zeta=frozen(table.zeta),
+            pair_damp=frozen(law.damping_table(table.zeta)), pair_mu=frozen(table.mu),
+            kt_ratio=table.kt_ratio, ks_ratio=table.ks_ratio, gravity=frozen(self.gravity), dt=float(dt_v),
             steps_per_frame=int(spf), fps=float(fps), n_frames=int(n_frames),
             first_frame=int(first_frame), up_axis=up_axis, meters_per_unit=float(meters_per_unit),
             omega_max=float(omega_max), features=features,
-            initial_x=_frozen(all_x), initial_q=_frozen(all_q),
-            initial_v=_frozen(np.concatenate([v0, np.zeros((n_static, 3))])),
-            initial_w=_frozen(np.concatenate([w0, np.zeros((n_static, 3))])),
+            initial_x=frozen(all_x), initial_q=frozen(all_q),
+            initial_v=frozen(np.concatenate([v0, np.zeros((n_static, 3))])),
+            initial_w=frozen(np.concatenate([w0, np.zeros((n_static, 3))])),
             stiffness_auto=tuple(auto_notes), contact_layers=self.contact_layers,
-            initial_asleep=_frozen(asleep0, bool) if asleep0.any() else None,
+            initial_asleep=frozen(asleep0, bool) if asleep0.any() else None,
             contact_law=law_name, impact_speed=float(v_imp), patch_scale=float(patch),
             motions=driven["motions"], motion_table=driven["table"],
-            body_motion=_frozen(driven["body_motion"], np.int32),
-            body_anchor_c=_frozen(driven["anchor_c"]), body_anchor_q=_frozen(driven["anchor_q"]),
-            driven_body=_frozen(np.flatnonzero(driven["body_motion"] >= 0), np.int32),
-            wall_motion=_frozen(driven["wall_motion"], np.int32),
-            body_start=_frozen(np.concatenate([
+            body_motion=frozen(driven["body_motion"], np.int32),
+            body_anchor_c=frozen(driven["anchor_c"]), body_anchor_q=frozen(driven["anchor_q"]),
+            driven_body=frozen(np.flatnonzero(driven["body_motion"] >= 0), np.int32),
+            wall_motion=frozen(driven["wall_motion"], np.int32),
+            body_start=frozen(np.concatenate([
                 np.ceil(driven["start_time"] / float(dt_v) - 1e-9).astype(np.int64),
                 np.zeros(n_static, np.int64)]), np.int64),
-            body_start_time=_frozen(driven["start_time"]),
-            body_kinematic=_frozen(kin, bool),
+            body_start_time=frozen(driven["start_time"]),
+            body_kinematic=frozen(kin, bool),
             collider_motions=tuple(driven["colliders"]), surface_speed=float(surface_speed),
-            pair_rolling=_frozen(table.mu_r), body_inv_radius=_frozen(inv_radius),
+            pair_rolling=frozen(table.mu_r), body_inv_radius=frozen(inv_radius),
             bonds=bonds if bonds.n_bonds else None,
-            body_glue=_frozen(body_glue, np.int32),
+            body_glue=frozen(body_glue, np.int32),
         )
 
     def _bonds(self, body_glue, all_x, all_q, sphere_offset, sphere_body, inv_mass, mass,
@@ -635,8 +635,8 @@ class ModelBuilder:
             m = m.with_pivot(ref[0])
             k = len(motions)
             motions.append(m)
-            colliders.append(ColliderMotion(kind, index, m, _frozen(ref[0]), _frozen(ref[1]),
-                                            _frozen(origin), _frozen(rotation)))
+            colliders.append(ColliderMotion(kind, index, m, frozen(ref[0]), frozen(ref[1]),
+                                            frozen(origin), frozen(rotation)))
             # the farthest point of it a body can touch, from its anchor: a mesh's or a
             # box's own extent; anywhere a body may be on a plane
             if kind == "mesh":

@@ -35,7 +35,7 @@ PLANE_DEPTH_DIAMETERS = 2.0
 CONTACT_LAYERS = 1
 
 
-def _frozen(a, dtype=np.float64):
+def frozen(a, dtype=np.float64):
     a = np.ascontiguousarray(a, dtype=dtype)
     a.flags.writeable = False
     return a

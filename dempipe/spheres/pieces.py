@@ -40,10 +40,10 @@ from dempipe.spheres.options import DEFAULT_OPTIONS, BuildOptions
 from dempipe.spheres.sphere_set import (
     BuildInfo,
     SphereSet,
-    _check_diameter,
-    _label,
-    _mesh_arrays,
-    _repaired,
+    check_diameter,
+    mesh_label,
+    mesh_arrays,
+    repaired_mesh,
     cell_tolerance,
     lattice_centers,
     mesh_sha256,
@@ -83,8 +83,8 @@ def parent_lattice(mesh, diameter, options: BuildOptions = DEFAULT_OPTIONS, name
     ``build_sphere_set`` keeps them (before subtracting the centre of mass)."""
     from dempipe.mesh.winding import inside_mask
 
-    vertices, faces = _mesh_arrays(mesh, name)
-    rep = _repaired(vertices, faces)
+    vertices, faces = mesh_arrays(mesh, name)
+    rep = repaired_mesh(vertices, faces)
     lo, hi = rep.bounds
     cells = lattice_centers(lo, hi, diameter, cell_tolerance(vertices, diameter))
     return cells[inside_mask(rep, cells, options.winding_threshold)]
@@ -139,7 +139,7 @@ def _join_empty(solids, members):
 
 
 def _build(mesh, d, spec, options, name, key) -> Fractured:
-    label = _label(name)
+    label = mesh_label(name)
     points = parent_lattice(mesh, d, options, name)
     if len(points) < 2:
         raise ShapeError(f"{label}: fracture needs at least two spheres in the shape; "
@@ -208,9 +208,9 @@ def build_pieces(mesh, diameter, spec: FractureSpec, *, name=None, cache=None,
     Lattice mode only (the partition needs one lattice). Raises ShapeError or
     MeshError naming ``name``."""
     t0 = time.perf_counter()
-    d = _check_diameter(diameter, name)
+    d = check_diameter(diameter, name)
     if options.mode != "lattice":
-        raise ShapeError(f"{_label(name)}: a fractured shape needs spheres = \"lattice\" "
+        raise ShapeError(f"{mesh_label(name)}: a fractured shape needs spheres = \"lattice\" "
                          f"(got {options.mode!r}): its pieces share one lattice")
     key = fracture_key(mesh, d, spec, options)
     status, result = "off", None

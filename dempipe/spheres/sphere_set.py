@@ -160,13 +160,13 @@ class BuildInfo:
 # helpers
 
 
-def _label(name) -> str:
+def mesh_label(name) -> str:
     return str(name) if name else "mesh"
 
 
-def _mesh_arrays(mesh, name):
+def mesh_arrays(mesh, name):
     """Vertices (V,3) float64 and faces (F,3) int64 of a mesh, validated."""
-    label = _label(name)
+    label = mesh_label(name)
     try:
         vertices = np.asarray(mesh.vertices, dtype=np.float64)
         faces = np.asarray(mesh.faces, dtype=np.int64)
@@ -199,14 +199,15 @@ def mesh_sha256(mesh) -> str:
     return h.hexdigest()
 
 
-def _check_diameter(diameter, name) -> float:
+def check_diameter(diameter, name) -> float:
     try:
         d = float(diameter)
     except (TypeError, ValueError):
         d = float("nan")
     if not (math.isfinite(d) and d > 0.0):
         raise ShapeError(
-            f"{_label(name)}: sphere diameter must be a positive finite length in metres, got {diameter!r}")
+            f"{mesh_label(name)}: sphere diameter must be a positive finite length in metres, "
+            f"got {diameter!r}")
     return d
 
 
@@ -353,7 +354,7 @@ def _cells_mass_properties(centers, diameter):
     return volume, com, inertia
 
 
-def _repaired(vertices, faces):
+def repaired_mesh(vertices, faces):
     """A repaired copy: merged vertices, no degenerate faces, consistent outward normals."""
     import trimesh
 
@@ -370,8 +371,8 @@ def mesh_for_errors(mesh, name=None):
     """The repaired copy of ``mesh`` the builder works on (merged vertices, no
     degenerate faces, outward normals), for measuring a set against it
     (spheres.surface.envelope_errors)."""
-    vertices, faces = _mesh_arrays(mesh, name)
-    return _repaired(vertices, faces)
+    vertices, faces = mesh_arrays(mesh, name)
+    return repaired_mesh(vertices, faces)
 
 
 
@@ -386,8 +387,8 @@ def _build(vertices, faces, diameter, name, options, digest, key) -> SphereSet:
     from dempipe.mesh.winding import inside_mask
     from dempipe.spheres.surface import surface_centers
 
-    label = _label(name)
-    mesh = _repaired(vertices, faces)
+    label = mesh_label(name)
+    mesh = repaired_mesh(vertices, faces)
     if len(mesh.faces) == 0:
         raise MeshError(f"{label}: mesh has only degenerate faces")
     notes = []
@@ -435,7 +436,7 @@ def _build(vertices, faces, diameter, name, options, digest, key) -> SphereSet:
 
 
 def _warn_notes(sphere_set: SphereSet, name) -> None:
-    label = _label(name)
+    label = mesh_label(name)
     if "not_watertight" in sphere_set.notes:
         warnings.warn(f"{label}: mesh is not watertight; inside test by winding number, "
                       "mass properties from the spheres", stacklevel=3)
@@ -450,10 +451,10 @@ def build_sphere_set_with_info(mesh, diameter, *, name=None, cache=None,
     """Like :func:`build_sphere_set`, also returning a :class:`BuildInfo` (cache hit
     or miss, time)."""
     t0 = time.perf_counter()
-    d = _check_diameter(diameter, name)
+    d = check_diameter(diameter, name)
     if options is None:
         options = DEFAULT_OPTIONS
-    vertices, faces = _mesh_arrays(mesh, name)
+    vertices, faces = mesh_arrays(mesh, name)
     digest = mesh_sha256(mesh)
     key = sphere_set_key(mesh, d, options)
     status = "off"

@@ -20,7 +20,7 @@ half-written file behind.
 
 Conventions: dempipe quaternions are (w, x, y, z); GfQuat memory layout is
 (x, y, z, w), and the conversion happens in the writers only (usd/authoring.py's
-``_quat_xyzw``). USD angular velocities are in degrees per second. Lengths are
+``quat_xyzw``). USD angular velocities are in degrees per second. Lengths are
 divided by ``model.meters_per_unit``.
 
 This module lays out the bodies (the two layouts) and saves; the shapes' meshes
@@ -41,22 +41,22 @@ from pxr import Sdf, Vt
 from dempipe import interrupt
 from dempipe.errors import ExportError
 from dempipe.usd.authoring import (
-    _CLASS,
-    _DEF,
-    _T,
-    _TINY,
-    _attr,
-    _flush_tiny,
-    _quat_xyzw,
-    _unique_names,
+    SPEC_CLASS,
+    SPEC_DEF,
+    SDF_TYPES,
+    TINY,
+    author_attr,
+    flush_tiny,
+    quat_xyzw,
+    unique_names,
 )
-from dempipe.usd.colliders import _author_colliders, collider_names
+from dempipe.usd.colliders import author_colliders, collider_names
 from dempipe.usd.meshes import (
-    _PALETTE,
-    _author_mesh,
-    _inside,
-    _shape_materials,
-    _shape_points,
+    PALETTE,
+    author_mesh,
+    broken_faces,
+    shape_materials,
+    shape_points,
 )
 from dempipe.usd.prescribed import first_shown_frame
 from dempipe.usd.samples import Scan, SparseTrack, as_source
@@ -152,16 +152,16 @@ def write_usd(path, frames, model, *, layout: str = "instancer", overwrite: bool
     layer = Sdf.Layer.CreateAnonymous("dempipe" + ext)
     with Sdf.ChangeBlock():
         _author_metadata(layer, scan, model, layout)
-        world = Sdf.PrimSpec(layer.pseudoRoot, "World", _DEF, "Xform")
-        materials, collider_material, inside = _shape_materials(world, model)
+        world = Sdf.PrimSpec(layer.pseudoRoot, "World", SPEC_DEF, "Xform")
+        materials, collider_material, inside = shape_materials(world, model)
         if layout == "instancer":
             n_samples = _author_instancer(layer, world, source, scan, model, sparse, materials,
                                           inside)
         else:
             n_samples = _author_xforms(layer, world, source, scan, model, sparse, materials,
                                        inside)
-        n_samples += _author_colliders(layer, world, source, scan, model, collider_material,
-                                       sparse)
+        n_samples += author_colliders(layer, world, source, scan, model, collider_material,
+                                      sparse)
 
     save_atomically(layer, path)
     return ExportInfo(
@@ -238,36 +238,36 @@ def _author_metadata(layer, scan, model, layout) -> None:
 def _author_instancer(layer, world, source, scan, model, sparse, materials,
                       inside_material=None) -> int:
     mpu = float(model.meters_per_unit)
-    bodies = Sdf.PrimSpec(world, "Bodies", _DEF, "PointInstancer")
+    bodies = Sdf.PrimSpec(world, "Bodies", SPEC_DEF, "PointInstancer")
     # The prototypes are the instancer's own children, with no Scope around them:
     # Blender imports a Scope as an empty object (a stray "Prototypes" under
     # Bodies), and Hydra and the importers draw an instancer's children only
     # through it anyway.
     protos = bodies
     shape_names = mesh_names(model, [])
-    points = _shape_points(model, mpu)
+    points = shape_points(model, mpu)
     proto_paths = []
     for i, (shape, name, pts) in enumerate(zip(model.shapes, shape_names, points)):
-        mesh = Sdf.PrimSpec(protos, name, _DEF, "Mesh")
-        _author_mesh(mesh, pts, shape.faces, _PALETTE[i % len(_PALETTE)], materials[i],
-                     _inside(shape, inside_material))
+        mesh = Sdf.PrimSpec(protos, name, SPEC_DEF, "Mesh")
+        author_mesh(mesh, pts, shape.faces, PALETTE[i % len(PALETTE)], materials[i],
+                    broken_faces(shape, inside_material))
         proto_paths.append(mesh.path)
     rel = Sdf.RelationshipSpec(bodies, "prototypes", custom=False)
     rel.targetPathList.explicitItems = proto_paths
 
     n_bodies = int(model.n_bodies)
-    _attr(bodies, "protoIndices", _T.IntArray,
-          Vt.IntArray.FromNumpy(np.asarray(model.body_shape, dtype=np.int32).reshape(-1)))
-    _attr(bodies, "ids", _T.Int64Array,
-          Vt.Int64Array.FromNumpy(np.arange(n_bodies, dtype=np.int64)))
+    author_attr(bodies, "protoIndices", SDF_TYPES.IntArray,
+                Vt.IntArray.FromNumpy(np.asarray(model.body_shape, dtype=np.int32).reshape(-1)))
+    author_attr(bodies, "ids", SDF_TYPES.Int64Array,
+                Vt.Int64Array.FromNumpy(np.arange(n_bodies, dtype=np.int64)))
     n_vis = _author_invisible_ids(layer, bodies, model, scan)
 
     # Conservative per-frame bound: instance centres ± the largest prototype radius.
     radius = max((float(np.linalg.norm(p, axis=1).max()) for p in points if len(p)), default=0.0)
-    specs = {name: _attr(bodies, name, type_name).path for name, type_name in (
-        ("positions", _T.Point3fArray), ("orientations", _T.QuathArray),
-        ("velocities", _T.Vector3fArray), ("angularVelocities", _T.Vector3fArray),
-        ("extent", _T.Float3Array))}
+    specs = {name: author_attr(bodies, name, type_name).path for name, type_name in (
+        ("positions", SDF_TYPES.Point3fArray), ("orientations", SDF_TYPES.QuathArray),
+        ("velocities", SDF_TYPES.Vector3fArray), ("angularVelocities", SDF_TYPES.Vector3fArray),
+        ("extent", SDF_TYPES.Float3Array))}
     # USD moves instances by their (angular) velocities only where those are sampled
     # at the same times as the positions (orientations); elsewhere it ignores them
     # and warns. So while positions are sampled, velocities get the same times.
@@ -282,15 +282,15 @@ def _author_instancer(layer, world, source, scan, model, sparse, materials,
     # the largest coordinate of all frames, as the whole-bake arrays had it
     x_max = scan.max_abs_x / mpu
     for frames in source.blocks():
-        x = _flush_tiny(np.asarray(frames.x, dtype=np.float64) / mpu)
+        x = flush_tiny(np.asarray(frames.x, dtype=np.float64) / mpu)
         pos = np.ascontiguousarray(x, dtype=np.float32)
-        ori = _quat_xyzw(frames.q, np.float16)
+        ori = quat_xyzw(frames.q, np.float16)
         # A rate that turns or moves a body by less than float32's resolution of the
         # scene's coordinates in one frame is float noise of a body at rest: write 0.
         v = np.array(frames.v, dtype=np.float64) / mpu
-        v[np.linalg.norm(v, axis=-1) < _TINY * fps * x_max] = 0.0
+        v[np.linalg.norm(v, axis=-1) < TINY * fps * x_max] = 0.0
         w = np.array(frames.w, dtype=np.float64)
-        w[np.linalg.norm(w, axis=-1) < _TINY * fps] = 0.0
+        w[np.linalg.norm(w, axis=-1) < TINY * fps] = 0.0
         vel = np.ascontiguousarray(v, dtype=np.float32)
         ang = np.ascontiguousarray(np.degrees(w), dtype=np.float32)
         if n_bodies:
@@ -315,7 +315,7 @@ def _author_invisible_ids(layer, bodies, model, scan) -> int:
     if not later.size:
         return 0
     numbers = scan.numbers
-    spec = _attr(bodies, "invisibleIds", _T.Int64Array)
+    spec = author_attr(bodies, "invisibleIds", SDF_TYPES.Int64Array)
     n = 0
     for f in [0] + [int(k) for k in later if k < len(numbers)]:
         hidden = np.flatnonzero(shown > f).astype(np.int64)
@@ -327,7 +327,7 @@ def _author_invisible_ids(layer, bodies, model, scan) -> int:
 class _ArrayPair:
     """Samples of a whole-array attribute (``moving``) and of the rate that goes
     with it (``rate``, or None), streamed frame by frame. Sparse: each keeps the
-    samples of _kept_samples (a default only if it never changes); while the
+    samples of kept_samples (a default only if it never changes); while the
     moving one is sampled, both are written at the union of their frames."""
 
     def __init__(self, layer, moving, rate, to_vt_m, to_vt_r, sparse):
@@ -417,25 +417,25 @@ def _author_xforms(layer, world, source, scan, model, sparse, materials,
     # the Scope that holds them, so no empty object appears in a DCC; each body
     # references its shape's class and is instanceable, so the mesh is stored and
     # drawn once, and a DCC lists each body's mesh under its shape's name.
-    protos = Sdf.PrimSpec(world, "Prototypes", _CLASS, "Scope")
-    group_names = _unique_names(model.group_names)
+    protos = Sdf.PrimSpec(world, "Prototypes", SPEC_CLASS, "Scope")
+    group_names = unique_names(model.group_names)
     body_group = np.asarray(model.body_group)
     body_group_index = np.asarray(model.body_group_index)
     labels = getattr(model, "body_labels", ()) or [str(int(i)) for i in body_group_index]
     body_names = [f"{group_names[int(g)]}_{lab}" for g, lab in zip(body_group, labels)]
-    shape_names = _unique_names(s.name for s in model.shapes)
+    shape_names = unique_names(s.name for s in model.shapes)
     mesh_names_ = mesh_names(model, group_names + body_names)
-    points = _shape_points(model, mpu)
+    points = shape_points(model, mpu)
     proto_paths = []
     for i, (shape, name, pts) in enumerate(zip(model.shapes, shape_names, points)):
-        cls = Sdf.PrimSpec(protos, name, _CLASS, "Xform")
-        mesh = Sdf.PrimSpec(cls, mesh_names_[i], _DEF, "Mesh")
-        _author_mesh(mesh, pts, shape.faces, _PALETTE[i % len(_PALETTE)], materials[i],
-                     _inside(shape, inside_material))
+        cls = Sdf.PrimSpec(protos, name, SPEC_CLASS, "Xform")
+        mesh = Sdf.PrimSpec(cls, mesh_names_[i], SPEC_DEF, "Mesh")
+        author_mesh(mesh, pts, shape.faces, PALETTE[i % len(PALETTE)], materials[i],
+                    broken_faces(shape, inside_material))
         proto_paths.append(cls.path)
 
-    bodies = Sdf.PrimSpec(world, "Bodies", _DEF, "Xform")
-    groups = [Sdf.PrimSpec(bodies, g, _DEF, "Xform") for g in group_names]
+    bodies = Sdf.PrimSpec(world, "Bodies", SPEC_DEF, "Xform")
+    groups = [Sdf.PrimSpec(bodies, g, SPEC_DEF, "Xform") for g in group_names]
 
     body_shape = np.asarray(model.body_shape)
     op_order = Vt.TokenArray(["xformOp:translate", "xformOp:orient"])
@@ -443,13 +443,13 @@ def _author_xforms(layer, world, source, scan, model, sparse, materials,
     n_bodies = int(model.n_bodies)
     t_paths, o_paths = [], []
     for b in range(n_bodies):
-        prim = Sdf.PrimSpec(groups[int(body_group[b])], body_names[b], _DEF, "Xform")
+        prim = Sdf.PrimSpec(groups[int(body_group[b])], body_names[b], SPEC_DEF, "Xform")
         prim.referenceList.prependedItems.append(Sdf.Reference(primPath=proto_paths[int(body_shape[b])]))
         prim.instanceable = True
-        t_paths.append(_attr(prim, "xformOp:translate", _T.Double3).path)
-        o_paths.append(_attr(prim, "xformOp:orient", _T.Quatf).path)
+        t_paths.append(author_attr(prim, "xformOp:translate", SDF_TYPES.Double3).path)
+        o_paths.append(author_attr(prim, "xformOp:orient", SDF_TYPES.Quatf).path)
         order = op_order if shown[b] == 0 else Vt.TokenArray(list(op_order) + ["xformOp:scale"])
-        _attr(prim, "xformOpOrder", _T.TokenArray, order, uniform=True)
+        author_attr(prim, "xformOpOrder", SDF_TYPES.TokenArray, order, uniform=True)
 
     # Emitted bodies: "invisible" until their first frame, then "inherited" (a token
     # is held between samples, never interpolated): usdview, Houdini, Omniverse.
@@ -462,8 +462,8 @@ def _author_xforms(layer, world, source, scan, model, sparse, materials,
         if f == 0:
             continue
         prim = layer.GetPrimAtPath(t_paths[b].GetPrimPath())
-        vis = _attr(prim, "visibility", _T.Token)
-        scale = _attr(prim, "xformOp:scale", _T.Float3)
+        vis = author_attr(prim, "visibility", SDF_TYPES.Token)
+        scale = author_attr(prim, "xformOp:scale", SDF_TYPES.Float3)
         layer.SetTimeSample(vis.path, float(numbers[0]), "invisible")
         layer.SetTimeSample(scale.path, float(numbers[0]), (0.0, 0.0, 0.0))
         n_vis += 2
@@ -477,8 +477,8 @@ def _author_xforms(layer, world, source, scan, model, sparse, materials,
     writers = (_BodySamples(layer, t_paths, Vt.Vec3dArray.FromNumpy, sparse),
                _BodySamples(layer, o_paths, Vt.QuatfArray.FromNumpy, sparse))
     for frames in source.blocks():
-        trans = np.ascontiguousarray(_flush_tiny(np.asarray(frames.x, dtype=np.float64) / mpu))
-        orient = _quat_xyzw(frames.q, np.float32)
+        trans = np.ascontiguousarray(flush_tiny(np.asarray(frames.x, dtype=np.float64) / mpu))
+        orient = quat_xyzw(frames.q, np.float32)
         for f, t in enumerate(np.asarray(frames.frame_numbers)):
             writers[0].push(float(t), trans[f])
             writers[1].push(float(t), orient[f])
@@ -494,7 +494,7 @@ def mesh_names(model, taken) -> list[str]:
     taken = set(taken) | {"World", "Bodies", "Colliders", "Looks", "Prototypes"}
     taken |= set(collider_names(model))
     out = []
-    for name in _unique_names(s.name for s in model.shapes):
+    for name in unique_names(s.name for s in model.shapes):
         cand, k = name, 0
         while cand in taken:
             cand = f"{name}_mesh" + (f"_{k}" if k else "")
@@ -521,7 +521,7 @@ def _first_shown(model, scan) -> np.ndarray:
 
 class _BodySamples:
     """Samples of one attribute per body (``paths``), streamed frame by frame: the
-    kept frames of _kept_samples per body, a default only for a body whose value
+    kept frames of kept_samples per body, a default only for a body whose value
     never changes (sparse), else every frame."""
 
     def __init__(self, layer, paths, to_vt, sparse):

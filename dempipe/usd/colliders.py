@@ -12,19 +12,19 @@ import numpy as np
 from pxr import Gf, Sdf, Vt
 
 from dempipe.usd.authoring import (
-    _DEF,
-    _T,
-    _attr,
-    _constant,
-    _flush_tiny,
-    _kept_samples,
-    _unique_names,
+    SPEC_DEF,
+    SDF_TYPES,
+    author_attr,
+    constant_columns,
+    flush_tiny,
+    kept_samples,
+    unique_names,
 )
-from dempipe.usd.meshes import _COLLIDER_COLOR, _author_mesh
+from dempipe.usd.meshes import COLLIDER_COLOR, author_mesh
 from dempipe.usd.prescribed import collider_xforms, plane_xforms
 
 
-def _tangent_basis(n: np.ndarray):
+def tangent_basis(n: np.ndarray):
     """Orthonormal u, v with u × v = n."""
     a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     u = np.cross(n, a)
@@ -41,7 +41,7 @@ def _plane_quad(point, normal, positions):
     n = np.asarray(normal, dtype=np.float64)
     n = n / np.linalg.norm(n)
     p = np.asarray(point, dtype=np.float64)
-    u, v = _tangent_basis(n)
+    u, v = tangent_basis(n)
     if positions.shape[1]:
         c0 = positions[0].mean(axis=0)
         centre = c0 - np.dot(c0 - p, n) * n
@@ -99,10 +99,10 @@ def collider_names(model) -> list[str]:
     n_boxes = len(tuple(getattr(model, "boxes", ()) or ()))
     statics = tuple(getattr(model, "static_meshes", ()) or ())
     reserved = [f"plane_{i}" for i in range(n_planes)] + [f"box_{i}" for i in range(n_boxes)]
-    return reserved + _unique_names(reserved + [m.name for m in statics])[len(reserved):]
+    return reserved + unique_names(reserved + [m.name for m in statics])[len(reserved):]
 
 
-def _author_colliders(layer, world, source, scan, model, material, sparse=True) -> int:
+def author_colliders(layer, world, source, scan, model, material, sparse=True) -> int:
     """The colliders under /World/Colliders (geometry in world coordinates); the
     animated ones (``model.collider_motions``) with time-sampled xformOps.
     Returns the time samples written."""
@@ -117,30 +117,30 @@ def _author_colliders(layer, world, source, scan, model, material, sparse=True) 
     moving = {(str(m.kind), int(m.index)): m for m in getattr(model, "collider_motions", ()) or ()}
     times, numbers = scan.times, scan.numbers
     n = 0
-    col = Sdf.PrimSpec(world, "Colliders", _DEF, "Xform")
+    col = Sdf.PrimSpec(world, "Colliders", SPEC_DEF, "Xform")
     # frame 0 and, per plane, the farthest position of all frames (samples.Scan)
     positions = scan.plane_positions(source, list(zip(plane_point, plane_normal))) \
         if len(plane_point) else None
     quad = np.array([[0, 1, 2, 3]], dtype=np.int32)
     for i, (p, nrm) in enumerate(zip(plane_point, plane_normal)):
-        prim = Sdf.PrimSpec(col, f"plane_{i}", _DEF, "Mesh")
+        prim = Sdf.PrimSpec(col, f"plane_{i}", SPEC_DEF, "Mesh")
         verts = _plane_quad(p, nrm, positions)
-        _author_mesh(prim, verts / mpu, quad, _COLLIDER_COLOR, material)
+        author_mesh(prim, verts / mpu, quad, COLLIDER_COLOR, material)
         m = moving.get(("plane", i))
         if m is not None:
             tr, ori = plane_xforms(m.motion, (m.ref_p, m.ref_q), m.origin, nrm,
                                    verts.mean(axis=0), times)
             n += _author_collider_motion(layer, prim, tr / mpu, ori, numbers, sparse)
     for i, box in enumerate(boxes):
-        prim = Sdf.PrimSpec(col, f"box_{i}", _DEF, "Mesh")
+        prim = Sdf.PrimSpec(col, f"box_{i}", SPEC_DEF, "Mesh")
         verts, faces = _box_walls(box, up)
-        _author_mesh(prim, verts / mpu, faces, _COLLIDER_COLOR, material)
+        author_mesh(prim, verts / mpu, faces, COLLIDER_COLOR, material)
         n += _moving_collider(layer, prim, moving.get(("box", i)), times, numbers, mpu, sparse)
     names = collider_names(model)[len(plane_point) + len(boxes):]
     for i, (name, mesh) in enumerate(zip(names, statics)):
-        prim = Sdf.PrimSpec(col, name, _DEF, "Mesh")
-        _author_mesh(prim, np.asarray(mesh.vertices, dtype=np.float64) / mpu, mesh.faces,
-                     _COLLIDER_COLOR, material)
+        prim = Sdf.PrimSpec(col, name, SPEC_DEF, "Mesh")
+        author_mesh(prim, np.asarray(mesh.vertices, dtype=np.float64) / mpu, mesh.faces,
+                    COLLIDER_COLOR, material)
         n += _moving_collider(layer, prim, moving.get(("mesh", i)), times, numbers, mpu, sparse)
     return n
 
@@ -157,23 +157,23 @@ def _moving_collider(layer, prim, m, times, numbers, mpu, sparse) -> int:
 def _author_collider_motion(layer, prim, translate, orient, numbers, sparse) -> int:
     """``xformOp:translate`` (F, 3) [stage units] and ``xformOp:orient`` (F, 4)
     (w, x, y, z), double precision, at time codes ``numbers`` (F,); sparse: the
-    kept samples of _kept_samples, a default only where nothing changes.
+    kept samples of kept_samples, a default only where nothing changes.
     Returns the time samples written."""
-    t_spec = _attr(prim, "xformOp:translate", _T.Double3)
-    o_spec = _attr(prim, "xformOp:orient", _T.Quatd)
-    _attr(prim, "xformOpOrder", _T.TokenArray,
-          Vt.TokenArray(["xformOp:translate", "xformOp:orient"]), uniform=True)
-    orient = _flush_tiny(np.array(orient, dtype=np.float64))
+    t_spec = author_attr(prim, "xformOp:translate", SDF_TYPES.Double3)
+    o_spec = author_attr(prim, "xformOp:orient", SDF_TYPES.Quatd)
+    author_attr(prim, "xformOpOrder", SDF_TYPES.TokenArray,
+                Vt.TokenArray(["xformOp:translate", "xformOp:orient"]), uniform=True)
+    orient = flush_tiny(np.array(orient, dtype=np.float64))
     values = np.concatenate([translate, orient], axis=1)
 
     def quat(q):
         return Gf.Quatd(float(q[0]), Gf.Vec3d(float(q[1]), float(q[2]), float(q[3])))
 
-    if sparse and bool(_constant(values[:, None])[0]):
+    if sparse and bool(constant_columns(values[:, None])[0]):
         t_spec.default = Gf.Vec3d(*map(float, translate[0]))
         o_spec.default = quat(orient[0])
         return 0
-    keep = _kept_samples(values[:, None])[:, 0] if sparse else np.ones(len(values), bool)
+    keep = kept_samples(values[:, None])[:, 0] if sparse else np.ones(len(values), bool)
     for f in np.flatnonzero(keep):
         layer.SetTimeSample(t_spec.path, float(numbers[f]), Gf.Vec3d(*map(float, translate[f])))
         layer.SetTimeSample(o_spec.path, float(numbers[f]), quat(orient[f]))

@@ -1,10 +1,10 @@
 """Meshes and their looks: polygon mesh prims with crease-angle normals, one
 UsdPreviewSurface material per shape and one for the colliders.
 
-    _author_mesh(prim, vertices, faces, color, material)  # points, topology, normals
+    author_mesh(prim, vertices, faces, color, material)  # points, topology, normals
     corner_normals(vertices, faces)                       # faceted at sharp edges
 
-Bodies cycle through ``_PALETTE`` by shape; colliders are grey. Lengths are in
+Bodies cycle through ``PALETTE`` by shape; colliders are grey. Lengths are in
 stage units (the caller divides by ``model.meters_per_unit``).
 """
 
@@ -13,10 +13,10 @@ from __future__ import annotations
 import numpy as np
 from pxr import Gf, Sdf, Vt
 
-from dempipe.usd.authoring import _DEF, _T, _attr, _unique_names
+from dempipe.usd.authoring import SPEC_DEF, SDF_TYPES, author_attr, unique_names
 
 # Display colours: bodies cycle through a palette by shape, colliders are grey.
-_PALETTE = np.array(
+PALETTE = np.array(
     [
         [0.85, 0.33, 0.10], [0.00, 0.45, 0.74], [0.47, 0.67, 0.19],
         [0.93, 0.69, 0.13], [0.49, 0.18, 0.56], [0.30, 0.75, 0.93],
@@ -24,12 +24,12 @@ _PALETTE = np.array(
     ],
     dtype=np.float32,
 )
-_COLLIDER_COLOR = (0.55, 0.55, 0.55)
+COLLIDER_COLOR = (0.55, 0.55, 0.55)
 # The broken faces of fracture pieces: a pale, rough fresh-break colour.
-_INSIDE_COLOR = (0.82, 0.78, 0.70)
+INSIDE_COLOR = (0.82, 0.78, 0.70)
 
 
-def _author_mesh(prim, vertices, faces, color, material=None, inside=None) -> None:
+def author_mesh(prim, vertices, faces, color, material=None, inside=None) -> None:
     """Points, topology, extent, normals, displayColor and material of a polygon mesh prim.
 
     ``material``: the path of a ``UsdShade.Material`` to bind (``material:binding``),
@@ -40,24 +40,24 @@ def _author_mesh(prim, vertices, faces, color, material=None, inside=None) -> No
     """
     pts = np.ascontiguousarray(vertices, dtype=np.float32)
     faces = np.asarray(faces, dtype=np.int32)
-    _attr(prim, "points", _T.Point3fArray, Vt.Vec3fArray.FromNumpy(pts))
-    _attr(prim, "faceVertexCounts", _T.IntArray,
-          Vt.IntArray.FromNumpy(np.full(len(faces), faces.shape[1] if faces.ndim == 2 else 3,
+    author_attr(prim, "points", SDF_TYPES.Point3fArray, Vt.Vec3fArray.FromNumpy(pts))
+    author_attr(prim, "faceVertexCounts", SDF_TYPES.IntArray,
+                Vt.IntArray.FromNumpy(np.full(len(faces), faces.shape[1] if faces.ndim == 2 else 3,
                                         dtype=np.int32)))
-    _attr(prim, "faceVertexIndices", _T.IntArray,
-          Vt.IntArray.FromNumpy(np.ascontiguousarray(faces.reshape(-1))))
+    author_attr(prim, "faceVertexIndices", SDF_TYPES.IntArray,
+                Vt.IntArray.FromNumpy(np.ascontiguousarray(faces.reshape(-1))))
     if len(pts):
         ext = np.stack([pts.min(axis=0), pts.max(axis=0)])
     else:
         ext = np.zeros((2, 3), np.float32)
-    _attr(prim, "extent", _T.Float3Array, Vt.Vec3fArray.FromNumpy(ext))
-    _attr(prim, "subdivisionScheme", _T.Token, "none", uniform=True)
+    author_attr(prim, "extent", SDF_TYPES.Float3Array, Vt.Vec3fArray.FromNumpy(ext))
+    author_attr(prim, "subdivisionScheme", SDF_TYPES.Token, "none", uniform=True)
     if len(faces):
-        normals = _attr(prim, "normals", _T.Normal3fArray, Vt.Vec3fArray.FromNumpy(
+        normals = author_attr(prim, "normals", SDF_TYPES.Normal3fArray, Vt.Vec3fArray.FromNumpy(
             np.ascontiguousarray(corner_normals(vertices, faces), dtype=np.float32)))
         normals.SetInfo("interpolation", "faceVarying")
-    col = _attr(prim, "primvars:displayColor", _T.Color3fArray,
-                Vt.Vec3fArray([Gf.Vec3f(*map(float, color))]))
+    col = author_attr(prim, "primvars:displayColor", SDF_TYPES.Color3fArray,
+                      Vt.Vec3fArray([Gf.Vec3f(*map(float, color))]))
     col.SetInfo("interpolation", "constant")
     if material is not None:
         prim.SetInfo("apiSchemas", Sdf.TokenListOp.CreateExplicit(["MaterialBindingAPI"]))
@@ -70,13 +70,13 @@ def _author_mesh(prim, vertices, faces, color, material=None, inside=None) -> No
 def _author_subset(prim, name, face_indices, material) -> None:
     """A face ``GeomSubset`` of the materialBind family bound to ``material``: how
     every DCC and renderer reads per-face materials (UsdShade subsets)."""
-    _attr(prim, "subsetFamily:materialBind:familyType", _T.Token, "nonOverlapping",
-          uniform=True)
-    sub = Sdf.PrimSpec(prim, name, _DEF, "GeomSubset")
-    _attr(sub, "elementType", _T.Token, "face", uniform=True)
-    _attr(sub, "familyName", _T.Token, "materialBind", uniform=True)
-    _attr(sub, "indices", _T.IntArray,
-          Vt.IntArray.FromNumpy(np.ascontiguousarray(face_indices, dtype=np.int32)))
+    author_attr(prim, "subsetFamily:materialBind:familyType", SDF_TYPES.Token, "nonOverlapping",
+                uniform=True)
+    sub = Sdf.PrimSpec(prim, name, SPEC_DEF, "GeomSubset")
+    author_attr(sub, "elementType", SDF_TYPES.Token, "face", uniform=True)
+    author_attr(sub, "familyName", SDF_TYPES.Token, "materialBind", uniform=True)
+    author_attr(sub, "indices", SDF_TYPES.IntArray,
+                Vt.IntArray.FromNumpy(np.ascontiguousarray(face_indices, dtype=np.int32)))
     sub.SetInfo("apiSchemas", Sdf.TokenListOp.CreateExplicit(["MaterialBindingAPI"]))
     rel = Sdf.RelationshipSpec(sub, "material:binding", custom=False)
     rel.targetPathList.explicitItems = [material]
@@ -131,46 +131,46 @@ def corner_normals(vertices, faces, crease_deg: float = CREASE_ANGLE_DEG) -> np.
     return np.where(norm > 0, out / np.where(norm > 0, norm, 1.0), flat)
 
 
-def _author_material(looks, name, color):
+def author_material(looks, name, color):
     """A ``UsdPreviewSurface`` material of diffuse ``color`` under ``looks``; its path.
 
     Every renderer and DCC importer reads UsdPreviewSurface; the diffuse colour
     also reads as the object's colour in viewports. Authored with Sdf like the rest.
     """
-    mat = Sdf.PrimSpec(looks, name, _DEF, "Material")
-    shader = Sdf.PrimSpec(mat, "PreviewSurface", _DEF, "Shader")
-    _attr(shader, "info:id", _T.Token, "UsdPreviewSurface", uniform=True)
-    _attr(shader, "inputs:diffuseColor", _T.Color3f, Gf.Vec3f(*map(float, color)))
-    _attr(shader, "inputs:roughness", _T.Float, 0.6)
-    _attr(shader, "inputs:metallic", _T.Float, 0.0)
-    out = _attr(shader, "outputs:surface", _T.Token)
-    surface = _attr(mat, "outputs:surface", _T.Token)
+    mat = Sdf.PrimSpec(looks, name, SPEC_DEF, "Material")
+    shader = Sdf.PrimSpec(mat, "PreviewSurface", SPEC_DEF, "Shader")
+    author_attr(shader, "info:id", SDF_TYPES.Token, "UsdPreviewSurface", uniform=True)
+    author_attr(shader, "inputs:diffuseColor", SDF_TYPES.Color3f, Gf.Vec3f(*map(float, color)))
+    author_attr(shader, "inputs:roughness", SDF_TYPES.Float, 0.6)
+    author_attr(shader, "inputs:metallic", SDF_TYPES.Float, 0.0)
+    out = author_attr(shader, "outputs:surface", SDF_TYPES.Token)
+    surface = author_attr(mat, "outputs:surface", SDF_TYPES.Token)
     surface.connectionPathList.explicitItems = [out.path]
     return mat.path
 
 
-def _shape_materials(world, model):
+def shape_materials(world, model):
     """One material per shape (its palette colour), one for the colliders and, when
     a shape is a fracture piece, one for the broken faces: ``(shape material paths,
     collider material path, inside material path or None)`` under ``/World/Looks``."""
-    looks = Sdf.PrimSpec(world, "Looks", _DEF, "Scope")
-    names = _unique_names([f"{s.name}_mat" for s in model.shapes]
-                          + ["collider_mat", "inside_mat"])
-    paths = [_author_material(looks, n, _PALETTE[i % len(_PALETTE)])
+    looks = Sdf.PrimSpec(world, "Looks", SPEC_DEF, "Scope")
+    names = unique_names([f"{s.name}_mat" for s in model.shapes]
+                         + ["collider_mat", "inside_mat"])
+    paths = [author_material(looks, n, PALETTE[i % len(PALETTE)])
              for i, n in enumerate(names[:-2])]
     inside = None
     if any(getattr(s, "inside_faces", None) is not None for s in model.shapes):
-        inside = _author_material(looks, names[-1], _INSIDE_COLOR)
-    return paths, _author_material(looks, names[-2], _COLLIDER_COLOR), inside
+        inside = author_material(looks, names[-1], INSIDE_COLOR)
+    return paths, author_material(looks, names[-2], COLLIDER_COLOR), inside
 
 
-def _inside(shape, inside_material):
-    """``_author_mesh``'s ``inside`` for a shape: its broken faces and their material."""
+def broken_faces(shape, inside_material):
+    """``author_mesh``'s ``inside`` for a shape: its broken faces and their material."""
     if inside_material is None or getattr(shape, "inside_faces", None) is None:
         return None
     return shape.inside_faces, inside_material
 
 
-def _shape_points(model, mpu):
+def shape_points(model, mpu):
     """Body-frame prototype points in stage units, one array per shape."""
     return [np.asarray(s.vertices, dtype=np.float64) / mpu for s in model.shapes]

@@ -51,22 +51,21 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
 from dempipe.errors import ExportError
-from dempipe.scene.usd_geometry import matrix_to_quat, polar
+from dempipe.scene.usd_geometry import matrix_array, matrix_to_quat, polar
 from dempipe.sim.model import quat_to_matrix
 from dempipe.usd.animation import EXTENSIONS, ExportInfo, save_atomically
-from dempipe.usd.authoring import _attr
+from dempipe.usd.authoring import SDF_TYPES, author_attr
 from dempipe.usd.meshes import (
-    _INSIDE_COLOR,
-    _PALETTE,
-    _author_material,
-    _author_mesh,
-    _inside,
+    INSIDE_COLOR,
+    PALETTE,
+    author_material,
+    author_mesh,
+    broken_faces,
 )
 from dempipe.version import __version__
 
 __all__ = ["OverlayWriter", "write_overlay"]
 
-_T = Sdf.ValueTypeNames
 OPS_TRS = ("xformOp:translate:dempipe", "xformOp:orient:dempipe", "xformOp:scale:dempipe")
 OP_MATRIX = "xformOp:transform:dempipe"
 #: A stretch or a parent's scale counts as along the axes / even when the rest is
@@ -103,10 +102,6 @@ def _zeroed(v, still: np.ndarray):
     a = np.array(v, dtype=np.float32).reshape(len(still), -1)
     a[still] = 0.0
     return type(v).FromNumpy(a)
-
-
-def _np(m) -> np.ndarray:
-    return np.array(m, dtype=np.float64).reshape(4, 4)
 
 
 def _conformal(A: np.ndarray) -> bool:
@@ -210,19 +205,19 @@ class OverlayWriter:
                                        [np.zeros((1, 3)), np.ones((1, 1))]])]
         trs = _diagonal(S) and all(_conformal(P[:3, :3]) for P in parents)
         ops = list(OPS_TRS if trs else (OP_MATRIX,))
-        order = Sdf.AttributeSpec(spec, "xformOpOrder", _T.TokenArray,
+        order = Sdf.AttributeSpec(spec, "xformOpOrder", SDF_TYPES.TokenArray,
                                   variability=Sdf.VariabilityUniform)
         order.default = Vt.TokenArray((["!resetXformStack!"] if reset and own_reset else [])
                                       + ops)
         attrs = {}
         if trs:
-            attrs["t"] = Sdf.AttributeSpec(spec, OPS_TRS[0], _T.Double3)
-            attrs["r"] = Sdf.AttributeSpec(spec, OPS_TRS[1], _T.Quatd)
-            attrs["s"] = Sdf.AttributeSpec(spec, OPS_TRS[2], _T.Double3)
+            attrs["t"] = Sdf.AttributeSpec(spec, OPS_TRS[0], SDF_TYPES.Double3)
+            attrs["r"] = Sdf.AttributeSpec(spec, OPS_TRS[1], SDF_TYPES.Quatd)
+            attrs["s"] = Sdf.AttributeSpec(spec, OPS_TRS[2], SDF_TYPES.Double3)
         else:
-            attrs["m"] = Sdf.AttributeSpec(spec, OP_MATRIX, _T.Matrix4d)
-        attrs["v"] = Sdf.AttributeSpec(spec, "physics:velocity", _T.Vector3f)
-        attrs["w"] = Sdf.AttributeSpec(spec, "physics:angularVelocity", _T.Vector3f)
+            attrs["m"] = Sdf.AttributeSpec(spec, OP_MATRIX, SDF_TYPES.Matrix4d)
+        attrs["v"] = Sdf.AttributeSpec(spec, "physics:velocity", SDF_TYPES.Vector3f)
+        attrs["w"] = Sdf.AttributeSpec(spec, "physics:angularVelocity", SDF_TYPES.Vector3f)
         return dict(prim=prim, reset=reset, trs=trs, attrs=attrs, S=S, carrier=carrier)
 
     # -- fractured bodies ----------------------------------------------------------
@@ -253,23 +248,25 @@ class OverlayWriter:
         group.specifier = Sdf.SpecifierDef
         group.typeName = "Xform"
         if UsdGeom.Xformable(prim).GetResetXformStack():
-            _attr(group, "xformOpOrder", _T.TokenArray, Vt.TokenArray(["!resetXformStack!"]),
-                  uniform=True)
+            author_attr(group, "xformOpOrder", SDF_TYPES.TokenArray,
+                        Vt.TokenArray(["!resetXformStack!"]),
+                        uniform=True)
         colour, outside, physics = _looks_of(prim)
         looks = Sdf.PrimSpec(group, "Looks", Sdf.SpecifierDef, "Scope")
         if outside is None:
-            outside = _author_material(looks, "outside_mat", colour)
-        inside = _author_material(looks, "inside_mat", _INSIDE_COLOR)
+            outside = author_material(looks, "outside_mat", colour)
+        inside = author_material(looks, "inside_mat", INSIDE_COLOR)
         kpu = float(self.shot.kilograms_per_unit)
         for k, b in enumerate(bodies):
             shape = self.model.shapes[self.model.body_shape[b]]
             spec = Sdf.PrimSpec(group, f"piece_{k:02d}", Sdf.SpecifierDef, "Mesh")
-            _author_mesh(spec, np.asarray(shape.vertices) / self.mpu, shape.faces, colour,
-                         outside, _inside(shape, inside))
+            author_mesh(spec, np.asarray(shape.vertices) / self.mpu, shape.faces, colour,
+                        outside, broken_faces(shape, inside))
             spec.SetInfo("apiSchemas", Sdf.TokenListOp.CreateExplicit(
                 ["MaterialBindingAPI", "PhysicsRigidBodyAPI", "PhysicsCollisionAPI",
                  "PhysicsMassAPI"]))
-            _attr(spec, "physics:mass", _T.Float, float(self.model.body_mass[b]) / kpu)
+            author_attr(spec, "physics:mass", SDF_TYPES.Float,
+                        float(self.model.body_mass[b]) / kpu)
             if physics is not None:
                 rel = Sdf.RelationshipSpec(spec, "material:binding:physics", custom=False)
                 rel.targetPathList.explicitItems = [physics]
@@ -286,7 +283,7 @@ class OverlayWriter:
             b = self.body_at.get(str(p.GetPath()))
             if b is not None:
                 rel = UsdGeom.XformCache(self.t0).ComputeRelativeTransform(prim.GetParent(), p)
-                return b, _np(rel[0])
+                return b, matrix_array(rel[0])
             p = p.GetParent()
         return None
 
@@ -301,7 +298,8 @@ class OverlayWriter:
     def _parent(self, prim, t, reset) -> np.ndarray:
         if reset:
             return np.eye(4)
-        return _np(UsdGeom.XformCache(Usd.TimeCode(float(t))).GetParentToWorldTransform(prim))
+        cache = UsdGeom.XformCache(Usd.TimeCode(float(t)))
+        return matrix_array(cache.GetParentToWorldTransform(prim))
 
     def _world(self, b, x, q, S) -> np.ndarray:
         """Row-convention world matrix [stage units] of body ``b`` at (x [m], q)."""
@@ -367,17 +365,17 @@ class OverlayWriter:
         if spec is None:
             spec = Sdf.CreatePrimInLayer(self.layer, path)
             spec.specifier = Sdf.SpecifierOver
-            Sdf.AttributeSpec(spec, "positions", _T.Point3fArray)
+            Sdf.AttributeSpec(spec, "positions", SDF_TYPES.Point3fArray)
             Sdf.AttributeSpec(spec, "orientationsf" if use_f else "orientations",
-                              _T.QuatfArray if use_f else _T.QuathArray)
-            Sdf.AttributeSpec(spec, "velocities", _T.Vector3fArray)
-            Sdf.AttributeSpec(spec, "angularVelocities", _T.Vector3fArray)
+                              SDF_TYPES.QuatfArray if use_f else SDF_TYPES.QuathArray)
+            Sdf.AttributeSpec(spec, "velocities", SDF_TYPES.Vector3fArray)
+            Sdf.AttributeSpec(spec, "angularVelocities", SDF_TYPES.Vector3fArray)
         attr = {k: spec.attributes[k] for k in ("positions", "velocities", "angularVelocities")}
         attr["orient"] = spec.attributes["orientationsf" if use_f else "orientations"]
         inv_proto = [np.linalg.inv(m) for m in proto_local]
         for k, t in enumerate(times):
             tc = Usd.TimeCode(float(t))
-            W_inst = _np(UsdGeom.XformCache(tc).GetLocalToWorldTransform(prim))
+            W_inst = matrix_array(UsdGeom.XformCache(tc).GetLocalToWorldTransform(prim))
             inv_inst = np.linalg.inv(W_inst)
             _, R_inst = polar(W_inst[:3, :3])
             pos = np.array(pi.GetPositionsAttr().Get(tc) or [(0, 0, 0)] * n, dtype=np.float64)
@@ -486,9 +484,9 @@ def _looks_of(prim):
     of a body prim: its own bindings or, failing those, the first gprim's below it."""
     from pxr import UsdPhysics, UsdShade
 
-    colour, render, physics = tuple(_PALETTE[0]), None, None
+    colour, render, physics = tuple(PALETTE[0]), None, None
     for p in Usd.PrimRange(prim):
-        if p.IsA(UsdGeom.Gprim) and colour == tuple(_PALETTE[0]):
+        if p.IsA(UsdGeom.Gprim) and colour == tuple(PALETTE[0]):
             c = UsdGeom.Gprim(p).GetDisplayColorAttr().Get()
             if c is not None and len(c):
                 colour = tuple(float(x) for x in c[0])

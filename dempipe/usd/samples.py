@@ -4,7 +4,7 @@ assembled from chunks of frames on disk without holding every frame in memory.
 ``FrameSource`` gives the frames in blocks, as often as asked (an in-memory
 Frames is one block; ``ChunkSource`` reads a bake's chunk files one at a time).
 ``SparseTrack`` decides which samples to write as the frames stream past, by the
-rule of usd/authoring.py's ``_kept_samples`` and ``_constant`` (an attribute that
+rule of usd/authoring.py's ``kept_samples`` and ``constant_columns`` (an attribute that
 never changes gets a default value only; inside a run of identical samples only
 its first and last are kept), so the file is the same whatever the blocks.
 """
@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from dempipe.sim.frames import Frames, load_frames
-from dempipe.usd.colliders import _tangent_basis
+from dempipe.usd.colliders import tangent_basis
 
 
 class FrameSource:
@@ -124,7 +124,7 @@ class Scan:
             n = np.asarray(n, dtype=np.float64)
             n = n / np.linalg.norm(n)
             centre = c0 - np.dot(c0 - np.asarray(p, dtype=np.float64), n) * n
-            best.append([centre, _tangent_basis(n), -1.0, None])
+            best.append([centre, tangent_basis(n), -1.0, None])
         for f in source.blocks():
             pts = np.asarray(f.x, dtype=np.float64).reshape(-1, 3)
             for b in best:
@@ -150,7 +150,7 @@ class SparseTrack:
     i - 1 (values ``self.prev`` until the next push) must be written. ``finish``
     returns ``(last_mask, constant_mask)``: series whose last frame to write, and
     those that never changed (a default value ``self.first`` only). The same
-    samples as usd._kept_samples / usd._constant over all frames at once.
+    samples as authoring.kept_samples / authoring.constant_columns over all frames at once.
     """
 
     def __init__(self, k: int):

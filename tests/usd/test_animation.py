@@ -275,7 +275,7 @@ def test_quath_order_round_trip():
     """GfQuath stores (i, j, k, real): the exporter's (w,x,y,z) -> memory conversion."""
     from pxr import Vt
     q = np.array([[0.5, 0.5, -0.5, 0.5]])
-    arr = Vt.QuathArray.FromNumpy(usd_export._quat_xyzw(q, np.float16))
+    arr = Vt.QuathArray.FromNumpy(usd_export.quat_xyzw(q, np.float16))
     assert arr[0].GetReal() == 0.5
     assert tuple(arr[0].GetImaginary()) == (0.5, -0.5, 0.5)
 
@@ -496,7 +496,7 @@ def test_failure_while_authoring_leaves_nothing(tmp_path, monkeypatch):
     def boom(*args, **kwargs):
         raise RuntimeError("simulated")
 
-    monkeypatch.setattr(usd_export, "_author_colliders", boom)
+    monkeypatch.setattr(usd_export, "author_colliders", boom)
     with pytest.raises(RuntimeError):
         write_usd(target, frames, model)
     assert list(tmp_path.iterdir()) == []

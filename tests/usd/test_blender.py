@@ -25,7 +25,7 @@ import pytest
 
 from test_animation import FIRST, _quat_matrix, make_frames, make_model
 
-from dempipe.usd.meshes import _PALETTE, _COLLIDER_COLOR
+from dempipe.usd.meshes import PALETTE, COLLIDER_COLOR
 from dempipe.usd.animation import write_usd
 
 
@@ -112,7 +112,7 @@ def test_blender_imports_the_xforms_layout(tmp_path, mpu):
         assert ob["instances"] == [shape]
         mesh = objects[shape]
         assert mesh["material"] == f"{shape}_mat" and mesh["custom_normals"]
-        np.testing.assert_allclose(mesh["colour"], _PALETTE[model.body_shape[b] % len(_PALETTE)],
+        np.testing.assert_allclose(mesh["colour"], PALETTE[model.body_shape[b] % len(PALETTE)],
                                    atol=1e-6)
         # Blender applies metersPerUnit itself: its world transforms are in metres.
         m = np.array(ob["matrix"])
@@ -120,7 +120,7 @@ def test_blender_imports_the_xforms_layout(tmp_path, mpu):
         assert _rotation_angle(m[:3, :3], _quat_matrix(frames.q[mid, b])) < 1e-5
     for name in ("plane_0", "box_0"):
         assert objects[name]["material"] == "collider_mat"
-        np.testing.assert_allclose(objects[name]["colour"], _COLLIDER_COLOR, atol=1e-6)
+        np.testing.assert_allclose(objects[name]["colour"], COLLIDER_COLOR, atol=1e-6)
 
 
 def test_blender_imports_the_instancer_layout(tmp_path):
@@ -131,7 +131,7 @@ def test_blender_imports_the_instancer_layout(tmp_path):
     objects = got["objects"]
     for i, shape in enumerate(model.shapes):
         assert objects[shape.name]["material"] == f"{shape.name}_mat"
-        np.testing.assert_allclose(objects[shape.name]["colour"], _PALETTE[i % len(_PALETTE)],
+        np.testing.assert_allclose(objects[shape.name]["colour"], PALETTE[i % len(PALETTE)],
                                    atol=1e-6)
     # no stray empty for the prototypes, and every name as written (no ".001")
     assert "Prototypes" not in objects

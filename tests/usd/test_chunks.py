@@ -1,6 +1,6 @@
 """USD written from frames in blocks (a bake's chunks on disk) equals USD written
 from all frames at once, and keeps exactly the samples of the sparse rule
-(_kept_samples / _constant): what a bake that streams its frames to disk writes."""
+(kept_samples / constant_columns): what a bake that streams its frames to disk writes."""
 
 import numpy as np
 import pytest
@@ -13,7 +13,7 @@ from dempipe.sim.frames import save_frames  # noqa: E402
 from dempipe.usd import animation as usd  # noqa: E402
 from dempipe.usd.samples import ChunkSource  # noqa: E402
 from dempipe.sim.frames import Frames  # noqa: E402
-from dempipe.usd.authoring import _constant, _kept_samples  # noqa: E402
+from dempipe.usd.authoring import constant_columns, kept_samples  # noqa: E402
 from test_animation import make_model  # noqa: E402
 
 
@@ -74,8 +74,8 @@ def expected_times(values, sparse=True):
     """The frames the whole-bake rule keeps for (F, K, ...) values: None per series
     for a default only."""
     flat = values.reshape(values.shape[0], values.shape[1], -1)
-    keep = _kept_samples(flat)
-    const = _constant(flat)
+    keep = kept_samples(flat)
+    const = constant_columns(flat)
     return [None if const[k] else np.flatnonzero(keep[:, k]) for k in range(flat.shape[1])]
 
 
@@ -98,14 +98,14 @@ def test_blocks_write_what_all_frames_write(tmp_path, layout, size):
 
 def test_xforms_keep_the_sparse_rule(tmp_path):
     # The streamed writer against the rule over all frames: per body, the frames of
-    # _kept_samples, or a default only where _constant.
+    # kept_samples, or a default only where constant_columns.
     model = make_model()
     frames = tricky_frames()
     path = tmp_path / "x.usda"
     usd.write_usd(path, ChunkSource(chunk_files(tmp_path, frames, 4), 7), model,
                   layout="xforms")
     layer = Sdf.Layer.FindOrOpen(str(path))
-    trans = usd._flush_tiny(frames.x.copy() / model.meters_per_unit)
+    trans = usd.flush_tiny(frames.x.copy() / model.meters_per_unit)
     want = expected_times(trans)
     assert want[0] is None and len(want[4]) == 23
     assert list(want[1]) == [0] + list(range(9, 23))       # rests until 9, moves from 10

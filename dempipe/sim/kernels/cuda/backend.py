@@ -58,7 +58,7 @@ from dempipe.sim.kernels.neighbours import NEIGHBOURS, SKIN, cell_size
 from dempipe.sim.kernels.cuda.device import (
     CONTACT_THREADS, CTL_DONE, CTL_FORCE, CTL_IDLE_STEPS, CTL_MAXN,
     CTL_OVER, CTL_REBUILDS, CTL_SIZE, F, P, SCAN_B, SCAN_CHUNK,
-    TABLE_BLOCKS, THREADS, _device_jit, compile_body_stage)
+    TABLE_BLOCKS, THREADS, device_jit, compile_body_stage)
 from dempipe.sim.kernels.cuda.grid import (
     k_bucket_sort, k_gather, k_neighbours, k_scan_add, k_scan_blocks, k_scatter, k_spheres,
     k_spheres_sorted, k_unsort, k_zero_buckets)
@@ -111,10 +111,10 @@ def kernels(flags, law: str = "linear", glue: bool = False) -> types.SimpleNames
         # unglued variant of its flags, compiled once (only k_bodies adds the bonds)
         shared = kernels(flags, law) if glue else None
         consts = {n.upper(): f for n, f in zip(FLAGS, flags)}
-        formulas = F if law == "linear" else compile_formulas(_device_jit(), law)
+        formulas = F if law == "linear" else compile_formulas(device_jit(), law)
         layout = dict(consts, sqrt=math.sqrt, **CUDA_LAYOUT)
-        c = compile_contacts(_device_jit(), formulas, P, layout)
-        g = compile_glue(_device_jit(), formulas, P, layout) if glue else None
+        c = compile_contacts(device_jit(), formulas, P, layout)
+        g = compile_glue(device_jit(), formulas, P, layout) if glue else None
         body_update, _, _ = compile_body_stage(dict(consts, GLUE=bool(glue)))
         out = {}
         for name in names:

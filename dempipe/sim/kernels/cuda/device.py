@@ -26,7 +26,7 @@ from dempipe.sim.kernels.compile import (
 from dempipe.sim.kernels.layout import CUDA_LAYOUT
 
 
-def _device_jit():
+def device_jit():
     """Device-function decorator that inlines: numba-cuda's ``forceinline``
     (NVVM ``alwaysinline``), or the built-in target's ``inline``."""
     try:
@@ -38,7 +38,7 @@ def _device_jit():
     return cuda.jit(device=True, inline=True)
 
 
-F = compile_formulas(_device_jit())
+F = compile_formulas(device_jit())
 angular_velocity = F.angular_velocity
 sphere_kinematics = F.sphere_kinematics
 sphere_pair_force = F.sphere_pair_force
@@ -127,9 +127,9 @@ def cell_hash(cx, cy, cz, grid):
     return ((cz & grid[4]) << (grid[0] + grid[1])) | ((cy & grid[3]) << grid[0]) | (cx & grid[2])
 
 
-neighbour_list = compile_walk(_device_jit(), F, cell_coord, cell_key, cell_hash, False)
-slot_store = compile_slot_store(_device_jit())
-P = compile_pairing(_device_jit(), F)
+neighbour_list = compile_walk(device_jit(), F, cell_coord, cell_key, cell_hash, False)
+slot_store = compile_slot_store(device_jit())
+P = compile_pairing(device_jit(), F)
 wall_reach = P.wall_reach
 pair_slots = P.pair_slots
 pair_mirror = P.pair_mirror
@@ -143,14 +143,14 @@ FRICTION = True
 ROTATION = True
 SLEEPING = True
 WALLS = True
-C = compile_contacts(_device_jit(), F, P, dict(FRICTION=True, ROTATION=True, SLEEPING=True,
+C = compile_contacts(device_jit(), F, P, dict(FRICTION=True, ROTATION=True, SLEEPING=True,
                                              WALLS=True, sqrt=math.sqrt, **CUDA_LAYOUT))
 pair_forces = C.pair_forces
 sphere_forces = C.sphere_forces
 body_patches = C.body_patches
 #: The glue passes (kernels/glue.py), general: launched only for a scene with bonds.
-G = compile_glue(_device_jit(), F, P, dict(FRICTION=True, ROTATION=True, SLEEPING=True,
-                                           WALLS=True, sqrt=math.sqrt, **CUDA_LAYOUT))
+G = compile_glue(device_jit(), F, P, dict(FRICTION=True, ROTATION=True, SLEEPING=True,
+                                          WALLS=True, sqrt=math.sqrt, **CUDA_LAYOUT))
 bond_forces = G.bond_forces
 bond_contacts = G.bond_contacts
 body_glue_sum = G.body_glue_sum
@@ -166,8 +166,8 @@ def compile_body_stage(consts: dict):
                  rolling_scale=F.rolling_scale,
                  anchor_state=F.anchor_state, carried_state=F.carried_state,
                  chord_velocity=F.chord_velocity)
-    b = compile_chain(bodies, ("body_update",), _device_jit(), given)
-    r = compile_chain(prescribed, ("motion_row", "driven_row"), _device_jit(), given)
+    b = compile_chain(bodies, ("body_update",), device_jit(), given)
+    r = compile_chain(prescribed, ("motion_row", "driven_row"), device_jit(), given)
     return b.body_update, r.motion_row, r.driven_row
 
 
