@@ -42,7 +42,7 @@ from dempipe.errors import DempipeError, SceneError
 from dempipe.farm import cluster as farming
 from dempipe.farm.cluster import failure_reason, host_warnings
 from dempipe.pipeline.bake import bake
-from dempipe.pipeline.checkpoint import CheckpointError
+from dempipe.pipeline.checkpoint import CheckpointError, atomic_write
 from dempipe.pipeline.lock import work_dir
 from dempipe.preview import contact_sheet as sheet
 from dempipe.scene.load import load_scene
@@ -430,13 +430,12 @@ def read_csv(path) -> dict:
             if row.get("variant")}
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+def _write_text(path: Path, text: str) -> None:
+    """``text`` into ``path`` whole or not at all (checkpoint.atomic_write: fsync, the
+    temporary file removed on an interrupt); a WedgeError naming the path."""
     try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
+        atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
         raise WedgeError(f"{path}: cannot write ({exc.strerror or exc})") from None
 
 
@@ -559,11 +558,11 @@ def wedge(scene_path, out_dir, *, seeds: int | None = None, vary=(),
                     pass
             continue
         if not same:
-            _atomic_write(v.scene, v.text)
+            _write_text(v.scene, v.text)
         _tries_file(v).unlink(missing_ok=True)
         todo.append(v)
     table = [rows[v.name] for v in variants]
-    _atomic_write(csv_path, format_csv(keys, table))
+    _write_text(csv_path, format_csv(keys, table))
     result = WedgeResult(table, csv_path, keys)
     if len(todo) < len(variants):
         say(f"{len(variants) - len(todo)} of {len(variants)} variants done by an earlier run: "
@@ -646,7 +645,7 @@ def _finish(row: VariantResult, value: dict, v: Variant, result: WedgeResult, sa
     if not row.ok:       # what a failed bake kept, if anything
         partial = v.output.with_name(f"{v.output.stem}.partial{v.output.suffix}")
         row.output = str(partial) if partial.exists() else ""
-    _atomic_write(csv_path, format_csv(keys, result.variants))
+    _write_text(csv_path, format_csv(keys, result.variants))
     done = sum(1 for r in result.variants if r.status != "pending")
     values = " ".join(f"{k.rsplit('.', 1)[-1]}={_value_cell(row.values[k])}" for k in keys)
     tail = (f"ok in {row.wall_s:.1f} s on {row.worker}" if row.ok else row.status)
