@@ -70,9 +70,11 @@ def clamp_threads(threads, warn):
 @click.option("--layout", type=click.Choice(["instancer", "xforms"]), default="instancer",
               show_default=True, help="One PointInstancer, or one Xform per body.")
 @click.option("--frames", default=None, metavar="START:END",
-              help="Write only these frames (the simulation always starts at frame 0).")
+              help="Write only these frames, numbered as the output's time codes (from "
+                   "the scene's start frame); the simulation always starts at the first.")
 @click.option("--threads", type=click.IntRange(min=1), default=None,
-              help="CPU threads (default: all cores).")
+              help="CPU threads (default: the cores other processes leave free, "
+                   "followed as they change).")
 @click.option("--report", "report_path", type=click.Path(dir_okay=False), default=None,
               help="Write bake figures (time, steps, overlap, ...) as JSON.")
 @click.option("--cache-dir", type=click.Path(file_okay=False), default=None,

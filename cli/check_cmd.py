@@ -21,8 +21,9 @@ import click
 @click.option("--cache-dir", type=click.Path(file_okay=False), default=None,
               help="Sphere-set cache folder (default: $DEMPIPE_CACHE_DIR or the user cache).")
 def check(scene, as_json, cache_dir):
-    """Check SCENE (a .toml scene file): time step against the critical step, speeds
-    against the sphere size, frame-0 overlaps, mass ratios, tiny shapes."""
+    """Check SCENE (a .toml scene file or a UsdPhysics stage): time step against the
+    critical step, speeds against the sphere size, frame-0 overlaps, mass ratios, tiny
+    shapes."""
     from dempipe.spheres.cache import SphereCache
     from dempipe.pipeline.check import analyze_scene
 

@@ -115,11 +115,14 @@ def main(argv=None):
     from dempipe import interrupt
 
     interrupt.install()
-    debug = "--debug" in (argv if argv is not None else sys.argv[1:])
+    args = list(argv if argv is not None else sys.argv[1:])
+    debug = "--debug" in args
+    if debug:                       # the group's flag, wherever it was given
+        args = ["--debug"] + [a for a in args if a != "--debug"]
     try:
         interrupt.release()
         interrupt.check()           # a stop during the imports above
-        app.main(args=argv, prog_name="dempipe", standalone_mode=False)
+        app.main(args=args, prog_name="dempipe", standalone_mode=False)
         interrupt.check()           # a stop swallowed by a library: still a stop
     except interrupt.StopRequested as exc:
         click.echo(f"stopped by {interrupt.signal_name(exc.signum)}", err=True)

@@ -24,8 +24,10 @@ from dempipe.check.sizes import check_run_time
 from dempipe.check.stability import ERROR, expected_speeds, soft_contact, tunnelling
 from dempipe.errors import DempipeError, ExportError, SceneError, StabilityError
 from dempipe.interrupt import StopRequested, signal_name
+from dempipe.pipeline.checkpoint import atomic_write
 from dempipe.pipeline.lock import WorkLock, work_dir
 from dempipe.scene.keys import MAX_MAGNITUDE
+from dempipe.sim.cores import check_threads
 from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP
 from dempipe.spheres.cache import SphereCache
 
@@ -54,9 +56,15 @@ def parse_frame_range(text: str | None, n_frames: int, first: int) -> tuple[int,
         end = int(b) if b.strip() else first + n_frames - 1
     except ValueError:
         raise SceneError(f"--frames: expected START:END (e.g. 0:48), got {text!r}") from None
-    if not (first <= start <= end <= first + n_frames - 1):
-        raise SceneError(f"--frames: {start}:{end} is outside the scene's frames "
-                         f"{first}:{first + n_frames - 1}")
+    last = first + n_frames - 1
+    if start > end:
+        raise SceneError(f"--frames: {start}:{end} ends before it starts (give START:END with "
+                         f"START <= END, within the scene's frames {first}:{last})")
+    if not (first <= start and end <= last):
+        part = "is outside" if end < first or start > last else "reaches outside"
+        raise SceneError(f"--frames: {start}:{end} {part} the scene's frames {first}:{last} "
+                         f"(frame numbers as the output's time codes: the scene's first "
+                         f"frame is {first})")
     return start - first, end - first
 
 
@@ -220,6 +228,7 @@ def _bake(scene_path, out_path, *, device, layout, frames, threads, cache, progr
     if out.is_dir():
         raise ExportError(f"{out}: is a folder (give a file name ending in .usd, .usdc or "
                           f".usda)")
+    check_threads(threads)
     check_writable(out.parent)
     check_output_names(out, scene_path)
     interrupt.check()
@@ -248,6 +257,10 @@ def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, pro
     from dempipe.usd.overlay import OverlayWriter
     from dempipe.usd.samples import ChunkSource
 
+    from dempipe.usd.animation import LAYOUTS
+
+    if layout not in LAYOUTS:       # before any work: the CLI's choice, for the API too
+        raise ExportError(f"unknown USD layout {layout!r} (known: {', '.join(LAYOUTS)})")
     remove_stale_temporaries(out)
     if resume and (work_dir(out) / "meta.json").is_file():
         read_meta(work_dir(out))    # a damaged checkpoint: one line, before any work
@@ -499,6 +512,9 @@ def with_simulation(scene, simulation: dict | None):
     for k in ("resolution", "sphere_diameter"):
         if changes.get(k) is not None and not changes[k] > 0:
             raise SceneError(f"simulation.{k}: {changes[k]!r} must be greater than 0")
+    if changes.get("resolution") is not None and changes.get("sphere_diameter") is not None:
+        raise SceneError("simulation: give resolution or sphere_diameter, not both "
+                         f"(got {changes['resolution']!r} and {changes['sphere_diameter']!r})")
     if changes.get("resolution") is not None:
         changes.setdefault("sphere_diameter", None)
     if changes.get("sphere_diameter") is not None:
@@ -514,12 +530,12 @@ class BakeInterrupted(DempipeError):
 
 
 def write_report(path, report: dict) -> None:
-    """Write --report JSON atomically."""
+    """Write --report JSON atomically (checkpoint.atomic_write), creating its folder
+    if it is missing (check_writable made sure, before the bake, that it can be)."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    text = json.dumps(report, indent=2, default=float).encode()
     try:
-        tmp.write_text(json.dumps(report, indent=2, default=float))
-        os.replace(tmp, path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, lambda fh: fh.write(text))
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise ExportError(f"{path}: cannot write the report ({exc.strerror})") from None
+        raise ExportError(f"{path}: cannot write the report ({exc.strerror or exc})") from None

@@ -24,8 +24,11 @@ read (not Linux) nothing changes.
 
 from __future__ import annotations
 
+import numbers
 import os
 import time
+
+from dempipe.errors import DeviceError
 
 #: Seconds between two looks at the machine: a jiffy is 10 ms, so over half a second
 #: the others' share is known to a few percent of a core.
@@ -105,3 +108,12 @@ class CoreShare:
             self.threads = n
             self.changes += 1
         return n
+
+
+def check_threads(threads) -> None:
+    """A DeviceError unless ``threads`` is None (the CPU threads follow the cores other
+    processes leave: CoreShare) or a whole number of at least 1."""
+    if threads is not None and (isinstance(threads, bool)
+                                or not isinstance(threads, numbers.Integral) or threads < 1):
+        raise DeviceError(f"threads: {threads!r} must be a whole number of at least 1 "
+                          f"(or None: follow the cores other processes leave)")

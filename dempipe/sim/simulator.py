@@ -23,7 +23,7 @@ import numpy as np
 from dempipe import interrupt
 from dempipe.errors import DeviceError, StabilityError
 from dempipe.sim.backend import Backend
-from dempipe.sim.cores import CoreShare
+from dempipe.sim.cores import CoreShare, check_threads
 from dempipe.sim.frames import Frames
 from dempipe.sim.kernels.cpu.backend import CpuBackend
 from dempipe.sim.laws import law
@@ -159,6 +159,7 @@ class Simulator:
                  features=None, specialize: bool | None = None):
         self.model = model
         self.device = resolve_device(device)
+        check_threads(threads)
         if threads:
             import numba
 

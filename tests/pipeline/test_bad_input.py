@@ -184,6 +184,26 @@ def test_spheres_output_into_missing_folder(tmp_path):
     assert code == 0 and out.is_file(), err
 
 
+def test_report_into_a_missing_folder_is_written_there(tmp_path):
+    # the folder is made at the end, as -o's is: a long bake does not fail on it
+    scene = tmp_path / "s.toml"
+    scene.write_text(scene_text(duration=0.05))
+    report = tmp_path / "new" / "deeper" / "r.json"
+    code, _, err = cli("bake", scene, "-o", tmp_path / "o.usdc", "-q", "--report", report,
+                       cache=tmp_path)
+    assert code == 0, err
+    assert json.loads(report.read_text())["frames"] == 2
+
+
+def test_debug_after_the_subcommand_shows_the_traceback(tmp_path):
+    missing = tmp_path / "missing.toml"
+    for args in (("check", missing, "--debug"), ("--debug", "check", missing)):
+        code, _, err = cli(*args, cache=tmp_path)
+        assert code != 0 and "Traceback" in err and "file not found" in err, err
+    code, _, err = cli("check", missing, cache=tmp_path)
+    assert code == 2 and "Traceback" not in err and err.count("\n") == 1, err
+
+
 def test_check_json_on_bad_input_is_json(tmp_path):
     scene = tmp_path / "s.toml"
     scene.write_text(scene_text().replace("fps = 24", "fps = -3"))
