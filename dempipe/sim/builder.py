@@ -46,6 +46,25 @@ if TYPE_CHECKING:  # spheres imports numba; the model only needs the type
     from dempipe.spheres.sphere_set import SphereSet
 
 
+def _finite_rows(group: str, what: str, values, width: int, n: int | None = None):
+    """``values`` as an (n, width) float64 array (one row broadcast to n), or a
+    SceneError naming ``group`` and ``what`` for a wrong shape or a value that is not
+    finite."""
+    try:
+        a = np.atleast_2d(np.asarray(values, dtype=np.float64))
+        if n is not None:
+            a = np.broadcast_to(a, (n, width))
+    except (TypeError, ValueError):
+        raise SceneError(f"{group}: {what}: expected {width} numbers per body"
+                         + ("" if n is None else f" for {n} bodies")) from None
+    if a.ndim != 2 or a.shape[1] != width:
+        raise SceneError(f"{group}: {what}: expected {width} numbers per body, got shape "
+                         f"{a.shape}")
+    if not np.isfinite(a).all():
+        raise SceneError(f"{group}: {what}: a value that is not finite (NaN or infinity)")
+    return np.array(a)
+
+
 class ModelBuilder:
     """Collects shapes, materials, bodies and colliders, then ``finalize()`` → Model.
 
@@ -76,6 +95,9 @@ class ModelBuilder:
 
     # -- inputs ---------------------------------------------------------------
     def add_material(self, material: mat.Material) -> int:
+        """Register ``material`` (a dempipe.sim.materials.Material); returns its index
+        for add_bodies and the colliders. A material of a name already given replaces
+        it (index 0 is "default", what a collider without a material takes)."""
         for i, m in enumerate(self._materials):
             if m.name == material.name:
                 self._materials[i] = material
@@ -132,16 +154,25 @@ class ModelBuilder:
         """
         if kinematic and motion is None:
             raise SceneError(f"{group}: a kinematic group needs a motion")
-        p = np.atleast_2d(np.asarray(positions, dtype=np.float64))
+        p = _finite_rows(group, "positions", positions, 3)
         n = p.shape[0]
-        q = np.tile([1.0, 0, 0, 0], (n, 1)) if rotations is None else np.atleast_2d(
-            np.asarray(rotations, dtype=np.float64))
-        q = q / np.linalg.norm(q, axis=1, keepdims=True)
-        v = np.zeros((n, 3)) if velocities is None else np.broadcast_to(
-            np.asarray(velocities, dtype=np.float64), (n, 3))
-        w = np.zeros((n, 3)) if angular_velocities is None else np.broadcast_to(
-            np.asarray(angular_velocities, dtype=np.float64), (n, 3))
+        q = np.tile([1.0, 0, 0, 0], (n, 1)) if rotations is None else _finite_rows(
+            group, "rotations", rotations, 4, n)
+        norm = np.linalg.norm(q, axis=1, keepdims=True)
+        if not (norm > 0.0).all():
+            raise SceneError(f"{group}: rotations: a quaternion (w, x, y, z) of length 0")
+        q = q / norm
+        v = np.zeros((n, 3)) if velocities is None else _finite_rows(
+            group, "velocities", velocities, 3, n)
+        w = np.zeros((n, 3)) if angular_velocities is None else _finite_rows(
+            group, "angular_velocities", angular_velocities, 3, n)
         shapes = np.broadcast_to(np.asarray(shape, dtype=np.int64), (n,)).copy()
+        if shapes.size and not ((shapes >= 0) & (shapes < len(self._shapes))).all():
+            raise SceneError(f"{group}: shape index out of range (add_shape has given "
+                             f"0..{len(self._shapes) - 1})")
+        if not 0 <= int(material) < len(self._materials):
+            raise SceneError(f"{group}: material index {material!r} out of range "
+                             f"(add_material has given 0..{len(self._materials) - 1})")
         self._groups.append(dict(
             name=group, shapes=shapes, material=material, p=p, q=q, v=np.array(v),
             w=np.array(w), asleep=np.zeros(n, bool) if asleep is None else np.array(asleep, bool),
@@ -155,11 +186,14 @@ class ModelBuilder:
                   else np.broadcast_to(np.asarray(glue, np.int64), (n,)).copy())))
 
     def add_plane(self, point, normal, material: int = 0, motion=None) -> None:
-        """An infinite plane through ``point`` facing ``normal``; ``motion`` (a
-        dempipe.sim.motion.Motion) moves it (a belt: a velocity along itself)."""
-        n = np.asarray(normal, dtype=np.float64)
+        """An infinite plane through ``point`` [m] facing ``normal`` (any length but 0);
+        ``motion`` (a dempipe.sim.motion.Motion) moves it (a belt: a velocity along
+        itself)."""
+        n = _finite_rows("plane", "normal", normal, 3, 1)[0]
+        if not np.linalg.norm(n) > 0.0:
+            raise SceneError(f"plane: normal {tuple(normal)!r} has length 0")
         n = n / np.linalg.norm(n)
-        p = np.asarray(point, dtype=np.float64)
+        p = _finite_rows("plane", "point", point, 3, 1)[0]
         self._planes.append((p, n))
         depth = PLANE_DEPTH_DIAMETERS * self.diameter
         self._walls.append((n, float(n @ p), np.full(3, -np.inf), np.full(3, np.inf), depth,
@@ -220,6 +254,12 @@ class ModelBuilder:
                  sleep: tuple | None = None, contact_law: str = laws.DEFAULT) -> Model:
         """Derive contact constants, dt and features; freeze everything into a Model.
 
+        fps : output frames per second (> 0); n_frames : frames to output, frame 0 (the
+        start) included, so 11 frames at 10 fps are 1 s; first_frame : the number of
+        frame 0 in the USD's time codes. dt : "auto" or the step [s].
+        target_overlap : the overlap [fraction of the sphere diameter] "auto" stiffness
+        gives the hardest expected impact. up_axis, meters_per_unit : the USD stage's
+        (the gravity is the builder's own, in metres: give it along the up axis).
         A user dt at or above the critical step of the stiffest contact raises
         StabilityError, unless ``force`` (the bake's --force: the user takes the risk).
         sleep : None (off) or (linear [m/s] | None, angular [rad/s] | None,
@@ -228,6 +268,15 @@ class ModelBuilder:
         steps_per_contact : dt="auto"'s steps per contact (None: the law's
         STEPS_PER_CONTACT).
         """
+        if not (isinstance(fps, (int, float, np.number)) and math.isfinite(fps) and fps > 0):
+            raise SceneError(f"fps: {fps!r} must be a finite number of frames per second > 0")
+        if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) \
+                or n_frames < 1:
+            raise SceneError(f"n_frames: {n_frames!r} must be a whole number >= 1 (frame 0 "
+                             f"counts: 11 frames at 10 fps are 1 s)")
+        if contact_law not in laws.LAWS:
+            raise SceneError(f"contact_law: unknown law {contact_law!r} "
+                             f"(known: {', '.join(laws.LAWS)})")
         law_name = contact_law
         law = laws.law(law_name)
         if steps_per_contact is None:

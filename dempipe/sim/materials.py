@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dempipe.errors import StabilityError
+from dempipe.errors import SceneError, StabilityError
 from dempipe.sim.laws import linear as _law
 
 #: Steps per contact duration that dt="auto" aims for, the default law's (each law
@@ -83,6 +83,36 @@ class Material:
     glue_strength: float | None = None
     glue_stiffness: float | None = None
     glue_damping: float = 0.7
+
+    def __post_init__(self):
+        # the ranges the scene readers check (scene/toml_reader.py), for a Material built
+        # in Python: a negative density would make a body that hangs in the air
+        def bad(key, v, need):
+            return SceneError(f"material {self.name!r}: {key} = {v!r} {need}")
+
+        def number(key, lo, hi=math.inf, lo_open=False, optional=False):
+            v = getattr(self, key)
+            if v is None and optional:
+                return
+            ok = (isinstance(v, (int, float, np.floating, np.integer))
+                  and not isinstance(v, bool) and math.isfinite(v) and v <= hi
+                  and (v > lo if lo_open else v >= lo))
+            if not ok:
+                side = f"> {lo:g}" if lo_open else f">= {lo:g}"
+                upper = f" and <= {hi:g}" if math.isfinite(hi) else ""
+                raise bad(key, v, f"must be a finite number {side}{upper}"
+                          + (" (or None)" if optional else ""))
+
+        number("density", 0.0, lo_open=True)
+        number("restitution", 0.0, 1.0)
+        number("friction", 0.0)
+        number("rolling_friction", 0.0)
+        number("stiffness", 0.0, lo_open=True, optional=True)
+        number("young_modulus", 0.0, lo_open=True, optional=True)
+        number("poisson_ratio", 0.0, 0.4999)
+        number("glue_strength", 0.0, lo_open=True, optional=True)
+        number("glue_stiffness", 0.0, lo_open=True, optional=True)
+        number("glue_damping", 0.0)
 
 
 DEFAULT_MATERIAL = Material("default")
