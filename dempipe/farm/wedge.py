@@ -45,6 +45,7 @@ from dempipe.pipeline.bake import bake
 from dempipe.pipeline.checkpoint import CheckpointError, atomic_write
 from dempipe.pipeline.lock import work_dir
 from dempipe.preview import contact_sheet as sheet
+from dempipe.scene.keys import suggestion
 from dempipe.scene.load import load_scene
 from dempipe.spheres.cache import SphereCache
 
@@ -158,8 +159,10 @@ def parse_vary(spec: str) -> tuple[tuple, list]:
 
 
 def set_key(data: dict, path: tuple, value) -> None:
-    """Set ``path`` in the TOML data, creating missing tables; WedgeError for a path that
-    runs through a value or past the end of an array."""
+    """Set ``path`` in the TOML data, creating a missing top-level table (``simulation``,
+    ``output``); WedgeError for a path that runs through a value, past the end of an
+    array, or through a table the scene does not have below the top level (a misspelt
+    material or shape would otherwise become a new, unused one)."""
     node = data
     for i, p in enumerate(path):
         last = i == len(path) - 1
@@ -178,6 +181,10 @@ def set_key(data: dict, path: tuple, value) -> None:
             node[p] = value
         else:
             if isinstance(p, str) and p not in node:
+                if i > 0:
+                    names = [k for k, v in node.items() if isinstance(v, (dict, list))]
+                    raise WedgeError(f"--vary {format_key(path)}: the scene has no {where} "
+                                     f"({suggestion(p, names)})")
                 node[p] = [] if isinstance(path[i + 1], int) else {}
             node = node[p]
             if isinstance(path[i + 1], str) and isinstance(node, list):

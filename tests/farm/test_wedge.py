@@ -145,6 +145,9 @@ def test_plan_is_a_grid_of_named_variants(tmp_path):
     for bad, words in [
             (dict(vary=["bodies[3].count=1,2"]), "has 1 bodies entries"),
             (dict(vary=["simulation.resolution.x=1,2"]), "is a value, not a table"),
+            # a misspelt material would become a new, unused one: every variant the same
+            (dict(vary=["materials.rubbr.restitution=0.2,0.6"]),
+             "no materials.rubbr (did you mean 'rubber'?"),
             (dict(seeds=2, vary=["simulation.seed=1,2"]), "wedged twice"),
             (dict(), "nothing to wedge")]:
         with pytest.raises(WedgeError) as info:
