@@ -185,7 +185,11 @@ def invalidate_stale_cache(module_file: str) -> None:
                *sorted(glob.glob(os.path.join(os.path.dirname(laws.__file__), "*.py"))),
                *sorted(glob.glob(os.path.join(os.path.dirname(__file__), "**", "*.py"),
                                 recursive=True))]
-    digest = hashlib.sha256(b"".join(open(f, "rb").read() for f in sources)).hexdigest()[:16]
+    sha = hashlib.sha256()
+    for f in sources:
+        with open(f, "rb") as fh:
+            sha.update(fh.read())
+    digest = sha.hexdigest()[:16]
     stem = os.path.splitext(os.path.basename(module_file))[0]
     folders = [os.path.join(here, "__pycache__")]
     if os.environ.get("NUMBA_CACHE_DIR"):
