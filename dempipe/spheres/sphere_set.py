@@ -441,9 +441,10 @@ def _warn_notes(sphere_set: SphereSet, name) -> None:
         warnings.warn(f"{label}: mesh is not watertight; inside test by winding number, "
                       "mass properties from the spheres", stacklevel=3)
     if "tiny" in sphere_set.notes:
-        warnings.warn(f"{label}: shape is smaller than one sphere of diameter "
-                      f"{sphere_set.diameter:.6g} m; using one sphere at its centre of mass "
-                      "(use a smaller --diameter or a higher --resolution)", stacklevel=3)
+        warnings.warn(f"{label}: no sphere of diameter {sphere_set.diameter:.6g} m fits "
+                      "inside the shape (it is thinner than about one diameter); using one "
+                      "sphere at its centre of mass "
+                      "(use a smaller sphere_diameter or a higher resolution)", stacklevel=3)
 
 
 def build_sphere_set_with_info(mesh, diameter, *, name=None, cache=None,

@@ -236,7 +236,7 @@ def test_tiny_shape_gets_one_sphere_and_a_warning():
     b.apply_translation([0.001, 0.005, 0.001])
     ell = trimesh.boolean.union([a, b], engine="manifold")
     assert ell.is_watertight
-    with pytest.warns(UserWarning, match="ell: shape is smaller than one sphere"):
+    with pytest.warns(UserWarning, match="ell: no sphere of diameter"):
         s = build_sphere_set(ell, 0.05, name="ell")
     assert s.count == 1
     assert np.allclose(s.centers, 0.0)
