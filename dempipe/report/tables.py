@@ -102,9 +102,15 @@ def format_markdown(r: ReportResult) -> str:
         u = r.recommended
         rolls = ("" if r.rolling_tolerance is None else
                  f" and incline rolling error within {r.rolling_tolerance:g}")
+        speed = ref.wall_s / u.wall_s
+        if speed >= 1.0:
+            than = f"{_num(speed, '.1f')}× faster than the reference"
+        else:                       # the reference is cheaper too: say so, not "0.6× faster"
+            than = (f"{_num(1.0 / speed, '.1f')}× slower than the reference, which is "
+                    "cheaper and more accurate here: keep its settings")
         L.append(f"Cheapest run with error within the tolerance {r.tolerance:g}{rolls}: "
                  f"**{u.label}** (error {_num(u.error)}, {_num(u.wall_s, '.1f')} s, "
-                 f"{_num(ref.wall_s / u.wall_s, '.1f')}× faster than the reference). "
+                 f"{than}). "
                  + ("In the scene file:" if r.stage is None else
                     "dempipe's settings for a stage go in a small TOML beside it that names "
                     "it (docs/usd-input.md), baked with `dempipe bake SETTINGS.toml -o OUT`:"))
