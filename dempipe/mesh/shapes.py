@@ -560,7 +560,7 @@ def load_mesh(path: str | os.PathLike, scale: float = 1.0) -> trimesh.Trimesh:
     if ext not in MESH_EXTENSIONS:
         raise MeshError(f"{where}: unsupported mesh format {ext or '(no extension)'!r} (supported: {supported})")
     if os.path.getsize(where) == 0:
-        raise MeshError(f"{where}: file is empty")
+        raise MeshError(f"{where}: file is empty (export the mesh again)")
 
     if ext == ".stl":
         _check_binary_stl(where)

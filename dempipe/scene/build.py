@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from dempipe.check.sizes import check_lattice, preflight_scene
-from dempipe.errors import SceneError
+from dempipe.errors import MeshError, SceneError, ShapeError
 from dempipe.mesh.shapes import build_shape, load_mesh
 from dempipe.scene.placement import (
     collider_frame,
@@ -57,14 +57,23 @@ class Overrides:
     contact_law: str | None = None
 
 
+def _named(where: str, build, *args, **kwargs):
+    """``build(*args, **kwargs)``, its ShapeError or MeshError prefixed with ``where``
+    (the scene file and key: 'scene.toml: shapes.b: shape 'torus': minor_radius ...')."""
+    try:
+        return build(*args, **kwargs)
+    except (ShapeError, MeshError) as exc:
+        raise type(exc)(f"{where}: {exc}") from None
+
+
 def shape_mesh(spec, where: str):
     """The mesh of a scene's shape (a copy of its file's, or its built-in shape built);
     ``where`` names the shape in error messages."""
     if spec.mesh is not None:
         return spec.mesh.copy()
     if spec.builtin is not None:
-        return build_shape(spec.builtin, **dict(spec.params))
-    return load_mesh(spec.mesh_path, scale=spec.scale)
+        return _named(where, build_shape, spec.builtin, **dict(spec.params))
+    return _named(where, load_mesh, spec.mesh_path, scale=spec.scale)
 
 
 def with_center_of_mass(ss, com):
@@ -85,11 +94,11 @@ def collider_mesh(c, where: str):
         if c.scale != 1.0:
             mesh.apply_scale(c.scale)
     elif c.builtin is not None:
-        mesh = build_shape(c.builtin, **dict(c.params))
+        mesh = _named(where, build_shape, c.builtin, **dict(c.params))
         if c.scale != 1.0:
             mesh.apply_scale(c.scale)
     else:
-        mesh = load_mesh(c.mesh_path, scale=c.scale)
+        mesh = _named(where, load_mesh, c.mesh_path, scale=c.scale)
     T = np.eye(4)
     T[:3, :3] = quat_to_matrix(np.asarray(c.rotation, dtype=np.float64))
     T[:3, 3] = c.position

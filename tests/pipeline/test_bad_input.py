@@ -113,6 +113,23 @@ def test_corrupt_binary_stl_named(tmp_path):
     assert len(load_mesh(good).faces) == 12
 
 
+def test_shape_errors_name_the_scene_file_and_key(tmp_path):
+    # the mesh's own message (its file, the problem) behind the scene's file and key,
+    # as every other scene error: a scene with several meshes says which shape it was
+    from dempipe.errors import ShapeError
+    from dempipe.scene.build import build_model
+
+    (tmp_path / "empty.obj").write_bytes(b"")
+    scene = tmp_path / "s.toml"
+    for shape, words in [('mesh = "empty.obj"', r"s.toml: shapes.ball: .*empty.obj: file is "
+                                                r"empty \(export the mesh again\)"),
+                         ('builtin = "torus"\nmajor_radius = 0.005\nminor_radius = 0.01',
+                          "s.toml: shapes.ball: shape 'torus': minor_radius must be smaller")]:
+        scene.write_text(scene_text().replace('builtin = "sphere"\ndiameter = 0.1', shape))
+        with pytest.raises(ShapeError, match=words):
+            build_model(load_scene(scene))
+
+
 def test_mesh_path_that_is_a_folder(tmp_path):
     (tmp_path / "m.stl").mkdir()
     scene = tmp_path / "s.toml"
