@@ -16,10 +16,12 @@ def scene():
               help="The stage to write: .usda, .usdc or .usd.")
 @click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
 def export(scene_file, output, debug):
-    """Write SCENE_FILE (a .toml scene) as a UsdPhysics stage a DCC opens; bake the
-    stage with `dempipe bake` (docs/usd-input.md)."""
-    from dempipe.usd.physics_stage import write_physics_stage
-    from dempipe.scene.load import load_scene
+    """Write SCENE_FILE (a .toml scene) as a UsdPhysics stage a DCC opens, and the
+    scene's [simulation] settings, which a stage cannot hold, as NAME.settings.toml
+    beside it: bake that file to get the scene's motion (docs/usd-input.md)."""
+    from dempipe.pipeline.export import export_scene
 
-    path = write_physics_stage(load_scene(scene_file), output)
-    click.echo(f"wrote {path}")
+    stage, settings = export_scene(scene_file, output)
+    click.echo(f"wrote {stage}" + ("" if settings is None else
+                                   f" and {settings} (its [simulation] settings: bake this "
+                                   f"file for the scene's motion)"))

@@ -114,3 +114,37 @@ def parse_simulation(ctx: SceneKeys, d: Any, up_axis: str) -> SimulationSettings
             k: ctx.number(s[k], f"simulation.sleep.{k}", lo=0.0, lo_open=True, unit=units[k])
             for k in _SLEEP_KEYS if k in s})
     return SimulationSettings(**kw)
+
+
+def settings_toml(sim: SimulationSettings, stage: str) -> str | None:
+    """The settings TOML of a stage written from a TOML scene: ``[usd] stage`` (the
+    stage's path relative to the TOML) and the ``[simulation]`` keys ``sim`` gives other
+    than the defaults, which a UsdPhysics stage cannot hold (its gravity can, and is
+    left out). None when every key is at its default: the stage alone bakes the same."""
+    default = SimulationSettings()
+    lines = []
+    for key in _SIM_KEYS:
+        v = getattr(sim, key)
+        if key in ("gravity", "sleep") or v == getattr(default, key):
+            continue
+        if key == "resolution" and v is None:
+            continue                # sphere_diameter is given instead
+        lines.append(f"{key} = {_toml_value(v)}")
+    sleep = [f"{k} = {_toml_value(getattr(sim.sleep, k))}" for k in _SLEEP_KEYS
+             if getattr(sim.sleep, k) is not None]
+    if not lines and not sleep:
+        return None
+    out = ["# dempipe's own settings for the stage (docs/usd-input.md): bake this file",
+           "[usd]", f"stage = {_toml_value(stage)}", "", "[simulation]", *lines]
+    if sleep:
+        out += ["", "[simulation.sleep]", *sleep]
+    return "\n".join(out) + "\n"
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return repr(float(v)) if isinstance(v, float) else str(int(v))
+
