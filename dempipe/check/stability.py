@@ -33,6 +33,7 @@ from dempipe.check.sizes import memory_estimate
 from dempipe.sim import glue, laws
 from dempipe.sim.model import Model, rotational_mass_factor
 from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP, frame0_overlap
+from dempipe.spheres.fidelity import mesh_beyond_spheres
 
 #: Distance the fastest closing pair travels in one step, as a fraction of the
 #: diameter: above TUNNEL_WARN contacts start a visible fraction of a diameter
@@ -53,6 +54,11 @@ FAR_CELLS = 2.0 ** 19
 #: SMALL_EXTENT diameters, collides like a ball.
 SMALL_SPHERES = 8
 SMALL_EXTENT = 2.0
+#: A shape whose mesh reaches more than this many diameters beyond its spheres
+#: (spheres.fidelity.mesh_beyond_spheres: a feature thinner than the lattice can hold,
+#: a rook's battlements at 6 across) gets a warning: where it touches something the
+#: mesh looks sunk into it by up to that much.
+COARSE_DIAMETERS = 1.0
 
 ERROR = "error"
 WARNING = "warning"
@@ -579,8 +585,18 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
         extent = float((c.max(axis=0) - c.min(axis=0)).max() + d) / d
         count = int(c.shape[0])
         small = count < SMALL_SPHERES or extent < SMALL_EXTENT
+        beyond = mesh_beyond_spheres(c, d, s.vertices, s.faces) / d
         shapes.append(dict(name=s.name, spheres=count, extent_diameters=extent,
-                           rotational_mass_factor=float(factors[si]), small=small))
+                           rotational_mass_factor=float(factors[si]), small=small,
+                           mesh_beyond_spheres_diameters=beyond))
+        if beyond > COARSE_DIAMETERS and not small:
+            findings.append(Finding(
+                WARNING, "coarse-shape",
+                f"{src}: shape {s.name!r}: its mesh reaches {beyond * d * 1e3:.3g} mm "
+                f"({beyond:.2f} diameters) beyond its spheres: where it touches something "
+                f"it will look sunk in by up to that",
+                "raise simulation.resolution or lower simulation.sphere_diameter, or give "
+                'the shape spheres = "surface" (docs/spheres.md)'))
         if small:
             findings.append(Finding(
                 WARNING, "small-body",

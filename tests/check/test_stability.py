@@ -513,3 +513,28 @@ def test_analyze_scene_ok_refused_dt_and_overlap(tmp_path):
     r = analyze_scene(path, cache=cache)
     assert not r.ok and r.errors[0].code == "frame0-overlap" and r.overlap > 0.5
     json.loads(r.to_json())
+
+
+def test_a_shape_whose_mesh_reaches_past_its_spheres_is_flagged():
+    # at 6 spheres across the pawn's height (d = 8.33 mm) the rook's battlements are
+    # thinner than the lattice can hold: its mesh reaches 1.26 d beyond its spheres
+    # (10.5 mm, measured with 2,000 samples; the sampling can only underestimate), and
+    # a rook resting on a floor looks sunk into it by up to that. The pawn's reach is
+    # 0.57 d, a box's tiled exactly (r (√3 - 1) at its corners) 0.37 d: no warning
+    from dempipe.mesh.shapes import build_shape
+    from dempipe.spheres.sphere_set import build_sphere_set
+
+    d = 0.05 / 6
+    b = ModelBuilder(d)
+    wood = b.add_material(Material("wood", density=700))
+    for i, name in enumerate(("rook", "pawn")):
+        mesh = build_shape(name)
+        s = b.add_shape(name, mesh, build_sphere_set(mesh, d, name=name))
+        b.add_bodies(name, s, wood, [[0.1 * i, 0, 0.1]])
+    b.add_plane([0, 0, 0], [0, 0, 1], wood)
+    r = st.analyze(b.finalize(fps=24, n_frames=2))
+    coarse = [f for f in r.findings if f.code == "coarse-shape"]
+    assert len(coarse) == 1 and "'rook'" in coarse[0].message and coarse[0].level == "warning"
+    reach = {s["name"]: s["mesh_beyond_spheres_diameters"] for s in r.shapes}
+    assert 1.1 < reach["rook"] < 1.4 and reach["pawn"] < st.COARSE_DIAMETERS
+    assert r.ok
