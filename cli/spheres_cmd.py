@@ -162,8 +162,12 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
                 "surface_count": int(surface_mask(sphere_set.centers, sphere_set.diameter, 1).sum()),
                 "diameter": sphere_set.diameter,
                 "volume": sphere_set.volume,
-                "volume_error_percent": 100.0 * sphere_set.sphere_volume_error,
-                "inertia_error_percent": 100.0 * sphere_set.inertia_error,
+                # an open mesh encloses no volume: its mass properties are the spheres',
+                # so there is nothing to compare them with (None, "n/a")
+                "volume_error_percent": (None if "not_watertight" in sphere_set.notes
+                                         else 100.0 * sphere_set.sphere_volume_error),
+                "inertia_error_percent": (None if "not_watertight" in sphere_set.notes
+                                          else 100.0 * sphere_set.inertia_error),
                 "hausdorff": None,
                 "bump": None,
                 "build_seconds": info.seconds,
@@ -226,9 +230,12 @@ def _line(row) -> str:
     if row["hausdorff"] is not None:
         line += (f"Hausdorff {row['hausdorff']:.3g} m ({row['hausdorff'] / d:.2f} d), "
                  f"bump {row['bump']:.3g} m ({row['bump'] / d:.3f} d), ")
-    line += (f"volume error {row['volume_error_percent']:+.2f}%, "
-             f"inertia error {row['inertia_error_percent']:.2f}%, "
-             f"{row['build_seconds']:.2f} s, cache {row['cache']}")
+    if row["volume_error_percent"] is None:
+        line += "volume and inertia errors n/a (an open mesh: mass from the spheres), "
+    else:
+        line += (f"volume error {row['volume_error_percent']:+.2f}%, "
+                 f"inertia error {row['inertia_error_percent']:.2f}%, ")
+    line += f"{row['build_seconds']:.2f} s, cache {row['cache']}"
     if row["output"]:
         line += f" -> {row['output']}"
     return line

@@ -189,3 +189,21 @@ def test_real_process_and_no_pxr_or_cuda_import(tmp_path):
     assert proc.returncode != 0
     assert proc.stderr.strip().splitlines() == [proc.stderr.strip()]
     assert "Traceback" not in proc.stderr
+
+
+def test_an_open_mesh_has_no_volume_error_to_show(tmp_path):
+    # a box with one face missing encloses no volume: its mass properties come from its
+    # spheres, and comparing them with themselves printed "+0.00%"
+    box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    open_box = trimesh.Trimesh(box.vertices, box.faces[:-2], process=False)
+    path = tmp_path / "open.obj"
+    open_box.export(path)
+    result = run("spheres", str(path), "-r", "4", "--json")
+    row = json.loads(result.stdout)[0]
+    assert row["volume_error_percent"] is None and row["inertia_error_percent"] is None
+    text = run("spheres", str(path), "-r", "4").stdout
+    assert "errors n/a (an open mesh: mass from the spheres)" in text
+    closed = tmp_path / "box.obj"
+    box.export(closed)
+    assert json.loads(run("spheres", str(closed), "-r", "4", "--json").stdout)[0][
+        "volume_error_percent"] == pytest.approx(0.0, abs=1e-9)
