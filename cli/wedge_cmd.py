@@ -80,4 +80,5 @@ def wedge(scene, output, seeds, vary, workers, threads, scheduler, device, layou
         first = failed[0]
         raise WedgeFailed(f"{len(failed)} of {len(result.variants)} variants failed "
                           f"(first, {first.name}: {first.status[len('failed: '):]}); "
-                          f"the others were written; see {result.csv}")
+                          + ("none was written" if len(failed) == len(result.variants)
+                             else "the others were written") + f"; see {result.csv}")

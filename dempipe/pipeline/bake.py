@@ -197,6 +197,11 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
     or a failing write keeps every finished frame in NAME.partial.EXT and the
     checkpoint for --resume.
     """
+    if not isinstance(scene_path, (str, os.PathLike)) or not isinstance(out_path,
+                                                                        (str, os.PathLike)):
+        raise SceneError(f"bake(scene_path, out_path): expected two paths (a .toml scene or a "
+                         f"USD stage, and the .usd/.usdc/.usda to write), got "
+                         f"{type(scene_path).__name__} and {type(out_path).__name__}")
     with interrupt.installed_for_call():
         try:
             return _bake(scene_path, out_path, device=device, layout=layout, frames=frames,

@@ -90,6 +90,10 @@ def test_bake_refuses_a_bad_layout_or_thread_count_before_any_work(tmp_path):
         bake(scene, out, threads=0)
     with pytest.raises(SceneError, match="resolution or sphere_diameter, not both"):
         bake(scene, out, simulation=dict(resolution=3, sphere_diameter=0.05))
+    with pytest.raises(SceneError, match="expected two paths .* got Scene and PosixPath"):
+        from dempipe.scene.load import load_scene
+
+        bake(load_scene(scene), out)
     # nothing was simulated, so nothing was left to resume
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.toml"]
 
