@@ -274,6 +274,16 @@ class ModelBuilder:
                 or n_frames < 1:
             raise SceneError(f"n_frames: {n_frames!r} must be a whole number >= 1 (frame 0 "
                              f"counts: 11 frames at 10 fps are 1 s)")
+        if up_axis not in ("Y", "Z"):
+            raise SceneError(f"up_axis: {up_axis!r} must be \"Y\" or \"Z\"")
+        g = self.gravity
+        if float(np.linalg.norm(g)) > 0.0 and not g[1 if up_axis == "Y" else 2] < -0.5 * float(
+                np.linalg.norm(g)):
+            import warnings
+
+            warnings.warn(f"gravity {tuple(float(x) for x in g)} does not point down the "
+                          f"stage's up axis {up_axis}: bodies will fall sideways in a DCC "
+                          f"(give ModelBuilder gravity along -{up_axis})", stacklevel=2)
         if contact_law not in laws.LAWS:
             raise SceneError(f"contact_law: unknown law {contact_law!r} "
                              f"(known: {', '.join(laws.LAWS)})")

@@ -76,6 +76,8 @@ def test_builder_refuses_what_cannot_be_simulated(box):
                       (dict(contact_law="nope"), "unknown law 'nope'")]:
         with pytest.raises(SceneError, match=words):
             b.finalize(**kw)
+    with pytest.warns(UserWarning, match="does not point down the stage's up axis Y"):
+        b.finalize(fps=10, n_frames=2, up_axis="Y")    # gravity along -z, a Y-up stage
     model = b.finalize(fps=10, n_frames=11)    # what was refused above, given right
     assert model.body_mass[0] == pytest.approx(700.0 * 0.05 ** 3)
 
