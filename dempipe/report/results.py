@@ -98,6 +98,9 @@ class ReportResult:
     tolerance: float
     bodies: int
     target_overlap: float = 0.02
+    #: bodies of the reference that touched something by the horizon (0: the motion
+    #: errors measured free flight only, which every run gets right)
+    touched: int = -1
     rolling_tolerance: float | None = None
     stage: str | None = None    # the USD stage's file name when it was given as the scene
 

@@ -390,11 +390,16 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
 
     ref = runs[0]
     pile = ref.model.n_bodies >= PILE_BODIES
+    first = acc.first_contact_times(ref.frames, ref.model)
     if sweep.horizon is None:
-        median = float(np.median(acc.first_contact_times(ref.frames, ref.model)))
+        median = float(np.median(first))
         horizon = min(duration, median + HORIZON_AFTER_CONTACT)     # inf: most never touch
     else:
         horizon = min(sweep.horizon, duration)
+    touched = int((first <= horizon).sum())
+    if touched == 0:
+        say(f"note: no body touched anything by the horizon t = {horizon:g} s: the motion "
+            f"errors measure free flight only (lengthen --duration or set --horizon)")
     _measure_motion(runs, ref, horizon)
     say("closed-form cases (bounce, rolling, spin) ...")
     mi, material = _measure_physics(runs, ref, fixed_dt=not isinstance(scene.simulation.dt, str),
@@ -408,7 +413,7 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
         bodies=ref.model.n_bodies, rolling_tolerance=sweep.rolling_tolerance,
         stage=(Path(scene_path).name if scene.usd is not None
                and Path(scene_path).suffix.lower() in (".usd", ".usda", ".usdc") else None),
-        target_overlap=scene.simulation.stiffness_target_overlap or 0.02)
+        target_overlap=scene.simulation.stiffness_target_overlap or 0.02, touched=touched)
     out.mkdir(parents=True, exist_ok=True)
     result.files.append(write_atomically(out / "report.csv", write_csv(runs).encode()))
     if sweep.plots:

@@ -98,6 +98,12 @@ def format_markdown(r: ReportResult) -> str:
     L.append("")
     L.append("## Recommendation")
     L.append("")
+    if r.touched == 0:
+        L.append(f"**No body touched anything by the horizon t = {r.horizon:.3g} s**: the "
+                 "motion errors below measure free flight, which every run gets right, so "
+                 "this recommendation says nothing about contacts. Lengthen --duration, or "
+                 "set --horizon after the first contacts.")
+        L.append("")
     if r.recommended is not None:
         u = r.recommended
         rolls = ("" if r.rolling_tolerance is None else

@@ -221,3 +221,25 @@ def test_laws_axis_bakes_each_law_at_its_own_step(tmp_path):
     with pytest.raises(ReportError, match=r"--laws: materials\.rubber .*\"auto\""):
         run_report(write_scene(tmp_path, stiff), tmp_path / "out3",
                    Sweep(plots=False, contact_laws=("linear", "hertz")))
+
+
+def test_a_horizon_before_any_contact_is_said(tmp_path):
+    # two balls a metre up, 0.1 s: they fall 5 cm and touch nothing, so every run's
+    # motion matches the reference's free flight and a recommendation means nothing
+    # about contacts; report.md and the progress lines say so
+    lines = []
+    scene = write_scene(tmp_path, SCENE.replace("origin = [0.0, 0.0, 0.05]",
+                                                "origin = [0.0, 0.0, 1.0]"))
+    res = run_report(scene, tmp_path / "out",
+                     Sweep(resolutions=(3, 4), dt_factors=(1.0,), stiffness_factors=(1.0,),
+                           duration=0.1, plots=False), progress=lines.append)
+    assert res.touched == 0
+    assert any(line.startswith("note: no body touched anything") for line in lines)
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "**No body touched anything by the horizon" in md
+    # the default scene's balls start on the plane: no such note
+    res = run_report(write_scene(tmp_path, SCENE), tmp_path / "out2",
+                     Sweep(resolutions=(4,), dt_factors=(1.0,), stiffness_factors=(1.0,),
+                           duration=0.2, plots=False))
+    assert res.touched == 2
+    assert "No body touched" not in (tmp_path / "out2" / "report.md").read_text()
