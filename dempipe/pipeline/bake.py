@@ -175,7 +175,14 @@ def bake(scene_path, out_path, *, device: str | None = None, layout: str = "inst
 
     device : 'cpu' | 'cuda' | 'auto' (default: the scene's simulation.device)
     layout : 'instancer' | 'xforms' (see docs/usd-output.md)
-    frames : 'START:END' frame numbers to write (the simulation always starts at 0)
+    frames : 'START:END' frame numbers to write, as the output's time codes (from the
+        scene's start frame; the simulation always starts at the first)
+    threads : CPU threads, a whole number >= 1, or None: follow the cores other
+        processes leave free (sim.cores.CoreShare)
+    cache : a dempipe.spheres.cache.SphereCache (None: $DEMPIPE_CACHE_DIR or the user
+        cache)
+    force : bake even what `dempipe check` refuses (deep frame-0 overlaps, a dt above
+        the critical step, tunnelling speeds): the risk is the user's
     progress : callable(frame_index, n_frames, stats) for a progress display
     warn : callable(str) for one-line warnings (default: warnings.warn)
     simulation : settings replacing the scene's ``[simulation]`` ones (the

@@ -63,7 +63,9 @@ def parse_scene(text: str, path: str | Path | None = None) -> Scene:
 
 def load_scene(path: str | Path) -> Scene:
     """Read, parse and validate the scene file at ``path``: a TOML scene, or a USD
-    stage (.usd, .usda, .usdc, .usdz) with UsdPhysics (docs/usd-input.md)."""
+    stage (.usd, .usda, .usdc, .usdz) with UsdPhysics (docs/usd-input.md). Raises a
+    SceneError (a ShapeError or MeshError for a shape) naming the file, the key and
+    the fix."""
     p = Path(path).expanduser()
     if p.suffix.lower() in USD_EXTENSIONS:
         return load_usd_scene(p)

@@ -149,6 +149,9 @@ def make_backend(model, device: str = "cpu", features=None,
 class Simulator:
     """Advances a State of ``model`` on a device ('cpu' or 'cuda'; 'auto' resolves).
 
+    ``threads``: the CPU threads, a whole number >= 1 (at most what numba may use
+    here), or None: follow the cores other processes leave free (sim.cores.CoreShare).
+
     The kernels are compiled for the features the scene uses (Model.features);
     ``features`` runs it as if it used more, ``specialize=False`` through the
     general kernel (the frames are the same); ``specialize=None`` follows
