@@ -98,9 +98,8 @@ def clamp_threads(threads, warn):
 @click.option("--sphere-diameter", type=Number(lo=0, lo_open=True), default=None,
               metavar="M", help="Sphere diameter in metres (instead of --resolution).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-@click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
 def bake(scene, output, device, layout, frames, threads, report_path, cache_dir, force,
-         checkpoint_seconds, chunk_frames, resume, resolution, sphere_diameter, quiet, debug):
+         checkpoint_seconds, chunk_frames, resume, resolution, sphere_diameter, quiet):
     """Simulate SCENE (a .toml scene file, or a UsdPhysics stage .usd/.usda/.usdc) and
     write its animation to OUTPUT (for a stage: an overlay layer over it).
 

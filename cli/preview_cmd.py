@@ -60,8 +60,7 @@ class MovieProgress:
               help="Multisamples a pixel (antialiasing) [default: 4 for a still, 0 for a "
                    "movie, 2.7x faster a frame].")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-@click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
-def preview(bake, output, frame, frames, camera, size, fps, msaa, quiet, debug):
+def preview(bake, output, frame, frames, camera, size, fps, msaa, quiet):
     """Render a still or a movie of BAKE (a USD stage: any dempipe bake, either layout).
 
     Shaded meshes in the colours the USD carries (bound UsdPreviewSurface or

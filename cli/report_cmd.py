@@ -54,10 +54,9 @@ from dempipe_cli.params import Number
                    "last). Default: the scene's own, no law axis.")
 @click.option("--no-plots", is_flag=True, help="Skip the PNG plots (no matplotlib needed).")
 @click.option("--quiet", "-q", is_flag=True, help="No line per run.")
-@click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
 def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, horizon,
            tolerance, bodies, device, threads, workers, scheduler, cache_dir, no_plots, quiet,
-           debug, sphere_modes, rolling_tolerance, contact_laws):
+           sphere_modes, rolling_tolerance, contact_laws):
     """Bake SCENE at every combination of resolution, dt and stiffness factors; write
     the error of each run against its run time to OUTPUT (report.md, report.csv, PNGs).
 

@@ -14,8 +14,7 @@ def scene():
 @click.argument("scene_file", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
               help="The stage to write: .usda, .usdc or .usd.")
-@click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
-def export(scene_file, output, debug):
+def export(scene_file, output):
     """Write SCENE_FILE (a .toml scene) as a UsdPhysics stage a DCC opens, and the
     scene's [simulation] settings, which a stage cannot hold, as NAME.settings.toml
     beside it: bake that file to get the scene's motion (docs/usd-input.md)."""

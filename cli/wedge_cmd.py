@@ -42,9 +42,8 @@ import click
               help="Also draw OUTPUT/contact_sheet.png: every finished variant's last frame "
                    "(needs dempipe[preview]; docs/preview.md).")
 @click.option("--quiet", "-q", is_flag=True, help="No line per variant.")
-@click.option("--debug", is_flag=True, hidden=True, help="Show full tracebacks on errors.")
 def wedge(scene, output, seeds, vary, workers, threads, scheduler, device, layout, fmt,
-          cache_dir, force, contact_sheet, quiet, debug):
+          cache_dir, force, contact_sheet, quiet):
     """Bake variants of SCENE, each a task on Dask, into OUTPUT.
 
     Every combination of --seeds and the --vary values is one variant: its scene
