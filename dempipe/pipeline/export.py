@@ -9,6 +9,7 @@ from dempipe.errors import ExportError
 from dempipe.pipeline.checkpoint import atomic_write
 from dempipe.scene.load import load_scene
 from dempipe.scene.settings import settings_toml
+from dempipe.usd.physics_stage import write_physics_stage
 
 
 def settings_path(stage_path) -> Path:
@@ -23,8 +24,6 @@ def export_scene(scene_path, out_path) -> tuple[Path, Path | None]:
     target, seed, ...: a stage cannot hold them), the settings TOML that names the
     stage (settings_path). Baking that file gives the TOML scene's motion; baking the
     stage alone takes the default settings. Returns (stage, settings TOML or None)."""
-    from dempipe.usd.physics_stage import write_physics_stage
-
     scene = load_scene(scene_path)
     stage = write_physics_stage(scene, out_path)
     text = settings_toml(scene.simulation, stage.name)

@@ -17,6 +17,7 @@ bodies). The Model and its records are in model.py; model.py still answers
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
@@ -279,8 +280,6 @@ class ModelBuilder:
         g = self.gravity
         if float(np.linalg.norm(g)) > 0.0 and not g[1 if up_axis == "Y" else 2] < -0.5 * float(
                 np.linalg.norm(g)):
-            import warnings
-
             warnings.warn(f"gravity {tuple(float(x) for x in g)} does not point down the "
                           f"stage's up axis {up_axis}: bodies will fall sideways in a DCC "
                           f"(give ModelBuilder gravity along -{up_axis})", stacklevel=2)
