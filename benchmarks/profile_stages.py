@@ -145,7 +145,8 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                          state.body_q, state.body_P, state.body_L, rest, b.body_wake,
                          b.body_still, glue_scratch(state, b).body_glue)
         after = (
-            lambda: k.stage_patches(cm, cs, b.drive.motion_now, m.body_sphere_start, b.slot_of),
+            lambda: k.stage_patches(cm, cs, b.drive.motion_now, m.body_sphere_start, b.slot_of,
+                                    b.chunks, -1),
             lambda: k.stage_contacts(cm, cs, b.drive.motion_now, s & 1, b.chunks,
                                      b.chunks.shape[0]),
             lambda: k.stage_sums(cm, cs, b.chunks, b.chunks.shape[0]),

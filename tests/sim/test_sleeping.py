@@ -130,8 +130,8 @@ def test_skipping_what_sleeps_changes_nothing(ball_height, slab):
 
 
 def test_contact_passes_over_spans_change_nothing_frame_by_frame():
-    # kernels.cpu.stages.stage_active at its most eager (quiet_share 0: the spans are used
-    # whenever any body is quiet, so also while most still move, through wakes and
+    # kernels.cpu.stages.stage_active at its most eager (quiet_share 0: the spans, which
+    # the contact passes and the patch pass keep to, are used whenever any body is quiet, so also while most still move, through wakes and
     # bodies falling quiet between searches) against never (quiet_share above 1):
     # the same State bit for bit at every frame, not only at the end. The ball
     # lands on the boxes as they settle and wakes some of them.

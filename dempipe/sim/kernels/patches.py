@@ -80,8 +80,9 @@ def patch_add(row, slots, code, s1, s2):
 def body_patches(b, cm, cs, motion_now, body_sphere_start, slot_of):
     """The pass for body b: the sums (Σδ [m], Σδ² [m²]) of its contacts this step per
     partner, by pair_forces' tests, into body_patch[b] (a static body: left as it
-    is, never read). Every body, every step (a sleeping pile's spans are not used:
-    its sums must hold for the pairs a sleeper computes with a moving partner).
+    is, never read). Every body, every step: a sleeper's sums must hold for the
+    pairs it computes with a moving partner (the CPU target's stage_patches leaves
+    out only bodies whose row would be empty: quiet among quiet partners).
     cm, cs, motion_now: as pair_forces; body_sphere_start: the body's spheres;
     slot_of: each sphere's sorted slot."""
     diameter = cm.diameter

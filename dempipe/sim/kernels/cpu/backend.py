@@ -210,7 +210,8 @@ class CpuBackend:
         # the copied histories, and a copy of the wake flags: a probe wakes nothing
         cm, cs = self.contact_args(state, hist_partner=partner, hist_spring=spring,
                                    body_wake=self.body_wake.copy())
-        self.k.stage_patches(cm, cs, self.drive.motion_now, m.body_sphere_start, self.slot_of)
+        self.k.stage_patches(cm, cs, self.drive.motion_now, m.body_sphere_start, self.slot_of,
+                             self.chunks, -1)
         self.k.stage_contacts(cm, cs, self.drive.motion_now, state.step & 1, self.chunks,
                               self.chunks.shape[0])
         self.k.stage_sums(cm, cs, self.chunks, self.chunks.shape[0])

@@ -255,10 +255,43 @@ def stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still, 
     return n
 
 
-def stage_patches(cm, cs, motion_now, body_sphere_start, slot_of):
+@numba.njit(inline="always", cache=True)
+def slots_in_spans(s0, s1, spans, n_spans):
+    """Whether a slot of s0 .. s1-1 lies in spans[:n_spans] (stage_active's: in slot
+    order, disjoint)."""
+    lo = 0
+    hi = n_spans
+    while lo < hi:                      # the first span that starts at s1 or later
+        mid = (lo + hi) // 2
+        if spans[mid, 0] < s1:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo > 0 and spans[lo - 1, 1] > s0
+
+
+def stage_patches(cm, cs, motion_now, body_sphere_start, slot_of, spans, n_spans):
     """The contact patches (patches.body_patches): each body's contacts this step
-    per partner, summed over its spheres in index order, for every body."""
-    for b in prange(cs.body_patch.shape[0]):
+    per partner, summed over its spheres in index order, for every body.
+
+    With n_spans >= 0 (run_steps' spans[:n_spans] hold this step's work), a body
+    with no slot in them is quiet and so is every partner in its lists
+    (stage_active): body_patches would skip each of its pairs and walls and leave
+    its row empty, so the row is emptied without the pass. A settled pile then
+    pays for the patches of its moving part only; the rows are the same bit for
+    bit (a body's slots are consecutive: stage_grid_sort)."""
+    body_patch = cs.body_patch
+    last = body_patch.shape[1] - 1
+    for b in prange(body_patch.shape[0]):
+        i0 = body_sphere_start[b]
+        if n_spans >= 0 and (i0 == body_sphere_start[b + 1] or not slots_in_spans(
+                slot_of[i0], slot_of[i0] + body_sphere_start[b + 1] - i0, spans, n_spans)):
+            if body_patch[b, 0, 0] != 0.0 or body_patch[b, last, 0] != 0.0:
+                for c in range(last + 1):   # (a row nothing was added to is empty)
+                    body_patch[b, c, 0] = 0.0
+                    body_patch[b, c, 1] = 0.0
+                    body_patch[b, c, 2] = 0.0
+            continue
         body_patches(b, cm, cs, motion_now, body_sphere_start, slot_of)
 
 
@@ -490,7 +523,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
         n_work = n_spans if spans_ok else n_chunks
         if spans_ok:
             span_ctl[0] += 1
-        stage_patches(cm, cs, drive.motion_now, body_sphere_start, slot_of)
+        stage_patches(cm, cs, drive.motion_now, body_sphere_start, slot_of, work,
+                      n_spans if spans_ok else -1)
         stage_contacts(cm, cs, drive.motion_now, step & 1, work, n_work)
         if GLUE:
             stage_glue(gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w,
