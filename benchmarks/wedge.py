@@ -30,11 +30,11 @@ ROOT = os.path.dirname(HERE)
 
 def scene_copy(src: Path, folder: Path, duration: float) -> Path:
     """``src`` with output.duration set (and relative meshes made absolute)."""
-    from dempipe.farm.wedge import _absolute_meshes, _toml_loads, dumps_toml, set_key
+    from dempipe.farm.wedge import absolute_meshes, toml_loads, dumps_toml, set_key
 
-    data = _toml_loads(src.read_text(encoding="utf-8"))
+    data = toml_loads(src.read_text(encoding="utf-8"))
     set_key(data, ("output", "duration"), duration)
-    _absolute_meshes(data, src.resolve().parent)
+    absolute_meshes(data, src.resolve().parent)
     out = folder / src.name
     out.write_text(dumps_toml(data), encoding="utf-8")
     return out

@@ -117,7 +117,8 @@ def _split_values(text: str) -> list[str]:
     return [v.strip() for v in out]
 
 
-def _toml_loads(text: str) -> dict:
+def toml_loads(text: str) -> dict:
+    """A TOML document's tables (tomllib, or tomli on Python 3.10)."""
     try:
         import tomllib
     except ModuleNotFoundError:          # Python 3.10
@@ -136,7 +137,7 @@ def _toml_error():
 def parse_value(text: str):
     """A TOML value ('0.5', '8', 'true', '[0, 0, 1]', '"cpu"'); a bare word is a string."""
     try:
-        return _toml_loads(f"v = {text}")["v"]
+        return toml_loads(f"v = {text}")["v"]
     except _toml_error():
         return text
 
@@ -332,8 +333,9 @@ def contact_sheet(result: WedgeResult, out_png=None, **kw) -> Path:
     return sheet([v.output for v in done], out, labels=labels, **kw)
 
 
-def _absolute_meshes(data: dict, base: Path) -> None:
-    """Relative mesh paths -> absolute (the variant's file lives elsewhere)."""
+def absolute_meshes(data: dict, base: Path) -> None:
+    """Relative mesh paths in a scene's tables ``data`` made absolute against ``base``, in
+    place (a variant's file lives elsewhere)."""
     def fix(d):
         if isinstance(d, dict) and isinstance(d.get("mesh"), str):
             p = Path(d["mesh"]).expanduser()
@@ -356,7 +358,7 @@ def plan(scene_path, out_dir, *, seeds: int | None = None, vary=(),
     """
     scene_path = Path(scene_path)
     load_scene(scene_path)                   # the base scene must be sound: one line if not
-    data = _toml_loads(scene_path.read_text(encoding="utf-8"))
+    data = toml_loads(scene_path.read_text(encoding="utf-8"))
     if suffix not in (".usd", ".usdc", ".usda"):
         raise WedgeError(f"--format: unknown {suffix!r} (use usdc, usda or usd)")
     axes = []
@@ -383,10 +385,10 @@ def plan(scene_path, out_dir, *, seeds: int | None = None, vary=(),
     variants = []
     for i, combo in enumerate(combos):
         name = f"v{i:0{width}d}"
-        d = _toml_loads(scene_path.read_text(encoding="utf-8"))
+        d = toml_loads(scene_path.read_text(encoding="utf-8"))
         for (path, _), value in zip(axes, combo):
             set_key(d, path, value)
-        _absolute_meshes(d, scene_path.resolve().parent)
+        absolute_meshes(d, scene_path.resolve().parent)
         values = dict(zip(keys, combo))
         head = [f"# dempipe wedge: variant {name} of {scene_path.resolve()}"]
         head += [f"#   {k} = {_tvalue(v)}" for k, v in values.items()]
