@@ -2,21 +2,32 @@
 
     python benchmarks/sleeping_pile.py                      # 100k spheres
     python benchmarks/sleeping_pile.py --spheres 25000 --wake 20 --steps 300
+    python benchmarks/sleeping_pile.py --chess 4096 --at 2.0 --steps 1000   # minutes
 
 The dense pile of benchmarks/cpu_bench.py (cubes of 3×3×3 spheres packed face to
 face in a box, friction 0.5) with sleeping on (bodies sleep after 0.05 s at rest),
 stepped until every cube sleeps; then the ``--wake`` highest cubes are woken and
-nudged sideways (5 cm/s), and steps are timed from that same start twice,
-alternated, REPEATS times:
+nudged sideways (``--speed``, 5 cm/s), and steps are timed from that same start,
+the variants alternated, REPEATS times:
 
-* the baseline: the contact passes visit every chunk of sorted slots
-  (``CpuBackend.quiet_share`` above 1), as before kernels.cpu.stages.stage_active;
-* the default: once half the bodies are quiet, they visit only the chunks
-  with a slot that is awake or touches an awake body (stage_active).
+* the baseline: the contact passes visit every chunk of sorted slots and the
+  patch pass every body (``CpuBackend.quiet_share`` above 1), as before
+  kernels.cpu.stages.stage_active, and every rebuild sorts the slots again and
+  searches every list (``CpuBackend.keep_share`` 0);
+* spans: once half the bodies are quiet, the passes visit only the chunks with a
+  slot that is awake or touches an awake body (stage_active); rebuilds as the
+  baseline's;
+* the default: spans, and a rebuild that few moved spheres force keeps the slots
+  and searches again only the lists that can change (stage_slot_marks).
+
+With ``--chess N`` the pile is instead N pieces of benchmarks/vs_bullet.py's chess
+scene (examples/chess.toml) ``--at`` seconds into their bake, nothing woken: a
+pile that falls asleep a piece at a time, a few still sliding and tipping.
 
 Printed: ms per step of each (the best of the runs), the ratio, bodies awake
-during the timed steps, and whether the two runs end in the same State bit for
-bit (they must: the spans leave out only visits that write nothing).
+during the timed steps, rebuilds that kept the slots, and whether the runs end in
+the same State bit for bit (they must: the spans leave out only visits that write
+nothing, and the lists kept are those a search would find).
 """
 
 from __future__ import annotations
@@ -52,47 +63,78 @@ def main() -> int:
     ap.add_argument("--spheres", type=int, default=100_000, help="size of the pile")
     ap.add_argument("--wake", type=int, default=20, help="cubes woken on top of the pile")
     ap.add_argument("--steps", type=int, default=500, help="timed steps per run")
+    ap.add_argument("--speed", type=float, default=0.05,
+                    help="sideways speed given to the woken cubes [m/s] (default 0.05)")
+    ap.add_argument("--chess", type=int, metavar="N",
+                    help="instead: N pieces of benchmarks/vs_bullet.py's chess scene, timed "
+                         "from --at seconds into their bake (its sleeping tail; long: 4,096 "
+                         "pieces take minutes to get there)")
+    ap.add_argument("--at", type=float, default=2.0, help="with --chess: when [s]")
     args = ap.parse_args()
-    model = sleeping_pile(args.spheres)
+    if args.chess:
+        from dempipe.spheres.cache import SphereCache
+        from vs_bullet import dempipe_model
+
+        model = dempipe_model(args.chess, args.at + 1.0, SphereCache())
+        what = f"chess pieces at {args.at:g} s"
+    else:
+        model = sleeping_pile(args.spheres)
+        what = "cubes"
     nb = model.n_bodies
     print(f"# dempipe sleeping pile: {platform.machine()}, {os.cpu_count()} cores, numba "
           f"{numba.__version__}, {numba.get_num_threads()} threads; {model.n_spheres:,} "
-          f"spheres, {nb:,} cubes, dt {model.dt:.3g} s")
+          f"spheres, {nb:,} {what}, dt {model.dt:.3g} s")
     sim = Simulator(model, device="cpu")
     start = model.initial_state()
-    settle = int(np.ceil(2 * SLEEP_TIME / model.dt))
-    sim.backend.step(start, settle)
-    asleep = int(start.asleep(model.sleep_steps)[:nb].sum())
-    top = np.argsort(start.body_x[:nb, 2])[-args.wake:]
-    start.body_rest[top] = 0
-    start.body_P[top, 0] += model.body_mass[top] * 0.05
-    print(f"after {settle:,} steps {asleep:,} of {nb:,} cubes asleep; {len(top)} woken")
+    if args.chess:
+        settle = int(round(args.at / model.dt))
+        sim.backend.step(start, settle)
+        asleep = int(start.asleep(model.sleep_steps)[:nb].sum())
+        print(f"after {settle:,} steps {asleep:,} of {nb:,} pieces asleep")
+    else:
+        settle = int(np.ceil(2 * SLEEP_TIME / model.dt))
+        sim.backend.step(start, settle)
+        asleep = int(start.asleep(model.sleep_steps)[:nb].sum())
+        top = np.argsort(start.body_x[:nb, 2])[-args.wake:]
+        start.body_rest[top] = 0
+        start.body_P[top, 0] += model.body_mass[top] * args.speed
+        print(f"after {settle:,} steps {asleep:,} of {nb:,} cubes asleep; {len(top)} woken")
 
     best = {}
     ends = {}
     awake = {}
+    kept = {}
+    variants = (("every chunk, full rebuilds (baseline)", 2.0, 0.0),
+                ("spans, full rebuilds", None, 0.0), ("spans, kept slots (default)", None, None))
     for _ in range(REPEATS):
-        for name, share in (("every chunk (baseline)", 2.0), ("spans (default)", None)):
+        for name, share, keep in variants:
             backend = Simulator(model, device="cpu").backend
             if share is not None:
                 backend.quiet_share = share
+            if keep is not None:
+                backend.keep_share = keep
             state = start.copy()
             backend.step(state, 1)           # compile or load, and the first step's rebuild
+            k0 = int(backend.span_ctl[2])
             t0 = time.perf_counter()
             backend.step(state, args.steps)
             t = (time.perf_counter() - t0) / args.steps
             best[name] = min(best.get(name, t), t)
             ends[name] = state
             awake[name] = nb - int(state.asleep(model.sleep_steps)[:nb].sum())
-    base = best["every chunk (baseline)"]
-    a, b = ends["every chunk (baseline)"], ends["spans (default)"]
-    same = all(np.array_equal(getattr(a, f), getattr(b, f))
+            kept[name] = int(backend.span_ctl[2]) - k0
+    base = best[variants[0][0]]
+    a = ends[variants[0][0]]
+    same = all(np.array_equal(getattr(a, f), getattr(ends[name], f))
+               for name, _, _ in variants[1:]
                for f in ("body_x", "body_q", "body_P", "body_L", "body_rest",
                          "contact_partner", "contact_spring"))
-    print("| contact passes over | ms/step | vs baseline | cubes awake at the end |")
-    print("|---|---:|---:|---:|")
+    print("| passes, rebuilds | ms/step | vs baseline | bodies awake at the end "
+          "| rebuilds that kept the slots |")
+    print("|---|---:|---:|---:|---:|")
     for name in best:
-        print(f"| {name} | {best[name] * 1e3:.3f} | {base / best[name]:.2f}x | {awake[name]:,} |")
+        print(f"| {name} | {best[name] * 1e3:.3f} | {base / best[name]:.2f}x | {awake[name]:,} "
+              f"| {kept[name]} |")
     print(f"\nsame State bit for bit: {same}")
     return 0 if same else 1
 

@@ -147,3 +147,68 @@ def test_contact_passes_over_spans_change_nothing_frame_by_frame():
             assert np.array_equal(getattr(a, name), getattr(b, name)), (frame, name)
     assert eager.span_ctl[0] > 0 and eager.span_ctl[1] > 0   # the spans were used
     assert never.span_ctl[0] == 0
+
+
+@pytest.mark.parametrize("slab", [False, True])
+def test_rebuilds_that_keep_the_slots_change_nothing_frame_by_frame(slab):
+    # A rebuild forced by a few moving bodies among sleepers keeps the slots and
+    # searches again only the lists that can change (kernels.cpu.stages.run_steps,
+    # stage_slot_marks): against rebuilds that always sort the slots again
+    # (keep_share 0), the same State bit for bit at every frame, and each sphere's
+    # list the same partners in the same order. The ball lands on the boxes as
+    # they settle, so lists change next to sleepers that do not move; with the
+    # slab, a static mesh's spheres are in the lists too.
+    model = pile(sleep=(None, None, 0.2), ball_height=0.3, n_frames=37, slab=slab)
+    keep, never = Simulator(model).backend, Simulator(model).backend
+    never.keep_share = 0.0
+    a, b = model.initial_state(), model.initial_state()
+
+    def lists(be):          # each sphere's partners (sphere indices), in list order
+        return [tuple(be.sorted_idx[be.nbr[s, :be.nbr_n[s]]]) for s in be.slot_of]
+
+    for frame in range(36):
+        keep.step(a, model.steps_per_frame)
+        never.step(b, model.steps_per_frame)
+        for name in ("body_x", "body_q", "body_P", "body_L", "body_rest", "contact_partner",
+                     "contact_spring"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), (frame, name)
+        assert lists(keep) == lists(never), frame
+    assert keep.span_ctl[2] > 0 and never.span_ctl[2] == 0   # the slots were kept
+
+
+def test_a_body_sliding_past_sleepers_enters_and_leaves_their_kept_lists():
+    # A frictionless box slides along a row of boxes asleep on the floor, a tenth of a
+    # diameter clear of them: inside their lists' reach, never touching. Each rebuild
+    # keeps the slots (one body moves), so the sleepers' lists must gain the slider
+    # as it comes (stage_mark_partners) and lose it as it goes (stage_slot_marks'
+    # mark 2); against rebuilds that sort the slots again, the same lists and State
+    # at every frame, and the row stays asleep.
+    b = ModelBuilder(D)
+    ss, mesh = box_set(2, 2, 2, D)
+    s = b.add_shape("box", mesh, ss)
+    wood = b.add_material(Material("wood", density=700, restitution=0.3, friction=0.5))
+    ice = b.add_material(Material("ice", density=700, restitution=0.3, friction=0.0))
+    row = [[0.025 * i, 0.0, D] for i in range(8)]
+    b.add_bodies("row", s, wood, row, asleep=np.ones(8, dtype=bool))
+    b.add_bodies("slider", s, ice, [[-0.05, 2.1 * D, D]], velocities=[[0.5, 0.0, 0.0]])
+    b.add_plane([0, 0, 0], [0, 0, 1], ice)
+    model = b.finalize(fps=24, n_frames=17, sleep=(None, None, 0.2))
+    keep, never = Simulator(model).backend, Simulator(model).backend
+    never.keep_share = 0.0
+    a, c = model.initial_state(), model.initial_state()
+
+    def lists(be):
+        return [tuple(be.sorted_idx[be.nbr[s, :be.nbr_n[s]]]) for s in be.slot_of]
+
+    marks = np.zeros(4, dtype=int)
+    for frame in range(16):
+        keep.step(a, model.steps_per_frame)
+        never.step(c, model.steps_per_frame)
+        marks += np.bincount(keep.slot_mark, minlength=4)
+        for name in ("body_x", "body_q", "body_P", "body_L", "body_rest", "contact_partner",
+                     "contact_spring"):
+            assert np.array_equal(getattr(a, name), getattr(c, name)), (frame, name)
+        assert lists(keep) == lists(never), frame
+    assert a.asleep(model.sleep_steps)[:8].all()
+    assert a.body_x[8, 0] > 0.025 * 7 + 0.03                # it passed the whole row
+    assert keep.span_ctl[2] > 0 and marks[2] > 0     # slots kept, a list lost the slider

@@ -152,7 +152,9 @@ def cpu_scratch(model, friction: bool) -> dict:
         "body_glue": ((nb, 6), f8),
         # the contact passes' work: every chunk of slots, or a sleeping pile's
         "chunks": ((n_chunks, 2), i8), "spans": ((n_chunks, 2), i8),
-        "span_ctl": ((2,), i8),
+        "span_ctl": ((3,), i8),
+        # a rebuild that keeps the slots: which lists it searches again (stage_slot_marks)
+        "slot_mark": ((ns,), np.int8),
         # the frictionless stand-in histories, and with friction the histories in
         # sorted-slot order within a call
         "_no_partner": ((1, 1), i4), "_no_spring": ((1, 1, 3), f8),
@@ -354,6 +356,7 @@ class Scratch(NamedTuple):
     chunks: Any
     spans: Any
     span_ctl: Any
+    slot_mark: Any
 
 
 class ContactModel(NamedTuple):

@@ -17,7 +17,7 @@ from dempipe.sim.kernels.cpu.grid import (
     stage_rows_to_pairs,
     stage_wall_reach,
 )
-from dempipe.sim.kernels.cpu.stages import QUIET_SHARE, kernels
+from dempipe.sim.kernels.cpu.stages import KEEP_SLOTS_BELOW, QUIET_SHARE, kernels
 from dempipe.sim.kernels.layout import (
     ContactScratch,
     StepState,
@@ -69,6 +69,9 @@ class CpuBackend:
         #: Share of quiet bodies from which the contact passes skip the quiet chunks
         #: (stage_active); above 1, never (the same State: benchmarks/sleeping_pile.py).
         self.quiet_share = QUIET_SHARE
+        #: Largest share of moved spheres at which a rebuild keeps the slots and
+        #: searches only the lists that can change (run_steps); 0: never (the same State).
+        self.keep_share = KEEP_SLOTS_BELOW
         if not self.features.friction:   # the histories in sorted-slot order, within a call
             self.hist_partner, self.hist_spring = self._no_partner, self._no_spring
         #: What a step reads of the Model (layout.StepModel), one structured argument.
@@ -103,7 +106,8 @@ class CpuBackend:
         left = int(n_steps)
         while left > 0:
             done, computed = self.k.run_steps(
-                left, int(state.step), self.grid, float(self.quiet_share), self.step_model,
+                left, int(state.step), self.grid, float(self.quiet_share),
+                float(self.keep_share), self.step_model,
                 StepState(state.body_x, state.body_q, state.body_P, state.body_L,
                           self.rest(state), partner, spring),
                 self._scratch(), self.drive, self.glue_model, glue_scratch(state, self))

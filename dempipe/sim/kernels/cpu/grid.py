@@ -17,6 +17,8 @@ from dempipe.sim.kernels.contacts import CONTACT_CHUNK
 from dempipe.sim.kernels.cpu.device import (
     WALL_ROWS,
     cell_coord,
+    cell_hash,
+    cell_key,
     morton_key,
     neighbour_list,
     pair_count,
@@ -24,6 +26,7 @@ from dempipe.sim.kernels.cpu.device import (
     pair_slots,
     pairs_to_rows,
     rows_to_pairs,
+    static_body,
     wall_reach,
 )
 from dempipe.sim.kernels.pairing import WALL_SLACK
@@ -63,6 +66,14 @@ def stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start, buck
             sorted_idx[s] = i
             slot_of[i] = s
             s += 1
+    bucket_sort(sphere_hash, slot_of, grid, bucket_start, bucket_fill, grid_idx, grid_slot)
+
+
+@numba.njit(cache=True)
+def bucket_sort(sphere_hash, slot_of, grid, bucket_start, bucket_fill, grid_idx, grid_slot):
+    """The grid's counting sort of the spheres by bucket (sphere_hash, in sphere
+    order; serial, stable: spheres in index order within a bucket), with each
+    position's slot (slot_of); see stage_grid_sort."""
     nbk = grid[5]
     for h in range(nbk + 1):
         bucket_start[h] = 0
@@ -101,6 +112,97 @@ def stage_grid_gather(sorted_idx, grid_idx, sphere_x, sphere_v, sphere_key, sphe
         grid_x[g, 2] = sphere_x[i, 2]
         grid_key[g] = sphere_key[i]
         grid_body[g] = sphere_body[i]
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_slot_marks(sorted_x, built_x, sorted_body, body_inv_mass, nbr, nbr_n, slot_mark):
+    """At a rebuild that may keep the slots (run_steps): slot_mark[s] = 1 when slot
+    s's sphere is not where its list was built (built_x; bit for bit: a sphere of a
+    body that has not moved since is where it was), else 2 when its list holds one
+    that is, else 0. Returns (dynamic spheres moved, static ones: a carried
+    collider's)."""
+    n = sorted_x.shape[0]
+    cap = nbr.shape[1]
+    moved = 0
+    moved_static = 0
+    for s in prange(n):
+        if (sorted_x[s, 0] != built_x[s, 0] or sorted_x[s, 1] != built_x[s, 1]
+                or sorted_x[s, 2] != built_x[s, 2]):
+            slot_mark[s] = 1
+            if static_body(body_inv_mass[sorted_body[s]]):
+                moved_static += 1
+            else:
+                moved += 1
+        else:
+            slot_mark[s] = 0
+    for s in prange(n):                 # (only 0 becomes 2 here: the 1s read are final)
+        if slot_mark[s] == 0:
+            for e in range(min(nbr_n[s], cap)):
+                if slot_mark[nbr[s, e]] == 1:
+                    slot_mark[s] = 2
+                    break
+    return moved, moved_static
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_grid_keep(sorted_x, sorted_body, slot_of, inv_cell, grid, sphere_key, sphere_hash,
+                    bucket_start, bucket_fill, grid_idx, grid_slot, grid_x, grid_key,
+                    grid_body):
+    """At a rebuild that keeps the slots: the grid of the positions in them now,
+    as stage_grid_sort and stage_grid_gather make it (the same counting sort), the
+    slots left as they are."""
+    ns = slot_of.shape[0]
+    for i in prange(ns):
+        s = slot_of[i]
+        cx = cell_coord(sorted_x[s, 0], inv_cell)
+        cy = cell_coord(sorted_x[s, 1], inv_cell)
+        cz = cell_coord(sorted_x[s, 2], inv_cell)
+        sphere_key[i] = cell_key(cx, cy, cz)
+        sphere_hash[i] = cell_hash(cx, cy, cz, grid)
+    bucket_sort(sphere_hash, slot_of, grid, bucket_start, bucket_fill, grid_idx, grid_slot)
+    for g in prange(ns):
+        s = grid_slot[g]
+        grid_x[g, 0] = sorted_x[s, 0]
+        grid_x[g, 1] = sorted_x[s, 1]
+        grid_x[g, 2] = sorted_x[s, 2]
+        grid_key[g] = sphere_key[grid_idx[g]]
+        grid_body[g] = sorted_body[s]
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_neighbours_marked(lo, hi, slot_mark, diameter, skin, grid, bucket_start, grid_idx,
+                            grid_x, grid_key, grid_body, grid_slot, sorted_idx, sorted_x,
+                            sorted_body, body_inv_mass, built_x, nbr, nbr_n, body_start,
+                            step):
+    """stage_neighbours for the slots whose mark (stage_slot_marks) is lo .. hi only;
+    the others keep their lists. Returns how many lists overflowed."""
+    n = sorted_idx.shape[0]
+    n_chunks = (n + CONTACT_CHUNK - 1) // CONTACT_CHUNK
+    cutoff = (1.0 + skin) * diameter
+    cap = nbr.shape[1]
+    over = 0
+    for c in prange(n_chunks):
+        for s in range(c * CONTACT_CHUNK, min(n, (c + 1) * CONTACT_CHUNK)):
+            if lo <= slot_mark[s] <= hi and neighbour_list(
+                    s, cutoff * cutoff, 1.0 / cutoff, grid, bucket_start, grid_idx, grid_x,
+                    grid_key, grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
+                    body_inv_mass, built_x, nbr, nbr_n, body_start, step) > cap:
+                over += 1
+    return over
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_mark_partners(nbr, nbr_n, slot_mark):
+    """After the new lists of the slots marked 1 (moved): each partner in them with
+    no mark kept a list without that sphere, which is now within reach: marked 3, to
+    be searched again (a scatter of one value: the same marks for any thread count)."""
+    cap = nbr.shape[1]
+    for s in prange(nbr_n.shape[0]):
+        if slot_mark[s] == 1:
+            for e in range(min(nbr_n[s], cap)):
+                t = nbr[s, e]
+                if slot_mark[t] == 0:
+                    slot_mark[t] = 3
 
 
 @numba.njit(cache=True)

@@ -27,8 +27,9 @@ from dempipe.sim.kernels.cpu.device import (
     adapt_skin, angular_velocity, cell_coord, cell_hash, cell_key, quat_rotate, slot_store,
     sphere_kinematics, static_body)
 from dempipe.sim.kernels.cpu.grid import (
-    stage_grid_gather, stage_grid_sort, stage_history_to_slots, stage_history_to_spheres,
-    stage_neighbours, stage_pairs, stage_pairs_to_rows, stage_rows_to_pairs, stage_unsort,
+    stage_grid_gather, stage_grid_keep, stage_grid_sort, stage_history_to_slots,
+    stage_history_to_spheres, stage_mark_partners, stage_neighbours, stage_neighbours_marked,
+    stage_pairs, stage_pairs_to_rows, stage_rows_to_pairs, stage_slot_marks, stage_unsort,
     stage_wall_reach)
 # Read by the functions of contacts.py, bodies.py and prescribed.py, which kernels()
 # compiles with this module's globals (compile.specialize):
@@ -196,6 +197,17 @@ QUIET_SHARE = 0.5
 #: until the next search. (Searching at every change cost 0.91x on a pile waking
 #: and settling, half of it quiet; benchmarks/sleeping_pile.py --wake 1800.)
 SEARCH_GAP = 8
+
+#: A rebuild forced by spheres moving keeps the slots, and searches again only the
+#: lists that can have changed, when at most this share of the spheres moved since
+#: the lists were built (and the skin stays, and no static sphere moved): a pile
+#: settling but for a few bodies then pays for their lists, not for every sphere's
+#: (stage_slot_marks). Above it the slots are sorted again as at any rebuild.
+KEEP_SLOTS_BELOW = 0.25
+
+#: Rebuilds in a row that may keep the slots: then one sorts them again, so bodies
+#: that moved far get slots next to their new neighbours (memory order).
+KEEP_SLOTS_RUN = 8
 
 
 @numba.njit(inline="always", cache=True)
@@ -374,7 +386,8 @@ def stage_bodies(n_bodies, bm, bs, step):
     return awake, woke, quiet, calmed
 
 
-def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, drive, gm, gs):
+def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, scratch, drive,
+              gm, gs):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
     compiled code. Returns (steps done, steps computed). Done is fewer than
     n_steps only when a rebuild found a neighbour list longer than nbr holds
@@ -389,6 +402,15 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
     the last (neighbours.adapt_skin, up to skin_ctl[2]); it changes which pairs
     are listed, never a force (the frames do not depend on it). skin_ctl[1] carries the steps since the last rebuild from call to call,
     skin_ctl[3] counts the rebuilds.
+
+    A rebuild forced by a move keeps the slots (span_ctl[2] counts those) when at
+    most keep_share of the spheres moved since the lists were built, the skin stays
+    and no static sphere moved: then only the lists that can differ are searched
+    again (stage_slot_marks): a moved sphere's, one holding a moved sphere, then one
+    a moved sphere's new list reaches (stage_mark_partners). The others hold the same
+    partners a search would find (neither they nor anything within reach moved), so
+    the lists, hence the frames, are a full rebuild's; the slots' order never enters
+    a force. At most KEEP_SLOTS_RUN such rebuilds in a row (keep_share 0: none).
 
     With sleeping, once every body is asleep and no wall moves the remaining steps
     are skipped: a step then changes nothing (a sleeping body moves only when a
@@ -424,7 +446,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
      sorted_idx, slot_of, sorted_x, sorted_v, sorted_body, grid_idx, grid_x, grid_key,
      grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
      wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_tr, sphere_overlap,
-     body_patch, skin_ctl, chunks, spans, span_ctl) = scratch
+     body_patch, skin_ctl, chunks, spans, span_ctl, slot_mark) = scratch
     # what the contact passes take (layout.ContactModel, ContactScratch): the same arrays
     cm = ContactModel(diameter, dt, onset_speed, body_inv_mass, body_material, pair_k,
                       pair_damp, pair_mu, kt_ratio, ks_ratio, friction, sleep_steps,
@@ -456,6 +478,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
     quiet_then = 0          # and how many were quiet at it
     driven = drive.motion_now.shape[0] > 0
     body_start = drive.body_start
+    n_slots = slot_of.shape[0]
+    kept_run = 0            # rebuilds in a row that kept the slots
     for step in range(first_step, first_step + n_steps):
         computed += 1
         stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
@@ -475,7 +499,60 @@ def run_steps(n_steps, first_step, grid, quiet_share, model, state, scratch, dri
             moved = rebuild
             if not rebuild and skin > SKIN and since > SKIN_SHRINK_ABOVE:
                 rebuild = True                  # at rest with a wide skin: shrink it
+        keep = False
+        if rebuild and moved and keep_share > 0.0 and kept_run < KEEP_SLOTS_RUN and \
+                adapt_skin(skin, since, skin_ctl[2], moved) == skin:
+            n_moved, n_static_moved = stage_slot_marks(sorted_x, built_x, sorted_body,
+                                                       body_inv_mass, nbr, nbr_n, slot_mark)
+            keep = n_static_moved == 0 and n_moved <= keep_share * n_slots
+        if keep:
+            since = 0.0
+            moved = False
+            if FRICTION and friction:           # the histories stay in slot order
+                stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
+                                    pair_f, wall_mask, wall_start, wall_s)
+            stage_grid_keep(sorted_x, sorted_body, slot_of, inv_cell, grid, sphere_key,
+                            sphere_hash, bucket_start, bucket_fill, grid_idx, grid_slot,
+                            grid_x, grid_key, grid_body)
+            over = stage_neighbours_marked(1, 2, slot_mark, diameter, skin, grid, bucket_start,
+                                           grid_idx, grid_x, grid_key, grid_body, grid_slot,
+                                           sorted_idx, sorted_x, sorted_body, body_inv_mass,
+                                           built_x, nbr, nbr_n, body_start, step)
+            if over == 0:
+                stage_mark_partners(nbr, nbr_n, slot_mark)
+                over = stage_neighbours_marked(3, 3, slot_mark, diameter, skin, grid,
+                                               bucket_start, grid_idx, grid_x, grid_key,
+                                               grid_body, grid_slot, sorted_idx, sorted_x,
+                                               sorted_body, body_inv_mass, built_x, nbr,
+                                               nbr_n, body_start, step)
+            if over > 0 or \
+                    stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
+                                pair_start, pidx, pair_t, pair_f.shape[0], list_start,
+                                list_e) > 0 or \
+                    (WALLS and stage_wall_reach(diameter, skin, sorted_x, wall_normal,
+                                                wall_offset, wall_lo, wall_hi, wall_depth,
+                                                wall_mask, wall_start,
+                                                hist_partner.shape[1] if FRICTION and friction
+                                                else 0, wall_s.shape[0], drive.wall_motion,
+                                                sorted_body, body_start, step) > 0):
+                if FRICTION and friction:       # the State's histories current, as below
+                    stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
+                                             contact_partner, contact_spring)
+                skin_ctl[0] = skin
+                skin_ctl[1] = since
+                return step - first_step, step - first_step
+            skin_ctl[3] += 1.0
+            span_ctl[2] += 1
+            kept_run += 1
+            spans_ok = False                    # new lists
+            rebuilt = True
+            if FRICTION and friction:
+                stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
+                                    wall_mask, hist_partner, hist_spring, pair_f, wall_start,
+                                    wall_s)
+            rebuild = False
         if rebuild:
+            kept_run = 0
             skin = adapt_skin(skin, since, skin_ctl[2], moved)    # the reach for this build
             inv_cell = 1.0 / ((1.0 + skin) * diameter)
             half_skin = 0.5 * skin * diameter
