@@ -45,6 +45,22 @@ def _scaled(bs):
     return ss
 
 
+#: The State's arrays two runs must agree on, bit for bit.
+STATE = ("body_x", "body_q", "body_P", "body_L", "body_rest", "contact_partner",
+         "contact_spring")
+
+
+def assert_same_state(a, b, where=None):
+    """States a and b equal bit for bit in every array of STATE."""
+    for name in STATE:
+        assert np.array_equal(getattr(a, name), getattr(b, name)), (where, name)
+
+
+def lists(be):
+    """Each sphere's neighbour list as its partners' sphere indices, in list order."""
+    return [tuple(be.sorted_idx[be.nbr[s, :be.nbr_n[s]]]) for s in be.slot_of]
+
+
 def test_a_settled_pile_falls_asleep_and_stays_put():
     model = pile(sleep=(None, None, 0.2), n_frames=25)
     sim = Simulator(model)
@@ -124,15 +140,14 @@ def test_skipping_what_sleeps_changes_nothing(ball_height, slab):
         be.step(b, 1)
     assert a.asleep(model.sleep_steps)[: model.n_bodies].all()
     assert a.step == b.step == n
-    for name in ("body_x", "body_q", "body_P", "body_L", "body_rest", "contact_partner",
-                 "contact_spring"):
-        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert_same_state(a, b)
 
 
 def test_contact_passes_over_spans_change_nothing_frame_by_frame():
     # kernels.cpu.stages.stage_active at its most eager (quiet_share 0: the spans, which
-    # the contact passes and the patch pass keep to, are used whenever any body is quiet, so also while most still move, through wakes and
-    # bodies falling quiet between searches) against never (quiet_share above 1):
+    # the contact passes and the patch pass keep to, are used whenever any body is
+    # quiet, so also while most still move, through wakes and bodies falling quiet
+    # between searches) against never (quiet_share above 1):
     # the same State bit for bit at every frame, not only at the end. The ball
     # lands on the boxes as they settle and wakes some of them.
     model = pile(sleep=(None, None, 0.2), ball_height=0.3, n_frames=37)
@@ -142,9 +157,7 @@ def test_contact_passes_over_spans_change_nothing_frame_by_frame():
     for frame in range(36):
         eager.step(a, model.steps_per_frame)
         never.step(b, model.steps_per_frame)
-        for name in ("body_x", "body_q", "body_P", "body_L", "body_rest", "contact_partner",
-                     "contact_spring"):
-            assert np.array_equal(getattr(a, name), getattr(b, name)), (frame, name)
+        assert_same_state(a, b, frame)
     assert eager.span_ctl[0] > 0 and eager.span_ctl[1] > 0   # the spans were used
     assert never.span_ctl[0] == 0
 
@@ -162,16 +175,10 @@ def test_rebuilds_that_keep_the_slots_change_nothing_frame_by_frame(slab):
     keep, never = Simulator(model).backend, Simulator(model).backend
     never.keep_share = 0.0
     a, b = model.initial_state(), model.initial_state()
-
-    def lists(be):          # each sphere's partners (sphere indices), in list order
-        return [tuple(be.sorted_idx[be.nbr[s, :be.nbr_n[s]]]) for s in be.slot_of]
-
     for frame in range(36):
         keep.step(a, model.steps_per_frame)
         never.step(b, model.steps_per_frame)
-        for name in ("body_x", "body_q", "body_P", "body_L", "body_rest", "contact_partner",
-                     "contact_spring"):
-            assert np.array_equal(getattr(a, name), getattr(b, name)), (frame, name)
+        assert_same_state(a, b, frame)
         assert lists(keep) == lists(never), frame
     assert keep.span_ctl[2] > 0 and never.span_ctl[2] == 0   # the slots were kept
 
@@ -196,18 +203,12 @@ def test_a_body_sliding_past_sleepers_enters_and_leaves_their_kept_lists():
     keep, never = Simulator(model).backend, Simulator(model).backend
     never.keep_share = 0.0
     a, c = model.initial_state(), model.initial_state()
-
-    def lists(be):
-        return [tuple(be.sorted_idx[be.nbr[s, :be.nbr_n[s]]]) for s in be.slot_of]
-
     marks = np.zeros(4, dtype=int)
     for frame in range(16):
         keep.step(a, model.steps_per_frame)
         never.step(c, model.steps_per_frame)
         marks += np.bincount(keep.slot_mark, minlength=4)
-        for name in ("body_x", "body_q", "body_P", "body_L", "body_rest", "contact_partner",
-                     "contact_spring"):
-            assert np.array_equal(getattr(a, name), getattr(c, name)), (frame, name)
+        assert_same_state(a, c, frame)
         assert lists(keep) == lists(never), frame
     assert a.asleep(model.sleep_steps)[:8].all()
     assert a.body_x[8, 0] > 0.025 * 7 + 0.03                # it passed the whole row

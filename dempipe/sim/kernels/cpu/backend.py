@@ -17,7 +17,7 @@ from dempipe.sim.kernels.cpu.grid import (
     stage_rows_to_pairs,
     stage_wall_reach,
 )
-from dempipe.sim.kernels.cpu.stages import KEEP_SLOTS_BELOW, QUIET_SHARE, kernels
+from dempipe.sim.kernels.cpu.stages import KEEP_SLOTS_SHARE, QUIET_SHARE, kernels
 from dempipe.sim.kernels.layout import (
     ContactScratch,
     StepState,
@@ -71,7 +71,7 @@ class CpuBackend:
         self.quiet_share = QUIET_SHARE
         #: Largest share of moved spheres at which a rebuild keeps the slots and
         #: searches only the lists that can change (run_steps); 0: never (the same State).
-        self.keep_share = KEEP_SLOTS_BELOW
+        self.keep_share = KEEP_SLOTS_SHARE
         if not self.features.friction:   # the histories in sorted-slot order, within a call
             self.hist_partner, self.hist_spring = self._no_partner, self._no_spring
         #: What a step reads of the Model (layout.StepModel), one structured argument.

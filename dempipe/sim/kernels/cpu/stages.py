@@ -203,7 +203,7 @@ SEARCH_GAP = 8
 #: the lists were built (and the skin stays, and no static sphere moved): a pile
 #: settling but for a few bodies then pays for their lists, not for every sphere's
 #: (stage_slot_marks). Above it the slots are sorted again as at any rebuild.
-KEEP_SLOTS_BELOW = 0.25
+KEEP_SLOTS_SHARE = 0.25
 
 #: Rebuilds in a row that may keep the slots: then one sorts them again, so bodies
 #: that moved far get slots next to their new neighbours (memory order).
@@ -408,9 +408,11 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
     and no static sphere moved: then only the lists that can differ are searched
     again (stage_slot_marks): a moved sphere's, one holding a moved sphere, then one
     a moved sphere's new list reaches (stage_mark_partners). The others hold the same
-    partners a search would find (neither they nor anything within reach moved), so
-    the lists, hence the frames, are a full rebuild's; the slots' order never enters
-    a force. At most KEEP_SLOTS_RUN such rebuilds in a row (keep_share 0: none).
+    partners a search would find (the sphere did not move, nor did any partner it
+    lists, and no moved sphere came within reach: its search would have found it),
+    so the lists, hence the frames, are a full rebuild's; the slots' order never
+    enters a force. At most KEEP_SLOTS_RUN such rebuilds in a row (keep_share 0:
+    none).
 
     With sleeping, once every body is asleep and no wall moves the remaining steps
     are skipped: a step then changes nothing (a sleeping body moves only when a
@@ -505,26 +507,57 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
             n_moved, n_static_moved = stage_slot_marks(sorted_x, built_x, sorted_body,
                                                        body_inv_mass, nbr, nbr_n, slot_mark)
             keep = n_static_moved == 0 and n_moved <= keep_share * n_slots
-        if keep:
+        if rebuild:
+            if keep:
+                kept_run += 1
+            else:
+                kept_run = 0
+                skin = adapt_skin(skin, since, skin_ctl[2], moved)    # this build's reach
+                inv_cell = 1.0 / ((1.0 + skin) * diameter)
+                half_skin = 0.5 * skin * diameter
             since = 0.0
             moved = False
-            if FRICTION and friction:           # the histories stay in slot order
+            if FRICTION and friction and step > first_step:
+                # the histories back into their rows (slot order), and to sphere order
+                # for a new sort
                 stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
                                     pair_f, wall_mask, wall_start, wall_s)
-            stage_grid_keep(sorted_x, sorted_body, slot_of, inv_cell, grid, sphere_key,
-                            sphere_hash, bucket_start, bucket_fill, grid_idx, grid_slot,
-                            grid_x, grid_key, grid_body)
-            over = stage_neighbours_marked(1, 2, slot_mark, diameter, skin, grid, bucket_start,
-                                           grid_idx, grid_x, grid_key, grid_body, grid_slot,
-                                           sorted_idx, sorted_x, sorted_body, body_inv_mass,
-                                           built_x, nbr, nbr_n, body_start, step)
-            if over == 0:
-                stage_mark_partners(nbr, nbr_n, slot_mark)
-                over = stage_neighbours_marked(3, 3, slot_mark, diameter, skin, grid,
+                if not keep:
+                    stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
+                                             contact_partner, contact_spring)
+            if keep:                            # the slots stay: only the marked lists
+                stage_grid_keep(sorted_x, sorted_body, slot_of, inv_cell, grid, sphere_key,
+                                sphere_hash, bucket_start, bucket_fill, grid_idx, grid_slot,
+                                grid_x, grid_key, grid_body)
+                over = stage_neighbours_marked(1, 2, slot_mark, diameter, skin, grid,
                                                bucket_start, grid_idx, grid_x, grid_key,
                                                grid_body, grid_slot, sorted_idx, sorted_x,
                                                sorted_body, body_inv_mass, built_x, nbr,
                                                nbr_n, body_start, step)
+                if over == 0:
+                    stage_mark_partners(nbr, nbr_n, slot_mark)
+                    over = stage_neighbours_marked(3, 3, slot_mark, diameter, skin, grid,
+                                                   bucket_start, grid_idx, grid_x, grid_key,
+                                                   grid_body, grid_slot, sorted_idx, sorted_x,
+                                                   sorted_body, body_inv_mass, built_x, nbr,
+                                                   nbr_n, body_start, step)
+            else:
+                stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, dt,
+                              inv_cell, grid, sphere_x, sphere_v, sphere_r, sphere_key,
+                              sphere_hash)
+                stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start,
+                                bucket_start, bucket_fill, body_key, sorted_idx, slot_of,
+                                grid_idx, grid_slot)
+                stage_grid_gather(sorted_idx, grid_idx, sphere_x, sphere_v, sphere_key,
+                                  sphere_body, sorted_x, sorted_v, sorted_body, grid_x,
+                                  grid_key, grid_body)
+                if FRICTION and friction:
+                    stage_history_to_slots(sorted_idx, contact_partner, contact_spring,
+                                           hist_partner, hist_spring)
+                over = stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x,
+                                        grid_key, grid_body, grid_slot, sorted_idx, sorted_x,
+                                        sorted_body, body_inv_mass, built_x, nbr, nbr_n,
+                                        body_start, step)
             if over > 0 or \
                     stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
                                 pair_start, pidx, pair_t, pair_f.shape[0], list_start,
@@ -535,61 +568,16 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
                                                 hist_partner.shape[1] if FRICTION and friction
                                                 else 0, wall_s.shape[0], drive.wall_motion,
                                                 sorted_body, body_start, step) > 0):
-                if FRICTION and friction:       # the State's histories current, as below
+                if keep and FRICTION and friction:  # the State's histories current
                     stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
                                              contact_partner, contact_spring)
-                skin_ctl[0] = skin
+                skin_ctl[0] = skin              # the redo keeps this build's skin
                 skin_ctl[1] = since
                 return step - first_step, step - first_step
             skin_ctl[3] += 1.0
-            span_ctl[2] += 1
-            kept_run += 1
-            spans_ok = False                    # new lists
-            rebuilt = True
-            if FRICTION and friction:
-                stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
-                                    wall_mask, hist_partner, hist_spring, pair_f, wall_start,
-                                    wall_s)
-            rebuild = False
-        if rebuild:
-            kept_run = 0
-            skin = adapt_skin(skin, since, skin_ctl[2], moved)    # the reach for this build
-            inv_cell = 1.0 / ((1.0 + skin) * diameter)
-            half_skin = 0.5 * skin * diameter
-            since = 0.0
-            moved = False
-            if FRICTION and friction and step > first_step:   # histories back to sphere order
-                stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
-                                    pair_f, wall_mask, wall_start, wall_s)
-                stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
-                                         contact_partner, contact_spring)
-            stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, dt,
-                          inv_cell, grid, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash)
-            stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start,
-                            bucket_start, bucket_fill, body_key, sorted_idx, slot_of, grid_idx,
-                            grid_slot)
-            stage_grid_gather(sorted_idx, grid_idx, sphere_x, sphere_v, sphere_key, sphere_body,
-                              sorted_x, sorted_v, sorted_body, grid_x, grid_key, grid_body)
-            if FRICTION and friction:
-                stage_history_to_slots(sorted_idx, contact_partner, contact_spring,
-                                       hist_partner, hist_spring)
-            if stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_key,
-                                grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
-                                body_inv_mass, built_x, nbr, nbr_n, body_start, step) > 0 or \
-                    stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
-                                pair_start, pidx, pair_t, pair_f.shape[0], list_start,
-                                list_e) > 0 or \
-                    (WALLS and stage_wall_reach(diameter, skin, sorted_x, wall_normal,
-                                                wall_offset, wall_lo, wall_hi, wall_depth,
-                                                wall_mask, wall_start,
-                                                hist_partner.shape[1] if FRICTION and friction
-                                                else 0, wall_s.shape[0], drive.wall_motion,
-                                                sorted_body, body_start, step) > 0):
-                skin_ctl[0] = skin              # the redo keeps this build's skin
-                skin_ctl[1] = since
-                return step - first_step, step - first_step   # the histories are current
-            skin_ctl[3] += 1.0
-            spans_ok = False                    # new slots, new lists
+            if keep:
+                span_ctl[2] += 1
+            spans_ok = False                    # new lists (and slots)
             rebuilt = True
             if FRICTION and friction:
                 stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
