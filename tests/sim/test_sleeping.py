@@ -6,6 +6,7 @@ import pytest
 
 from bodies import ball_set, box_set
 from dempipe.sim.materials import Material
+from dempipe.sim.motion import Key, Motion
 from dempipe.sim.builder import ModelBuilder
 from dempipe.sim.simulator import Simulator
 
@@ -213,3 +214,39 @@ def test_a_body_sliding_past_sleepers_enters_and_leaves_their_kept_lists():
     assert a.asleep(model.sleep_steps)[:8].all()
     assert a.body_x[8, 0] > 0.025 * 7 + 0.03                # it passed the whole row
     assert keep.span_ctl[2] > 0 and marks[2] > 0     # slots kept, a list lost the slider
+
+
+def test_a_carried_platform_that_starts_moving_wakes_what_sleeps_on_it():
+    # Boxes fall asleep on a keyed platform holding still, while a box far off keeps
+    # sliding; then the platform lifts them. The spans searched while it held still
+    # leave their slots out, so the step it starts moving must drop them
+    # (kernels.cpu.stages.stage_driven): with the spans
+    # at their most eager against none, the same State at every frame, and the
+    # boxes are lifted with it.
+    b = ModelBuilder(D)
+    ss, mesh = box_set(2, 2, 2, D)
+    s = b.add_shape("box", mesh, ss)
+    ps, pmesh = box_set(8, 8, 1, D)
+    p = b.add_shape("platform", pmesh, ps)
+    m = b.add_material(Material("wood", density=700, restitution=0.3, friction=0.5))
+    lift = Motion(keys=(Key(0.0, (0.0, 0.0, 0.0)), Key(0.4, (0.0, 0.0, 0.0)),
+                        Key(0.6, (0.0, 0.0, 0.02)), Key(2.0, (0.0, 0.0, 0.02))))
+    b.add_bodies("platform", p, m, [[0.0, 0.0, 0.0]], kinematic=True, motion=lift)
+    b.add_bodies("boxes", s, m, [[-0.02, -0.02, 0.0151], [0.02, 0.02, 0.0151]])
+    # far off, a frictionless box slides on and on: the steps are not skipped
+    ice = b.add_material(Material("ice", density=700, restitution=0.3, friction=0.0))
+    b.add_bodies("slider", s, ice, [[0.5, 0.0, -0.1 + D]], velocities=[[0.1, 0.0, 0.0]])
+    b.add_plane([0, 0, -0.1], [0, 0, 1], ice)
+    model = b.finalize(fps=24, n_frames=20, sleep=(None, None, 0.1))
+    eager, never = Simulator(model).backend, Simulator(model).backend
+    eager.quiet_share, never.quiet_share = 0.0, 2.0
+    a, c = model.initial_state(), model.initial_state()
+    asleep_before = False
+    for frame in range(19):
+        eager.step(a, model.steps_per_frame)
+        never.step(c, model.steps_per_frame)
+        assert_same_state(a, c, frame)
+        if a.time < 0.4:
+            asleep_before |= bool(a.asleep(model.sleep_steps)[1:3].all())
+    assert asleep_before and eager.span_ctl[0] > 0      # they slept; the spans were used
+    assert np.all(a.body_x[1:3, 2] > 0.0151 + 0.015)      # and rode up with it

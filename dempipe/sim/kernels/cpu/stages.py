@@ -109,10 +109,18 @@ def stage_motion(t, motion_kind, motion_v, motion_w, motion_pivot, key_start, ke
 def stage_driven(driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now, body_x,
                  body_q, body_v, body_w, body_rest, body_still, h):
     """The carried bodies where their motions put them (prescribed.driven_row; h [s]:
-    their velocities as chords of that step, 0 for the tangent)."""
+    their velocities as chords of that step, 0 for the tangent). Returns how many
+    started moving (rest count 0 to -1): a sleeping pile's spans, searched while
+    they held still and so counted them quiet, no longer hold (run_steps)."""
+    started = 0
     for k in range(driven_body.shape[0]):
+        b = driven_body[k]
+        held = body_rest[b] >= 0
         driven_row(k, driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now,
                    body_x, body_q, body_v, body_w, body_rest, body_still, h)
+        if held and body_rest[b] < 0:
+            started += 1
+    return started
 
 
 def sphere_state(i, sphere_body, sphere_offset, body_x, body_q, body_v, body_w, h):
@@ -490,9 +498,10 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
             stage_motion(step * dt, drive.motion_kind, drive.motion_v, drive.motion_w,
                          drive.motion_pivot, drive.key_start, drive.key_t, drive.key_p,
                          drive.key_q, drive.motion_now)
-            stage_driven(drive.driven_body, drive.body_motion, drive.body_anchor_c,
-                         drive.body_anchor_q, drive.motion_now, body_x, body_q, body_v, body_w,
-                         body_rest, body_still, dt)
+            if stage_driven(drive.driven_body, drive.body_motion, drive.body_anchor_c,
+                            drive.body_anchor_q, drive.motion_now, body_x, body_q, body_v,
+                            body_w, body_rest, body_still, dt) > 0:
+                spans_ok = False    # a carried body that held still moves: every chunk
         if not rebuild:
             rebuild = stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x,
                                            body_q, body_v, body_w, dt, body_still, built_x,
