@@ -51,6 +51,7 @@ STAGES = ("1 body velocities (eq. 5-6)", "1 sphere positions into sorted slots (
           "2 rebuild: contact histories between sphere and slot order",
           "3 rebuild: neighbour lists (27 cells), pair indices, walls in reach",
           "3 rebuild: contact histories between rows and pairs",
+          "3 rebuild: the busy slots (a neighbour or a wall in reach)",
           "4 contact patches: each body's contacts per partner (patches.py)",
           "3-4 contact forces, each computed once (its owner) + walls",
           "4 each sphere's sum over its list", "5-8 body momenta, positions, quaternions")
@@ -71,6 +72,12 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
     half = 0.5 * cpu.SKIN * m.diameter
     t = np.zeros(len(STAGES))
     rebuilds = 0
+    busy = [0]          # how many slots the contact passes visit (stage_busy)
+
+    def find_busy():
+        busy[0] = cpu.stage_busy(b.nbr_n, b.wall_mask, b.sorted_idx, b.sorted_body,
+                                 m.body_inv_mass, b.chunk_n, b.busy, b.sphere_f, b.sphere_t,
+                                 b.sphere_tr)
     for s in range(state.step, state.step + steps):
         def sorted_positions():
             return k.stage_spheres_sorted(b.slot_of, m.sphere_body, m.sphere_offset,
@@ -112,6 +119,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             lambda: fr and cpu.stage_rows_to_pairs(b.nbr, b.nbr_n, b.pidx, b.sorted_idx,
                                                    b.sorted_body, m.body_inv_mass, b.wall_mask,
                                                    hp, hs, b.pair_f, b.wall_start, b.wall_s),
+            find_busy,
         )
         t0 = time.perf_counter()
         every[0]()
@@ -146,16 +154,15 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                          b.body_still, glue_scratch(state, b).body_glue)
         after = (
             lambda: k.stage_patches(cm, cs, b.drive.motion_now, m.body_sphere_start, b.slot_of,
-                                    b.chunks, -1),
-            lambda: k.stage_contacts(cm, cs, b.drive.motion_now, s & 1, b.chunks,
-                                     b.chunks.shape[0]),
-            lambda: k.stage_sums(cm, cs, b.chunks, b.chunks.shape[0]),
+                                    b.busy, busy[0]),
+            lambda: k.stage_contacts(cm, cs, b.drive.motion_now, s & 1, b.busy, busy[0]),
+            lambda: k.stage_sums(cm, cs, b.busy, busy[0]),
             lambda: k.stage_bodies(m.n_bodies, bm, bs, s),
         )
         for i, call in enumerate(after):
             t0 = time.perf_counter()
             call()
-            t[8 + i] += time.perf_counter() - t0
+            t[9 + i] += time.perf_counter() - t0
     if fr:
         cpu.stage_pairs_to_rows(b.nbr, b.nbr_n, b.pidx, b.sorted_idx, hp, hs, b.pair_f,
                                         b.wall_mask, b.wall_start, b.wall_s)

@@ -10,15 +10,16 @@ stepped until every cube sleeps; then the ``--wake`` highest cubes are woken and
 nudged sideways (``--speed``, 5 cm/s), and steps are timed from that same start,
 the variants alternated, REPEATS times:
 
-* the baseline: the contact passes visit every chunk of sorted slots and the
-  patch pass every body (``CpuBackend.quiet_share`` above 1), as before
-  kernels.cpu.stages.stage_active, and every rebuild sorts the slots again and
-  searches every list (``CpuBackend.keep_share`` 0);
-* spans: once half the bodies are quiet, the passes visit only the chunks with a
-  slot that is awake or touches an awake body (stage_active); rebuilds as the
+* the baseline: the contact passes visit every slot with something in reach
+  (kernels.cpu.stages.stage_busy) and the patch pass every body with one
+  (``CpuBackend.quiet_share`` above 1), as without kernels.cpu.stages.stage_active,
+  and every rebuild sorts the slots again and searches every list
+  (``CpuBackend.keep_share`` 0);
+* active slots: once half the bodies are quiet, the passes visit only those of
+  them that are awake or touch an awake body (stage_active); rebuilds as the
   baseline's;
-* the default: spans, and a rebuild that few moved spheres force keeps the slots
-  and searches again only the lists that can change (stage_slot_marks).
+* the default: active slots, and a rebuild that few moved spheres force keeps the
+  slots and searches again only the lists that can change (stage_slot_marks).
 
 With ``--chess N`` the pile is instead N pieces of benchmarks/vs_bullet.py's chess
 scene (examples/chess.toml) ``--at`` seconds into their bake, nothing woken: a
@@ -26,7 +27,7 @@ pile that falls asleep a piece at a time, a few still sliding and tipping.
 
 Printed: ms per step of each (the best of the runs), the ratio, bodies awake
 during the timed steps, rebuilds that kept the slots, and whether the runs end in
-the same State bit for bit (they must: the spans leave out only visits that write
+the same State bit for bit (they must: stage_active leaves out only visits that write
 nothing, and the lists kept are those a search would find).
 """
 
@@ -104,8 +105,9 @@ def main() -> int:
     ends = {}
     awake = {}
     kept = {}
-    variants = (("every chunk, full rebuilds (baseline)", 2.0, 0.0),
-                ("spans, full rebuilds", None, 0.0), ("spans, kept slots (default)", None, None))
+    variants = (("every busy slot, full rebuilds (baseline)", 2.0, 0.0),
+                ("active slots, full rebuilds", None, 0.0),
+                ("active slots, kept slots (default)", None, None))
     for _ in range(REPEATS):
         for name, share, keep in variants:
             backend = Simulator(model, device="cpu").backend

@@ -469,3 +469,37 @@ def test_packed_lists_grow_and_change_nothing():
     runs, be, rows0 = three_ways(model, 100, room)
     assert rows0 < be.list_start[-1] <= be.list_e.shape[0]     # the lists' room grew
     assert (runs[0].contact_partner != 0).sum() >= 50          # stretches to compare
+
+
+def test_a_body_lifted_off_its_contacts_between_calls_falls_freely():
+    # The CPU's contact passes visit only the slots with a neighbour or a wall in reach
+    # (stages.stage_busy), and set every other sphere's force to zero at the rebuild.
+    # A State edited between calls (a box lifted off the static slab it rests on,
+    # another off the floor) leaves spheres whose last force was their share of the
+    # resting load and whose lists are now empty: they must feel nothing, so both
+    # boxes fall freely, as the integrator's closed form (semi-implicit Euler: a drop
+    # of g dt² n (n + 1) / 2 after n steps) says to the last few bits.
+    b = ModelBuilder(D)
+    slab_set, slab_mesh = box_set(8, 8, 1, D)
+    ss, mesh = box_set(2, 2, 2, D)
+    s = b.add_shape("box", mesh, ss)
+    m = b.add_material(Material("wood", density=700, restitution=0.3, friction=0.5))
+    b.add_static_mesh("slab", slab_mesh, slab_set, m)
+    b.add_plane([0.0, 0.0, -0.5], [0.0, 0.0, 1.0], material=m)
+    b.add_bodies("boxes", s, m, [[0.0, 0.0, 1.5 * D], [0.3, 0.0, -0.5 + D]])
+    model = b.finalize(fps=24, n_frames=2)              # sleeping off: they keep resting
+    be = Simulator(model).backend
+    state = model.initial_state()
+    be.step(state, int(0.2 / model.dt))
+    mass = model.body_mass[: model.n_bodies].max()
+    assert np.abs(state.body_P).max() < 1e-3 * mass      # resting: P [kg m/s]
+    assert np.abs(be.sphere_f[:, 2]).max() > 0.1 * 9.81 * mass   # spheres hold them up [N]
+    boxes = slice(0, model.n_bodies)                    # (the slab stays)
+    state.body_x[boxes, 2] += 0.05
+    state.body_P[boxes] = 0.0
+    state.body_L[boxes] = 0.0
+    lifted = state.body_x[boxes, 2].copy()
+    n = int(0.03 / model.dt)                            # 30 ms: 4.4 mm, inside the lift
+    be.step(state, n)
+    drop = 9.81 * model.dt ** 2 * n * (n + 1) / 2
+    np.testing.assert_allclose(lifted - state.body_x[boxes, 2], drop, rtol=1e-6)

@@ -129,9 +129,10 @@ def pair_ended(dist2, d2, diameter, rx, ry, rz, dvx, dvy, dvz, dt, vc):
     return closing(diameter - dist, dvr / dist, dt)  # noqa: F821 (the law's)
 
 
-def pair_forces(s0, s1, cm, cs, motion_now, parity):
-    """Stage 4, first pass, for sorted slots s0 .. s1-1 (a chunk of the CPU's
-    parallel loop; one slot on CUDA). For each slot s:
+def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
+    """Stage 4, first pass, for the sorted slots work[k0 .. k1-1] when ``listed`` (the
+    CPU: a block of its parallel loop over the slots with work), else slots k0 ..
+    k1-1 (``work`` unread; CUDA: one). For each slot s:
 
     - each touching contact s owns, when either sphere is awake: the force on s
       (eq. 11-14, physics.sphere_pair_force) and its torque about s's centre into
@@ -172,7 +173,8 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
     n_bodies = body_inv_mass.shape[0]
     n_spheres = sorted_idx.shape[0]
     cap = hist_partner.shape[1]
-    for s in range(s0, s1):
+    for k in range(k0, k1):
+        s = work[k] if listed else k
         bi = sorted_body[s]
         imi = body_inv_mass[bi]
         if static_body(imi):  # noqa: F821
@@ -477,16 +479,18 @@ def pair_forces(s0, s1, cm, cs, motion_now, parity):
                         pair_f[p, 9] = 0.0
 
 
-def sphere_forces(s0, s1, cm, cs):
-    """Stage 4, second pass, for sorted slots s0 .. s1-1; for each slot s (sphere
-    i = sorted_idx[s]): the sum of the forces on it from its touching partners
-    in its list's order (its partners' index order; the pairs its partners own
-    read back negated, their torque as it is), then its walls' sum (wall_f),
-    into sphere_f[i], sphere_t[i] (about its centre) and sphere_overlap[i] (the
-    largest this step, [m], kept if larger). Static and sleeping spheres feel
-    nothing. A pair apart that pair_ended finds touching a step ago is summed too
-    (its dashpot's last impulse): the same test, so from either side, as the
-    owner's pair_forces made. cm, cs: as pair_forces takes them."""
+def sphere_forces(k0, k1, work, listed, cm, cs):
+    """Stage 4, second pass, for the sorted slots work[k0 .. k1-1] or k0 .. k1-1, as
+    pair_forces; for each slot s (sphere i = sorted_idx[s]): the sum of the forces
+    on it from its touching partners in its list's order (its partners' index
+    order; the pairs its partners own read back negated, their torque as it is),
+    then its walls' sum (wall_f), into sphere_f[i], sphere_t[i] (about its centre)
+    and sphere_overlap[i] (the largest this step, [m], kept if larger). Static and
+    sleeping spheres feel nothing. A pair apart that pair_ended finds touching a
+    step ago is summed too (its dashpot's last impulse): the same test, so from
+    either side, as the owner's pair_forces made. (A slot with no neighbour and no
+    wall writes zeros: the CPU writes them once per rebuild and leaves it out of
+    ``work``.) cm, cs: as pair_forces takes them."""
     diameter = cm.diameter
     dt = cm.dt
     onset_speed = cm.onset_speed
@@ -501,7 +505,8 @@ def sphere_forces(s0, s1, cm, cs):
      _hist_partner, _hist_spring, pair_f, wall_f, sphere_f, sphere_t, sphere_tr,
      sphere_overlap, _body_patch) = cs
     d2 = diameter * diameter
-    for s in range(s0, s1):
+    for k in range(k0, k1):
+        s = work[k] if listed else k
         i = sorted_idx[s]
         bi = sorted_body[s]
         if static_body(body_inv_mass[bi]) or (SLEEPING and sleep_steps > 0  # noqa: F821

@@ -150,8 +150,11 @@ def cpu_scratch(model, friction: bool) -> dict:
         # body's sum of them
         "glue_f": ((max(getattr(getattr(model, "bonds", None), "n_pairs", 0), 1), 9), f8),
         "body_glue": ((nb, 6), f8),
-        # the contact passes' work: every chunk of slots, or a sleeping pile's
-        "chunks": ((n_chunks, 2), i8), "spans": ((n_chunks, 2), i8),
+        # the contact passes' work (kernels/cpu/stages.py): the slots with a neighbour
+        # or a wall (busy), or those of them a sleeping pile leaves to do (active);
+        # found chunk by chunk (chunks, each one's count in chunk_n)
+        "chunks": ((n_chunks, 2), i8), "chunk_n": ((n_chunks,), i8),
+        "busy": ((ns,), i4), "active": ((ns,), i4),
         "span_ctl": ((3,), i8),
         # a rebuild that keeps the slots: which lists it searches again (stage_slot_marks)
         "slot_mark": ((ns,), np.int8),
@@ -354,7 +357,9 @@ class Scratch(NamedTuple):
     body_patch: Any
     skin_ctl: Any
     chunks: Any
-    spans: Any
+    chunk_n: Any
+    busy: Any
+    active: Any
     span_ctl: Any
     slot_mark: Any
 

@@ -17,7 +17,7 @@ from dempipe.sim.kernels.cpu.grid import (
     stage_rows_to_pairs,
     stage_wall_reach,
 )
-from dempipe.sim.kernels.cpu.stages import KEEP_SLOTS_SHARE, QUIET_SHARE, kernels
+from dempipe.sim.kernels.cpu.stages import KEEP_SLOTS_SHARE, QUIET_SHARE, kernels, stage_busy
 from dempipe.sim.kernels.layout import (
     ContactScratch,
     StepState,
@@ -66,7 +66,7 @@ class CpuBackend:
         self.skin_ctl[:] = (SKIN, 0.0, SKIN_MAX, 0.0)
         self.body_still[model.n_bodies:] = 1     # static colliders never move
         self.chunks[:] = chunk_spans(model.n_spheres)
-        #: Share of quiet bodies from which the contact passes skip the quiet chunks
+        #: Share of quiet bodies from which the contact passes skip the quiet slots
         #: (stage_active); above 1, never (the same State: benchmarks/sleeping_pile.py).
         self.quiet_share = QUIET_SHARE
         #: Largest share of moved spheres at which a rebuild keeps the slots and
@@ -214,11 +214,13 @@ class CpuBackend:
         # the copied histories, and a copy of the wake flags: a probe wakes nothing
         cm, cs = self.contact_args(state, hist_partner=partner, hist_spring=spring,
                                    body_wake=self.body_wake.copy())
+        n_busy = stage_busy(self.nbr_n, self.wall_mask, self.sorted_idx, self.sorted_body,
+                            m.body_inv_mass, self.chunk_n, self.busy, self.sphere_f,
+                            self.sphere_t, self.sphere_tr)
         self.k.stage_patches(cm, cs, self.drive.motion_now, m.body_sphere_start, self.slot_of,
-                             self.chunks, -1)
-        self.k.stage_contacts(cm, cs, self.drive.motion_now, state.step & 1, self.chunks,
-                              self.chunks.shape[0])
-        self.k.stage_sums(cm, cs, self.chunks, self.chunks.shape[0])
+                             self.busy, n_busy)
+        self.k.stage_contacts(cm, cs, self.drive.motion_now, state.step & 1, self.busy, n_busy)
+        self.k.stage_sums(cm, cs, self.busy, n_busy)
 
     def contact_args(self, state, **given):
         """(layout.ContactModel, layout.ContactScratch) of the contact passes for

@@ -22,6 +22,7 @@ from dempipe.sim.kernels.prescribed import driven_row, motion_row
 from dempipe.sim.kernels.compile import compile_formulas, invalidate_stale_cache, specialize
 from dempipe.sim.kernels.layout import (
     FLAGS, BodyModel, BodyScratch, ContactModel, ContactScratch)
+from dempipe.sim.kernels.contacts import CONTACT_CHUNK
 from dempipe.sim.kernels.neighbours import SKIN, SKIN_SHRINK_ABOVE
 from dempipe.sim.kernels.cpu.device import (
     adapt_skin, angular_velocity, cell_coord, cell_hash, cell_key, quat_rotate, slot_store,
@@ -110,8 +111,8 @@ def stage_driven(driven_body, body_motion, body_anchor_c, body_anchor_q, motion_
                  body_q, body_v, body_w, body_rest, body_still, h):
     """The carried bodies where their motions put them (prescribed.driven_row; h [s]:
     their velocities as chords of that step, 0 for the tangent). Returns how many
-    started moving (rest count 0 to -1): a sleeping pile's spans, searched while
-    they held still and so counted them quiet, no longer hold (run_steps)."""
+    started moving (rest count 0 to -1): a sleeping pile's active slots, searched
+    while they held still and so counted them quiet, no longer hold (run_steps)."""
     started = 0
     for k in range(driven_body.shape[0]):
         b = driven_body[k]
@@ -193,17 +194,17 @@ def stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x, body_q, bo
     return moved
 
 
-#: A sleeping pile's contact passes run over only the chunks with work left in
-#: them (stage_active) once at least this share of the bodies is quiet; below it
-#: finding the chunks would cost about what it saves.
+#: A sleeping pile's contact passes visit only the slots with work left in them
+#: (stage_active) once at least this share of the bodies is quiet; below it
+#: finding them would cost about what it saves.
 QUIET_SHARE = 0.5
 
-#: Steps at least between two searches for the spans (stage_active): the search is
-#: a pass over every slot, about what a step with few sleepers spends on them.
-#: Between searches the spans stay valid while bodies only fall quiet (they cover
-#: more than needed); a body that wakes sends the passes back to every chunk
-#: until the next search. (Searching at every change cost 0.91x on a pile waking
-#: and settling, half of it quiet; benchmarks/sleeping_pile.py --wake 1800.)
+#: Steps at least between two searches for the active slots (stage_active): the
+#: search is a pass over the busy slots, about what a step with few sleepers spends
+#: on them. Between searches the list stays valid while bodies only fall quiet (it
+#: holds more than needed); a body that wakes sends the passes back to every busy
+#: slot until the next search. (Searching at every change cost 0.91x on a pile
+#: waking and settling, half of it quiet; benchmarks/sleeping_pile.py --wake 1800.)
 SEARCH_GAP = 8
 
 #: A rebuild forced by spheres moving keeps the slots, and searches again only the
@@ -218,6 +219,50 @@ KEEP_SLOTS_SHARE = 0.25
 KEEP_SLOTS_RUN = 8
 
 
+@numba.njit(cache=True)
+def pack_blocks(work, block_n, n_blocks):
+    """Move each block's entries (block c's block_n[c] first entries of work[c *
+    CONTACT_CHUNK ..]) down into one run at the front of ``work``, in block order;
+    returns its length. Serial: the same list for any thread count."""
+    n = 0
+    for c in range(n_blocks):
+        k0 = c * CONTACT_CHUNK
+        for k in range(k0, k0 + block_n[c]):
+            work[n] = work[k]               # (n <= k: in place, front to back)
+            n += 1
+    return n
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_busy(nbr_n, wall_mask, sorted_idx, sorted_body, body_inv_mass, chunk_n, busy,
+               sphere_f, sphere_t, sphere_tr):
+    """After a rebuild: busy[:n] (n returned) = the sorted slots of dynamic bodies with
+    a neighbour in their list or a wall in reach, in slot order; every other sphere's
+    force, torque and rolling torque set to zero. Until the next rebuild those others
+    have nothing to sum (contacts.sphere_forces would write the same zeros) and nothing
+    to compute, so the contact passes visit ``busy`` only: a falling or loosely
+    packed pile, where most lists are empty, pays for its contacts, not for its
+    spheres. The same State bit for bit
+    (the CUDA simulator's, which visits every slot: tests/sim/test_cuda.py)."""
+    n_slots = nbr_n.shape[0]
+    n_blocks = (n_slots + CONTACT_CHUNK - 1) // CONTACT_CHUNK
+    for c in prange(n_blocks):
+        n = 0
+        for s in range(c * CONTACT_CHUNK, min(n_slots, (c + 1) * CONTACT_CHUNK)):
+            if (nbr_n[s] > 0 or wall_mask[s] != 0) and \
+                    not static_body(body_inv_mass[sorted_body[s]]):
+                busy[c * CONTACT_CHUNK + n] = s
+                n += 1
+            else:
+                i = sorted_idx[s]
+                for a in range(3):
+                    sphere_f[i, a] = 0.0
+                    sphere_t[i, a] = 0.0
+                    sphere_tr[i, a] = 0.0
+        chunk_n[c] = n
+    return pack_blocks(busy, chunk_n, n_blocks)
+
+
 @numba.njit(inline="always", cache=True)
 def body_quiet(b, body_inv_mass, body_rest, body_still, sleep_steps):
     """Whether body b will do nothing in the contact passes of the next step: a
@@ -229,30 +274,27 @@ def body_quiet(b, body_inv_mass, body_rest, body_still, sleep_steps):
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still, sleep_steps,
-                 chunks, spans, wall_mask, moving_walls):
-    """After the body stage: spans[:n] (returned) = for each chunk of sorted slots
-    (chunks) with a slot the next step's contact passes must visit, the first and
-    one past the last such slot; the rest of the chunk's slots are left out.
+def stage_active(busy, n_busy, sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still,
+                 sleep_steps, chunk_n, active, wall_mask, moving_walls):
+    """After the body stage: active[:n] (n returned) = the busy slots (stage_busy's
+    busy[:n_busy]) the next step's contact passes must visit, in slot order.
 
-    A slot must be visited unless it is static or its body is quiet (body_quiet)
-    and so is the body of every partner in its list. Such a slot's visit writes
-    nothing: pass 1 at a sleeper computes only pairs with a moving partner (and
-    its walls not at all; its trim of the pairs it remembers was done when it
-    was last visited, asleep among the same sleepers), pass 2 writes the zero
-    force it wrote at its last visit. So the spans give the same State bit for
-    bit as every chunk (tests/sim/test_sleeping.py), and a pile where most bodies
-    sleep costs what its moving part costs, not its size. Valid for the steps
-    after it until a rebuild (new slots) or a quiet body wakes; bodies that fall
-    quiet meanwhile only make the spans cover more than needed (run_steps)."""
-    n_chunks = chunks.shape[0]
-    for c in prange(n_chunks):
-        lo = -1
-        hi = -1
-        for s in range(chunks[c, 0], chunks[c, 1]):
+    A busy slot must be visited unless its body is quiet (body_quiet) and so is the
+    body of every partner in its list, and no moving wall may reach it. Such a
+    slot's visit writes nothing: pass 1 at a sleeper computes only pairs with a
+    moving partner (and its walls not at all; its trim of the pairs it remembers was
+    done when it was last visited, asleep among the same sleepers), pass 2 writes
+    the zero force it wrote at its last visit. So the active slots give the same
+    State bit for bit as the busy ones (tests/sim/test_sleeping.py), and a pile
+    where most bodies sleep costs what its moving part costs, not its size. Valid
+    for the steps after it until a rebuild (new lists) or a quiet body wakes; bodies
+    that fall quiet meanwhile only make the list longer than needed (run_steps)."""
+    n_blocks = (n_busy + CONTACT_CHUNK - 1) // CONTACT_CHUNK
+    for c in prange(n_blocks):
+        n = 0
+        for k in range(c * CONTACT_CHUNK, min(n_busy, (c + 1) * CONTACT_CHUNK)):
+            s = busy[k]
             bi = sorted_body[s]
-            if static_body(body_inv_mass[bi]):
-                continue
             visit = not body_quiet(bi, body_inv_mass, body_rest, body_still, sleep_steps) \
                 or (wall_mask[s] & moving_walls) != 0   # a moving wall may reach it
             e = 0
@@ -261,51 +303,42 @@ def stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still, 
                                        body_still, sleep_steps)
                 e += 1
             if visit:
-                if lo < 0:
-                    lo = s
-                hi = s + 1
-        spans[c, 0] = lo
-        spans[c, 1] = hi
-    n = 0
-    for c in range(n_chunks):        # serial, in chunk order: the same spans for any threads
-        if spans[c, 0] >= 0:
-            spans[n, 0] = spans[c, 0]
-            spans[n, 1] = spans[c, 1]
-            n += 1
-    return n
+                active[c * CONTACT_CHUNK + n] = s
+                n += 1
+        chunk_n[c] = n
+    return pack_blocks(active, chunk_n, n_blocks)
 
 
 @numba.njit(inline="always", cache=True)
-def slots_in_spans(s0, s1, spans, n_spans):
-    """Whether a slot of s0 .. s1-1 lies in spans[:n_spans] (stage_active's: in slot
-    order, disjoint)."""
+def listed_between(s0, s1, work, n_work):
+    """Whether a slot of s0 .. s1-1 is in work[:n_work] (in slot order)."""
     lo = 0
-    hi = n_spans
-    while lo < hi:                      # the first span that starts at s1 or later
+    hi = n_work
+    while lo < hi:                      # the first entry at s0 or later
         mid = (lo + hi) // 2
-        if spans[mid, 0] < s1:
+        if work[mid] < s0:
             lo = mid + 1
         else:
             hi = mid
-    return lo > 0 and spans[lo - 1, 1] > s0
+    return lo < n_work and work[lo] < s1
 
 
-def stage_patches(cm, cs, motion_now, body_sphere_start, slot_of, spans, n_spans):
+def stage_patches(cm, cs, motion_now, body_sphere_start, slot_of, work, n_work):
     """The contact patches (patches.body_patches): each body's contacts this step
-    per partner, summed over its spheres in index order, for every body.
+    per partner, summed over its spheres in index order, for every body with a slot
+    in work[:n_work] (run_steps': the busy or the active slots).
 
-    With n_spans >= 0 (run_steps' spans[:n_spans] hold this step's work), a body
-    with no slot in them is quiet and so is every partner in its lists
-    (stage_active): body_patches would skip each of its pairs and walls and leave
-    its row empty, so the row is emptied without the pass. A settled pile then
-    pays for the patches of its moving part only; the rows are the same bit for
-    bit (a body's slots are consecutive: stage_grid_sort)."""
+    A body with none either has nothing in reach (not busy: stage_busy) or is quiet
+    among quiet partners (not active: stage_active): body_patches would skip each
+    of its pairs and walls and leave its row empty, so the row is emptied without
+    the pass. The rows are the same bit for bit (a body's slots are consecutive:
+    stage_grid_sort)."""
     body_patch = cs.body_patch
     last = body_patch.shape[1] - 1
     for b in prange(body_patch.shape[0]):
         i0 = body_sphere_start[b]
-        if n_spans >= 0 and (i0 == body_sphere_start[b + 1] or not slots_in_spans(
-                slot_of[i0], slot_of[i0] + body_sphere_start[b + 1] - i0, spans, n_spans)):
+        if i0 == body_sphere_start[b + 1] or not listed_between(
+                slot_of[i0], slot_of[i0] + body_sphere_start[b + 1] - i0, work, n_work):
             if body_patch[b, 0, 0] != 0.0 or body_patch[b, last, 0] != 0.0:
                 for c in range(last + 1):   # (a row nothing was added to is empty)
                     body_patch[b, c, 0] = 0.0
@@ -315,12 +348,12 @@ def stage_patches(cm, cs, motion_now, body_sphere_start, slot_of, spans, n_spans
         body_patches(b, cm, cs, motion_now, body_sphere_start, slot_of)
 
 
-def stage_contacts(cm, cs, motion_now, parity, spans, n_spans):
+def stage_contacts(cm, cs, motion_now, parity, work, n_work):
     """Stages 3-4, first pass: the force of each contact, computed once, by the
     sphere that owns it (kernels/contacts.py: pair_forces), and each sphere's
-    walls, in parallel over the spans of sorted slots spans[:n_spans] (every
-    chunk of CONTACT_CHUNK slots, or only those a sleeping pile leaves to do:
-    stage_active).
+    walls, in parallel over blocks of CONTACT_CHUNK of the slots work[:n_work]
+    (run_steps': those with a neighbour or a wall, or only those a sleeping pile
+    leaves to do: stage_busy, stage_active).
 
     With friction, each contact's tangential spring lives in its owner's history
     row (hist_partner, hist_spring: the State's contact_partner, contact_spring
@@ -331,18 +364,20 @@ def stage_contacts(cm, cs, motion_now, parity, spans, n_spans):
     it to wake (body_wake). cm, cs: layout.ContactModel, ContactScratch;
     motion_now: control.Drive's; parity: step & 1.
     """
-    for c in prange(n_spans):
-        pair_forces(spans[c, 0], spans[c, 1], cm, cs, motion_now, parity)
+    for c in prange((n_work + CONTACT_CHUNK - 1) // CONTACT_CHUNK):
+        pair_forces(c * CONTACT_CHUNK, min(n_work, (c + 1) * CONTACT_CHUNK), work, True, cm,
+                    cs, motion_now, parity)
 
 
-def stage_sums(cm, cs, spans, n_spans):
+def stage_sums(cm, cs, work, n_work):
     """Stage 4, second pass (contacts.sphere_forces): each sphere gathers the
     forces on itself, in its list's order (its partners' index order), then its
     walls'; writes sphere_f, sphere_t (torque about the sphere's centre) and
     sphere_overlap (largest overlap this step, [m]). Static and sleeping spheres
-    feel no force. Over spans[:n_spans], as stage_contacts."""
-    for c in prange(n_spans):
-        sphere_forces(spans[c, 0], spans[c, 1], cm, cs)
+    feel no force. Over work[:n_work], as stage_contacts."""
+    for c in prange((n_work + CONTACT_CHUNK - 1) // CONTACT_CHUNK):
+        sphere_forces(c * CONTACT_CHUNK, min(n_work, (c + 1) * CONTACT_CHUNK), work, True, cm,
+                      cs)
 
 
 def stage_glue(gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w, body_inv_mass,
@@ -408,8 +443,11 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
     wide skin has gone SKIN_SHRINK_ABOVE steps without one (to shrink it). The
     skin (skin_ctl[0], [d]) adapts at each rebuild to how many steps came since
     the last (neighbours.adapt_skin, up to skin_ctl[2]); it changes which pairs
-    are listed, never a force (the frames do not depend on it). skin_ctl[1] carries the steps since the last rebuild from call to call,
-    skin_ctl[3] counts the rebuilds.
+    are listed, never a force (the frames do not depend on it). skin_ctl[1]
+    carries the steps since the last rebuild from call to call, skin_ctl[3] counts
+    the rebuilds. After each rebuild the contact passes visit only the slots with
+    a neighbour or a wall in reach (stage_busy): the others' forces are zero until
+    the next, written once.
 
     A rebuild forced by a move keeps the slots (span_ctl[2] counts those) when at
     most keep_share of the spheres moved since the lists were built, the skin stays
@@ -425,15 +463,14 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
     With sleeping, once every body is asleep and no wall moves the remaining steps
     are skipped: a step then changes nothing (a sleeping body moves only when a
     moving body or wall touches it, and none is left), so skipping them gives the
-    same State bit
-    for bit, at no cost. The scratch arrays keep the last step done.
+    same State bit for bit, at no cost. The scratch arrays keep the last step done.
     And once at least quiet_share of the bodies are quiet, the contact passes
-    visit only the chunks of slots stage_active finds work in (spans): searched
-    at most every SEARCH_GAP steps, after a rebuild (new slots), a wake (a woken
-    body's chunks may be missing: every chunk until the next search) or once a
+    visit only the busy slots stage_active finds work in (active): searched at
+    most every SEARCH_GAP steps, after a rebuild (new lists), a wake (a woken
+    body's slots may be missing: every busy slot until the next search) or once a
     quarter of the bodies not quiet at the last search have become quiet (the
-    spans cover more than needed until then); exact too. span_ctl counts the
-    steps run so (0) and the searches (1).
+    list holds more than needed until then); exact too. span_ctl counts the steps
+    run so (0) and the searches (1).
 
     The arguments: model (layout.StepModel: what the step reads of the Model),
     state (layout.StepState: the State's arrays), scratch (layout.Scratch: the
@@ -456,7 +493,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
      sorted_idx, slot_of, sorted_x, sorted_v, sorted_body, grid_idx, grid_x, grid_key,
      grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
      wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_tr, sphere_overlap,
-     body_patch, skin_ctl, chunks, spans, span_ctl, slot_mark) = scratch
+     body_patch, skin_ctl, chunks, chunk_n, busy, active, span_ctl, slot_mark) = scratch
     # what the contact passes take (layout.ContactModel, ContactScratch): the same arrays
     cm = ContactModel(diameter, dt, onset_speed, body_inv_mass, body_material, pair_k,
                       pair_damp, pair_mu, kt_ratio, ks_ratio, friction, sleep_steps,
@@ -479,9 +516,9 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
     rebuild = True
     moved = False
     computed = 0
-    n_chunks = chunks.shape[0]
-    n_spans = 0
-    spans_ok = False        # spans[:n_spans] hold this step's work (stage_active)
+    n_busy = 0              # busy[:n_busy]: the slots with work (stage_busy)
+    n_active = 0
+    active_ok = False       # active[:n_active] hold this step's work (stage_active)
     rebuilt = True
     since_search = SEARCH_GAP
     calmed_since = 0        # bodies that became quiet since the last search
@@ -501,7 +538,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
             if stage_driven(drive.driven_body, drive.body_motion, drive.body_anchor_c,
                             drive.body_anchor_q, drive.motion_now, body_x, body_q, body_v,
                             body_w, body_rest, body_still, dt) > 0:
-                spans_ok = False    # a carried body that held still moves: every chunk
+                active_ok = False   # a carried body that held still moves: every busy slot
         if not rebuild:
             rebuild = stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x,
                                            body_q, body_v, body_w, dt, body_still, built_x,
@@ -586,19 +623,20 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
             skin_ctl[3] += 1.0
             if keep:
                 span_ctl[2] += 1
-            spans_ok = False                    # new lists (and slots)
+            n_busy = stage_busy(nbr_n, wall_mask, sorted_idx, sorted_body, body_inv_mass,
+                                chunk_n, busy, sphere_f, sphere_t, sphere_tr)
+            active_ok = False                   # new lists (and slots)
             rebuilt = True
             if FRICTION and friction:
                 stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
                                     wall_mask, hist_partner, hist_spring, pair_f, wall_start,
                                     wall_s)
             rebuild = False
-        work = spans if spans_ok else chunks
-        n_work = n_spans if spans_ok else n_chunks
-        if spans_ok:
+        work = active if active_ok else busy
+        n_work = n_active if active_ok else n_busy
+        if active_ok:
             span_ctl[0] += 1
-        stage_patches(cm, cs, drive.motion_now, body_sphere_start, slot_of, work,
-                      n_spans if spans_ok else -1)
+        stage_patches(cm, cs, drive.motion_now, body_sphere_start, slot_of, work, n_work)
         stage_contacts(cm, cs, drive.motion_now, step & 1, work, n_work)
         if GLUE:
             stage_glue(gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w,
@@ -612,20 +650,20 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
         since_search += 1
         calmed_since += calmed
         if rebuilt or woke > 0:
-            spans_ok = False    # (at the first step: body_still was stale, rebuilt is set)
+            active_ok = False   # (at the first step: body_still was stale, rebuilt is set)
         if SLEEPING and sleep_steps > 0 and quiet >= quiet_share * n_bodies and quiet > 0:
             if since_search >= SEARCH_GAP and (
-                    not spans_ok or 4 * calmed_since >= n_bodies - quiet_then):
-                n_spans = stage_active(sorted_body, nbr, nbr_n, body_inv_mass, body_rest,
-                                       body_still, sleep_steps, chunks, spans, wall_mask,
-                                       drive.moving_walls)
+                    not active_ok or 4 * calmed_since >= n_bodies - quiet_then):
+                n_active = stage_active(busy, n_busy, sorted_body, nbr, nbr_n, body_inv_mass,
+                                        body_rest, body_still, sleep_steps, chunk_n, active,
+                                        wall_mask, drive.moving_walls)
                 span_ctl[1] += 1
-                spans_ok = True
+                active_ok = True
                 since_search = 0
                 calmed_since = 0
                 quiet_then = quiet
         else:
-            spans_ok = False
+            active_ok = False
         rebuilt = False
         since += 1.0
         if SLEEPING and sleep_steps > 0 and awake == 0 and drive.moving_walls == 0:

@@ -116,7 +116,7 @@ def k_pair_forces(cm, cs, motion_now, parity, ctl):
     s = cuda.grid(1)
     if s >= cs.sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
-    pair_forces(s, s + 1, cm, cs, motion_now, parity)
+    pair_forces(s, s + 1, cs.nbr_n, False, cm, cs, motion_now, parity)  # (nbr_n: unread)
 
 
 @cuda.jit
@@ -126,7 +126,7 @@ def k_sphere_forces(cm, cs, ctl):
     s = cuda.grid(1)
     if s >= cs.sorted_idx.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
-    sphere_forces(s, s + 1, cm, cs)
+    sphere_forces(s, s + 1, cs.nbr_n, False, cm, cs)  # (nbr_n: unread)
 
 
 @cuda.jit
