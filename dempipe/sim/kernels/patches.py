@@ -77,12 +77,16 @@ def patch_add(row, slots, code, s1, s2):
     row[slots, 0] = 1.0
 
 
-def body_patches(b, cm, cs, motion_now, body_sphere_start, slot_of):
+def body_patches(b, k0, k1, work, listed, cm, cs, motion_now, body_sphere_start, slot_of):
     """The pass for body b: the sums (Σδ [m], Σδ² [m²]) of its contacts this step per
     partner, by pair_forces' tests, into body_patch[b] (a static body: left as it
     is, never read). Every body, every step: a sleeper's sums must hold for the
     pairs it computes with a moving partner (the CPU target's stage_patches leaves
-    out only bodies whose row would be empty: quiet among quiet partners).
+    out only bodies whose row would be empty: quiet among quiet partners, or
+    nothing in reach). Over the body's spheres in index order: its slots
+    work[k0 .. k1-1] when ``listed`` (the CPU: those of its slots with a neighbour
+    or a wall, stage_busy's, in slot order, which is the body's sphere order:
+    stage_grid_sort), else every one (``work`` unread; CUDA).
     cm, cs, motion_now: as pair_forces; body_sphere_start: the body's spheres;
     slot_of: each sphere's sorted slot."""
     diameter = cm.diameter
@@ -119,8 +123,9 @@ def body_patches(b, cm, cs, motion_now, body_sphere_start, slot_of):
     n_walls = wall_normal.shape[0]
     n_bodies = body_inv_mass.shape[0]
     asleep = SLEEPING and sleep_steps > 0 and body_rest[b] >= sleep_steps  # noqa: F821
-    for i in range(body_sphere_start[b], body_sphere_start[b + 1]):
-        s = slot_of[i]
+    i0 = body_sphere_start[b]
+    for j in range(k1 - k0 if listed else body_sphere_start[b + 1] - i0):
+        s = work[k0 + j] if listed else slot_of[i0 + j]
         xi = sorted_x[s, 0]
         yi = sorted_x[s, 1]
         zi = sorted_x[s, 2]

@@ -311,7 +311,8 @@ def stage_active(busy, n_busy, sorted_body, nbr, nbr_n, body_inv_mass, body_rest
 
 @numba.njit(inline="always", cache=True)
 def listed_between(s0, s1, work, n_work):
-    """Whether a slot of s0 .. s1-1 is in work[:n_work] (in slot order)."""
+    """(k0, k1): the entries of work[:n_work] (in slot order) that are slots s0 ..
+    s1-1 are work[k0 .. k1-1]."""
     lo = 0
     hi = n_work
     while lo < hi:                      # the first entry at s0 or later
@@ -320,7 +321,10 @@ def listed_between(s0, s1, work, n_work):
             lo = mid + 1
         else:
             hi = mid
-    return lo < n_work and work[lo] < s1
+    k1 = lo
+    while k1 < n_work and work[k1] < s1:
+        k1 += 1
+    return lo, k1
 
 
 def stage_patches(cm, cs, motion_now, body_sphere_start, slot_of, work, n_work):
@@ -328,24 +332,29 @@ def stage_patches(cm, cs, motion_now, body_sphere_start, slot_of, work, n_work):
     per partner, summed over its spheres in index order, for every body with a slot
     in work[:n_work] (run_steps': the busy or the active slots).
 
-    A body with none either has nothing in reach (not busy: stage_busy) or is quiet
-    among quiet partners (not active: stage_active): body_patches would skip each
-    of its pairs and walls and leave its row empty, so the row is emptied without
-    the pass. The rows are the same bit for bit (a body's slots are consecutive:
+    A slot left out either has nothing in reach (not busy: stage_busy) or is of a
+    quiet body among quiet partners (not active: stage_active): body_patches would
+    skip each of its pairs and walls. So the pass goes over the body's listed slots
+    only, and the row of a body with none is emptied without it. The rows are the
+    same bit for bit (a body's slots are consecutive, in its spheres' order:
     stage_grid_sort)."""
     body_patch = cs.body_patch
     last = body_patch.shape[1] - 1
     for b in prange(body_patch.shape[0]):
         i0 = body_sphere_start[b]
-        if i0 == body_sphere_start[b + 1] or not listed_between(
-                slot_of[i0], slot_of[i0] + body_sphere_start[b + 1] - i0, work, n_work):
+        k0 = k1 = 0
+        if i0 < body_sphere_start[b + 1]:
+            k0, k1 = listed_between(slot_of[i0], slot_of[i0] + body_sphere_start[b + 1] - i0,
+                                    work, n_work)
+        if k0 == k1:
             if body_patch[b, 0, 0] != 0.0 or body_patch[b, last, 0] != 0.0:
                 for c in range(last + 1):   # (a row nothing was added to is empty)
                     body_patch[b, c, 0] = 0.0
                     body_patch[b, c, 1] = 0.0
                     body_patch[b, c, 2] = 0.0
             continue
-        body_patches(b, cm, cs, motion_now, body_sphere_start, slot_of)
+        body_patches(b, k0, k1, work, True, cm, cs, motion_now, body_sphere_start,
+                     slot_of)
 
 
 def stage_contacts(cm, cs, motion_now, parity, work, n_work):

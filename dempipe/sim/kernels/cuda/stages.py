@@ -103,7 +103,8 @@ def k_body_patches(cm, cs, motion_now, body_sphere_start, slot_of, ctl):
     b = cuda.grid(1)
     if b >= cs.body_patch.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
-    body_patches(b, cm, cs, motion_now, body_sphere_start, slot_of)
+    body_patches(b, 0, 0, cs.nbr_n, False, cm, cs, motion_now, body_sphere_start,
+                 slot_of)                                   # (nbr_n: unread)
 
 
 @cuda.jit
