@@ -86,7 +86,6 @@ def test_npz_output(tmp_path):
 
 
 def test_usda_output_is_valid_usd(tmp_path):
-    pxr = pytest.importorskip("pxr")
     from pxr import Usd, UsdGeom, UsdValidation
 
     out = tmp_path / "spheres_{name}.usda"

@@ -29,15 +29,22 @@ from test_sleeping import pile
 D = 0.01
 
 
-def boxes_on_static_slab():
-    """Four 2×2×2-sphere boxes dropped 1 mm onto a static mesh slab (8×8 spheres),
-    spinning: friction springs against static spheres."""
+def slab_and_box():
+    """(builder, box shape, material): a static mesh slab of 8×8×1 spheres (top face
+    at z = D/2) and a 2×2×2-sphere box shape, both wood."""
     b = ModelBuilder(D)
     slab_set, slab_mesh = box_set(8, 8, 1, D)
     ss, mesh = box_set(2, 2, 2, D)
     s = b.add_shape("box", mesh, ss)
     m = b.add_material(Material("wood", density=700, restitution=0.3, friction=0.5))
     b.add_static_mesh("slab", slab_mesh, slab_set, m)
+    return b, s, m
+
+
+def boxes_on_static_slab():
+    """Four 2×2×2-sphere boxes dropped 1 mm onto a static mesh slab (8×8 spheres),
+    spinning: friction springs against static spheres."""
+    b, s, m = slab_and_box()
     pos = [[x, y, 1.6 * D] for x in (-0.02, 0.015) for y in (-0.015, 0.02)]
     b.add_bodies("boxes", s, m, pos, angular_velocities=[[0.0, 0.0, 3.0]] * 4)
     return b.finalize(fps=24, n_frames=2)
@@ -479,12 +486,7 @@ def test_a_body_lifted_off_its_contacts_between_calls_falls_freely():
     # resting load and whose lists are now empty: they must feel nothing, so both
     # boxes fall freely, as the integrator's closed form (semi-implicit Euler: a drop
     # of g dt² n (n + 1) / 2 after n steps) says to the last few bits.
-    b = ModelBuilder(D)
-    slab_set, slab_mesh = box_set(8, 8, 1, D)
-    ss, mesh = box_set(2, 2, 2, D)
-    s = b.add_shape("box", mesh, ss)
-    m = b.add_material(Material("wood", density=700, restitution=0.3, friction=0.5))
-    b.add_static_mesh("slab", slab_mesh, slab_set, m)
+    b, s, m = slab_and_box()
     b.add_plane([0.0, 0.0, -0.5], [0.0, 0.0, 1.0], material=m)
     b.add_bodies("boxes", s, m, [[0.0, 0.0, 1.5 * D], [0.3, 0.0, -0.5 + D]])
     model = b.finalize(fps=24, n_frames=2)              # sleeping off: they keep resting

@@ -132,8 +132,8 @@ def test_skipping_what_sleeps_changes_nothing(ball_height, slab):
     fast.step(a, n)
     assert fast.steps_skipped > 0                       # the shortcut was taken
     # and the third: once half the bodies are quiet, the contact passes visit
-    # only the chunks of slots with work in them (kernels.cpu.stages.stage_active); the
-    # calls of one step below never do (a call's first step visits every chunk)
+    # only the slots with work in them (kernels.cpu.stages.stage_active); the
+    # calls of one step below never do (a call's first step visits every busy slot)
     assert fast.span_ctl[0] > 0
     b = model.initial_state()
     be = Simulator(model).backend
@@ -144,11 +144,11 @@ def test_skipping_what_sleeps_changes_nothing(ball_height, slab):
     assert_same_state(a, b)
 
 
-def test_contact_passes_over_spans_change_nothing_frame_by_frame():
-    # kernels.cpu.stages.stage_active at its most eager (quiet_share 0: the spans, which
-    # the contact passes and the patch pass keep to, are used whenever any body is
-    # quiet, so also while most still move, through wakes and bodies falling quiet
-    # between searches) against never (quiet_share above 1):
+def test_contact_passes_over_the_active_slots_change_nothing_frame_by_frame():
+    # kernels.cpu.stages.stage_active at its most eager (quiet_share 0: the active
+    # slots, which the contact passes and the patch pass keep to, are used whenever any
+    # body is quiet, so also while most still move, through wakes and bodies falling
+    # quiet between searches) against never (quiet_share above 1):
     # the same State bit for bit at every frame, not only at the end. The ball
     # lands on the boxes as they settle and wakes some of them.
     model = pile(sleep=(None, None, 0.2), ball_height=0.3, n_frames=37)
@@ -159,7 +159,7 @@ def test_contact_passes_over_spans_change_nothing_frame_by_frame():
         eager.step(a, model.steps_per_frame)
         never.step(b, model.steps_per_frame)
         assert_same_state(a, b, frame)
-    assert eager.span_ctl[0] > 0 and eager.span_ctl[1] > 0   # the spans were used
+    assert eager.span_ctl[0] > 0 and eager.span_ctl[1] > 0   # the active slots were used
     assert never.span_ctl[0] == 0
 
 
@@ -218,11 +218,10 @@ def test_a_body_sliding_past_sleepers_enters_and_leaves_their_kept_lists():
 
 def test_a_carried_platform_that_starts_moving_wakes_what_sleeps_on_it():
     # Boxes fall asleep on a keyed platform holding still, while a box far off keeps
-    # sliding; then the platform lifts them. The spans searched while it held still
-    # leave their slots out, so the step it starts moving must drop them
-    # (kernels.cpu.stages.stage_driven): with the spans
-    # at their most eager against none, the same State at every frame, and the
-    # boxes are lifted with it.
+    # sliding; then the platform lifts them. The active slots searched while it held
+    # still leave theirs out, so the step it starts moving must drop them
+    # (kernels.cpu.stages.stage_driven): with the active slots at their most eager
+    # against none, the same State at every frame, and the boxes are lifted with it.
     b = ModelBuilder(D)
     ss, mesh = box_set(2, 2, 2, D)
     s = b.add_shape("box", mesh, ss)
@@ -248,5 +247,5 @@ def test_a_carried_platform_that_starts_moving_wakes_what_sleeps_on_it():
         assert_same_state(a, c, frame)
         if a.time < 0.4:
             asleep_before |= bool(a.asleep(model.sleep_steps)[1:3].all())
-    assert asleep_before and eager.span_ctl[0] > 0      # they slept; the spans were used
+    assert asleep_before and eager.span_ctl[0] > 0      # they slept; the active slots were used
     assert np.all(a.body_x[1:3, 2] > 0.0151 + 0.015)      # and rode up with it

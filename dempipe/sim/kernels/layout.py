@@ -94,13 +94,6 @@ def fit_grid(model, body_x, static_box) -> np.ndarray:
     return grid_table(m.n_spheres, (hi - lo) / cell_size(m.diameter) + 2.0)
 
 
-def chunk_spans(n_slots: int) -> np.ndarray:
-    """(n_chunks, 2) int64: the first and one past the last slot of each chunk of
-    CONTACT_CHUNK sorted slots (the contact passes' work when every slot has some)."""
-    lo = np.arange(0, max(n_slots, 1), CONTACT_CHUNK, dtype=np.int64)
-    return np.stack([lo, np.minimum(lo + CONTACT_CHUNK, n_slots)], axis=1)
-
-
 def cpu_scratch(model, friction: bool) -> dict:
     """name -> (shape, dtype) of every array ``CpuBackend`` allocates (its
     attributes of the same names), the growable ones at their initial sizes
@@ -110,7 +103,7 @@ def cpu_scratch(model, friction: bool) -> dict:
     ns = model.n_spheres
     table = grid_buckets(ns)
     f8, i8, i4 = np.float64, np.int64, np.int32
-    n_chunks = int(chunk_spans(ns).shape[0])
+    n_chunks = (max(ns, 1) + CONTACT_CHUNK - 1) // CONTACT_CHUNK
     lay = {
         "grid": ((6,), i8),
         "body_v": ((nb, 3), f8), "body_w": ((nb, 3), f8),
@@ -151,9 +144,9 @@ def cpu_scratch(model, friction: bool) -> dict:
         "glue_f": ((max(getattr(getattr(model, "bonds", None), "n_pairs", 0), 1), 9), f8),
         "body_glue": ((nb, 6), f8),
         # the contact passes' work (kernels/cpu/stages.py): the slots with a neighbour
-        # or a wall (busy), or those of them a sleeping pile leaves to do (active);
-        # found chunk by chunk (chunks, each one's count in chunk_n)
-        "chunks": ((n_chunks, 2), i8), "chunk_n": ((n_chunks,), i8),
+        # or a wall (busy), or those of them a sleeping pile leaves to do (active),
+        # found in blocks of CONTACT_CHUNK (each block's count in chunk_n)
+        "chunk_n": ((n_chunks,), i8),
         "busy": ((ns,), i4), "active": ((ns,), i4),
         "span_ctl": ((3,), i8),
         # a rebuild that keeps the slots: which lists it searches again (stage_slot_marks)
@@ -356,7 +349,6 @@ class Scratch(NamedTuple):
     sphere_overlap: Any
     body_patch: Any
     skin_ctl: Any
-    chunks: Any
     chunk_n: Any
     busy: Any
     active: Any

@@ -21,7 +21,6 @@ from dempipe.sim.kernels.cpu.stages import KEEP_SLOTS_SHARE, QUIET_SHARE, kernel
 from dempipe.sim.kernels.layout import (
     ContactScratch,
     StepState,
-    chunk_spans,
     contact_model,
     cpu_scratch,
     fit_grid,
@@ -65,7 +64,6 @@ class CpuBackend:
         self.grid = grid_table(model.n_spheres)
         self.skin_ctl[:] = (SKIN, 0.0, SKIN_MAX, 0.0)
         self.body_still[model.n_bodies:] = 1     # static colliders never move
-        self.chunks[:] = chunk_spans(model.n_spheres)
         #: Share of quiet bodies from which the contact passes skip the quiet slots
         #: (stage_active); above 1, never (the same State: benchmarks/sleeping_pile.py).
         self.quiet_share = QUIET_SHARE

@@ -62,7 +62,8 @@ invalidate_stale_cache(glue.__file__)
 # (dist/2) n × f rounds to ±1 ulp instead of 0 for a third of the contacts, which
 # would spin a one-sphere ball. The kernels add a contact's own torque only
 # when its mu > 0, so a frictionless ball keeps L = 0 exactly whichever variant
-# runs it, and the variants without friction never read or write sphere_t.
+# runs it; the variants without friction never read sphere_t, and write it only
+# as the zeros of a slot with nothing in reach (stage_busy).
 # ---------------------------------------------------------------------------
 
 # Feature flags the stage drivers are compiled for: layout.FLAGS, in ``kernels()``'s order.
@@ -502,7 +503,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
      sorted_idx, slot_of, sorted_x, sorted_v, sorted_body, grid_idx, grid_x, grid_key,
      grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
      wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_tr, sphere_overlap,
-     body_patch, skin_ctl, chunks, chunk_n, busy, active, span_ctl, slot_mark) = scratch
+     body_patch, skin_ctl, chunk_n, busy, active, span_ctl, slot_mark) = scratch
     # what the contact passes take (layout.ContactModel, ContactScratch): the same arrays
     cm = ContactModel(diameter, dt, onset_speed, body_inv_mass, body_material, pair_k,
                       pair_damp, pair_mu, kt_ratio, ks_ratio, friction, sleep_steps,
