@@ -243,8 +243,8 @@ def stage_busy(nbr_n, wall_mask, sorted_idx, sorted_body, body_inv_mass, chunk_n
     have nothing to sum (contacts.sphere_forces would write the same zeros) and nothing
     to compute, so the contact passes visit ``busy`` only: a falling or loosely
     packed pile, where most lists are empty, pays for its contacts, not for its
-    spheres. The same State bit for bit
-    (the CUDA simulator's, which visits every slot: tests/sim/test_cuda.py)."""
+    spheres. The same State bit for bit (the CUDA simulator's, which visits every
+    slot: tests/sim/test_cuda.py)."""
     n_slots = nbr_n.shape[0]
     n_blocks = (n_slots + CONTACT_CHUNK - 1) // CONTACT_CHUNK
     for c in prange(n_blocks):
@@ -311,7 +311,7 @@ def stage_active(busy, n_busy, sorted_body, nbr, nbr_n, body_inv_mass, body_rest
 
 
 @numba.njit(inline="always", cache=True)
-def listed_between(s0, s1, work, n_work):
+def listed_range(s0, s1, work, n_work):
     """(k0, k1): the entries of work[:n_work] (in slot order) that are slots s0 ..
     s1-1 are work[k0 .. k1-1]."""
     lo = 0
@@ -345,8 +345,8 @@ def stage_patches(cm, cs, motion_now, body_sphere_start, slot_of, work, n_work):
         i0 = body_sphere_start[b]
         k0 = k1 = 0
         if i0 < body_sphere_start[b + 1]:
-            k0, k1 = listed_between(slot_of[i0], slot_of[i0] + body_sphere_start[b + 1] - i0,
-                                    work, n_work)
+            k0, k1 = listed_range(slot_of[i0], slot_of[i0] + body_sphere_start[b + 1] - i0,
+                                  work, n_work)
         if k0 == k1:
             if body_patch[b, 0, 0] != 0.0 or body_patch[b, last, 0] != 0.0:
                 for c in range(last + 1):   # (a row nothing was added to is empty)
