@@ -141,20 +141,16 @@ def neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x, g
             # the three cells (cx0-1..cx0+1, cy, cz): keys in [lo, hi]
             key_lo = cell_key(cx0 - 1, cy, cz)  # noqa: F821
             key_hi = cell_key(cx0 + 1, cy, cz)  # noqa: F821
-            h_lo = cell_hash(cx0 - 1, cy, cz, grid)  # noqa: F821
-            h_hi = cell_hash(cx0 + 1, cy, cz, grid)  # noqa: F821
-            if h_hi == h_lo + 2:        # one contiguous run of buckets
-                n_runs = 1
-            else:                       # the row wraps round the table
-                n_runs = 3
-            for run in range(n_runs):
-                if n_runs == 1:
-                    t0 = bucket_start[h_lo]
-                    t1 = bucket_start[h_hi + 1]
-                else:
-                    h = cell_hash(cx0 - 1 + run, cy, cz, grid)  # noqa: F821
-                    t0 = bucket_start[h]
-                    t1 = bucket_start[h + 1]
+            for run in range(3):
+                h = cell_hash(cx0 - 1 + run, cy, cz, grid)  # noqa: F821
+                t0 = bucket_start[h]
+                t1 = bucket_start[h + 1]
+                # A bucket lists its spheres in index order and a body's spheres
+                # have consecutive indices, so one whose first and last are this
+                # body's holds nothing else: skipped whole (a surface set's own
+                # shell fills the 27 cells round most of its spheres).
+                if t1 == t0 or (grid_body[t0] == bi and grid_body[t1 - 1] == bi):
+                    continue
                 for g in range(t0, t1):
                     kt = grid_key[g]
                     if kt < key_lo or kt > key_hi:
