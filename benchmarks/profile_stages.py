@@ -78,12 +78,16 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
         busy[0] = cpu.stage_busy(b.nbr_n, b.wall_mask, b.sorted_idx, b.sorted_body,
                                  m.body_inv_mass, b.chunk_n, b.busy, b.sphere_f, b.sphere_t,
                                  b.sphere_tr)
+        cpu.stage_note_built(state.body_x, state.body_q, b.built_bx, b.built_bq, b.seen_bx,
+                             b.seen_bq)
     for s in range(state.step, state.step + steps):
         def sorted_positions():
-            return k.stage_spheres_sorted(b.slot_of, m.sphere_body, m.sphere_offset,
-                                          state.body_x, state.body_q, b.body_v, b.body_w,
-                                          m.dt, b.body_still, b.built_x, half * half, b.sorted_x,
-                                          b.sorted_v, b.sphere_r)
+            return k.stage_spheres_busy(m.body_sphere_start, b.slot_of, m.sphere_body,
+                                        m.sphere_offset, state.body_x, state.body_q, b.body_v,
+                                        b.body_w, m.dt, b.body_still, m.body_inv_mass,
+                                        b.built_bx, b.built_bq, b.body_reach, b.seen_bx,
+                                        b.seen_bq, b.busy, busy[0], b.built_x, half,
+                                        b.sorted_x, b.sorted_v, b.sphere_r)
         every = (
             lambda: k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
                                             m.body_inv_mass, m.body_inv_inertia, b.body_v,

@@ -8,7 +8,7 @@ pair farther apart than d adds nothing). Both are asserted exactly here.
 
 import numpy as np
 
-from bodies import ball_set
+from bodies import ball_set, box_set
 from dempipe.sim.kernels.neighbours import SKIN, SKIN_MAX, adapt_skin, cell_size
 from dempipe.sim.materials import Material
 from dempipe.sim.builder import ModelBuilder
@@ -148,6 +148,71 @@ def test_frames_do_not_depend_on_when_lists_are_rebuilt():
         for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner",
                      "contact_spring"):
             assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
+def spinning_bar(omega=200.0):
+    """A bar of 9 spheres in a row along x, its centre held in place (no gravity),
+    spinning about z at ``omega`` [rad/s]; a ball 4 d from that centre along y,
+    which only the bar's tip reaches: its centre does not move, only the spin
+    brings its spheres within the lists' reach."""
+    b = ModelBuilder(D, gravity=(0, 0, 0))
+    bar_set, bar_mesh = box_set(9, 1, 1, D)
+    ball, ball_mesh = ball_set(D)
+    m = b.add_material(Material("m", density=1000, restitution=0.8, friction=0.3))
+    b.add_bodies("bar", b.add_shape("bar", bar_mesh, bar_set), m, [[0.0, 0.0, 0.0]],
+                 angular_velocities=[[0.0, 0.0, omega]])
+    b.add_bodies("ball", b.add_shape("ball", ball_mesh, ball), m, [[0.0, 4.0 * D, 0.0]])
+    return b.finalize(fps=60, n_frames=2)
+
+
+def test_a_spinning_body_rebuilds_the_lists_as_its_tips_move():
+    # Between rebuilds the CPU places only the spheres with something in reach and
+    # decides per body whether one may have moved half the skin (spheres.body_moved:
+    # its centre's move plus its turn). The bar's centre stays put: only the turn
+    # brings its tip to the ball. One call of many steps must hit the ball exactly
+    # as a rebuild at every step does.
+    model = spinning_bar()
+    n = int(round(0.5 * np.pi / 200.0 / model.dt)) + 40      # a quarter turn, and on
+    a = model.initial_state()
+    b = model.initial_state()
+    sa = Simulator(model).backend
+    sb = Simulator(model).backend
+    sa.step(a, n)
+    for _ in range(n):
+        sb.step(b, 1)
+    assert sa.skin_ctl[3] > 5                          # rebuilt within the one call
+    assert np.linalg.norm(a.body_P[1]) > 0            # the tip hit the ball
+    for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner", "contact_spring"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert np.array_equal(sa.sphere_x, sb.sphere_x)   # every sphere placed at the end
+
+
+def test_a_body_bound_holds_every_sphere_move():
+    # spheres.body_moved against every sphere's move, for turns from 1e-9 rad to a
+    # half turn, with the quaternion's sign flipped (the same rotation)
+    from dempipe.sim.kernels.cpu.spheres import body_moved
+    from dempipe.sim.physics import quat_rotate
+    rng = np.random.default_rng(7)
+    offsets = rng.normal(size=(20, 3)) * 0.05
+    reach = np.array([np.linalg.norm(offsets, axis=1).max()])
+    for angle in (1e-9, 1e-6, 1e-3, 0.1, 1.0, 3.1):
+        for _ in range(20):
+            q0 = rng.normal(size=4)
+            q0 /= np.linalg.norm(q0)
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            turn = np.r_[np.cos(angle / 2), np.sin(angle / 2) * axis]
+            w0, v0 = turn[0], turn[1:]
+            q1 = np.r_[w0 * q0[0] - v0 @ q0[1:],
+                       w0 * q0[1:] + q0[0] * v0 + np.cross(v0, q0[1:])]
+            q1 *= rng.choice([-1.0, 1.0])
+            x0 = rng.normal(size=3)
+            x1 = x0 + rng.normal(size=3) * rng.choice([0.0, 1e-6, 0.01])
+            moves = [np.linalg.norm((x1 + quat_rotate(*q1, *o)) - (x0 + quat_rotate(*q0, *o)))
+                     for o in offsets]
+            bound = body_moved(0, x1[None], q1[None], x0[None], q0[None], reach)
+            assert max(moves) <= bound, (angle, max(moves), bound)
+            assert bound <= max(moves) + 2.0 * reach[0] * angle + 1e-6, (angle, bound)
 
 
 def test_the_skin_grows_while_bodies_fly_and_the_frames_do_not_change():

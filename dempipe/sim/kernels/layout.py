@@ -139,6 +139,11 @@ def cpu_scratch(model, friction: bool) -> dict:
         "body_patch": ((nb, BODY_PATCHES + 1, 3), f8),
         "body_wake": ((nb,), i4),
         "body_still": ((nb,), i4),               # static colliders: stage 1 keeps them
+        # stage 1 between rebuilds (kernels/cpu/stages.py stage_spheres_busy): each
+        # body's position and orientation at the last rebuild and at the last step,
+        # and the farthest of its spheres from its centre [m]
+        "built_bx": ((nb, 3), f8), "built_bq": ((nb, 4), f8),
+        "seen_bx": ((nb, 3), f8), "seen_bq": ((nb, 4), f8), "body_reach": ((nb,), f8),
         # glue (kernels/glue.py): each bonded pair's force, torque, shear stretch; each
         # body's sum of them
         "glue_f": ((max(getattr(getattr(model, "bonds", None), "n_pairs", 0), 1), 9), f8),
@@ -310,6 +315,11 @@ class Scratch(NamedTuple):
     hist_spring: Any
     body_wake: Any
     body_still: Any
+    built_bx: Any
+    built_bq: Any
+    seen_bx: Any
+    seen_bq: Any
+    body_reach: Any
     body_v: Any
     body_w: Any
     sphere_x: Any

@@ -78,7 +78,7 @@ def slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere
     velocity [m, m/s] into the slot of the last build, its offset R r' [m] into
     sphere_r[i]. Returns 1 when it has moved sqrt(rebuild_at2) [m] or more since
     that build (then the lists must be rebuilt), else 0. Written once, compiled
-    for each target (kernels.cpu.stages.stage_spheres_sorted, kernels.cuda.grid.k_spheres_sorted)."""
+    for each target (kernels.cpu.stages.stage_spheres_busy, kernels.cuda.grid.k_spheres_sorted)."""
     sorted_x[s, 0] = x
     sorted_x[s, 1] = y
     sorted_x[s, 2] = z

@@ -64,6 +64,12 @@ class CpuBackend:
         self.grid = grid_table(model.n_spheres)
         self.skin_ctl[:] = (SKIN, 0.0, SKIN_MAX, 0.0)
         self.body_still[model.n_bodies:] = 1     # static colliders never move
+        # each body's farthest sphere from its centre (stage_spheres_busy's bound)
+        reach = np.linalg.norm(model.sphere_offset, axis=1)
+        start = model.body_sphere_start
+        held = np.flatnonzero(np.diff(start) > 0)
+        if held.size:
+            self.body_reach[held] = np.maximum.reduceat(reach[: start[-1]], start[held])
         #: Share of quiet bodies from which the contact passes skip the quiet slots
         #: (stage_active); above 1, never (the same State: benchmarks/sleeping_pile.py).
         self.quiet_share = QUIET_SHARE

@@ -24,16 +24,21 @@ from dempipe.sim.kernels.layout import (
     FLAGS, BodyModel, BodyScratch, ContactModel, ContactScratch)
 from dempipe.sim.kernels.contacts import CONTACT_CHUNK
 from dempipe.sim.kernels.neighbours import SKIN, SKIN_SHRINK_ABOVE
-from dempipe.sim.kernels.cpu.device import (
-    adapt_skin, angular_velocity, cell_coord, cell_hash, cell_key, quat_rotate, slot_store,
-    sphere_kinematics, static_body)
+from dempipe.sim.kernels.cpu.device import adapt_skin, static_body
+from dempipe.sim.kernels.cpu.spheres import (
+    listed_range, sphere_state, stage_body_velocities, stage_driven, stage_motion,
+    stage_note_built, stage_spheres, stage_spheres_busy, stage_spheres_sorted)
 from dempipe.sim.kernels.cpu.grid import (
     stage_grid_gather, stage_grid_keep, stage_grid_sort, stage_history_to_slots,
     stage_history_to_spheres, stage_mark_partners, stage_neighbours, stage_neighbours_marked,
     stage_pairs, stage_pairs_to_rows, stage_rows_to_pairs, stage_slot_marks, stage_unsort,
     stage_wall_reach)
-# Read by the functions of contacts.py, bodies.py and prescribed.py, which kernels()
-# compiles with this module's globals (compile.specialize):
+# Read by the functions of spheres.py, contacts.py, bodies.py and prescribed.py, which
+# kernels() compiles with this module's globals (compile.specialize):
+from dempipe.sim.kernels.cpu.spheres import body_moved  # noqa: F401
+from dempipe.sim.kernels.cpu.device import (  # noqa: F401
+    angular_velocity, cell_coord, cell_hash, cell_key, quat_rotate, slot_store,
+    sphere_kinematics)
 from dempipe.sim.kernels.contacts import CLOSE_REACH2  # noqa: F401
 from dempipe.sim.kernels.pairing import UNPAIRED  # noqa: F401
 from dempipe.sim.kernels.cpu.device import (  # noqa: F401
@@ -75,124 +80,6 @@ WALLS = True
 # (kernels(flags, law, glue)): only a scene with bonds compiles their passes.
 GLUE = False
 
-
-
-def stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
-                          body_v, body_w):
-    """V = P/M and W = I(t)⁻¹ L (eq. 5-6) for each dynamic body (W = 0 without ROTATION)."""
-    for b in prange(n_bodies):
-        im = body_inv_mass[b]
-        body_v[b, 0] = body_P[b, 0] * im
-        body_v[b, 1] = body_P[b, 1] * im
-        body_v[b, 2] = body_P[b, 2] * im
-        if not ROTATION:
-            body_w[b, 0] = 0.0
-            body_w[b, 1] = 0.0
-            body_w[b, 2] = 0.0
-            continue
-        ii = body_inv_inertia[b]
-        q = body_q[b]
-        wx, wy, wz = angular_velocity(q[0], q[1], q[2], q[3], ii[0], ii[1], ii[2], ii[3],
-                                      ii[4], ii[5], body_L[b, 0], body_L[b, 1], body_L[b, 2])
-        body_w[b, 0] = wx
-        body_w[b, 1] = wy
-        body_w[b, 2] = wz
-
-
-def stage_motion(t, motion_kind, motion_v, motion_w, motion_pivot, key_start, key_t, key_p,
-                 key_q, motion_now):
-    """The prescribed motions at time t [s] into motion_now (prescribed.motion_row);
-    serial: a scene has a few."""
-    for m in range(motion_now.shape[0]):
-        motion_row(m, t, motion_kind, motion_v, motion_w, motion_pivot, key_start, key_t,
-                   key_p, key_q, motion_now)
-
-
-def stage_driven(driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now, body_x,
-                 body_q, body_v, body_w, body_rest, body_still, h):
-    """The carried bodies where their motions put them (prescribed.driven_row; h [s]:
-    their velocities as chords of that step, 0 for the tangent). Returns how many
-    started moving (rest count 0 to -1): a sleeping pile's active slots, searched
-    while they held still and so counted them quiet, no longer hold (run_steps)."""
-    started = 0
-    for k in range(driven_body.shape[0]):
-        b = driven_body[k]
-        held = body_rest[b] >= 0
-        driven_row(k, driven_body, body_motion, body_anchor_c, body_anchor_q, motion_now,
-                   body_x, body_q, body_v, body_w, body_rest, body_still, h)
-        if held and body_rest[b] < 0:
-            started += 1
-    return started
-
-
-def sphere_state(i, sphere_body, sphere_offset, body_x, body_q, body_v, body_w, h):
-    """Stage 1 for sphere i (eq. 19-21): (x, v, R r') [m, m/s, m], world frame; v
-    the chord of the step h [s] (physics.sphere_kinematics)."""
-    b = sphere_body[i]
-    q = body_q[b]
-    if ROTATION:
-        return sphere_kinematics(
-            body_x[b, 0], body_x[b, 1], body_x[b, 2], q[0], q[1], q[2], q[3],
-            body_v[b, 0], body_v[b, 1], body_v[b, 2],
-            body_w[b, 0], body_w[b, 1], body_w[b, 2],
-            sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2], h)
-    # W = 0: sphere_kinematics with the W × r' term dropped
-    rx, ry, rz = quat_rotate(q[0], q[1], q[2], q[3], sphere_offset[i, 0],
-                             sphere_offset[i, 1], sphere_offset[i, 2])
-    return (body_x[b, 0] + rx, body_x[b, 1] + ry, body_x[b, 2] + rz,
-            body_v[b, 0], body_v[b, 1], body_v[b, 2], rx, ry, rz)
-
-
-def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, h, inv_cell,
-                  grid, sphere_x, sphere_v, sphere_r, sphere_key, sphere_hash):
-    """Stage 1 (eq. 19-21) in sphere order (velocities: chords of the step h [s]), and
-    each sphere's grid cell (stage 2's input)."""
-    for i in prange(sphere_body.shape[0]):
-        x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset, body_x,
-                                                       body_q, body_v, body_w, h)
-        sphere_x[i, 0] = x
-        sphere_x[i, 1] = y
-        sphere_x[i, 2] = z
-        sphere_v[i, 0] = vx
-        sphere_v[i, 1] = vy
-        sphere_v[i, 2] = vz
-        sphere_r[i, 0] = rx
-        sphere_r[i, 1] = ry
-        sphere_r[i, 2] = rz
-        cx = cell_coord(x, inv_cell)
-        cy = cell_coord(y, inv_cell)
-        cz = cell_coord(z, inv_cell)
-        sphere_key[i] = cell_key(cx, cy, cz)
-        sphere_hash[i] = cell_hash(cx, cy, cz, grid)
-
-
-def stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x, body_q, body_v,
-                         body_w, h, body_still, built_x, rebuild_at2, sorted_x, sorted_v,
-                         sphere_r):
-    """Stage 1 (eq. 19-21) between rebuilds: straight into the sorted slots of the
-    last rebuild (no grid, no sort; slot_of[i] is sphere i's). Returns how many
-    spheres have moved sqrt(rebuild_at2) [m] or more since (then the lists must
-    be rebuilt). Spheres of a body that slept through the last step, or of a
-    static collider (body_still), keep the values computed before: the body has
-    not moved since.
-
-    In sphere order, not slot order: a body's spheres are contiguous, so their
-    offsets are read and sphere_r written in order and the body's state is read
-    once per run of its spheres (1.04-1.06x on the 25 k dense pile than the
-    other way round, the same at 275 k, when the slots were sorted by cell); and
-    a body's slots are consecutive too (stage_grid_sort), so the stores run in
-    order as well.
-    CUDA (k_spheres_sorted) runs a thread per slot."""
-    moved = 0
-    for i in prange(slot_of.shape[0]):
-        s = slot_of[i]
-        if body_still[sphere_body[i]] != 0:
-            continue
-        x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset, body_x,
-                                                       body_q, body_v, body_w, h)
-        moved += slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r,
-                            built_x, rebuild_at2)
-    return moved
 
 
 #: A sleeping pile's contact passes visit only the slots with work left in them
@@ -308,24 +195,6 @@ def stage_active(busy, n_busy, sorted_body, nbr, nbr_n, body_inv_mass, body_rest
                 n += 1
         chunk_n[c] = n
     return pack_blocks(active, chunk_n, n_blocks)
-
-
-@numba.njit(inline="always", cache=True)
-def listed_range(s0, s1, work, n_work):
-    """(k0, k1): the entries of work[:n_work] (in slot order) that are slots s0 ..
-    s1-1 are work[k0 .. k1-1]."""
-    lo = 0
-    hi = n_work
-    while lo < hi:                      # the first entry at s0 or later
-        mid = (lo + hi) // 2
-        if work[mid] < s0:
-            lo = mid + 1
-        else:
-            hi = mid
-    k1 = lo
-    while k1 < n_work and work[k1] < s1:
-        k1 += 1
-    return lo, k1
 
 
 def stage_patches(cm, cs, motion_now, body_sphere_start, slot_of, work, n_work):
@@ -498,7 +367,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
      wall_lo, wall_hi, wall_depth, wall_material, rolling, pair_rolling,
      body_inv_radius) = model
     (body_x, body_q, body_P, body_L, body_rest, contact_partner, contact_spring) = state
-    (hist_partner, hist_spring, body_wake, body_still, body_v, body_w, sphere_x, sphere_v,
+    (hist_partner, hist_spring, body_wake, body_still, built_bx, built_bq, seen_bx, seen_bq,
+     body_reach, body_v, body_w, sphere_x, sphere_v,
      sphere_r, sphere_key, sphere_hash, bucket_start, bucket_fill, body_key, grid_slot,
      sorted_idx, slot_of, sorted_x, sorted_v, sorted_body, grid_idx, grid_x, grid_key,
      grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
@@ -550,16 +420,19 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
                             body_w, body_rest, body_still, dt) > 0:
                 active_ok = False   # a carried body that held still moves: every busy slot
         if not rebuild:
-            rebuild = stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x,
-                                           body_q, body_v, body_w, dt, body_still, built_x,
-                                           half_skin * half_skin, sorted_x, sorted_v,
-                                           sphere_r) > 0
+            rebuild = stage_spheres_busy(body_sphere_start, slot_of, sphere_body,
+                                         sphere_offset, body_x, body_q, body_v, body_w, dt,
+                                         body_still, body_inv_mass, built_bx, built_bq,
+                                         body_reach, seen_bx, seen_bq, busy, n_busy, built_x,
+                                         half_skin, sorted_x, sorted_v, sphere_r) > 0
             moved = rebuild
             if not rebuild and skin > SKIN and since > SKIN_SHRINK_ABOVE:
                 rebuild = True                  # at rest with a wide skin: shrink it
         keep = False
         if rebuild and moved and keep_share > 0.0 and kept_run < KEEP_SLOTS_RUN and \
                 adapt_skin(skin, since, skin_ctl[2], moved) == skin:
+            stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x, body_q, body_v,
+                                 body_w, dt, sorted_x, sorted_v, sphere_r)
             n_moved, n_static_moved = stage_slot_marks(sorted_x, built_x, sorted_body,
                                                        body_inv_mass, nbr, nbr_n, slot_mark)
             keep = n_static_moved == 0 and n_moved <= keep_share * n_slots
@@ -635,6 +508,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
                 span_ctl[2] += 1
             n_busy = stage_busy(nbr_n, wall_mask, sorted_idx, sorted_body, body_inv_mass,
                                 chunk_n, busy, sphere_f, sphere_t, sphere_tr)
+            stage_note_built(body_x, body_q, built_bx, built_bq, seen_bx, seen_bq)
             active_ok = False                   # new lists (and slots)
             rebuilt = True
             if FRICTION and friction:
@@ -687,6 +561,9 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
         stage_driven(drive.driven_body, drive.body_motion, drive.body_anchor_c,
                      drive.body_anchor_q, drive.motion_now, body_x, body_q, body_v, body_w,
                      body_rest, body_still, 0.0)
+    # every sphere where the last step saw it (stage_spheres_busy placed the busy ones)
+    stage_spheres_sorted(slot_of, sphere_body, sphere_offset, seen_bx, seen_bq, body_v, body_w,
+                         dt, sorted_x, sorted_v, sphere_r)
     stage_unsort(sorted_idx, sorted_x, sphere_x)
     if FRICTION and friction:
         stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f,
@@ -698,7 +575,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
 
 _STAGES = (stage_body_velocities, motion_row, driven_row, stage_motion, stage_driven,
            sphere_state, stage_spheres,
-           stage_spheres_sorted,
+           stage_spheres_sorted, stage_spheres_busy,
            contacts.wall_gap, contacts.pair_ended, patches.patch_add, patches.body_patches,
            patches.patch_share, patches.pair_share, stage_patches,
            contacts.pair_forces, contacts.sphere_forces, stage_contacts, stage_sums,
@@ -713,6 +590,7 @@ _JITS = {
     "sphere_state": numba.njit(inline="always", cache=True),
     "stage_spheres": numba.njit(parallel=True, cache=True),
     "stage_spheres_sorted": numba.njit(parallel=True, cache=True),
+    "stage_spheres_busy": numba.njit(parallel=True, cache=True),
     "wall_gap": numba.njit(inline="always", cache=True),
     "pair_ended": numba.njit(inline="always", cache=True),
     "patch_add": numba.njit(inline="always", cache=True),
