@@ -161,7 +161,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                     b.busy, busy[0]),
             lambda: k.stage_contacts(cm, cs, b.drive.motion_now, s & 1, b.busy, busy[0]),
             lambda: k.stage_sums(cm, cs, b.busy, busy[0]),
-            lambda: k.stage_bodies(m.n_bodies, bm, bs, s),
+            lambda: k.stage_bodies(m.n_bodies, bm, bs, s, b.slot_of, b.busy, busy[0]),
         )
         for i, call in enumerate(after):
             t0 = time.perf_counter()

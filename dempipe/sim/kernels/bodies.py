@@ -13,8 +13,15 @@ targets run the one body stage and stay bit-identical.
 # its compiled formulas and feature flags, given when it is compiled.
 
 
-def body_update(b, bm, bs, step):
+def body_update(b, k0, k1, s0, work, listed, bm, bs, step):
     """Stages 5-8 for body b (the body of stage_bodies' loop), with sleeping.
+
+    The sums run over the body's spheres in index order: when ``listed`` (the CPU)
+    only those at the slots work[k0 .. k1-1] (stage_busy's, in slot order, which is
+    the body's sphere order from its first slot s0: stage_grid_sort), the others'
+    forces and torques being zero until the next rebuild; else every one (``work``,
+    s0 unread; CUDA). The same sums bit for bit: a sum that starts at +0.0, as each
+    of them does, is left as it is by adding +0.0.
 
     Returns awake + 2 woke + 4 quiet + 8 calmed: awake (1) when the body will
     integrate at the next step; quiet (4) when it is asleep and slept through
@@ -46,16 +53,18 @@ def body_update(b, bm, bs, step):
         body_still[b] = 1
         return 4 + (0 if was_quiet else 8)
     m = body_mass[b]
-    FX = m * gravity[0]
-    FY = m * gravity[1]
-    FZ = m * gravity[2]
+    FX = m * gravity[0] + 0.0       # + 0.0: never -0.0, which adding +0.0 would change
+    FY = m * gravity[1] + 0.0
+    FZ = m * gravity[2] + 0.0
     TX = 0.0
     TY = 0.0
     TZ = 0.0
     RX = 0.0                        # the rolling torques, limited below (rolling_scale)
     RY = 0.0
     RZ = 0.0
-    for i in range(body_sphere_start[b], body_sphere_start[b + 1]):
+    i0 = body_sphere_start[b]
+    for j in range(k1 - k0 if listed else body_sphere_start[b + 1] - i0):
+        i = i0 + work[k0 + j] - s0 if listed else i0 + j
         fx = sphere_f[i, 0]
         fy = sphere_f[i, 1]
         fz = sphere_f[i, 2]

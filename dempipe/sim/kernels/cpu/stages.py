@@ -285,8 +285,10 @@ def stage_glue_bodies(n_bodies, gm, gs, sphere_body, sphere_r):
         body_glue_sum(b, gm, gs, sphere_body, sphere_r)  # noqa: F821 (specialize's)
 
 
-def stage_bodies(n_bodies, bm, bs, step):
+def stage_bodies(n_bodies, bm, bs, step, slot_of, busy, n_busy):
     """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10).
+    Each body sums its busy slots only (busy[:n_busy], stage_busy's): every other
+    sphere's force and torques are zero until the next rebuild.
 
     With sleeping (sleep_steps > 0): a body slower than (v_sleep, w_sleep) for
     sleep_steps steps in a row falls asleep (P = L = 0, no integration) until a
@@ -299,8 +301,12 @@ def stage_bodies(n_bodies, bm, bs, step):
     woke = 0
     quiet = 0
     calmed = 0
+    body_sphere_start = bm.body_sphere_start
     for b in prange(n_bodies):
-        r = body_update(b, bm, bs, step)
+        i0 = body_sphere_start[b]
+        s0 = slot_of[i0] if i0 < body_sphere_start[b + 1] else 0
+        k0, k1 = listed_range(s0, s0 + body_sphere_start[b + 1] - i0, busy, n_busy)
+        r = body_update(b, k0, k1, s0, busy, True, bm, bs, step)
         awake += r & 1
         woke += (r >> 1) & 1
         quiet += (r >> 2) & 1
@@ -530,7 +536,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
         stage_sums(cm, cs, work, n_work)
         if GLUE:
             stage_glue_bodies(n_bodies, gm, gs, sphere_body, sphere_r)
-        awake, woke, quiet, calmed = stage_bodies(n_bodies, bm, bs, step)
+        awake, woke, quiet, calmed = stage_bodies(n_bodies, bm, bs, step, slot_of, busy,
+                                                  n_busy)
         since_search += 1
         calmed_since += calmed
         if rebuilt or woke > 0:

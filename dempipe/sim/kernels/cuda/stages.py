@@ -265,7 +265,7 @@ def k_bodies(n_bodies, bm, bs, ctl):
             ctl[CTL_IDLE_STEPS] += 1
     if b >= n_bodies or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
-    r = body_update(b, bm, bs, ctl[CTL_STEP])
+    r = body_update(b, 0, 0, 0, ctl, False, bm, bs, ctl[CTL_STEP])     # (ctl: unread)
     if r & 1:
         cuda.atomic.add(ctl, CTL_AWAKE, 1)
 
