@@ -53,6 +53,37 @@ def ball_lattice(n=5, pitch=1.05, seed=4):
     return b.finalize(fps=60, n_frames=6)
 
 
+def dense_blocks(n=4, pitch=0.3, seed=6):
+    """n bodies whose spheres are packed 0.3 d apart (as a surface set's shell is),
+    7 x 7 x 3 each, a little turned and thrown at each other in a box, no gravity:
+    rows of cells holding dozens of one body's spheres, next to another body's."""
+    import types
+    rng = np.random.default_rng(seed)
+    b = ModelBuilder(D, gravity=(0, 0, 0))
+    g = np.stack(np.meshgrid(*[np.arange(k) for k in (7, 7, 3)], indexing="ij"), -1)
+    c = (g.reshape(-1, 3) - [3.0, 3.0, 1.0]) * pitch * D
+    a, bb, cc = 6 * pitch * D + D, 6 * pitch * D + D, 2 * pitch * D + D
+    ss = types.SimpleNamespace(centers=c, com=np.zeros(3), volume=a * bb * cc,
+                               inertia=a * bb * cc / 12 * np.diag([bb * bb + cc * cc,
+                                                                   a * a + cc * cc,
+                                                                   a * a + bb * bb]),
+                               diameter=D)
+    _, mesh = box_set(3, 3, 1, D)
+    s = b.add_shape("block", mesh, ss)
+    m = b.add_material(Material("m", density=1000, restitution=0.5, friction=0.3))
+    # facing layers 1.1 d apart (in reach, not touching), closing at 0.6 m/s
+    pos = np.array([[0.0, 0.0, 0.0], [2.9 * D, 0.2 * D, 0.1 * D], [0.1 * D, 2.9 * D, -0.2 * D],
+                    [0.3 * D, 0.2 * D, 1.7 * D]])[:n]
+    turn = rng.normal(size=(n, 3)) * 0.01
+    q = np.c_[np.ones(n), turn]
+    b.add_bodies("blocks", s, m, pos + 0.04, rotations=q / np.linalg.norm(q, axis=1)[:, None],
+                 velocities=-(pos - pos.mean(0)) / np.linalg.norm(pos - pos.mean(0), axis=1,
+                                                                  keepdims=True) * 0.3,
+                 angular_velocities=rng.normal(size=(n, 3)) * 5.0)
+    b.add_box([0, 0, 0], [0.08, 0.08, 0.08], material=m)
+    return b.finalize(fps=60, n_frames=6)
+
+
 def brute_force_lists(backend, model):
     """For each sorted slot: the set of slots of spheres of other bodies within the
     lists' reach, by testing every pair (the oracle for the 27-cell search)."""
@@ -70,11 +101,12 @@ def test_lists_hold_every_partner_within_reach_in_index_order():
     # the cells of the rebuild grid are (1 + SKIN) d: with cells of d, partners
     # between d and (1 + SKIN) d two cells away were missed (energy grew in the
     # elastic gas of test_extremes)
-    for model in (loose_balls(), ball_lattice(), cluster_model(n=20)):
+    for model in (loose_balls(), ball_lattice(), cluster_model(n=20), dense_blocks()):
         be = CpuBackend(model)
         st = model.initial_state()
-        for _ in range(3):
-            be.step(st, max(1, model.steps_per_frame // 3))
+        for k in range(4):
+            if k:
+                be.step(st, max(1, model.steps_per_frame // 3))
             be.probe(st)                     # rebuilds the lists from this state
             near = brute_force_lists(be, model)
             for s in range(model.n_spheres):

@@ -42,6 +42,13 @@ SKIN_STEP = 0.1
 SKIN_GROW_BELOW = 20
 SKIN_SHRINK_ABOVE = 100
 
+#: A row of three cells holding more spheres than this is searched bucket by bucket,
+#: each bucket that holds only the searching sphere's own body skipped whole (a
+#: surface set's shell fills the cells round most of its spheres); a shorter row is
+#: walked in one run, where the two extra reads per bucket would cost more than the
+#: few spheres they skip. Measured: docs/performance.md, "Where a step goes".
+LONG_ROW = 8
+
 #: Entries per sphere a backend allocates to start with. A rebuild that finds a
 #: longer list (a sphere deep in others, a dense pile of small bodies) makes the
 #: backend grow the lists and carry on from that step (the CPU returns before the
@@ -141,16 +148,27 @@ def neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x, g
             # the three cells (cx0-1..cx0+1, cy, cz): keys in [lo, hi]
             key_lo = cell_key(cx0 - 1, cy, cz)  # noqa: F821
             key_hi = cell_key(cx0 + 1, cy, cz)  # noqa: F821
-            for run in range(3):
-                h = cell_hash(cx0 - 1 + run, cy, cz, grid)  # noqa: F821
-                t0 = bucket_start[h]
-                t1 = bucket_start[h + 1]
-                # A bucket lists its spheres in index order and a body's spheres
-                # have consecutive indices, so one whose first and last are this
-                # body's holds nothing else: skipped whole (a surface set's own
-                # shell fills the 27 cells round most of its spheres).
-                if t1 == t0 or (grid_body[t0] == bi and grid_body[t1 - 1] == bi):
-                    continue
+            h_lo = cell_hash(cx0 - 1, cy, cz, grid)  # noqa: F821
+            h_hi = cell_hash(cx0 + 1, cy, cz, grid)  # noqa: F821
+            wraps = h_hi != h_lo + 2    # round the table: three runs of buckets
+            n_runs = 3                  # (or a long row: bucket by bucket)
+            if not wraps:
+                t0 = bucket_start[h_lo]
+                t1 = bucket_start[h_hi + 1]
+                if t1 - t0 <= LONG_ROW:
+                    n_runs = 1
+            for run in range(n_runs):
+                if n_runs == 3:
+                    h = h_lo + run
+                    if wraps:
+                        h = cell_hash(cx0 - 1 + run, cy, cz, grid)  # noqa: F821
+                    t0 = bucket_start[h]
+                    t1 = bucket_start[h + 1]
+                    # A bucket lists its spheres in index order and a body's spheres
+                    # have consecutive indices, so one whose first and last are
+                    # this body's holds nothing else: skipped whole.
+                    if t1 == t0 or (grid_body[t0] == bi and grid_body[t1 - 1] == bi):
+                        continue
                 for g in range(t0, t1):
                     kt = grid_key[g]
                     if kt < key_lo or kt > key_hi:
