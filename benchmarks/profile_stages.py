@@ -50,8 +50,8 @@ STAGES = ("1 body velocities (eq. 5-6)", "1 sphere positions into sorted slots (
           "2 rebuild: gather into sorted order",
           "2 rebuild: contact histories between sphere and slot order",
           "3 rebuild: neighbour lists (27 cells), pair indices, walls in reach",
-          "3 rebuild: contact histories between rows and pairs",
           "3 rebuild: the busy slots (a neighbour or a wall in reach)",
+          "3 rebuild: contact histories between rows and pairs",
           "4 contact patches: each body's contacts per partner (patches.py)",
           "3-4 contact forces, each computed once (its owner) + walls",
           "4 each sphere's sum over its list", "5-8 body momenta, positions, quaternions")
@@ -80,6 +80,19 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                  b.sphere_tr)
         cpu.stage_note_built(state.body_x, state.body_q, b.built_bx, b.built_bq, b.seen_bx,
                              b.seen_bq)
+    held = np.zeros(0, dtype=np.int32)      # the spheres whose rows the last build left busy
+
+    def rows_to_pairs(s):
+        """As run_steps: every row at a call's first build, later the busy ones."""
+        if s == state.step:
+            return cpu.stage_rows_to_pairs(b.nbr, b.nbr_n, b.pidx, b.sorted_idx, b.sorted_body,
+                                           m.body_inv_mass, b.wall_mask, hp, hs, b.pair_f,
+                                           b.wall_start, b.wall_s)
+        slots = b.slot_of[held].astype(np.int32)
+        return cpu.stage_rows_to_pairs_busy(b.busy, busy[0], slots, slots.shape[0], b.nbr,
+                                            b.nbr_n, b.pidx, b.sorted_idx, b.sorted_body,
+                                            m.body_inv_mass, b.wall_mask, hp, hs, b.pair_f,
+                                            b.wall_start, b.wall_s)
     for s in range(state.step, state.step + steps):
         def sorted_positions():
             return k.stage_spheres_busy(m.body_sphere_start, b.slot_of, m.sphere_body,
@@ -120,10 +133,8 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                              hp.shape[1] if fr else 0, b.wall_s.shape[0],
                                              b.drive.wall_motion, b.sorted_body,
                                              b.drive.body_start, s)),
-            lambda: fr and cpu.stage_rows_to_pairs(b.nbr, b.nbr_n, b.pidx, b.sorted_idx,
-                                                   b.sorted_body, m.body_inv_mass, b.wall_mask,
-                                                   hp, hs, b.pair_f, b.wall_start, b.wall_s),
             find_busy,
+            lambda: fr and rows_to_pairs(s),
         )
         t0 = time.perf_counter()
         every[0]()
@@ -137,11 +148,13 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             rebuilds += 1
             if fr and s > state.step:      # histories back to sphere order before the sort
                 t0 = time.perf_counter()
-                cpu.stage_pairs_to_rows(b.nbr, b.nbr_n, b.pidx, b.sorted_idx, hp, hs, b.pair_f,
-                                        b.wall_mask, b.wall_start, b.wall_s)
+                cpu.stage_pairs_to_rows_busy(b.busy, busy[0], b.nbr, b.nbr_n, b.pidx,
+                                             b.sorted_idx, hp, hs, b.pair_f, b.wall_mask,
+                                             b.wall_start, b.wall_s)
+                held = b.sorted_idx[b.busy[:busy[0]]]
                 t1 = time.perf_counter()
                 cpu.stage_history_to_spheres(b.sorted_idx, hp, hs, partner, spring)
-                t[7] += t1 - t0
+                t[8] += t1 - t0
                 t[5] += time.perf_counter() - t1
             for i, call in enumerate(rebuild):
                 t0 = time.perf_counter()
@@ -168,8 +181,8 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             call()
             t[9 + i] += time.perf_counter() - t0
     if fr:
-        cpu.stage_pairs_to_rows(b.nbr, b.nbr_n, b.pidx, b.sorted_idx, hp, hs, b.pair_f,
-                                        b.wall_mask, b.wall_start, b.wall_s)
+        cpu.stage_pairs_to_rows_busy(b.busy, busy[0], b.nbr, b.nbr_n, b.pidx, b.sorted_idx,
+                                     hp, hs, b.pair_f, b.wall_mask, b.wall_start, b.wall_s)
         cpu.stage_history_to_spheres(b.sorted_idx, hp, hs, partner, spring)
     state.step += steps
     state.time = state.step * m.dt

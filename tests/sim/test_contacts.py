@@ -15,6 +15,7 @@ import pytest
 from bodies import ball_set, box_set
 from dempipe.sim import physics
 from dempipe.sim.laws import law
+from dempipe.sim.kernels.cpu import grid
 from dempipe.sim.kernels.cpu import stages as cpu
 from dempipe.sim.materials import Material
 from dempipe.sim.builder import ModelBuilder
@@ -243,6 +244,45 @@ def test_pair_indices_pair_each_entry_with_its_owner(case):
     assert np.all(be.nbr_n[static] == 0)                     # a static sphere owns nothing
 
 
+def test_rows_into_pairs_over_the_busy_and_held_slots_as_over_every_slot():
+    # Within a call the rebuild reads only the rows that can hold anything: the busy
+    # slots' and those the last rebuild left busy (held). A held row whose slot has
+    # nothing in reach now is emptied, as the pass over every slot empties it.
+    name, model, steps = scenes()[2]
+    be = Simulator(model).backend
+    st = model.initial_state()
+    be.step(st, steps)
+    be.probe(st)
+    n_busy = cpu.stage_busy(be.nbr_n, be.wall_mask, be.sorted_idx, be.sorted_body,
+                            model.body_inv_mass, be.chunk_n, be.busy, be.sphere_f, be.sphere_t,
+                            be.sphere_tr)
+    idle = np.setdiff1d(np.arange(model.n_spheres), be.busy[:n_busy])
+    assert idle.size, name
+    hp = st.contact_partner[be.sorted_idx]
+    hs = st.contact_spring[be.sorted_idx]
+    hp[idle[0], 0] = (1 << 1) | 1          # a stale entry in a row left out now
+    hs[idle[0], 0] = (1e-4, 2e-4, 3e-4)
+    held = np.r_[idle[:1], be.busy[:n_busy]].astype(np.int32)
+    runs = []
+    for listed in (False, True):
+        p, s_ = hp.copy(), hs.copy()
+        pair_f = np.zeros_like(be.pair_f)
+        wall_s = np.zeros_like(be.wall_s)
+        if listed:
+            grid.stage_rows_to_pairs_busy(be.busy, n_busy, held, held.shape[0], be.nbr,
+                                          be.nbr_n, be.pidx, be.sorted_idx, be.sorted_body,
+                                          model.body_inv_mass, be.wall_mask, p, s_, pair_f,
+                                          be.wall_start, wall_s)
+        else:
+            grid.stage_rows_to_pairs(be.nbr, be.nbr_n, be.pidx, be.sorted_idx, be.sorted_body,
+                                     model.body_inv_mass, be.wall_mask, p, s_, pair_f,
+                                     be.wall_start, wall_s)
+        runs.append((p, s_, pair_f, wall_s))
+    assert not runs[1][0][idle[0]].any() and not runs[1][1][idle[0]].any()
+    for a, b in zip(*runs):
+        np.testing.assert_array_equal(a, b)
+
+
 @pytest.mark.parametrize("case", range(5))
 def test_stretches_go_into_the_pairs_and_back_unchanged(case):
     # The State's history rows (canonical: pairs by partner index, then walls) into
@@ -256,12 +296,17 @@ def test_stretches_go_into_the_pairs_and_back_unchanged(case):
     hp = st.contact_partner[be.sorted_idx]
     hs = st.contact_spring[be.sorted_idx]
     pair_f = np.zeros_like(be.pair_f)
-    cpu.stage_rows_to_pairs(be.nbr, be.nbr_n, be.pidx, be.sorted_idx, be.sorted_body,
-                            model.body_inv_mass, be.wall_mask, hp, hs, pair_f, be.wall_start,
-                            be.wall_s)
+    grid.stage_rows_to_pairs(be.nbr, be.nbr_n, be.pidx, be.sorted_idx, be.sorted_body,
+                             model.body_inv_mass, be.wall_mask, hp, hs, pair_f, be.wall_start,
+                             be.wall_s)
     assert np.all(hp[hp != 0] >> 1 > model.n_spheres), name   # the rows keep the walls only
-    cpu.stage_pairs_to_rows(be.nbr, be.nbr_n, be.pidx, be.sorted_idx, hp, hs, pair_f,
-                            be.wall_mask, be.wall_start, be.wall_s)
+    # back over the busy slots only, as within a call: the others' rows are empty now
+    n_busy = cpu.stage_busy(be.nbr_n, be.wall_mask, be.sorted_idx, be.sorted_body,
+                            model.body_inv_mass, be.chunk_n, be.busy, be.sphere_f, be.sphere_t,
+                            be.sphere_tr)
+    assert n_busy > 0, name
+    grid.stage_pairs_to_rows_busy(be.busy, n_busy, be.nbr, be.nbr_n, be.pidx, be.sorted_idx,
+                                  hp, hs, pair_f, be.wall_mask, be.wall_start, be.wall_s)
     partner = np.empty_like(hp)
     spring = np.empty_like(hs)
     partner[be.sorted_idx] = hp

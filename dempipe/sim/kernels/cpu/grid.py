@@ -323,6 +323,21 @@ def nth_wall(walls, j):
         w += 1
 
 
+@numba.njit(inline="always", cache=True)
+def slot_rows_to_pairs(s, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass, wall_mask,
+                       hist_partner, hist_spring, pair_f, wall_start, wall_s):
+    """stage_rows_to_pairs for slot s."""
+    rows_to_pairs(s, s, sorted_idx.shape[0], nbr, nbr_n, pidx, sorted_idx, sorted_body,
+                  body_inv_mass, wall_mask, hist_partner, hist_spring, pair_f)
+    q = wall_start[s]
+    for j in range(wall_start[s + 1] - q if WALL_ROWS else 0):
+        code = hist_partner[s, j]
+        wall_s[q + j, 0] = hist_spring[s, j, 0]
+        wall_s[q + j, 1] = hist_spring[s, j, 1]
+        wall_s[q + j, 2] = hist_spring[s, j, 2]
+        wall_s[q + j, 3] = 1.0 + (code & 1) if code != 0 else 0.0
+
+
 @numba.njit(parallel=True, cache=True)
 def stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass, wall_mask,
                         hist_partner, hist_spring, pair_f, wall_start, wall_s):
@@ -330,18 +345,60 @@ def stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass
     (sorted-slot order) into pair_f; the rows keep the walls in reach
     (contacts.rows_to_pairs), whose columns are then copied into the packed wall
     rows wall_s (stretch, 1 + parity or 0), where the steps keep them: the rows'
-    copies go stale until stage_pairs_to_rows puts the packed ones back."""
+    copies go stale until stage_pairs_to_rows puts the packed ones back. Every
+    slot's row: a call's first rebuild, whose rows come from the State."""
+    for s in prange(sorted_idx.shape[0]):
+        slot_rows_to_pairs(s, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
+                           wall_mask, hist_partner, hist_spring, pair_f, wall_start, wall_s)
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_rows_to_pairs_busy(busy, n_busy, held, n_held, nbr, nbr_n, pidx, sorted_idx,
+                             sorted_body, body_inv_mass, wall_mask, hist_partner, hist_spring,
+                             pair_f, wall_start, wall_s):
+    """stage_rows_to_pairs at a later rebuild of a call, for the rows that can hold
+    anything: the busy slots' (busy[:n_busy], stage_busy's), and the slots whose
+    rows were busy at the last rebuild (held[:n_held], where the rows moved to),
+    emptied when they are not busy now (rows_to_pairs would forget every entry of
+    a slot with no list and no wall in reach). Every other row is already empty:
+    rows_to_pairs emptied it at the rebuild it was left out of, and only busy
+    slots write their rows in between. The same rows and pair_f as a pass over
+    every slot."""
+    for k in prange(n_busy):
+        slot_rows_to_pairs(busy[k], nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
+                           wall_mask, hist_partner, hist_spring, pair_f, wall_start, wall_s)
+    for k in prange(n_held):
+        s = held[k]
+        if (nbr_n[s] > 0 or wall_mask[s] != 0) and \
+                not static_body(body_inv_mass[sorted_body[s]]):
+            continue                        # busy: done above
+        for c in range(hist_partner.shape[1]):
+            if hist_partner[s, c] != 0:
+                hist_partner[s, c] = 0
+                hist_spring[s, c, 0] = 0.0
+                hist_spring[s, c, 1] = 0.0
+                hist_spring[s, c, 2] = 0.0
+
+
+@numba.njit(inline="always", cache=True)
+def slot_pairs_to_rows(s, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f,
+                       wall_mask, wall_start, wall_s):
+    """stage_pairs_to_rows for slot s."""
     n = sorted_idx.shape[0]
-    for s in prange(n):
-        rows_to_pairs(s, s, n, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
-                      wall_mask, hist_partner, hist_spring, pair_f)
-        q = wall_start[s]
-        for j in range(wall_start[s + 1] - q if WALL_ROWS else 0):
-            code = hist_partner[s, j]
-            wall_s[q + j, 0] = hist_spring[s, j, 0]
-            wall_s[q + j, 1] = hist_spring[s, j, 1]
-            wall_s[q + j, 2] = hist_spring[s, j, 2]
-            wall_s[q + j, 3] = 1.0 + (code & 1) if code != 0 else 0.0
+    q = wall_start[s]
+    for j in range(wall_start[s + 1] - q if WALL_ROWS else 0):
+        if wall_s[q + j, 3] != 0.0:
+            code = n + nth_wall(wall_mask[s], j) + 1
+            hist_partner[s, j] = (code << 1) | (int(wall_s[q + j, 3]) - 1)
+            hist_spring[s, j, 0] = wall_s[q + j, 0]
+            hist_spring[s, j, 1] = wall_s[q + j, 1]
+            hist_spring[s, j, 2] = wall_s[q + j, 2]
+        else:
+            hist_partner[s, j] = 0
+            hist_spring[s, j, 0] = 0.0
+            hist_spring[s, j, 1] = 0.0
+            hist_spring[s, j, 2] = 0.0
+    pairs_to_rows(s, s, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -350,22 +407,20 @@ def stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
     """Before a re-sort and at the end of a call, with friction: the packed wall rows
     back into their columns of the history rows (the inverse of stage_rows_to_pairs'
     copy), then the touching pairs' stretches (contacts.pairs_to_rows)."""
-    n = sorted_idx.shape[0]
-    for s in prange(n):
-        q = wall_start[s]
-        for j in range(wall_start[s + 1] - q if WALL_ROWS else 0):
-            if wall_s[q + j, 3] != 0.0:
-                code = n + nth_wall(wall_mask[s], j) + 1
-                hist_partner[s, j] = (code << 1) | (int(wall_s[q + j, 3]) - 1)
-                hist_spring[s, j, 0] = wall_s[q + j, 0]
-                hist_spring[s, j, 1] = wall_s[q + j, 1]
-                hist_spring[s, j, 2] = wall_s[q + j, 2]
-            else:
-                hist_partner[s, j] = 0
-                hist_spring[s, j, 0] = 0.0
-                hist_spring[s, j, 1] = 0.0
-                hist_spring[s, j, 2] = 0.0
-        pairs_to_rows(s, s, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f)
+    for s in prange(sorted_idx.shape[0]):
+        slot_pairs_to_rows(s, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f,
+                           wall_mask, wall_start, wall_s)
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_pairs_to_rows_busy(busy, n_busy, nbr, nbr_n, pidx, sorted_idx, hist_partner,
+                             hist_spring, pair_f, wall_mask, wall_start, wall_s):
+    """stage_pairs_to_rows within a call, for the busy slots (busy[:n_busy]) only: a
+    slot with no list and no wall has an empty row (stage_rows_to_pairs emptied it)
+    and nothing to put back."""
+    for k in prange(n_busy):
+        slot_pairs_to_rows(busy[k], nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
+                           pair_f, wall_mask, wall_start, wall_s)
 
 
 @numba.njit(inline="always", cache=True)

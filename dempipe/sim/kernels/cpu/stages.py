@@ -31,8 +31,8 @@ from dempipe.sim.kernels.cpu.spheres import (
 from dempipe.sim.kernels.cpu.grid import (
     stage_grid_gather, stage_grid_keep, stage_grid_sort, stage_history_to_slots,
     stage_history_to_spheres, stage_mark_partners, stage_neighbours, stage_neighbours_marked,
-    stage_pairs, stage_pairs_to_rows, stage_rows_to_pairs, stage_slot_marks, stage_unsort,
-    stage_wall_reach)
+    stage_pairs, stage_pairs_to_rows_busy, stage_rows_to_pairs, stage_rows_to_pairs_busy,
+    stage_slot_marks, stage_unsort, stage_wall_reach)
 # Read by the functions of spheres.py, contacts.py, bodies.py and prescribed.py, which
 # kernels() compiles with this module's globals (compile.specialize):
 from dempipe.sim.kernels.cpu.spheres import body_moved  # noqa: F401
@@ -314,6 +314,15 @@ def stage_bodies(n_bodies, bm, bs, step, slot_of, busy, n_busy):
     return awake, woke, quiet, calmed
 
 
+@numba.njit(parallel=True, cache=True)
+def held_rows(src, n, index, keep, dst):
+    """dst[:n] = src[:n] when ``keep``, else index[src[:n]] (a slot's sphere before a
+    new sort, then that sphere's new slot): at a rebuild within a call, where the
+    rows the last rebuild left busy are (stage_rows_to_pairs_busy). dst may be src."""
+    for k in prange(n):
+        dst[k] = src[k] if keep else index[src[k]]
+
+
 def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, scratch, drive,
               gm, gs):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
@@ -403,6 +412,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
     moved = False
     computed = 0
     n_busy = 0              # busy[:n_busy]: the slots with work (stage_busy)
+    held = active           # at a rebuild: the rows the last one left busy (held_rows)
+    n_held = 0
     n_active = 0
     active_ok = False       # active[:n_active] hold this step's work (stage_active)
     rebuilt = True
@@ -454,9 +465,13 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
             moved = False
             if FRICTION and friction and step > first_step:
                 # the histories back into their rows (slot order), and to sphere order
-                # for a new sort
-                stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
-                                    pair_f, wall_mask, wall_start, wall_s)
+                # for a new sort; which rows can hold anything (held: the busy ones, as
+                # spheres until the new sort gives their slots)
+                stage_pairs_to_rows_busy(busy, n_busy, nbr, nbr_n, pidx, sorted_idx,
+                                         hist_partner, hist_spring, pair_f, wall_mask,
+                                         wall_start, wall_s)
+                n_held = n_busy
+                held_rows(busy, n_busy, sorted_idx, keep, held)
                 if not keep:
                     stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
                                              contact_partner, contact_spring)
@@ -483,6 +498,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
                 stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start,
                                 bucket_start, bucket_fill, body_key, sorted_idx, slot_of,
                                 grid_idx, grid_slot)
+                if FRICTION and friction and step > first_step:
+                    held_rows(held, n_held, slot_of, False, held)    # spheres to slots
                 stage_grid_gather(sorted_idx, grid_idx, sphere_x, sphere_v, sphere_key,
                                   sphere_body, sorted_x, sorted_v, sorted_body, grid_x,
                                   grid_key, grid_body)
@@ -517,10 +534,15 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
             stage_note_built(body_x, body_q, built_bx, built_bq, seen_bx, seen_bq)
             active_ok = False                   # new lists (and slots)
             rebuilt = True
-            if FRICTION and friction:
+            if FRICTION and friction and step == first_step:     # rows from the State
                 stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
                                     wall_mask, hist_partner, hist_spring, pair_f, wall_start,
                                     wall_s)
+            elif FRICTION and friction:
+                stage_rows_to_pairs_busy(busy, n_busy, held, n_held, nbr, nbr_n, pidx,
+                                         sorted_idx, sorted_body, body_inv_mass, wall_mask,
+                                         hist_partner, hist_spring, pair_f, wall_start,
+                                         wall_s)
             rebuild = False
         work = active if active_ok else busy
         n_work = n_active if active_ok else n_busy
@@ -573,8 +595,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
                          dt, sorted_x, sorted_v, sphere_r)
     stage_unsort(sorted_idx, sorted_x, sphere_x)
     if FRICTION and friction:
-        stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f,
-                            wall_mask, wall_start, wall_s)
+        stage_pairs_to_rows_busy(busy, n_busy, nbr, nbr_n, pidx, sorted_idx, hist_partner,
+                                 hist_spring, pair_f, wall_mask, wall_start, wall_s)
         stage_history_to_spheres(sorted_idx, hist_partner, hist_spring, contact_partner,
                                  contact_spring)
     return n_steps, computed
