@@ -68,9 +68,9 @@ def compile_walk(jit, formulas, cell_coord, cell_key, cell_hash, grid_slots: boo
                               static_body=formulas.static_body)).neighbour_list
 
 
-def compile_slot_store(jit):
-    """neighbours.slot_store compiled with ``jit``."""
-    return compile_chain(neighbours, ("slot_store",), jit, {}).slot_store
+def compile_slot_store(jit) -> types.SimpleNamespace:
+    """neighbours.slot_place and slot_store compiled with ``jit``."""
+    return compile_chain(neighbours, ("slot_place", "slot_store"), jit, {})
 
 
 def compile_pairing(jit, formulas) -> types.SimpleNamespace:

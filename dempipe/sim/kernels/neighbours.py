@@ -20,7 +20,7 @@ steps were split into calls. CPU and CUDA sum in the same order.
 
 This module holds what both targets share: the constants, the list build of one
 slot (``neighbour_list``, compiled for each by ``compile.compile_walk``) and the
-store of one slot between rebuilds (``slot_store``); it imports no numba.
+store of one slot between rebuilds (``slot_place``, ``slot_store``); it imports no numba.
 """
 
 #: Verlet skin [diameters]: a list holds the partners within (1 + SKIN) d; rebuilt
@@ -79,13 +79,9 @@ def adapt_skin(skin, since, skin_max, moved):
     return skin
 
 
-def slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r, built_x,
-               rebuild_at2):
-    """Stage 1 between rebuilds, for sorted slot s (sphere i): its position and
-    velocity [m, m/s] into the slot of the last build, its offset R r' [m] into
-    sphere_r[i]. Returns 1 when it has moved sqrt(rebuild_at2) [m] or more since
-    that build (then the lists must be rebuilt), else 0. Written once, compiled
-    for each target (kernels.cpu.stages.stage_spheres_busy, kernels.cuda.grid.k_spheres_sorted)."""
+def slot_place(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r):
+    """Stage 1 for sorted slot s (sphere i): its position and velocity [m, m/s] into
+    the slot, its offset R r' [m] into sphere_r[i]."""
     sorted_x[s, 0] = x
     sorted_x[s, 1] = y
     sorted_x[s, 2] = z
@@ -95,6 +91,16 @@ def slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere
     sphere_r[i, 0] = rx
     sphere_r[i, 1] = ry
     sphere_r[i, 2] = rz
+
+
+def slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r, built_x,
+               rebuild_at2):
+    """Stage 1 between rebuilds, for sorted slot s (sphere i): slot_place into the
+    slot of the last build. Returns 1 when it has moved sqrt(rebuild_at2) [m] or more
+    since that build (then the lists must be rebuilt), else 0. Written once, compiled
+    for each target (kernels.cpu.spheres.stage_spheres_busy,
+    kernels.cuda.grid.k_spheres_sorted)."""
+    slot_place(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r)
     ex = x - built_x[s, 0]
     ey = y - built_x[s, 1]
     ez = z - built_x[s, 2]

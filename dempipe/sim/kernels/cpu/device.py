@@ -119,7 +119,9 @@ def morton_key(cx, cy, cz):
     return (spread_bits(cz) << 2) | (spread_bits(cy) << 1) | spread_bits(cx)
 
 
-slot_store = compile_slot_store(numba.njit(inline="always", cache=False))
+_slots = compile_slot_store(numba.njit(inline="always", cache=False))
+slot_place = _slots.slot_place
+slot_store = _slots.slot_store
 adapt_skin = compile_chain(neighbours, ("adapt_skin",), numba.njit(inline="always", cache=False),
                            {}).adapt_skin
 neighbour_list = compile_walk(numba.njit(inline="always", cache=False), F, cell_coord, cell_key,

@@ -130,16 +130,8 @@ def stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x, body_q, bo
     for i in prange(slot_of.shape[0]):
         x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset, body_x,
                                                        body_q, body_v, body_w, h)
-        s = slot_of[i]
-        sorted_x[s, 0] = x
-        sorted_x[s, 1] = y
-        sorted_x[s, 2] = z
-        sorted_v[s, 0] = vx
-        sorted_v[s, 1] = vy
-        sorted_v[s, 2] = vz
-        sphere_r[i, 0] = rx
-        sphere_r[i, 1] = ry
-        sphere_r[i, 2] = rz
+        slot_place(slot_of[i], i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v,
+                   sphere_r)
 
 
 @numba.njit(inline="always", cache=True)
@@ -211,8 +203,8 @@ def stage_spheres_busy(body_sphere_start, slot_of, sphere_body, sphere_offset, b
                 x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset,
                                                                body_x, body_q, body_v, body_w,
                                                                h)
-                slot_store(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v,
-                           sphere_r, built_x, rebuild_at2)
+                slot_place(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v,
+                           sphere_r)
     return moved
 
 

@@ -37,7 +37,7 @@ from dempipe.sim.kernels.cpu.grid import (
 # kernels() compiles with this module's globals (compile.specialize):
 from dempipe.sim.kernels.cpu.spheres import body_moved  # noqa: F401
 from dempipe.sim.kernels.cpu.device import (  # noqa: F401
-    angular_velocity, cell_coord, cell_hash, cell_key, quat_rotate, slot_store,
+    angular_velocity, cell_coord, cell_hash, cell_key, quat_rotate, slot_place, slot_store,
     sphere_kinematics)
 from dempipe.sim.kernels.contacts import CLOSE_REACH2  # noqa: F401
 from dempipe.sim.kernels.pairing import UNPAIRED  # noqa: F401
