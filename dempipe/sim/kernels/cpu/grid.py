@@ -345,7 +345,7 @@ def stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass
     (sorted-slot order) into pair_f; the rows keep the walls in reach
     (contacts.rows_to_pairs), whose columns are then copied into the packed wall
     rows wall_s (stretch, 1 + parity or 0), where the steps keep them: the rows'
-    copies go stale until stage_pairs_to_rows puts the packed ones back. Every
+    copies go stale until stage_pairs_to_rows_busy puts the packed ones back. Every
     slot's row: a call's first rebuild, whose rows come from the State."""
     for s in prange(sorted_idx.shape[0]):
         slot_rows_to_pairs(s, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass,
@@ -383,7 +383,7 @@ def stage_rows_to_pairs_busy(busy, n_busy, held, n_held, nbr, nbr_n, pidx, sorte
 @numba.njit(inline="always", cache=True)
 def slot_pairs_to_rows(s, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f,
                        wall_mask, wall_start, wall_s):
-    """stage_pairs_to_rows for slot s."""
+    """stage_pairs_to_rows_busy for slot s."""
     n = sorted_idx.shape[0]
     q = wall_start[s]
     for j in range(wall_start[s + 1] - q if WALL_ROWS else 0):
@@ -402,22 +402,13 @@ def slot_pairs_to_rows(s, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_sprin
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_pairs_to_rows(nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f,
-                        wall_mask, wall_start, wall_s):
-    """Before a re-sort and at the end of a call, with friction: the packed wall rows
-    back into their columns of the history rows (the inverse of stage_rows_to_pairs'
-    copy), then the touching pairs' stretches (contacts.pairs_to_rows)."""
-    for s in prange(sorted_idx.shape[0]):
-        slot_pairs_to_rows(s, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f,
-                           wall_mask, wall_start, wall_s)
-
-
-@numba.njit(parallel=True, cache=True)
 def stage_pairs_to_rows_busy(busy, n_busy, nbr, nbr_n, pidx, sorted_idx, hist_partner,
                              hist_spring, pair_f, wall_mask, wall_start, wall_s):
-    """stage_pairs_to_rows within a call, for the busy slots (busy[:n_busy]) only: a
-    slot with no list and no wall has an empty row (stage_rows_to_pairs emptied it)
-    and nothing to put back."""
+    """Before a re-sort and at the end of a call, with friction: the packed wall rows
+    back into their columns of the history rows (the inverse of stage_rows_to_pairs'
+    copy), then the touching pairs' stretches (contacts.pairs_to_rows), for the busy
+    slots (busy[:n_busy]) only: a slot with no list and no wall has an empty row
+    (the rebuild that left it out emptied it) and nothing to put back."""
     for k in prange(n_busy):
         slot_pairs_to_rows(busy[k], nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring,
                            pair_f, wall_mask, wall_start, wall_s)

@@ -97,15 +97,7 @@ def stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, h,
     for i in prange(sphere_body.shape[0]):
         x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset, body_x,
                                                        body_q, body_v, body_w, h)
-        sphere_x[i, 0] = x
-        sphere_x[i, 1] = y
-        sphere_x[i, 2] = z
-        sphere_v[i, 0] = vx
-        sphere_v[i, 1] = vy
-        sphere_v[i, 2] = vz
-        sphere_r[i, 0] = rx
-        sphere_r[i, 1] = ry
-        sphere_r[i, 2] = rz
+        slot_place(i, i, x, y, z, vx, vy, vz, rx, ry, rz, sphere_x, sphere_v, sphere_r)
         cx = cell_coord(x, inv_cell)
         cy = cell_coord(y, inv_cell)
         cz = cell_coord(z, inv_cell)

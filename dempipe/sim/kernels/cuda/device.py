@@ -128,7 +128,9 @@ def cell_hash(cx, cy, cz, grid):
 
 
 neighbour_list = compile_walk(device_jit(), F, cell_coord, cell_key, cell_hash, False)
-slot_store = compile_slot_store(device_jit()).slot_store
+_slots = compile_slot_store(device_jit())
+slot_place = _slots.slot_place
+slot_store = _slots.slot_store
 P = compile_pairing(device_jit(), F)
 wall_reach = P.wall_reach
 pair_slots = P.pair_slots

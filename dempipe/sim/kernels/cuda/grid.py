@@ -24,6 +24,7 @@ from dempipe.sim.kernels.cuda.device import (
     cell_key,
     neighbour_list,
     rebuilding,
+    slot_place,
     slot_store,
     sphere_kinematics,
 )
@@ -78,15 +79,7 @@ def k_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, h, inv
         body_q[b, 0], body_q[b, 1], body_q[b, 2], body_q[b, 3],
         body_v[b, 0], body_v[b, 1], body_v[b, 2], body_w[b, 0], body_w[b, 1], body_w[b, 2],
         sphere_offset[i, 0], sphere_offset[i, 1], sphere_offset[i, 2], h)
-    sphere_x[i, 0] = x
-    sphere_x[i, 1] = y
-    sphere_x[i, 2] = z
-    sphere_v[i, 0] = vx
-    sphere_v[i, 1] = vy
-    sphere_v[i, 2] = vz
-    sphere_r[i, 0] = rx
-    sphere_r[i, 1] = ry
-    sphere_r[i, 2] = rz
+    slot_place(i, i, x, y, z, vx, vy, vz, rx, ry, rz, sphere_x, sphere_v, sphere_r)
     cx = cell_coord(x, inv_cell)
     cy = cell_coord(y, inv_cell)
     cz = cell_coord(z, inv_cell)
