@@ -46,7 +46,9 @@ from dempipe.sim.kernels.neighbours import cell_size  # noqa: E402
 from dempipe.sim.simulator import Simulator  # noqa: E402
 
 STAGES = ("1 body velocities (eq. 5-6)", "1 sphere positions into sorted slots (eq. 19-21)",
-          "2 rebuild: sphere positions + cell keys", "2 rebuild: counting sort (serial)",
+          "2 rebuild: sphere positions + cell keys",
+          "3 rebuild: broadphase (bodies in reach, their spheres near another)",
+          "2 rebuild: counting sort (serial)",
           "2 rebuild: gather into sorted order",
           "2 rebuild: contact histories between sphere and slot order",
           "3 rebuild: neighbour lists (27 cells), pair indices, walls in reach",
@@ -111,19 +113,25 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             lambda: k.stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q,
                                     b.body_v, b.body_w, m.dt, inv_cell, b.grid, b.sphere_x,
                                     b.sphere_v, b.sphere_r, b.sphere_key, b.sphere_hash),
+            lambda: cpu.stage_near_others(b.broadphase_spheres, (1.0 + cpu.SKIN) * m.diameter,
+                                          b.offset_t, state.body_x, state.body_q,
+                                          m.body_sphere_start, b.body_reach, b.body_box,
+                                          m.body_inv_mass, b.drive.body_start, s,
+                                          b.sphere_hash),
             lambda: cpu.stage_grid_sort(b.sphere_hash, state.body_x, inv_cell, b.grid,
                                         m.body_sphere_start, b.bucket_start, b.bucket_fill,
                                         b.body_key, b.sorted_idx, b.slot_of, b.grid_idx,
                                         b.grid_slot),
-            lambda: cpu.stage_grid_gather(b.sorted_idx, b.grid_idx, b.sphere_x, b.sphere_v,
-                                          b.sphere_key, m.sphere_body, b.sorted_x, b.sorted_v,
-                                          b.sorted_body, b.grid_x, b.grid_key, b.grid_body),
+            lambda: cpu.stage_grid_gather(b.sorted_idx, b.grid_idx, b.bucket_start[b.grid[5]],
+                                          b.sphere_x, b.sphere_v, b.sphere_key, m.sphere_body,
+                                          b.sorted_x, b.sorted_v, b.sorted_body, b.grid_x,
+                                          b.grid_key, b.grid_body),
             lambda: fr and cpu.stage_history_to_slots(b.sorted_idx, partner, spring, hp, hs),
             lambda: (cpu.stage_neighbours(m.diameter, cpu.SKIN, b.grid, b.bucket_start,
                                           b.grid_idx, b.grid_x, b.grid_key, b.grid_body,
                                           b.grid_slot, b.sorted_idx, b.sorted_x, b.sorted_body,
                                           m.body_inv_mass, b.built_x, b.nbr, b.nbr_n,
-                                          b.drive.body_start, s)
+                                          b.drive.body_start, s, b.sphere_hash)
                      or cpu.stage_pairs(b.nbr, b.nbr_n, b.sorted_idx, b.sorted_body,
                                         m.body_inv_mass, b.pair_start, b._pidx(), b.pair_t,
                                         b.pair_f.shape[0], b.list_start, b.list_e)
@@ -154,12 +162,12 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                 held = b.sorted_idx[b.busy[:busy[0]]]
                 t1 = time.perf_counter()
                 cpu.stage_history_to_spheres(b.sorted_idx, hp, hs, partner, spring)
-                t[8] += t1 - t0
-                t[5] += time.perf_counter() - t1
+                t[9] += t1 - t0
+                t[6] += time.perf_counter() - t1
             for i, call in enumerate(rebuild):
                 t0 = time.perf_counter()
                 over = call()
-                while i == 4 and over:  # a list overflowed: grow, as CpuBackend.step does
+                while i == 5 and over:  # a list overflowed: grow, as CpuBackend.step does
                     b.grow_neighbours()
                     over = call()
                 t[2 + i] += time.perf_counter() - t0
@@ -179,7 +187,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
         for i, call in enumerate(after):
             t0 = time.perf_counter()
             call()
-            t[9 + i] += time.perf_counter() - t0
+            t[10 + i] += time.perf_counter() - t0
     if fr:
         cpu.stage_pairs_to_rows_busy(b.busy, busy[0], b.nbr, b.nbr_n, b.pidx, b.sorted_idx,
                                      hp, hs, b.pair_f, b.wall_mask, b.wall_start, b.wall_s)

@@ -101,8 +101,10 @@ def test_lists_hold_every_partner_within_reach_in_index_order():
     # the cells of the rebuild grid are (1 + SKIN) d: with cells of d, partners
     # between d and (1 + SKIN) d two cells away were missed (energy grew in the
     # elastic gas of test_extremes)
+    # (with the broadphase on whatever the bodies' size: test_broadphase)
     for model in (loose_balls(), ball_lattice(), cluster_model(n=20), dense_blocks()):
         be = CpuBackend(model)
+        be.broadphase_spheres = 0
         st = model.initial_state()
         for k in range(4):
             if k:
@@ -129,12 +131,14 @@ def z_order(c):
 def test_slots_follow_the_bodies_and_the_grid_holds_every_sphere_once():
     # The CPU's slots (stage_grid_sort): bodies in Z-order of the cell their centre is
     # in (ties in body order), each body's spheres in consecutive slots in their own
-    # order; the grid beside them holds every sphere once, by bucket, in index order
-    # within a bucket, with its slot, position, cell key and body.
+    # order; the grid beside them holds once every sphere the broadphase kept (the
+    # others have the hash -1: test_broadphase), by bucket, in index order within a
+    # bucket, with its slot, position, cell key and body.
     from test_contacts import boxes_on_static_slab      # (test_contacts imports this module)
 
     for model in (cluster_model(n=20), loose_balls(), boxes_on_static_slab()):
         be = CpuBackend(model)
+        be.broadphase_spheres = 0
         st = model.initial_state()
         be.step(st, model.steps_per_frame)
         be.probe(st)
@@ -153,14 +157,18 @@ def test_slots_follow_the_bodies_and_the_grid_holds_every_sphere_once():
         order = sorted(range(nb), key=lambda b: (keys[b], b))
         assert np.array_equal(np.argsort(first), order)
         g = be.grid
-        assert np.array_equal(np.sort(be.grid_idx), np.arange(ns))
-        assert np.array_equal(be.grid_slot, slot[be.grid_idx])
-        assert np.array_equal(be.grid_x, be.sphere_x[be.grid_idx])
-        assert np.array_equal(be.grid_key, be.sphere_key[be.grid_idx])
-        assert np.array_equal(be.grid_body, model.sphere_body[be.grid_idx])
-        bucket = be.sphere_hash[be.grid_idx]
+        kept = np.flatnonzero(be.sphere_hash >= 0)
+        n = int(be.bucket_start[g[5]])
+        assert n == len(kept)
+        grid_idx = be.grid_idx[:n]
+        assert np.array_equal(np.sort(grid_idx), kept)
+        assert np.array_equal(be.grid_slot[:n], slot[grid_idx])
+        assert np.array_equal(be.grid_x[:n], be.sphere_x[grid_idx])
+        assert np.array_equal(be.grid_key[:n], be.sphere_key[grid_idx])
+        assert np.array_equal(be.grid_body[:n], model.sphere_body[grid_idx])
+        bucket = be.sphere_hash[grid_idx]
         assert np.all((np.diff(bucket) > 0) | ((np.diff(bucket) == 0)
-                                               & (np.diff(be.grid_idx) > 0)))
+                                               & (np.diff(grid_idx) > 0)))
         counts = np.bincount(bucket, minlength=int(g[5]))
         assert np.array_equal(np.diff(be.bucket_start[: g[5] + 1]), counts)
 

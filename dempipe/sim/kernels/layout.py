@@ -144,6 +144,9 @@ def cpu_scratch(model, friction: bool) -> dict:
         # and the farthest of its spheres from its centre [m]
         "built_bx": ((nb, 3), f8), "built_bq": ((nb, 4), f8),
         "seen_bx": ((nb, 3), f8), "seen_bq": ((nb, 4), f8), "body_reach": ((nb,), f8),
+        # and the box of its sphere centres in its frame, centre and half-extent [m];
+        # the spheres' offsets by coordinate (kernels/cpu/broadphase.py)
+        "body_box": ((nb, 6), f8), "offset_t": ((3, ns), f8),
         # glue (kernels/glue.py): each bonded pair's force, torque, shear stretch; each
         # body's sum of them
         "glue_f": ((max(getattr(getattr(model, "bonds", None), "n_pairs", 0), 1), 9), f8),
@@ -320,6 +323,8 @@ class Scratch(NamedTuple):
     seen_bx: Any
     seen_bq: Any
     body_reach: Any
+    body_box: Any
+    offset_t: Any
     body_v: Any
     body_w: Any
     sphere_x: Any

@@ -9,6 +9,8 @@ import numpy as np
 
 from dempipe.sim.control import drive, split_at
 from dempipe.sim.backend import copy_matching
+from dempipe.sim.kernels.cpu.broadphase import (
+    BROADPHASE_SPHERES, body_bounds, stage_near_others)
 from dempipe.sim.kernels.cpu.grid import (
     stage_grid_gather,
     stage_grid_sort,
@@ -64,15 +66,17 @@ class CpuBackend:
         self.grid = grid_table(model.n_spheres)
         self.skin_ctl[:] = (SKIN, 0.0, SKIN_MAX, 0.0)
         self.body_still[model.n_bodies:] = 1     # static colliders never move
-        # each body's farthest sphere from its centre (stage_spheres_busy's bound)
-        reach = np.linalg.norm(model.sphere_offset, axis=1)
-        start = model.body_sphere_start
-        held = np.flatnonzero(np.diff(start) > 0)
-        if held.size:
-            self.body_reach[held] = np.maximum.reduceat(reach[: start[-1]], start[held])
+        # each body's farthest sphere from its centre (stage_spheres_busy's bound) and
+        # the box of its spheres (the broadphase's)
+        body_bounds(model.sphere_offset, model.body_sphere_start, self.body_reach,
+                    self.body_box)
+        self.offset_t[:] = model.sphere_offset.T
         #: Share of quiet bodies from which the contact passes skip the quiet slots
         #: (stage_active); above 1, never (the same State: benchmarks/sleeping_pile.py).
         self.quiet_share = QUIET_SHARE
+        #: Spheres per dynamic body from which a rebuild searches only the spheres
+        #: another body can reach (broadphase.py); 0: always (the same State).
+        self.broadphase_spheres = BROADPHASE_SPHERES
         #: Largest share of moved spheres at which a rebuild keeps the slots and
         #: searches only the lists that can change (run_steps); 0: never (the same State).
         self.keep_share = KEEP_SLOTS_SHARE
@@ -111,7 +115,7 @@ class CpuBackend:
         while left > 0:
             done, computed = self.k.run_steps(
                 left, int(state.step), self.grid, float(self.quiet_share),
-                float(self.keep_share), self.step_model,
+                float(self.keep_share), int(self.broadphase_spheres), self.step_model,
                 StepState(state.body_x, state.body_q, state.body_P, state.body_L,
                           self.rest(state), partner, spring),
                 self._scratch(), self.drive, self.glue_model, glue_scratch(state, self))
@@ -184,17 +188,22 @@ class CpuBackend:
                              self.grid,
                              self.sphere_x, self.sphere_v, self.sphere_r, self.sphere_key,
                              self.sphere_hash)
+        stage_near_others(self.broadphase_spheres, cell_size(m.diameter), self.offset_t,
+                          state.body_x, state.body_q, m.body_sphere_start, self.body_reach,
+                          self.body_box, m.body_inv_mass, self.drive.body_start,
+                          int(state.step), self.sphere_hash)
         stage_grid_sort(self.sphere_hash, state.body_x, 1.0 / cell_size(m.diameter), self.grid,
                         m.body_sphere_start, self.bucket_start, self.bucket_fill, self.body_key,
                         self.sorted_idx, self.slot_of, self.grid_idx, self.grid_slot)
-        stage_grid_gather(self.sorted_idx, self.grid_idx, self.sphere_x, self.sphere_v,
-                          self.sphere_key, m.sphere_body, self.sorted_x, self.sorted_v,
-                          self.sorted_body, self.grid_x, self.grid_key, self.grid_body)
+        stage_grid_gather(self.sorted_idx, self.grid_idx, self.bucket_start[self.grid[5]],
+                          self.sphere_x, self.sphere_v, self.sphere_key, m.sphere_body,
+                          self.sorted_x, self.sorted_v, self.sorted_body, self.grid_x,
+                          self.grid_key, self.grid_body)
         while (stage_neighbours(m.diameter, SKIN, self.grid, self.bucket_start, self.grid_idx,
                                 self.grid_x, self.grid_key, self.grid_body, self.grid_slot,
                                 self.sorted_idx, self.sorted_x, self.sorted_body,
                                 m.body_inv_mass, self.built_x, self.nbr, self.nbr_n,
-                                self.drive.body_start, int(state.step)) > 0
+                                self.drive.body_start, int(state.step), self.sphere_hash) > 0
                or stage_pairs(self.nbr, self.nbr_n, self.sorted_idx, self.sorted_body,
                               m.body_inv_mass, self.pair_start, self._pidx(), self.pair_t,
                               self.pair_f.shape[0], self.list_start, self.list_e) > 0

@@ -73,29 +73,35 @@ def stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start, buck
 def bucket_sort(sphere_hash, slot_of, grid, bucket_start, bucket_fill, grid_idx, grid_slot):
     """The grid's counting sort of the spheres by bucket (sphere_hash, in sphere
     order; serial, stable: spheres in index order within a bucket), with each
-    position's slot (slot_of); see stage_grid_sort."""
+    position's slot (slot_of); see stage_grid_sort. A sphere whose hash is -1
+    (broadphase.stage_near_others) goes into none."""
     nbk = grid[5]
     for h in range(nbk + 1):
         bucket_start[h] = 0
     for i in range(sphere_hash.shape[0]):
-        bucket_start[sphere_hash[i] + 1] += 1
+        if sphere_hash[i] >= 0:
+            bucket_start[sphere_hash[i] + 1] += 1
     for h in range(nbk):
         bucket_start[h + 1] += bucket_start[h]
     for h in range(nbk):
         bucket_fill[h] = bucket_start[h]
     for i in range(sphere_hash.shape[0]):
         h = sphere_hash[i]
+        if h < 0:
+            continue
         grid_idx[bucket_fill[h]] = i
         grid_slot[bucket_fill[h]] = slot_of[i]
         bucket_fill[h] += 1
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_grid_gather(sorted_idx, grid_idx, sphere_x, sphere_v, sphere_key, sphere_body,
-                      sorted_x, sorted_v, sorted_body, grid_x, grid_key, grid_body):
+def stage_grid_gather(sorted_idx, grid_idx, n_grid, sphere_x, sphere_v, sphere_key,
+                      sphere_body, sorted_x, sorted_v, sorted_body, grid_x, grid_key,
+                      grid_body):
     """Copy sphere data into slot order (what each step reads: a body's spheres,
     and bodies near each other, from contiguous memory), and what the neighbour
-    search reads into grid order (a row of three cells from contiguous memory)."""
+    search reads into grid order (a row of three cells from contiguous memory) for
+    the n_grid spheres in the grid."""
     for s in prange(sorted_idx.shape[0]):
         i = sorted_idx[s]
         sorted_x[s, 0] = sphere_x[i, 0]
@@ -105,7 +111,7 @@ def stage_grid_gather(sorted_idx, grid_idx, sphere_x, sphere_v, sphere_key, sphe
         sorted_v[s, 1] = sphere_v[i, 1]
         sorted_v[s, 2] = sphere_v[i, 2]
         sorted_body[s] = sphere_body[i]
-    for g in prange(grid_idx.shape[0]):
+    for g in prange(n_grid):
         i = grid_idx[g]
         grid_x[g, 0] = sphere_x[i, 0]
         grid_x[g, 1] = sphere_x[i, 1]
@@ -208,13 +214,20 @@ def stage_mark_partners(nbr, nbr_n, slot_mark):
 @numba.njit(cache=True)
 def sphere_neighbours(s0, s1, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x,
                       grid_key, grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
-                      body_inv_mass, built_x, nbr, nbr_n, body_start, step):
+                      body_inv_mass, built_x, nbr, nbr_n, body_start, step, sphere_hash):
     """Stages 2-3 for sorted slots s0 .. s1-1: each slot's neighbour list
-    (neighbours.neighbour_list); returns how many lists overflowed."""
+    (neighbours.neighbour_list), empty without a search for a sphere the
+    broadphase left out of the grid (sphere_hash -1); returns how many lists
+    overflowed."""
     cap = nbr.shape[1]
     over = 0
     for s in range(s0, s1):
-        if neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x,
+        if sphere_hash[sorted_idx[s]] < 0:
+            built_x[s, 0] = sorted_x[s, 0]
+            built_x[s, 1] = sorted_x[s, 1]
+            built_x[s, 2] = sorted_x[s, 2]
+            nbr_n[s] = 0
+        elif neighbour_list(s, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x,
                           grid_key, grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
                           body_inv_mass, built_x, nbr, nbr_n, body_start, step) > cap:
             over += 1
@@ -224,7 +237,7 @@ def sphere_neighbours(s0, s1, cutoff2, inv_cell, grid, bucket_start, grid_idx, g
 @numba.njit(parallel=True, cache=True)
 def stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_key, grid_body,
                      grid_slot, sorted_idx, sorted_x, sorted_body, body_inv_mass, built_x,
-                     nbr, nbr_n, body_start, step):
+                     nbr, nbr_n, body_start, step, sphere_hash):
     """Stages 2-3 at a rebuild: every sorted slot's neighbour list (sphere_neighbours)
     of reach (1 + skin) d, from the grid just sorted (cells of that edge). Returns how
     many lists overflowed (0: all fit)."""
@@ -237,7 +250,8 @@ def stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_
                                   cutoff * cutoff, 1.0 / cutoff, grid, bucket_start,
                                   grid_idx, grid_x, grid_key, grid_body, grid_slot,
                                   sorted_idx, sorted_x, sorted_body,
-                                  body_inv_mass, built_x, nbr, nbr_n, body_start, step)
+                                  body_inv_mass, built_x, nbr, nbr_n, body_start, step,
+                                  sphere_hash)
     return over
 
 

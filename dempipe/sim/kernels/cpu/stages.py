@@ -24,6 +24,7 @@ from dempipe.sim.kernels.layout import (
     FLAGS, BodyModel, BodyScratch, ContactModel, ContactScratch)
 from dempipe.sim.kernels.contacts import CONTACT_CHUNK
 from dempipe.sim.kernels.neighbours import SKIN, SKIN_SHRINK_ABOVE
+from dempipe.sim.kernels.cpu.broadphase import stage_near_others
 from dempipe.sim.kernels.cpu.device import adapt_skin, static_body
 from dempipe.sim.kernels.cpu.spheres import (
     listed_range, sphere_state, stage_body_velocities, stage_driven, stage_motion,
@@ -323,8 +324,8 @@ def held_rows(src, n, index, keep, dst):
         dst[k] = src[k] if keep else index[src[k]]
 
 
-def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, scratch, drive,
-              gm, gs):
+def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_spheres, model,
+              state, scratch, drive, gm, gs):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
     compiled code. Returns (steps done, steps computed). Done is fewer than
     n_steps only when a rebuild found a neighbour list longer than nbr holds
@@ -383,7 +384,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
      body_inv_radius) = model
     (body_x, body_q, body_P, body_L, body_rest, contact_partner, contact_spring) = state
     (hist_partner, hist_spring, body_wake, body_still, built_bx, built_bq, seen_bx, seen_bq,
-     body_reach, body_v, body_w, sphere_x, sphere_v,
+     body_reach, body_box, offset_t, body_v, body_w, sphere_x, sphere_v,
      sphere_r, sphere_key, sphere_hash, bucket_start, bucket_fill, body_key, grid_slot,
      sorted_idx, slot_of, sorted_x, sorted_v, sorted_body, grid_idx, grid_x, grid_key,
      grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
@@ -495,21 +496,24 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, model, state, 
                 stage_spheres(sphere_body, sphere_offset, body_x, body_q, body_v, body_w, dt,
                               inv_cell, grid, sphere_x, sphere_v, sphere_r, sphere_key,
                               sphere_hash)
+                stage_near_others(broadphase_spheres, (1.0 + skin) * diameter, offset_t,
+                                  body_x, body_q, body_sphere_start, body_reach, body_box,
+                                  body_inv_mass, body_start, step, sphere_hash)
                 stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start,
                                 bucket_start, bucket_fill, body_key, sorted_idx, slot_of,
                                 grid_idx, grid_slot)
                 if FRICTION and friction and step > first_step:
                     held_rows(held, n_held, slot_of, False, held)    # spheres to slots
-                stage_grid_gather(sorted_idx, grid_idx, sphere_x, sphere_v, sphere_key,
-                                  sphere_body, sorted_x, sorted_v, sorted_body, grid_x,
-                                  grid_key, grid_body)
+                stage_grid_gather(sorted_idx, grid_idx, bucket_start[grid[5]], sphere_x,
+                                  sphere_v, sphere_key, sphere_body, sorted_x, sorted_v,
+                                  sorted_body, grid_x, grid_key, grid_body)
                 if FRICTION and friction:
                     stage_history_to_slots(sorted_idx, contact_partner, contact_spring,
                                            hist_partner, hist_spring)
                 over = stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x,
                                         grid_key, grid_body, grid_slot, sorted_idx, sorted_x,
                                         sorted_body, body_inv_mass, built_x, nbr, nbr_n,
-                                        body_start, step)
+                                        body_start, step, sphere_hash)
             if over > 0 or \
                     stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
                                 pair_start, pidx, pair_t, pair_f.shape[0], list_start,
