@@ -294,6 +294,17 @@ def test_the_skin_shrinks_back_when_rebuilds_are_rare():
     assert adapt_skin(up, SKIN_SHRINK_ABOVE + 1, SKIN_MAX, False) == SKIN   # exactly
 
 
+def test_spheres_packed_closer_than_a_lattice_keep_the_skin_narrower():
+    # a surface set's shell (0.3 d apart) puts ten times a lattice's spheres within a
+    # list's reach of a face: its skin stops at SKIN_MAX_DENSE (neighbours.skin_max)
+    from dempipe.sim.kernels.neighbours import SKIN_MAX_DENSE, skin_max
+    assert SKIN < SKIN_MAX_DENSE < SKIN_MAX
+    assert skin_max(cluster_model(n=6)) == SKIN_MAX
+    assert skin_max(loose_balls(n=20)) == SKIN_MAX          # one sphere per body
+    assert skin_max(dense_blocks()) == SKIN_MAX_DENSE
+    assert Simulator(dense_blocks()).backend.skin_ctl[2] == SKIN_MAX_DENSE
+
+
 def test_rebuilds_happen_mid_call_and_lists_grow_without_losing_contacts():
     # lists of room 1 overflow at the first rebuild: the backend grows them and
     # redoes the step; the result is the one with room to spare

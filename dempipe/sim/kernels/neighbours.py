@@ -42,6 +42,14 @@ SKIN_STEP = 0.1
 SKIN_GROW_BELOW = 20
 SKIN_SHRINK_ABOVE = 100
 
+#: The CPU's largest skin [diameters] where the bodies' spheres are packed closer than
+#: DENSE_SPACING d (surface sets: 0.3 d). A list's entries grow with the spheres a
+#: face of another body holds within reach, ten times a lattice's there, so a wide
+#: skin costs more in the lists than it saves in rebuilds (``skin_max``; measured:
+#: docs/performance.md, "Surface sphere sets").
+SKIN_MAX_DENSE = 0.3
+DENSE_SPACING = 0.9
+
 #: A row of three cells holding more spheres than this is searched bucket by bucket,
 #: each bucket that holds only the searching sphere's own body skipped whole (a
 #: surface set's shell fills the cells round most of its spheres); a shorter row is
@@ -77,6 +85,29 @@ def adapt_skin(skin, since, skin_max, moved):
     if moved and since < SKIN_GROW_BELOW:
         return min(skin_max, skin + SKIN_STEP)
     return skin
+
+
+def skin_max(model) -> float:
+    """The CPU's largest skin for ``model`` [diameters]: SKIN_MAX_DENSE when most of
+    the dynamic bodies' contact spheres (by count) are closer than DENSE_SPACING d to
+    the nearest other sphere of their shape, else SKIN_MAX."""
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    nb = model.n_bodies
+    counts = np.bincount(model.body_shape[:nb][model.body_inv_mass[:nb] > 0],
+                         minlength=len(model.shapes))
+    dense = 0
+    total = 0
+    for shape, n in zip(model.shapes, counts):
+        c = np.asarray(shape.contact_centers if shape.contact_centers is not None
+                       else shape.sphere_set.centers)
+        if n == 0 or len(c) < 2:
+            continue
+        gap = cKDTree(c).query(c, k=2)[0][:, 1]
+        dense += n * int(np.count_nonzero(gap < DENSE_SPACING * model.diameter))
+        total += n * len(c)
+    return SKIN_MAX_DENSE if 2 * dense > total else SKIN_MAX
 
 
 def slot_place(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r):
