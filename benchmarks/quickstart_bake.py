@@ -11,6 +11,7 @@ the final largest speed and mean height (the two piles should settle alike); the
 the median ratio of wall times A/B (above 1: B bakes faster). A whole bake, not
 ab_trees.py's few steps: the quickstart's first steps are free fall and cost
 nearly nothing, and a change of dt auto shows only per bake (docs/performance.md).
+``--spheres surface`` bakes the same scene with surface sphere sets.
 """
 
 import argparse
@@ -21,15 +22,24 @@ import sys
 import time
 
 
-def child(root: str) -> None:
+def child(root: str, spheres: str | None) -> None:
     sys.path[:0] = [root]
+    import tempfile
+    from pathlib import Path
+
     import numpy as np
 
     from dempipe.scene.build import build_model
     from dempipe.scene.load import load_scene
     from dempipe.sim.simulator import Simulator
 
-    model = build_model(load_scene(root + "/examples/quickstart.toml"))
+    scene = Path(root) / "examples" / "quickstart.toml"
+    if spheres:
+        text = scene.read_text().replace("[simulation]\n",
+                                         f'[simulation]\nspheres = "{spheres}"\n', 1)
+        scene = Path(tempfile.mkdtemp()) / "quickstart.toml"
+        scene.write_text(text)
+    model = build_model(load_scene(scene))
     sim = Simulator(model)
     st = model.initial_state()
     sim.backend.step(st, 2)
@@ -51,16 +61,19 @@ def main() -> None:
     ap.add_argument("a")
     ap.add_argument("b", nargs="?")
     ap.add_argument("--pairs", type=int, default=2)
+    ap.add_argument("--spheres", choices=("lattice", "surface"),
+                    help="the scene's sphere sets (default: as the scene says)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        return child(args.a)
+        return child(args.a, args.spheres)
     ratios = []
     for k in range(args.pairs):
         walls = {}
         for root in ((args.a, args.b) if k % 2 == 0 else (args.b, args.a)):
-            r = subprocess.run([sys.executable, __file__, root, "--child"], check=True,
-                               capture_output=True, text=True)
+            r = subprocess.run([sys.executable, __file__, root, "--child"]
+                               + (["--spheres", args.spheres] if args.spheres else []),
+                               check=True, capture_output=True, text=True)
             res = json.loads(r.stdout.strip().splitlines()[-1])
             walls[root] = res["wall"]
             print(f"{root}: dt {res['dt']:.3e} s, {res['spf']} steps per frame, "
