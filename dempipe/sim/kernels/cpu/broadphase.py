@@ -34,7 +34,7 @@ import numpy as np
 from numba import prange
 
 from dempipe.sim.kernels.compile import invalidate_stale_cache
-from dempipe.sim.kernels.cpu.device import quat_rotate, static_body
+from dempipe.sim.kernels.cpu.device import quat_rotate, quat_rotate_inv, static_body
 
 invalidate_stale_cache(__file__)
 
@@ -157,7 +157,7 @@ def axis_in_frame(qa, qb, j):
     """Body b's axis j (orientation qb) in body a's frame (orientation qa)."""
     wx, wy, wz = quat_rotate(qb[0], qb[1], qb[2], qb[3], 1.0 if j == 0 else 0.0,
                              1.0 if j == 1 else 0.0, 1.0 if j == 2 else 0.0)
-    return quat_rotate(qa[0], -qa[1], -qa[2], -qa[3], wx, wy, wz)
+    return quat_rotate_inv(qa[0], qa[1], qa[2], qa[3], wx, wy, wz)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -203,7 +203,7 @@ def stage_near_others(min_spheres, reach, offset_t, body_x, body_q, body_sphere_
             qb = body_q[b]
             box = body_box[b]
             wx, wy, wz = quat_rotate(qb[0], qb[1], qb[2], qb[3], box[0], box[1], box[2])
-            cx, cy, cz = quat_rotate(qa[0], -qa[1], -qa[2], -qa[3],
+            cx, cy, cz = quat_rotate_inv(qa[0], qa[1], qa[2], qa[3],
                                      body_x[b, 0] + wx - body_x[a, 0],
                                      body_x[b, 1] + wy - body_x[a, 1],
                                      body_x[b, 2] + wz - body_x[a, 2])

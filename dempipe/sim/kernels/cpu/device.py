@@ -24,6 +24,7 @@ from dempipe.sim.kernels.layout import CPU_LAYOUT
 invalidate_stale_cache(__file__)
 F = compile_formulas(numba.njit(inline="always", cache=False))
 quat_rotate = F.quat_rotate
+quat_rotate_inv = F.quat_rotate_inv
 angular_velocity = F.angular_velocity
 sphere_kinematics = F.sphere_kinematics
 sphere_pair_force = F.sphere_pair_force
