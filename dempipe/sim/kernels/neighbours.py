@@ -23,6 +23,8 @@ slot (``neighbour_list``, compiled for each by ``compile.compile_walk``) and the
 store of one slot between rebuilds (``slot_place``, ``slot_store``); it imports no numba.
 """
 
+import numpy as np
+
 #: Verlet skin [diameters]: a list holds the partners within (1 + SKIN) d; rebuilt
 #: when a sphere has moved SKIN/2 d. Larger: longer lists walked every step, fewer
 #: rebuilds. Measured: docs/performance.md, "Where a step goes". The CPU adapts its skin
@@ -90,8 +92,8 @@ def adapt_skin(skin, since, skin_max, moved):
 def skin_max(model) -> float:
     """The CPU's largest skin for ``model`` [diameters]: SKIN_MAX_DENSE when most of
     the dynamic bodies' contact spheres (by count) are closer than DENSE_SPACING d to
-    the nearest other sphere of their shape, else SKIN_MAX."""
-    import numpy as np
+    the nearest other sphere of their shape, else SKIN_MAX. Called once per backend; scipy is
+    imported here so that the kernels, which import this module, do not load it."""
     from scipy.spatial import cKDTree
 
     nb = model.n_bodies

@@ -204,9 +204,9 @@ def stage_near_others(min_spheres, reach, offset_t, body_x, body_q, body_sphere_
             box = body_box[b]
             wx, wy, wz = quat_rotate(qb[0], qb[1], qb[2], qb[3], box[0], box[1], box[2])
             cx, cy, cz = quat_rotate_inv(qa[0], qa[1], qa[2], qa[3],
-                                     body_x[b, 0] + wx - body_x[a, 0],
-                                     body_x[b, 1] + wy - body_x[a, 1],
-                                     body_x[b, 2] + wz - body_x[a, 2])
+                                         body_x[b, 0] + wx - body_x[a, 0],
+                                         body_x[b, 1] + wy - body_x[a, 1],
+                                         body_x[b, 2] + wz - body_x[a, 2])
             u0x, u0y, u0z = axis_in_frame(qa, qb, 0)
             u1x, u1y, u1z = axis_in_frame(qa, qb, 1)
             u2x, u2y, u2z = axis_in_frame(qa, qb, 2)
