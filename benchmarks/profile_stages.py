@@ -42,7 +42,7 @@ from cpu_bench import dense_pile  # noqa: E402
 
 from dempipe.sim.kernels.cpu import stages as cpu  # noqa: E402
 from dempipe.sim.kernels.layout import BodyScratch, body_model, glue_scratch  # noqa: E402
-from dempipe.sim.kernels.neighbours import cell_size  # noqa: E402
+from dempipe.sim.kernels.neighbours import SKIN, cell_size  # noqa: E402
 from dempipe.sim.simulator import Simulator  # noqa: E402
 
 STAGES = ("1 body velocities (eq. 5-6)", "1 sphere positions into sorted slots (eq. 19-21)",
@@ -71,7 +71,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
     hp, hs = (b.hist_partner, b.hist_spring) if fr else (partner, spring)
     rest = b.rest(state)
     inv_cell = 1.0 / cell_size(m.diameter)
-    half = 0.5 * cpu.SKIN * m.diameter
+    half = 0.5 * SKIN * m.diameter
     t = np.zeros(len(STAGES))
     rebuilds = 0
     busy = [0]          # how many slots the contact passes visit (stage_busy)
@@ -113,7 +113,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
             lambda: k.stage_spheres(m.sphere_body, m.sphere_offset, state.body_x, state.body_q,
                                     b.body_v, b.body_w, m.dt, inv_cell, b.grid, b.sphere_x,
                                     b.sphere_v, b.sphere_r, b.sphere_key, b.sphere_hash),
-            lambda: cpu.stage_near_others(b.broadphase_spheres, (1.0 + cpu.SKIN) * m.diameter,
+            lambda: cpu.stage_near_others(b.broadphase_spheres, (1.0 + SKIN) * m.diameter,
                                           b.offset_t, state.body_x, state.body_q,
                                           m.body_sphere_start, b.body_reach, b.body_box,
                                           m.body_inv_mass, b.drive.body_start, s,
@@ -127,7 +127,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                           b.sorted_x, b.sorted_v, b.sorted_body, b.grid_x,
                                           b.grid_key, b.grid_body),
             lambda: fr and cpu.stage_history_to_slots(b.sorted_idx, partner, spring, hp, hs),
-            lambda: (cpu.stage_neighbours(m.diameter, cpu.SKIN, b.grid, b.bucket_start,
+            lambda: (cpu.stage_neighbours(m.diameter, SKIN, b.grid, b.bucket_start,
                                           b.grid_idx, b.grid_x, b.grid_key, b.grid_body,
                                           b.grid_slot, b.sorted_idx, b.sorted_x, b.sorted_body,
                                           m.body_inv_mass, b.built_x, b.nbr, b.nbr_n,
@@ -135,7 +135,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                      or cpu.stage_pairs(b.nbr, b.nbr_n, b.sorted_idx, b.sorted_body,
                                         m.body_inv_mass, b.pair_start, b._pidx(), b.pair_t,
                                         b.pair_f.shape[0], b.list_start, b.list_e)
-                     or cpu.stage_wall_reach(m.diameter, cpu.SKIN, b.sorted_x, m.wall_normal,
+                     or cpu.stage_wall_reach(m.diameter, SKIN, b.sorted_x, m.wall_normal,
                                              m.wall_offset, m.wall_lo, m.wall_hi,
                                              m.wall_depth, b.wall_mask, b.wall_start,
                                              hp.shape[1] if fr else 0, b.wall_s.shape[0],
@@ -204,7 +204,7 @@ def profile(name: str, model, warm_steps: int, steps: int) -> None:
     sim.backend.step(state, warm_steps)                 # compile, reach contacts
     # the stage loop below rebuilds at the fixed skin SKIN: hold run_steps' adaptive
     # skin (neighbours.adapt_skin) there too, so the two are timed alike
-    sim.backend.skin_ctl[0] = sim.backend.skin_ctl[2] = cpu.SKIN
+    sim.backend.skin_ctl[0] = sim.backend.skin_ctl[2] = sim.backend.skin_ctl[4] = SKIN
     stage_times(sim, state, 2)                          # compile the per-stage entry points
     per, rebuilds = stage_times(sim, state, steps)
     t0 = time.perf_counter()
@@ -221,7 +221,7 @@ def profile(name: str, model, warm_steps: int, steps: int) -> None:
     print(f"| run_steps (baseline, same steps) | {whole * 1e6:.0f} | {whole / total:.2f}x of "
           f"the sum | {whole / model.n_spheres * 1e9:.1f} |")
     print(f"\n{model.n_spheres / whole / 1e6:.2f} M sphere-steps/s in run_steps")
-    print(f"neighbour lists rebuilt at {rebuilds} of {steps} steps (skin {cpu.SKIN} d)")
+    print(f"neighbour lists rebuilt at {rebuilds} of {steps} steps (skin {SKIN} d)")
     cand, near = candidates(sim, state)
     b = sim.backend
     moving = m.body_inv_mass[b.sorted_body] > 0
@@ -229,7 +229,7 @@ def profile(name: str, model, warm_steps: int, steps: int) -> None:
     touching = np.count_nonzero(b.sphere_overlap > 0)
     print(f"neighbour search at a rebuild: {cand:.1f} candidates visited per sphere, "
           f"{near:.1f} of them in its 27 cells (the rest share aliased buckets); "
-          f"{n_list:.1f} per list (spheres of other bodies within {1 + cpu.SKIN:g} d); "
+          f"{n_list:.1f} per list (spheres of other bodies within {1 + SKIN:g} d); "
           f"{touching / m.n_spheres:.0%} of the spheres touch something")
 
 

@@ -281,28 +281,52 @@ def test_the_skin_grows_while_bodies_fly_and_the_frames_do_not_change():
 def test_the_skin_shrinks_back_when_rebuilds_are_rare():
     # the rule itself: grow by a step when rebuilds come fast, shrink back when slow
     from dempipe.sim.kernels.neighbours import SKIN_GROW_BELOW, SKIN_SHRINK_ABOVE, SKIN_STEP
-    assert adapt_skin(SKIN, SKIN_GROW_BELOW - 1, SKIN_MAX, True) == SKIN + SKIN_STEP
-    assert adapt_skin(SKIN, SKIN_GROW_BELOW - 1, SKIN_MAX, False) == SKIN  # a call's start
-    assert adapt_skin(SKIN_MAX, 1, SKIN_MAX, True) == SKIN_MAX
+    assert adapt_skin(SKIN, SKIN_GROW_BELOW - 1, SKIN, SKIN_MAX, True) == SKIN + SKIN_STEP
+    assert adapt_skin(SKIN, SKIN_GROW_BELOW - 1, SKIN, SKIN_MAX, False) == SKIN  # a call's start
+    assert adapt_skin(SKIN_MAX, 1, SKIN, SKIN_MAX, True) == SKIN_MAX
     for moved in (True, False):
-        assert adapt_skin(SKIN_MAX, SKIN_SHRINK_ABOVE + 1, SKIN_MAX, moved) == \
+        assert adapt_skin(SKIN_MAX, SKIN_SHRINK_ABOVE + 1, SKIN, SKIN_MAX, moved) == \
             SKIN_MAX - SKIN_STEP
-        assert adapt_skin(SKIN, SKIN_SHRINK_ABOVE + 1, SKIN_MAX, moved) == SKIN
-    assert adapt_skin(0.4, (SKIN_GROW_BELOW + SKIN_SHRINK_ABOVE) // 2, SKIN_MAX, True) == 0.4
-    assert adapt_skin(SKIN, 1, SKIN, True) == SKIN                  # held: a fixed skin
-    up = adapt_skin(SKIN, 1, SKIN_MAX, True)                        # 0.30000000000000004
-    assert adapt_skin(up, SKIN_SHRINK_ABOVE + 1, SKIN_MAX, False) == SKIN   # exactly
+        assert adapt_skin(SKIN, SKIN_SHRINK_ABOVE + 1, SKIN, SKIN_MAX, moved) == SKIN
+    assert adapt_skin(0.4, (SKIN_GROW_BELOW + SKIN_SHRINK_ABOVE) // 2, SKIN, SKIN_MAX,
+                      True) == 0.4
+    assert adapt_skin(SKIN, 1, SKIN, SKIN, True) == SKIN            # held: a fixed skin
+    up = adapt_skin(SKIN, 1, SKIN, SKIN_MAX, True)                  # 0.30000000000000004
+    assert adapt_skin(up, SKIN_SHRINK_ABOVE + 1, SKIN, SKIN_MAX, False) == SKIN   # exactly
+    # a dense set's range starts below SKIN and ends there exactly too
+    from dempipe.sim.kernels.neighbours import SKIN_MAX_DENSE, SKIN_MIN_DENSE
+    up = adapt_skin(SKIN_MIN_DENSE, 1, SKIN_MIN_DENSE, SKIN_MAX_DENSE, True)
+    assert up == SKIN_MAX_DENSE or abs(up - SKIN_MAX_DENSE) < 1e-12
+    assert adapt_skin(up, SKIN_SHRINK_ABOVE + 1, SKIN_MIN_DENSE, SKIN_MAX_DENSE,
+                      False) == SKIN_MIN_DENSE
 
 
 def test_spheres_packed_closer_than_a_lattice_keep_the_skin_narrower():
     # a surface set's shell (0.3 d apart) puts ten times a lattice's spheres within a
-    # list's reach of a face: its skin stops at SKIN_MAX_DENSE (neighbours.skin_max)
-    from dempipe.sim.kernels.neighbours import SKIN_MAX_DENSE, skin_max
-    assert SKIN < SKIN_MAX_DENSE < SKIN_MAX
-    assert skin_max(cluster_model(n=6)) == SKIN_MAX
-    assert skin_max(loose_balls(n=20)) == SKIN_MAX          # one sphere per body
-    assert skin_max(dense_blocks()) == SKIN_MAX_DENSE
-    assert Simulator(dense_blocks()).backend.skin_ctl[2] == SKIN_MAX_DENSE
+    # list's reach of a face: its skin stays between SKIN_MIN_DENSE and SKIN_MAX_DENSE
+    # (neighbours.skin_range), and the frames are those of the lattice's range
+    from dempipe.sim.kernels.neighbours import SKIN_MAX_DENSE, SKIN_MIN_DENSE, skin_range
+    assert SKIN_MIN_DENSE < SKIN and SKIN_MIN_DENSE < SKIN_MAX_DENSE < SKIN_MAX
+    assert skin_range(cluster_model(n=6)) == (SKIN, SKIN_MAX)
+    assert skin_range(loose_balls(n=20)) == (SKIN, SKIN_MAX)          # one sphere per body
+    model = dense_blocks()
+    assert skin_range(model) == (SKIN_MIN_DENSE, SKIN_MAX_DENSE)
+    runs = []
+    for lo, hi in ((SKIN_MIN_DENSE, SKIN_MAX_DENSE), (SKIN, SKIN_MAX)):
+        st = model.initial_state()
+        be = Simulator(model).backend
+        if lo == SKIN_MIN_DENSE:
+            assert be.skin_ctl[2] == SKIN_MAX_DENSE and be.skin_ctl[4] == SKIN_MIN_DENSE
+            assert be.skin_ctl[0] == SKIN_MIN_DENSE
+        be.skin_ctl[0], be.skin_ctl[2], be.skin_ctl[4] = lo, hi, lo
+        skins = []
+        for _ in range(3):
+            be.step(st, model.steps_per_frame)
+            skins.append(be.skin_ctl[0])
+        assert lo <= min(skins) and max(skins) <= hi
+        runs.append(st)
+    for name in ("body_x", "body_q", "body_P", "body_L", "contact_partner", "contact_spring"):
+        assert np.array_equal(getattr(runs[0], name), getattr(runs[1], name)), name
 
 
 def test_rebuilds_happen_mid_call_and_lists_grow_without_losing_contacts():

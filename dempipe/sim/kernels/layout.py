@@ -116,8 +116,8 @@ def cpu_scratch(model, friction: bool) -> dict:
         "grid_key": ((ns,), i8), "grid_body": ((ns,), i4),
         "sorted_idx": ((ns,), i4), "slot_of": ((ns,), i4),
         # the lists' skin [d] (neighbours.adapt_skin), steps since the last rebuild,
-        # the largest skin allowed, rebuilds so far
-        "skin_ctl": ((4,), f8),
+        # the largest skin allowed, rebuilds so far, the smallest skin allowed
+        "skin_ctl": ((5,), f8),
         "sorted_x": ((ns, 3), f8), "sorted_v": ((ns, 3), f8), "sorted_body": ((ns,), i4),
         "built_x": ((ns, 3), f8), "nbr": ((ns, NEIGHBOURS), i4), "nbr_n": ((ns,), i4),
         # each contact computed once (contacts.py): pair indices, rows of pair forces

@@ -44,12 +44,13 @@ SKIN_STEP = 0.1
 SKIN_GROW_BELOW = 20
 SKIN_SHRINK_ABOVE = 100
 
-#: The CPU's largest skin [diameters] where the bodies' spheres are packed closer than
-#: DENSE_SPACING d (surface sets: 0.3 d). A list's entries grow with the spheres a
-#: face of another body holds within reach, ten times a lattice's there, so a wide
-#: skin costs more in the lists than it saves in rebuilds (``skin_max``; measured:
-#: docs/performance.md, "Surface sphere sets").
-SKIN_MAX_DENSE = 0.3
+#: The CPU's skin range [diameters] where the bodies' spheres are packed closer than
+#: DENSE_SPACING d (surface sets: 0.3 d). The spheres a face of another body holds
+#: within reach, the busy ones every contact pass visits, grow with the skin ten
+#: times as fast as a lattice's, so a narrow skin costs less in the passes than its
+#: rebuilds add (``skin_range``; measured: docs/performance.md, "Surface sphere sets").
+SKIN_MIN_DENSE = 0.1
+SKIN_MAX_DENSE = 0.2
 DENSE_SPACING = 0.9
 
 #: A row of three cells holding more spheres than this is searched bucket by bucket,
@@ -75,25 +76,28 @@ def cell_size(diameter: float) -> float:
     return (1.0 + SKIN) * diameter
 
 
-def adapt_skin(skin, since, skin_max, moved):
+def adapt_skin(skin, since, skin_min, skin_max, moved):
     """The skin [diameters] for a rebuild ``since`` steps after the last one, forced
     by a sphere's move (``moved``) or not (a call's first step, or to shrink; see
-    SKIN_MAX). The frames do not depend on it: a list holds every pair that can
-    touch before the next rebuild, whatever its reach."""
+    SKIN_MAX), between skin_min and skin_max (``skin_range``). The frames do not
+    depend on it: a list holds every pair that can touch before the next rebuild,
+    whatever its reach."""
     if since > SKIN_SHRINK_ABOVE:
-        # exactly SKIN at the bottom (0.2 + 0.1 - 0.1 is 0.20000000000000004 in
+        # exactly skin_min at the bottom (0.2 + 0.1 - 0.1 is 0.20000000000000004 in
         # floating point, which would keep asking run_steps for a rebuild to shrink)
-        return SKIN if skin - SKIN_STEP < SKIN + 0.5 * SKIN_STEP else skin - SKIN_STEP
+        return skin_min if skin - SKIN_STEP < skin_min + 0.5 * SKIN_STEP \
+            else skin - SKIN_STEP
     if moved and since < SKIN_GROW_BELOW:
         return min(skin_max, skin + SKIN_STEP)
     return skin
 
 
-def skin_max(model) -> float:
-    """The CPU's largest skin for ``model`` [diameters]: SKIN_MAX_DENSE when most of
-    the dynamic bodies' contact spheres (by count) are closer than DENSE_SPACING d to
-    the nearest other sphere of their shape, else SKIN_MAX. Called once per backend; scipy is
-    imported here so that the kernels, which import this module, do not load it."""
+def skin_range(model) -> tuple[float, float]:
+    """The CPU's (smallest, largest) skin for ``model`` [diameters]: (SKIN_MIN_DENSE,
+    SKIN_MAX_DENSE) when most of the dynamic bodies' contact spheres (by count) are
+    closer than DENSE_SPACING d to the nearest other sphere of their shape, else (SKIN,
+    SKIN_MAX). Called once per backend; scipy is imported here so that the kernels,
+    which import this module, do not load it."""
     from scipy.spatial import cKDTree
 
     nb = model.n_bodies
@@ -109,7 +113,9 @@ def skin_max(model) -> float:
         gap = cKDTree(c).query(c, k=2)[0][:, 1]
         dense += n * int(np.count_nonzero(gap < DENSE_SPACING * model.diameter))
         total += n * len(c)
-    return SKIN_MAX_DENSE if 2 * dense > total else SKIN_MAX
+    if 2 * dense > total:
+        return SKIN_MIN_DENSE, SKIN_MAX_DENSE
+    return SKIN, SKIN_MAX
 
 
 def slot_place(s, i, x, y, z, vx, vy, vz, rx, ry, rz, sorted_x, sorted_v, sphere_r):

@@ -35,7 +35,7 @@ from dempipe.sim.kernels.layout import (
     static_extent,
     step_model,
 )
-from dempipe.sim.kernels.neighbours import SKIN, cell_size, skin_max
+from dempipe.sim.kernels.neighbours import SKIN, cell_size, skin_range
 from dempipe.sim.kernels.pairing import PAIR_COLS
 
 
@@ -64,7 +64,8 @@ class CpuBackend:
         for name, (shape, dtype) in cpu_scratch(model, self.features.friction).items():
             setattr(self, name, np.zeros(shape, dtype=dtype))
         self.grid = grid_table(model.n_spheres)
-        self.skin_ctl[:] = (SKIN, 0.0, skin_max(model), 0.0)
+        lo, hi = skin_range(model)
+        self.skin_ctl[:] = (lo, 0.0, hi, 0.0, lo)
         self.body_still[model.n_bodies:] = 1     # static colliders never move
         # each body's farthest sphere from its centre (stage_spheres_busy's bound) and
         # the box of its spheres (the broadphase's)

@@ -60,10 +60,11 @@ PAIR_ROWS = CPU_LAYOUT["PAIR_ROWS"]
 WALL_ROWS = CPU_LAYOUT["WALL_ROWS"]
 LIST_ROWS = CPU_LAYOUT["LIST_ROWS"]
 # Cell coordinates are packed into one int64 key, 21 bits per axis, so the world
-# spans ±2^20 cells per axis (cells of (1 + SKIN) d: ±12 km at 1 cm spheres,
-# ±1.2 km at 1 mm; stability.FAR_CELLS counts in diameters, conservatively). Beyond that
-# a sphere is clamped into the outermost cell but one: still correct (distances
-# are exact), only slow; `dempipe check` warns (stability.py, "far-from-origin").
+# spans ±2^20 cells per axis (cells of at least (1 + SKIN_MIN_DENSE) d: ±11 km at
+# 1 cm spheres, ±1.1 km at 1 mm; stability.FAR_CELLS counts in diameters,
+# conservatively). Beyond that a sphere is clamped into the outermost cell but
+# one: still correct (distances are exact), only slow; `dempipe check` warns
+# (stability.py, "far-from-origin").
 _CELL_BITS = 21
 
 _CELL_OFF = 1 << (_CELL_BITS - 1)

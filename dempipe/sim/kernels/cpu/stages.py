@@ -23,7 +23,7 @@ from dempipe.sim.kernels.compile import compile_formulas, invalidate_stale_cache
 from dempipe.sim.kernels.layout import (
     FLAGS, BodyModel, BodyScratch, ContactModel, ContactScratch)
 from dempipe.sim.kernels.contacts import CONTACT_CHUNK
-from dempipe.sim.kernels.neighbours import SKIN, SKIN_SHRINK_ABOVE
+from dempipe.sim.kernels.neighbours import SKIN_SHRINK_ABOVE
 from dempipe.sim.kernels.cpu.broadphase import stage_near_others
 from dempipe.sim.kernels.cpu.device import adapt_skin, static_body
 from dempipe.sim.kernels.cpu.spheres import (
@@ -337,8 +337,9 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
     lists: at the first step, when a sphere has moved skin/2 d since, and when a
     wide skin has gone SKIN_SHRINK_ABOVE steps without one (to shrink it). The
     skin (skin_ctl[0], [d]) adapts at each rebuild to how many steps came since
-    the last (neighbours.adapt_skin, up to skin_ctl[2]); it changes which pairs
-    are listed, never a force (the frames do not depend on it). skin_ctl[1]
+    the last (neighbours.adapt_skin, from skin_ctl[4] up to skin_ctl[2]); it
+    changes which pairs are listed, never a force (the frames do not depend on
+    it). skin_ctl[1]
     carries the steps since the last rebuild from call to call, skin_ctl[3] counts
     the rebuilds. After each rebuild the contact passes visit only the slots with
     a neighbour or a wall in reach (stage_busy): the others' forces are zero until
@@ -444,11 +445,11 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
                                          body_reach, seen_bx, seen_bq, busy, n_busy, built_x,
                                          half_skin, sorted_x, sorted_v, sphere_r) > 0
             moved = rebuild
-            if not rebuild and skin > SKIN and since > SKIN_SHRINK_ABOVE:
+            if not rebuild and skin > skin_ctl[4] and since > SKIN_SHRINK_ABOVE:
                 rebuild = True                  # at rest with a wide skin: shrink it
         keep = False
         if rebuild and moved and keep_share > 0.0 and kept_run < KEEP_SLOTS_RUN and \
-                adapt_skin(skin, since, skin_ctl[2], moved) == skin:
+                adapt_skin(skin, since, skin_ctl[4], skin_ctl[2], moved) == skin:
             stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x, body_q, body_v,
                                  body_w, dt, sorted_x, sorted_v, sphere_r)
             n_moved, n_static_moved = stage_slot_marks(sorted_x, built_x, sorted_body,
@@ -459,7 +460,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
                 kept_run += 1
             else:
                 kept_run = 0
-                skin = adapt_skin(skin, since, skin_ctl[2], moved)    # this build's reach
+                skin = adapt_skin(skin, since, skin_ctl[4], skin_ctl[2], moved)  # this build's
                 inv_cell = 1.0 / ((1.0 + skin) * diameter)
                 half_skin = 0.5 * skin * diameter
             since = 0.0
