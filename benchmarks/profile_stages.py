@@ -83,6 +83,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
         cpu.stage_note_built(state.body_x, state.body_q, b.built_bx, b.built_bq, b.seen_bx,
                              b.seen_bq)
     held = np.zeros(0, dtype=np.int32)      # the spheres whose rows the last build left busy
+    known = [False]     # as run_steps: after the first re-sort, only held's rows are copied
 
     def rows_to_pairs(s):
         """As run_steps: every row at a call's first build, later the busy ones."""
@@ -126,7 +127,9 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                           b.sphere_x, b.sphere_v, b.sphere_key, m.sphere_body,
                                           b.sorted_x, b.sorted_v, b.sorted_body, b.grid_x,
                                           b.grid_key, b.grid_body),
-            lambda: fr and cpu.stage_history_to_slots(b.sorted_idx, partner, spring, hp, hs),
+            lambda: fr and (cpu.stage_history_in(held, held.shape[0], b.slot_of, partner,
+                                                 spring, hp, hs) if known[0] else
+                            cpu.stage_history_to_slots(b.sorted_idx, partner, spring, hp, hs)),
             lambda: (cpu.stage_neighbours(m.diameter, SKIN, b.grid, b.bucket_start,
                                           b.grid_idx, b.grid_x, b.grid_key, b.grid_body,
                                           b.grid_slot, b.sorted_idx, b.sorted_x, b.sorted_body,
@@ -159,9 +162,15 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                 cpu.stage_pairs_to_rows_busy(b.busy, busy[0], b.nbr, b.nbr_n, b.pidx,
                                              b.sorted_idx, hp, hs, b.pair_f, b.wall_mask,
                                              b.wall_start, b.wall_s)
+                prev = held
                 held = b.sorted_idx[b.busy[:busy[0]]]
                 t1 = time.perf_counter()
-                cpu.stage_history_to_spheres(b.sorted_idx, hp, hs, partner, spring)
+                if known[0]:
+                    cpu.stage_history_out(b.busy, busy[0], prev, prev.shape[0], b.slot_of,
+                                          b.sorted_idx, b.nbr_n, b.wall_mask, b.sorted_body,
+                                          m.body_inv_mass, hp, hs, partner, spring)
+                else:
+                    cpu.stage_history_to_spheres(b.sorted_idx, hp, hs, partner, spring)
                 t[9] += t1 - t0
                 t[6] += time.perf_counter() - t1
             for i, call in enumerate(rebuild):
@@ -171,6 +180,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                     b.grow_neighbours()
                     over = call()
                 t[2 + i] += time.perf_counter() - t0
+            known[0] = fr and s > state.step
         # after any rebuild: a list that grew is a new array
         cm, cs = b.contact_args(state, hist_partner=hp, hist_spring=hs)
         bm = body_model(m, b.drive.body_start, fr)
@@ -206,6 +216,12 @@ def profile(name: str, model, warm_steps: int, steps: int) -> None:
     # skin (neighbours.adapt_skin) there too, so the two are timed alike
     sim.backend.skin_ctl[0] = sim.backend.skin_ctl[2] = sim.backend.skin_ctl[4] = SKIN
     stage_times(sim, state, 2)                          # compile the per-stage entry points
+    b, none = sim.backend, sim.backend.busy[:0]         # and the later re-sorts' copies
+    if b.features.friction:
+        hp, hs, cp, cs = b.hist_partner, b.hist_spring, *b.contacts(state)
+        cpu.stage_history_out(b.busy, 0, none, 0, b.slot_of, b.sorted_idx, b.nbr_n,
+                              b.wall_mask, b.sorted_body, m.body_inv_mass, hp, hs, cp, cs)
+        cpu.stage_history_in(none, 0, b.slot_of, cp, cs, hp, hs)
     per, rebuilds = stage_times(sim, state, steps)
     t0 = time.perf_counter()
     sim.backend.step(state, steps)

@@ -159,6 +159,9 @@ def cpu_scratch(model, friction: bool) -> dict:
         "span_ctl": ((3,), i8),
         # a rebuild that keeps the slots: which lists it searches again (stage_slot_marks)
         "slot_mark": ((ns,), np.int8),
+        # with friction, the spheres whose State history rows can hold anything within
+        # a call (grid.stage_history_out): the busy ones of the last re-sort
+        "state_rows": (((ns if friction else 1),), i4),
         # the frictionless stand-in histories, and with friction the histories in
         # sorted-slot order within a call
         "_no_partner": ((1, 1), i4), "_no_spring": ((1, 1, 3), f8),
@@ -369,6 +372,7 @@ class Scratch(NamedTuple):
     active: Any
     span_ctl: Any
     slot_mark: Any
+    state_rows: Any
 
 
 class ContactModel(NamedTuple):

@@ -468,6 +468,56 @@ def stage_history_to_spheres(sorted_idx, hist_partner, hist_spring, contact_part
 
 
 @numba.njit(parallel=True, cache=True)
+def stage_history_out(busy, n_busy, prev, n_prev, slot_of, sorted_idx, nbr_n, wall_mask,
+                      sorted_body, body_inv_mass, hist_partner, hist_spring, contact_partner,
+                      contact_spring):
+    """stage_history_to_spheres at a re-sort within a call, for the rows that can hold
+    anything, and the slot rows emptied behind them (for stage_history_in).
+
+    A slot row holds anything only when its slot is busy (busy[:n_busy]: every other
+    row was emptied at the rebuild that left it out, stage_rows_to_pairs_busy), and a
+    sphere row of the State's only when its sphere is one of prev[:n_prev] (the busy
+    spheres of the last re-sort, whose rows it wrote; a call's first re-sort copies
+    every row). So: each busy slot's row goes to its sphere's row and is emptied; each
+    of prev's spheres whose slot is no longer busy gets its (empty) row. The same
+    State rows as stage_history_to_spheres; afterwards every slot row is empty."""
+    for k in prange(n_prev):
+        i = prev[k]
+        s = slot_of[i]
+        if (nbr_n[s] > 0 or wall_mask[s] != 0) and \
+                not static_body(body_inv_mass[sorted_body[s]]):
+            continue                        # busy: below
+        for c in range(contact_partner.shape[1]):
+            if contact_partner[i, c] != 0:
+                contact_partner[i, c] = 0
+                contact_spring[i, c, 0] = 0.0
+                contact_spring[i, c, 1] = 0.0
+                contact_spring[i, c, 2] = 0.0
+    for k in prange(n_busy):
+        s = busy[k]
+        history_row_copy(hist_partner, hist_spring, s, contact_partner, contact_spring,
+                         sorted_idx[s])
+        for c in range(hist_partner.shape[1]):
+            if hist_partner[s, c] != 0:
+                hist_partner[s, c] = 0
+                hist_spring[s, c, 0] = 0.0
+                hist_spring[s, c, 1] = 0.0
+                hist_spring[s, c, 2] = 0.0
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_history_in(rows, n_rows, slot_of, contact_partner, contact_spring, hist_partner,
+                     hist_spring):
+    """stage_history_to_slots after stage_history_out's re-sort: the rows of the
+    spheres rows[:n_rows] (the only State rows that hold anything) into their new
+    slots' rows, every other slot row being empty already."""
+    for k in prange(n_rows):
+        i = rows[k]
+        history_row_copy(contact_partner, contact_spring, i, hist_partner, hist_spring,
+                         slot_of[i])
+
+
+@numba.njit(parallel=True, cache=True)
 def stage_unsort(sorted_idx, sorted_x, sphere_x):
     """sphere_x in sphere order from the sorted slots (where the spheres were at
     the last step's contact search), for callers that look at them."""

@@ -30,10 +30,10 @@ from dempipe.sim.kernels.cpu.spheres import (
     listed_range, sphere_state, stage_body_velocities, stage_driven, stage_motion,
     stage_note_built, stage_spheres, stage_spheres_busy, stage_spheres_sorted)
 from dempipe.sim.kernels.cpu.grid import (
-    stage_grid_gather, stage_grid_keep, stage_grid_sort, stage_history_to_slots,
-    stage_history_to_spheres, stage_mark_partners, stage_neighbours, stage_neighbours_marked,
-    stage_pairs, stage_pairs_to_rows_busy, stage_rows_to_pairs, stage_rows_to_pairs_busy,
-    stage_slot_marks, stage_unsort, stage_wall_reach)
+    stage_grid_gather, stage_grid_keep, stage_grid_sort, stage_history_in, stage_history_out,
+    stage_history_to_slots, stage_history_to_spheres, stage_mark_partners, stage_neighbours,
+    stage_neighbours_marked, stage_pairs, stage_pairs_to_rows_busy, stage_rows_to_pairs,
+    stage_rows_to_pairs_busy, stage_slot_marks, stage_unsort, stage_wall_reach)
 # Read by the functions of spheres.py, contacts.py, bodies.py and prescribed.py, which
 # kernels() compiles with this module's globals (compile.specialize):
 from dempipe.sim.kernels.cpu.spheres import body_moved  # noqa: F401
@@ -390,7 +390,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
      sorted_idx, slot_of, sorted_x, sorted_v, sorted_body, grid_idx, grid_x, grid_key,
      grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
      wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_tr, sphere_overlap,
-     body_patch, skin_ctl, chunk_n, busy, active, span_ctl, slot_mark) = scratch
+     body_patch, skin_ctl, chunk_n, busy, active, span_ctl, slot_mark, state_rows) = scratch
     # what the contact passes take (layout.ContactModel, ContactScratch): the same arrays
     cm = ContactModel(diameter, dt, onset_speed, body_inv_mass, body_material, pair_k,
                       pair_damp, pair_mu, kt_ratio, ks_ratio, friction, sleep_steps,
@@ -426,6 +426,10 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
     body_start = drive.body_start
     n_slots = slot_of.shape[0]
     kept_run = 0            # rebuilds in a row that kept the slots
+    # with friction: after the call's first re-sort, only the State's history rows of
+    # state_rows[:n_state_rows] can hold anything (stage_history_out)
+    rows_known = False
+    n_state_rows = 0
     for step in range(first_step, first_step + n_steps):
         computed += 1
         stage_body_velocities(n_bodies, body_P, body_L, body_q, body_inv_mass, body_inv_inertia,
@@ -475,8 +479,17 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
                 n_held = n_busy
                 held_rows(busy, n_busy, sorted_idx, keep, held)
                 if not keep:
-                    stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
-                                             contact_partner, contact_spring)
+                    if rows_known:          # only the rows that can hold anything
+                        stage_history_out(busy, n_busy, state_rows, n_state_rows, slot_of,
+                                          sorted_idx, nbr_n, wall_mask, sorted_body,
+                                          body_inv_mass, hist_partner, hist_spring,
+                                          contact_partner, contact_spring)
+                    else:
+                        stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
+                                                 contact_partner, contact_spring)
+                    for k in range(n_held):
+                        state_rows[k] = held[k]
+                    n_state_rows = n_held
             if keep:                            # the slots stay: only the marked lists
                 stage_grid_keep(sorted_x, sorted_body, slot_of, inv_cell, grid, sphere_key,
                                 sphere_hash, bucket_start, bucket_fill, grid_idx, grid_slot,
@@ -509,8 +522,13 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
                                   sphere_v, sphere_key, sphere_body, sorted_x, sorted_v,
                                   sorted_body, grid_x, grid_key, grid_body)
                 if FRICTION and friction:
-                    stage_history_to_slots(sorted_idx, contact_partner, contact_spring,
-                                           hist_partner, hist_spring)
+                    if rows_known:
+                        stage_history_in(state_rows, n_state_rows, slot_of, contact_partner,
+                                         contact_spring, hist_partner, hist_spring)
+                    else:
+                        stage_history_to_slots(sorted_idx, contact_partner, contact_spring,
+                                               hist_partner, hist_spring)
+                        rows_known = step > first_step
                 over = stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x,
                                         grid_key, grid_body, grid_slot, sorted_idx, sorted_x,
                                         sorted_body, body_inv_mass, built_x, nbr, nbr_n,
