@@ -69,10 +69,12 @@ NEIGHBOURS = 16
 
 
 def cell_size(diameter: float) -> float:
-    """Edge of the rebuild grid's cells [m] at the smallest skin: the lists' reach,
-    (1 + SKIN) d, so the 27 cells round a sphere hold every partner a list may need.
-    CUDA's cells always; the CPU's grid table is sized for them, and its wider skins
-    (adapt_skin) only make the cells larger (run_steps)."""
+    """Edge of the rebuild grid's cells [m] at SKIN: the lists' reach, (1 + SKIN) d,
+    so the 27 cells round a sphere hold every partner a list may need. CUDA's cells
+    always; the CPU's grid table is sized for them, and its cells follow its skin
+    (adapt_skin, run_steps): larger, or down to (1 + SKIN_MIN_DENSE) d for dense
+    sets, whose few more cells across the extent may share buckets (still correct:
+    the cells' keys tell them apart)."""
     return (1.0 + SKIN) * diameter
 
 
