@@ -338,6 +338,25 @@ def nth_wall(walls, j):
 
 
 @numba.njit(inline="always", cache=True)
+def slot_busy(s, nbr_n, wall_mask, sorted_body, body_inv_mass):
+    """Whether slot s is busy (stage_busy): a dynamic body's, with a neighbour listed
+    or a wall in reach."""
+    return (nbr_n[s] > 0 or wall_mask[s] != 0) and \
+        not static_body(body_inv_mass[sorted_body[s]])
+
+
+@numba.njit(inline="always", cache=True)
+def history_row_clear(partner, spring, r):
+    """Empty row r of a contact history (partner 0 and a zero stretch in every column)."""
+    for c in range(partner.shape[1]):
+        if partner[r, c] != 0:
+            partner[r, c] = 0
+            spring[r, c, 0] = 0.0
+            spring[r, c, 1] = 0.0
+            spring[r, c, 2] = 0.0
+
+
+@numba.njit(inline="always", cache=True)
 def slot_rows_to_pairs(s, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass, wall_mask,
                        hist_partner, hist_spring, pair_f, wall_start, wall_s):
     """stage_rows_to_pairs for slot s."""
@@ -383,15 +402,8 @@ def stage_rows_to_pairs_busy(busy, n_busy, held, n_held, nbr, nbr_n, pidx, sorte
                            wall_mask, hist_partner, hist_spring, pair_f, wall_start, wall_s)
     for k in prange(n_held):
         s = held[k]
-        if (nbr_n[s] > 0 or wall_mask[s] != 0) and \
-                not static_body(body_inv_mass[sorted_body[s]]):
-            continue                        # busy: done above
-        for c in range(hist_partner.shape[1]):
-            if hist_partner[s, c] != 0:
-                hist_partner[s, c] = 0
-                hist_spring[s, c, 0] = 0.0
-                hist_spring[s, c, 1] = 0.0
-                hist_spring[s, c, 2] = 0.0
+        if not slot_busy(s, nbr_n, wall_mask, sorted_body, body_inv_mass):  # (busy: above)
+            history_row_clear(hist_partner, hist_spring, s)
 
 
 @numba.njit(inline="always", cache=True)
@@ -483,26 +495,13 @@ def stage_history_out(busy, n_busy, prev, n_prev, slot_of, sorted_idx, nbr_n, wa
     State rows as stage_history_to_spheres; afterwards every slot row is empty."""
     for k in prange(n_prev):
         i = prev[k]
-        s = slot_of[i]
-        if (nbr_n[s] > 0 or wall_mask[s] != 0) and \
-                not static_body(body_inv_mass[sorted_body[s]]):
-            continue                        # busy: below
-        for c in range(contact_partner.shape[1]):
-            if contact_partner[i, c] != 0:
-                contact_partner[i, c] = 0
-                contact_spring[i, c, 0] = 0.0
-                contact_spring[i, c, 1] = 0.0
-                contact_spring[i, c, 2] = 0.0
+        if not slot_busy(slot_of[i], nbr_n, wall_mask, sorted_body, body_inv_mass):
+            history_row_clear(contact_partner, contact_spring, i)    # (busy: below)
     for k in prange(n_busy):
         s = busy[k]
         history_row_copy(hist_partner, hist_spring, s, contact_partner, contact_spring,
                          sorted_idx[s])
-        for c in range(hist_partner.shape[1]):
-            if hist_partner[s, c] != 0:
-                hist_partner[s, c] = 0
-                hist_spring[s, c, 0] = 0.0
-                hist_spring[s, c, 1] = 0.0
-                hist_spring[s, c, 2] = 0.0
+        history_row_clear(hist_partner, hist_spring, s)
 
 
 @numba.njit(parallel=True, cache=True)

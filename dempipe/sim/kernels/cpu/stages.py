@@ -30,10 +30,11 @@ from dempipe.sim.kernels.cpu.spheres import (
     listed_range, sphere_state, stage_body_velocities, stage_driven, stage_motion,
     stage_note_built, stage_spheres, stage_spheres_busy, stage_spheres_sorted)
 from dempipe.sim.kernels.cpu.grid import (
-    stage_grid_gather, stage_grid_keep, stage_grid_sort, stage_history_in, stage_history_out,
-    stage_history_to_slots, stage_history_to_spheres, stage_mark_partners, stage_neighbours,
-    stage_neighbours_marked, stage_pairs, stage_pairs_to_rows_busy, stage_rows_to_pairs,
-    stage_rows_to_pairs_busy, stage_slot_marks, stage_unsort, stage_wall_reach)
+    slot_busy, stage_grid_gather, stage_grid_keep, stage_grid_sort, stage_history_in,
+    stage_history_out, stage_history_to_slots, stage_history_to_spheres, stage_mark_partners,
+    stage_neighbours, stage_neighbours_marked, stage_pairs, stage_pairs_to_rows_busy,
+    stage_rows_to_pairs, stage_rows_to_pairs_busy, stage_slot_marks, stage_unsort,
+    stage_wall_reach)
 # Read by the functions of spheres.py, contacts.py, bodies.py and prescribed.py, which
 # kernels() compiles with this module's globals (compile.specialize):
 from dempipe.sim.kernels.cpu.spheres import body_moved  # noqa: F401
@@ -138,8 +139,7 @@ def stage_busy(nbr_n, wall_mask, sorted_idx, sorted_body, body_inv_mass, chunk_n
     for c in prange(n_blocks):
         n = 0
         for s in range(c * CONTACT_CHUNK, min(n_slots, (c + 1) * CONTACT_CHUNK)):
-            if (nbr_n[s] > 0 or wall_mask[s] != 0) and \
-                    not static_body(body_inv_mass[sorted_body[s]]):
+            if slot_busy(s, nbr_n, wall_mask, sorted_body, body_inv_mass):
                 busy[c * CONTACT_CHUNK + n] = s
                 n += 1
             else:
