@@ -80,6 +80,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
         busy[0] = cpu.stage_busy(b.nbr_n, b.wall_mask, b.sorted_idx, b.sorted_body,
                                  m.body_inv_mass, b.chunk_n, b.busy, b.sphere_f, b.sphere_t,
                                  b.sphere_tr)
+        cpu.stage_listed_from(m.body_sphere_start, b.slot_of, b.busy, busy[0], b.busy_from)
         cpu.stage_note_built(state.body_x, state.body_q, b.built_bx, b.built_bq, b.seen_bx,
                              b.seen_bq)
     held = np.zeros(0, dtype=np.int32)      # the spheres whose rows the last build left busy
@@ -102,7 +103,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                         m.sphere_offset, state.body_x, state.body_q, b.body_v,
                                         b.body_w, m.dt, b.body_still, m.body_inv_mass,
                                         b.built_bx, b.built_bq, b.body_reach, b.seen_bx,
-                                        b.seen_bq, b.busy, busy[0], b.built_x, half,
+                                        b.seen_bq, b.busy, busy[0], b.busy_from, b.built_x, half,
                                         b.sorted_x, b.sorted_v, b.sphere_r)
         every = (
             lambda: k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
@@ -189,10 +190,11 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                          b.body_still, glue_scratch(state, b).body_glue)
         after = (
             lambda: k.stage_patches(cm, cs, b.drive.motion_now, m.body_sphere_start, b.slot_of,
-                                    b.busy, busy[0]),
+                                    b.busy, busy[0], b.busy_from),
             lambda: k.stage_contacts(cm, cs, b.drive.motion_now, s & 1, b.busy, busy[0]),
             lambda: k.stage_sums(cm, cs, b.busy, busy[0]),
-            lambda: k.stage_bodies(m.n_bodies, bm, bs, s, b.slot_of, b.busy, busy[0]),
+            lambda: k.stage_bodies(m.n_bodies, bm, bs, s, b.slot_of, b.busy, busy[0],
+                                   b.busy_from),
         )
         for i, call in enumerate(after):
             t0 = time.perf_counter()

@@ -162,6 +162,8 @@ def cpu_scratch(model, friction: bool) -> dict:
         # with friction, the spheres whose State history rows can hold anything within
         # a call (grid.stage_history_out): the busy ones of the last re-sort
         "state_rows": (((ns if friction else 1),), i4),
+        # each body's first entry in busy and in active (spheres.stage_listed_from)
+        "busy_from": ((nb,), i8), "active_from": ((nb,), i8),
         # the frictionless stand-in histories, and with friction the histories in
         # sorted-slot order within a call
         "_no_partner": ((1, 1), i4), "_no_spring": ((1, 1, 3), f8),
@@ -373,6 +375,8 @@ class Scratch(NamedTuple):
     span_ctl: Any
     slot_mark: Any
     state_rows: Any
+    busy_from: Any
+    active_from: Any
 
 
 class ContactModel(NamedTuple):

@@ -20,6 +20,7 @@ from dempipe.sim.kernels.cpu.grid import (
     stage_wall_reach,
 )
 from dempipe.sim.kernels.cpu.stages import KEEP_SLOTS_SHARE, QUIET_SHARE, kernels, stage_busy
+from dempipe.sim.kernels.cpu.spheres import stage_listed_from
 from dempipe.sim.kernels.layout import (
     ContactScratch,
     StepState,
@@ -231,8 +232,9 @@ class CpuBackend:
         n_busy = stage_busy(self.nbr_n, self.wall_mask, self.sorted_idx, self.sorted_body,
                             m.body_inv_mass, self.chunk_n, self.busy, self.sphere_f,
                             self.sphere_t, self.sphere_tr)
+        stage_listed_from(m.body_sphere_start, self.slot_of, self.busy, n_busy, self.busy_from)
         self.k.stage_patches(cm, cs, self.drive.motion_now, m.body_sphere_start, self.slot_of,
-                             self.busy, n_busy)
+                             self.busy, n_busy, self.busy_from)
         self.k.stage_contacts(cm, cs, self.drive.motion_now, state.step & 1, self.busy, n_busy)
         self.k.stage_sums(cm, cs, self.busy, n_busy)
 

@@ -150,8 +150,8 @@ def body_moved(b, body_x, body_q, built_bx, built_bq, body_reach):
 
 def stage_spheres_busy(body_sphere_start, slot_of, sphere_body, sphere_offset, body_x, body_q,
                        body_v, body_w, h, body_still, body_inv_mass, built_bx, built_bq,
-                       body_reach, seen_bx, seen_bq, busy, n_busy, built_x, half_skin,
-                       sorted_x, sorted_v, sphere_r):
+                       body_reach, seen_bx, seen_bq, busy, n_busy, busy_from, built_x,
+                       half_skin, sorted_x, sorted_v, sphere_r):
     """Stage 1 (eq. 19-21) between rebuilds, into the sorted slots of the last one,
     for the spheres a contact reads: the busy slots' (stage_busy; a list's partners
     list each other, so their partners are busy too) and a carried static body's
@@ -166,7 +166,7 @@ def stage_spheres_busy(body_sphere_start, slot_of, sphere_body, sphere_offset, b
     its two spheres, busy or not.
 
     A body's slots are consecutive and in its spheres' order (stage_grid_sort), so
-    its busy slots are one run of ``busy`` (listed_range)."""
+    its busy slots are one run of ``busy``, from busy_from[b] (stage_listed_from)."""
     moved = 0
     rebuild_at2 = half_skin * half_skin
     for b in prange(body_reach.shape[0]):
@@ -188,8 +188,8 @@ def stage_spheres_busy(body_sphere_start, slot_of, sphere_body, sphere_offset, b
                                     sorted_v, sphere_r, built_x, rebuild_at2)
         else:
             s0 = slot_of[i0]
-            k0, k1 = listed_range(s0, s0 + i1 - i0, busy, n_busy)
-            for k in range(k0, k1):
+            k0 = busy_from[b]
+            for k in range(k0, listed_end(k0, s0 + i1 - i0, busy, n_busy)):
                 s = busy[k]
                 i = i0 + s - s0
                 x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset,
@@ -214,6 +214,17 @@ def stage_note_built(body_x, body_q, built_bx, built_bq, seen_bx, seen_bq):
 
 
 @numba.njit(inline="always", cache=True)
+def listed_end(k0, s1, work, n_work):
+    """The end k1 of a body's run of work[:n_work] (in slot order) that starts at
+    entry k0 (its first at or after its first slot): the run is work[k0 .. k1-1],
+    the entries below slot s1."""
+    k1 = k0
+    while k1 < n_work and work[k1] < s1:
+        k1 += 1
+    return k1
+
+
+@numba.njit(inline="always", cache=True)
 def listed_range(s0, s1, work, n_work):
     """(k0, k1): the entries of work[:n_work] (in slot order) that are slots s0 ..
     s1-1 are work[k0 .. k1-1]."""
@@ -225,7 +236,18 @@ def listed_range(s0, s1, work, n_work):
             lo = mid + 1
         else:
             hi = mid
-    k1 = lo
-    while k1 < n_work and work[k1] < s1:
-        k1 += 1
-    return lo, k1
+    return lo, listed_end(lo, s1, work, n_work)
+
+
+@numba.njit(parallel=True, cache=True)
+def stage_listed_from(body_sphere_start, slot_of, work, n_work, work_from):
+    """work_from[b] = the first entry of work[:n_work] (slots in slot order) at or
+    after body b's first slot (0 for a body without spheres): where its run of
+    work starts (listed_range's k0), found once when work is made (a rebuild's
+    busy slots, a search's active ones) instead of by a binary search per body in
+    each pass of each step. The passes then end the run with listed_end."""
+    for b in prange(work_from.shape[0]):
+        i0 = body_sphere_start[b]
+        n = body_sphere_start[b + 1] - i0
+        s0 = slot_of[i0] if n > 0 else 0
+        work_from[b] = listed_range(s0, s0 + n, work, n_work)[0]

@@ -27,8 +27,8 @@ from dempipe.sim.kernels.neighbours import SKIN_SHRINK_ABOVE
 from dempipe.sim.kernels.cpu.broadphase import stage_near_others
 from dempipe.sim.kernels.cpu.device import adapt_skin, static_body
 from dempipe.sim.kernels.cpu.spheres import (
-    listed_range, sphere_state, stage_body_velocities, stage_driven, stage_motion,
-    stage_note_built, stage_spheres, stage_spheres_busy, stage_spheres_sorted)
+    listed_end, sphere_state, stage_body_velocities, stage_driven, stage_listed_from,
+    stage_motion, stage_note_built, stage_spheres, stage_spheres_busy, stage_spheres_sorted)
 from dempipe.sim.kernels.cpu.grid import (
     slot_busy, stage_grid_gather, stage_grid_keep, stage_grid_sort, stage_history_in,
     stage_history_out, stage_history_to_slots, stage_history_to_spheres, stage_mark_partners,
@@ -198,10 +198,11 @@ def stage_active(busy, n_busy, sorted_body, nbr, nbr_n, body_inv_mass, body_rest
     return pack_blocks(active, chunk_n, n_blocks)
 
 
-def stage_patches(cm, cs, motion_now, body_sphere_start, slot_of, work, n_work):
+def stage_patches(cm, cs, motion_now, body_sphere_start, slot_of, work, n_work, work_from):
     """The contact patches (patches.body_patches): each body's contacts this step
     per partner, summed over its spheres in index order, for every body with a slot
-    in work[:n_work] (run_steps': the busy or the active slots).
+    in work[:n_work] (run_steps': the busy or the active slots; body b's run of them
+    starts at work_from[b]: stage_listed_from).
 
     A slot left out either has nothing in reach (not busy: stage_busy) or is of a
     quiet body among quiet partners (not active: stage_active): body_patches would
@@ -215,8 +216,8 @@ def stage_patches(cm, cs, motion_now, body_sphere_start, slot_of, work, n_work):
         i0 = body_sphere_start[b]
         k0 = k1 = 0
         if i0 < body_sphere_start[b + 1]:
-            k0, k1 = listed_range(slot_of[i0], slot_of[i0] + body_sphere_start[b + 1] - i0,
-                                  work, n_work)
+            k0 = work_from[b]
+            k1 = listed_end(k0, slot_of[i0] + body_sphere_start[b + 1] - i0, work, n_work)
         if k0 == k1:
             if body_patch[b, 0, 0] != 0.0 or body_patch[b, last, 0] != 0.0:
                 for c in range(last + 1):   # (a row nothing was added to is empty)
@@ -286,10 +287,11 @@ def stage_glue_bodies(n_bodies, gm, gs, sphere_body, sphere_r):
         body_glue_sum(b, gm, gs, sphere_body, sphere_r)  # noqa: F821 (specialize's)
 
 
-def stage_bodies(n_bodies, bm, bs, step, slot_of, busy, n_busy):
+def stage_bodies(n_bodies, bm, bs, step, slot_of, busy, n_busy, busy_from):
     """Stages 5-8: sum forces and torques (eq. 15-16), update P, L, X, q (eq. 2-10).
-    Each body sums its busy slots only (busy[:n_busy], stage_busy's): every other
-    sphere's force and torques are zero until the next rebuild.
+    Each body sums its busy slots only (busy[:n_busy], stage_busy's; body b's from
+    busy_from[b]): every other sphere's force and torques are zero until the next
+    rebuild.
 
     With sleeping (sleep_steps > 0): a body slower than (v_sleep, w_sleep) for
     sleep_steps steps in a row falls asleep (P = L = 0, no integration) until a
@@ -306,7 +308,8 @@ def stage_bodies(n_bodies, bm, bs, step, slot_of, busy, n_busy):
     for b in prange(n_bodies):
         i0 = body_sphere_start[b]
         s0 = slot_of[i0] if i0 < body_sphere_start[b + 1] else 0
-        k0, k1 = listed_range(s0, s0 + body_sphere_start[b + 1] - i0, busy, n_busy)
+        k0 = busy_from[b]
+        k1 = listed_end(k0, s0 + body_sphere_start[b + 1] - i0, busy, n_busy)
         r = body_update(b, k0, k1, s0, busy, True, bm, bs, step)
         awake += r & 1
         woke += (r >> 1) & 1
@@ -390,7 +393,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
      sorted_idx, slot_of, sorted_x, sorted_v, sorted_body, grid_idx, grid_x, grid_key,
      grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
      wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_tr, sphere_overlap,
-     body_patch, skin_ctl, chunk_n, busy, active, span_ctl, slot_mark, state_rows) = scratch
+     body_patch, skin_ctl, chunk_n, busy, active, span_ctl, slot_mark, state_rows, busy_from,
+     active_from) = scratch
     # what the contact passes take (layout.ContactModel, ContactScratch): the same arrays
     cm = ContactModel(diameter, dt, onset_speed, body_inv_mass, body_material, pair_k,
                       pair_damp, pair_mu, kt_ratio, ks_ratio, friction, sleep_steps,
@@ -446,8 +450,9 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
             rebuild = stage_spheres_busy(body_sphere_start, slot_of, sphere_body,
                                          sphere_offset, body_x, body_q, body_v, body_w, dt,
                                          body_still, body_inv_mass, built_bx, built_bq,
-                                         body_reach, seen_bx, seen_bq, busy, n_busy, built_x,
-                                         half_skin, sorted_x, sorted_v, sphere_r) > 0
+                                         body_reach, seen_bx, seen_bq, busy, n_busy,
+                                         busy_from, built_x, half_skin, sorted_x, sorted_v,
+                                         sphere_r) > 0
             moved = rebuild
             if not rebuild and skin > skin_ctl[4] and since > SKIN_SHRINK_ABOVE:
                 rebuild = True                  # at rest with a wide skin: shrink it
@@ -554,6 +559,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
                 span_ctl[2] += 1
             n_busy = stage_busy(nbr_n, wall_mask, sorted_idx, sorted_body, body_inv_mass,
                                 chunk_n, busy, sphere_f, sphere_t, sphere_tr)
+            stage_listed_from(body_sphere_start, slot_of, busy, n_busy, busy_from)
             stage_note_built(body_x, body_q, built_bx, built_bq, seen_bx, seen_bq)
             active_ok = False                   # new lists (and slots)
             rebuilt = True
@@ -569,9 +575,11 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
             rebuild = False
         work = active if active_ok else busy
         n_work = n_active if active_ok else n_busy
+        work_from = active_from if active_ok else busy_from
         if active_ok:
             span_ctl[0] += 1
-        stage_patches(cm, cs, drive.motion_now, body_sphere_start, slot_of, work, n_work)
+        stage_patches(cm, cs, drive.motion_now, body_sphere_start, slot_of, work, n_work,
+                      work_from)
         stage_contacts(cm, cs, drive.motion_now, step & 1, work, n_work)
         if GLUE:
             stage_glue(gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w,
@@ -582,7 +590,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
         if GLUE:
             stage_glue_bodies(n_bodies, gm, gs, sphere_body, sphere_r)
         awake, woke, quiet, calmed = stage_bodies(n_bodies, bm, bs, step, slot_of, busy,
-                                                  n_busy)
+                                                  n_busy, busy_from)
         since_search += 1
         calmed_since += calmed
         if rebuilt or woke > 0:
@@ -593,6 +601,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
                 n_active = stage_active(busy, n_busy, sorted_body, nbr, nbr_n, body_inv_mass,
                                         body_rest, body_still, sleep_steps, chunk_n, active,
                                         wall_mask, drive.moving_walls)
+                stage_listed_from(body_sphere_start, slot_of, active, n_active, active_from)
                 span_ctl[1] += 1
                 active_ok = True
                 since_search = 0
