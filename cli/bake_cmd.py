@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import threading
 import time
 
 import click
@@ -10,16 +11,39 @@ import click
 from dempipe_cli.params import Number
 
 
+#: Seconds without a first frame after which the bar says why: a machine's first bake
+#: compiles the kernels of the scene's features (docs/performance.md, "Startup and
+#: compile time"), and a new shape's sphere set is built before its first step.
+SLOW_START = 10.0
+
+
 class Progress:
-    """One line on stderr: frames done, simulated time, steps per second, ETA."""
+    """One line on stderr: frames done, simulated time, steps per second, ETA; and,
+    when the first frame takes longer than SLOW_START, a line saying why."""
 
     def __init__(self, quiet: bool):
         self.quiet = quiet
         self.tty = sys.stderr.isatty()
         self.t0 = time.perf_counter()
         self.last = -1.0
+        self.timer = None
+        if not quiet:
+            self.timer = threading.Timer(SLOW_START, self.slow_start)
+            self.timer.daemon = True
+            self.timer.start()
+
+    def slow_start(self):
+        click.echo(f"still on the first frame after {SLOW_START:.0f} s: a machine's first "
+                   "bake of a scene with these features compiles its simulation kernels "
+                   "(1-2 minutes, once; later bakes load them in a second)", err=True)
+
+    def close(self):
+        """Stop waiting for the first frame (the bake ended or failed)."""
+        if self.timer is not None:
+            self.timer.cancel()
 
     def __call__(self, k, n, stats):
+        self.close()
         if self.quiet:
             return
         now = time.perf_counter()
@@ -97,7 +121,9 @@ def clamp_threads(threads, warn):
                    "USD stage, dempipe's own setting).")
 @click.option("--sphere-diameter", type=Number(lo=0, lo_open=True), default=None,
               metavar="M", help="Sphere diameter in metres (instead of --resolution).")
-@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+@click.option("--quiet", "-q", is_flag=True,
+              help="No progress bar and no closing summary (errors and warnings still "
+                   "show; --report keeps the figures).")
 def bake(scene, output, device, layout, frames, threads, report_path, cache_dir, force,
          checkpoint_seconds, chunk_frames, resume, resolution, sphere_diameter, quiet):
     """Simulate SCENE (a .toml scene file, or a UsdPhysics stage .usd/.usda/.usdc) and
@@ -123,9 +149,10 @@ def bake(scene, output, device, layout, frames, threads, report_path, cache_dir,
         check_writable(Path(report_path).parent, "report folder")
     cache = SphereCache(cache_dir, strict=True) if cache_dir else None
     threads = clamp_threads(threads, warn)
+    progress = Progress(quiet)
     try:
         result = run_bake(scene, output, device=device, layout=layout, frames=frames,
-                          threads=threads, cache=cache, progress=Progress(quiet), warn=warn,
+                          threads=threads, cache=cache, progress=progress, warn=warn,
                           force=force, resume=resume, chunk_frames=chunk_frames,
                           checkpoint_seconds=checkpoint_seconds, simulation={k: v for k, v in (
                               ("resolution", resolution), ("sphere_diameter", sphere_diameter))
@@ -135,6 +162,8 @@ def bake(scene, output, device, layout, frames, threads, report_path, cache_dir,
         if partial is not None and report_path:
             write_report(report_path, partial.report)
         raise
+    finally:
+        progress.close()
     r = result.report
     if report_path:
         write_report(report_path, r)
