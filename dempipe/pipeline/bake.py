@@ -486,7 +486,7 @@ def _interrupted(failure, scene_path, out, store, target, written, report):
     signum = getattr(failure, "signum", None)
     why = f"stopped by {signal_name(signum)}" if signum else "interrupted"
     if target is not None:
-        kept = f"{written} frames kept in {target}"
+        kept = f"{written} frame{'s' * (written != 1)} kept in {target}"
     elif store.frames_kept():
         kept = f"while writing {out}; its {store.frames_kept()} frames are kept"
     else:
@@ -495,8 +495,9 @@ def _interrupted(failure, scene_path, out, store, target, written, report):
         done = store.frames_done
         again = (f"; checkpoint at frame {done} in {store.dir}: resume with "
                  f"`dempipe bake {scene_path} -o {out} --resume`")
-    else:
-        again = ""
+    else:       # stopped before the first checkpoint (a first bake's compile, say)
+        again = (f"; no checkpoint yet: `dempipe bake {scene_path} -o {out}` starts it "
+                 f"again")
     exc = BakeInterrupted(f"{why}; {kept}{again}")
     exc.exit_code = (128 + int(signum)) if isinstance(failure, StopRequested) else 130
     exc.result = BakeResult(target, report, partial=True) if target is not None else None

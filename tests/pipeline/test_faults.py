@@ -171,6 +171,24 @@ def test_stopped_bake_resumes_bit_identical(reference, tmp_path, sig):
     assert [q.name for q in tmp_path.rglob("*") if ".tmp" in q.name] == []
 
 
+def test_stop_before_the_first_checkpoint_says_how_to_start_again(reference, tmp_path):
+    # A long bake whose first checkpoint is an hour away (a first bake compiling its
+    # kernels is the common case), stopped by SIGINT once its work folder exists:
+    # the message says there is nothing to resume and gives the command, no traceback.
+    _, _, cache = reference
+    scene = write_scene(tmp_path, duration=60.0)
+    out = tmp_path / "long.usda"
+    p = dempipe("bake", scene, "-o", out, "--device", "cpu", "--checkpoint-every", "3600",
+                "-q", cache=cache)
+    wait_for(lambda: (work_dir(out) / "meta.json").is_file(), p)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 128 + signal.SIGINT, (p.returncode, err)
+    assert "stopped by SIGINT" in err and "no checkpoint yet" in err, err
+    assert f"dempipe bake {scene} -o {out}` starts it again" in err, err
+    assert "Traceback" not in err
+
+
 def test_resume_refuses_other_scene_or_settings(reference, tmp_path):
     scene, ref, cache = reference
     from dempipe.spheres.cache import SphereCache
