@@ -142,22 +142,30 @@ class SceneKeys:
                              "write true or false without quotes")
         return v
 
-    def string(self, v: Any, key: str, choices=None) -> str:
+    def string(self, v: Any, key: str, choices=None, *, or_number: str | None = None) -> str:
+        """A string among ``choices``; ``or_number``: what a number there means, for a
+        key that also takes one (e.g. 'a step in seconds, e.g. dt = 5e-05')."""
         if not isinstance(v, str):
             known = f"one of: {known_names(choices)}" if choices else None
             raise self.error(key, f"expected a string, got {describe_value(v)}", known)
         if choices is not None and v not in choices:
-            raise self.error(key, f"unknown value {v!r}", suggestion(v, choices))
+            fix = suggestion(v, choices)
+            raise self.error(key, f"unknown value {v!r}",
+                             f"{fix}; or {or_number}" if or_number else fix)
         return v
 
-    def vector(self, v: Any, key: str, n: int = 3, *, what: str = "number") -> tuple[float, ...]:
+    def vector(self, v: Any, key: str, n: int = 3, *, what: str = "number",
+               example: str | None = None) -> tuple[float, ...]:
+        """``n`` numbers; ``example``: the array the error message shows (zeros unless
+        given)."""
         if not isinstance(v, list) or len(v) != n:
+            shown = example or f"[{', '.join(['0.0'] * n)}]"
             raise self.error(key, f"expected an array of {n} numbers, got {describe_value(v)}",
-                             f"e.g. {key.rsplit('.', 1)[-1]} = [{', '.join(['0.0'] * n)}]")
+                             f"e.g. {key.rsplit('.', 1)[-1]} = {shown}")
         return tuple(self.number(x, f"{key}[{i}]") for i, x in enumerate(v))
 
     def quaternion(self, v: Any, key: str) -> Quat:
-        q = self.vector(v, key, 4)
+        q = self.vector(v, key, 4, example="[1.0, 0.0, 0.0, 0.0] (w, x, y, z: no turn)")
         norm = math.sqrt(sum(c * c for c in q))
         if norm < 1e-12:
             raise self.error(key, "zero quaternion",

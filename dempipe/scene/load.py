@@ -69,6 +69,14 @@ def load_scene(path: str | Path) -> Scene:
     p = Path(path).expanduser()
     if p.suffix.lower() in USD_EXTENSIONS:
         return load_usd_scene(p)
+    if p.suffix.lower() not in ("", ".toml"):
+        from dempipe.mesh.shapes import MESH_EXTENSIONS   # (trimesh: only for odd names)
+
+        if p.suffix.lower() in MESH_EXTENSIONS:
+            raise SceneError(
+                f"{p.name}: a mesh, not a scene: give a scene file (.toml, or a UsdPhysics "
+                f"stage .usd/.usda/.usdc/.usdz) whose [shapes.NAME] table has mesh = "
+                f"\"{p.name}\" (docs/scene-format.md)")
     try:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:

@@ -64,7 +64,8 @@ def parse_simulation(ctx: SceneKeys, d: Any, up_axis: str) -> SimulationSettings
         kw["resolution"] = ctx.integer(d["resolution"], "simulation.resolution", lo=1,
                                        what="a positive integer")
     if "gravity" in d:
-        kw["gravity"] = ctx.vector(d["gravity"], "simulation.gravity")
+        kw["gravity"] = ctx.vector(d["gravity"], "simulation.gravity",
+                                   example="[0.0, 0.0, -9.81] (m/s², Z up)")
     else:
         g = [0.0, 0.0, 0.0]
         g[2 if up_axis == "Z" else 1] = -STANDARD_GRAVITY
@@ -72,7 +73,8 @@ def parse_simulation(ctx: SceneKeys, d: Any, up_axis: str) -> SimulationSettings
     if "dt" in d:
         v = d["dt"]
         if isinstance(v, str):
-            kw["dt"] = ctx.string(v, "simulation.dt", ("auto",))
+            kw["dt"] = ctx.string(v, "simulation.dt", ("auto",),
+                                  or_number="a step in seconds, e.g. dt = 5e-05")
         else:
             kw["dt"] = ctx.number(v, "simulation.dt", lo=0.0, lo_open=True,
                                   unit='seconds, or "auto"')

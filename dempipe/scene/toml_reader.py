@@ -93,7 +93,8 @@ def _parse_materials(ctx: SceneKeys, d: Any) -> dict[str, MaterialSpec]:
         if "stiffness" in m:
             v = m["stiffness"]
             if isinstance(v, str):
-                kw["stiffness"] = ctx.string(v, f"{key}.stiffness", ("auto",))
+                kw["stiffness"] = ctx.string(v, f"{key}.stiffness", ("auto",),
+                                             or_number="a stiffness in N/m, e.g. 2e4")
             else:
                 kw["stiffness"] = ctx.number(v, f"{key}.stiffness", lo=0.0, lo_open=True,
                                              unit='N/m, or "auto"')
@@ -115,7 +116,8 @@ def _parse_materials(ctx: SceneKeys, d: Any) -> dict[str, MaterialSpec]:
         if "glue_stiffness" in m:
             v = m["glue_stiffness"]
             if isinstance(v, str):
-                kw["glue_stiffness"] = ctx.string(v, f"{key}.glue_stiffness", ("auto",))
+                kw["glue_stiffness"] = ctx.string(v, f"{key}.glue_stiffness", ("auto",),
+                                                  or_number="a stiffness in N/m, e.g. 2e4")
             else:
                 kw["glue_stiffness"] = ctx.number(v, f"{key}.glue_stiffness", lo=0.0,
                                                   lo_open=True, unit='N/m, or "auto"')

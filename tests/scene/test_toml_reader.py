@@ -357,6 +357,14 @@ def test_file_not_found(tmp_path):
         load_scene(tmp_path / "scene.toml")
 
 
+def test_a_mesh_given_as_the_scene(tmp_path):
+    # `dempipe bake rock.obj`: not a TOML syntax error at line 1, but what to give
+    (tmp_path / "rock.obj").write_text("v 0 0 0\n")
+    with pytest.raises(SceneError, match=r"^rock\.obj: a mesh, not a scene: give a scene "
+                                         r"file .*mesh = \"rock\.obj\""):
+        load_scene(tmp_path / "rock.obj")
+
+
 def test_toml_syntax_error_names_line():
     text = minimal() + 'count = \n'
     line = text.splitlines().index("count = ") + 1
@@ -406,12 +414,21 @@ def test_layout_key_on_wrong_layout():
     (minimal(head="[output]\nduration = nan\n"), "output.duration", "finite"),
     (minimal(head="[simulation]\ngravity = [0, -9.81]\n"), "simulation.gravity",
      "expected an array of 3 numbers, got array of length 2"),
+    # the example is a gravity, not zeros
+    (minimal(head="[simulation]\ngravity = -9.81\n"), "simulation.gravity",
+     "e.g. gravity = [0.0, 0.0, -9.81]"),
     (minimal(head="[simulation]\ngravity = [0, 0, inf]\n"), "simulation.gravity[2]", "finite"),
     (minimal(head='[simulation]\ndevice = "gpu"\n'), "simulation.device", "known: auto, cpu, cuda"),
-    (minimal(head='[simulation]\ndt = "fast"\n'), "simulation.dt", "known: auto"),
+    (minimal(head='[simulation]\ndt = "fast"\n'), "simulation.dt",
+     "known: auto; or a step in seconds"),
+    (minimal(extra='[materials.wood]\nstiffness = "hard"\n'), "materials.wood.stiffness",
+     "known: auto; or a stiffness in N/m"),
     (minimal(head="[simulation]\nsleeping = 1\n"), "simulation.sleeping", "expected a boolean"),
     (minimal(body='velocity = [0, "1", 0]\n'), "bodies[0].velocity[1]", "got string '1'"),
     (minimal(body="rotation = 5\n"), "bodies[0].rotation", "expected"),
+    # the example is a turn a scene accepts (not the zero quaternion it refuses)
+    (minimal(body="rotation = [0.7, 0.7, 0.0]\n"), "bodies[0].rotation",
+     "e.g. rotation = [1.0, 0.0, 0.0, 0.0]"),
     (minimal(body='layout = "grid"\ndims = [2, 2.5, 2]\nspacing = 0.1\n'), "bodies[0].dims[1]",
      "expected a positive integer"),
     (minimal(body='layout = "hex"\n'), "bodies[0].layout", "known: single, grid, random"),
