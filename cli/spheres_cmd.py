@@ -91,9 +91,10 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
     built-in shape (see --list-shapes; an existing file of that name wins), with
     its default parameters. Prints per input the sphere count (and how many of
     them are surface spheres, within one lattice layer of the surface: the ones a
-    scene's default contact_layers = 1 keeps for contacts), the volume
-    error (N d^3 against the mesh volume), the inertia error (relative Frobenius),
-    the build time and whether the cache had it, and (--errors) the Hausdorff
+    scene's default contact_layers = 1 keeps for contacts), a lattice's volume
+    error (N d^3 against the mesh volume) and inertia error (relative Frobenius; a
+    surface set is a shell and its body's mass comes from the mesh),
+    the build time and whether the cache had it, and (unless --no-errors) the Hausdorff
     distance between the mesh and the spheres' envelope and the bump height (the
     dips between neighbouring spheres beyond the rounding any sphere of that
     diameter has), both in metres and in diameters.
@@ -163,10 +164,14 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
                 "diameter": sphere_set.diameter,
                 "volume": sphere_set.volume,
                 # an open mesh encloses no volume: its mass properties are the spheres',
-                # so there is nothing to compare them with (None, "n/a")
+                # so there is nothing to compare them with (None, "n/a"); a surface set
+                # is a shell of overlapping spheres, whose cells say nothing of the
+                # body's mass (taken from the mesh)
                 "volume_error_percent": (None if "not_watertight" in sphere_set.notes
+                                         or mode == "surface"
                                          else 100.0 * sphere_set.sphere_volume_error),
                 "inertia_error_percent": (None if "not_watertight" in sphere_set.notes
+                                          or mode == "surface"
                                           else 100.0 * sphere_set.inertia_error),
                 "hausdorff": None,
                 "bump": None,
@@ -225,12 +230,15 @@ def _fracture_rows(name, arg, mesh, d, n, seed, cache, output, as_json) -> dict:
 
 def _line(row) -> str:
     d = row["diameter"]
-    line = (f"{row['name']}: {row['count']} spheres ({row['mode']}) of d={d:.6g} m "
-            f"({row['surface_count']} on the surface), ")
+    line = f"{row['name']}: {row['count']} spheres ({row['mode']}) of d={d:.6g} m, "
+    if row["mode"] == "lattice":
+        line = line[:-2] + f" ({row['surface_count']} on the surface), "
     if row["hausdorff"] is not None:
         line += (f"Hausdorff {row['hausdorff']:.3g} m ({row['hausdorff'] / d:.2f} d), "
                  f"bump {row['bump']:.3g} m ({row['bump'] / d:.3f} d), ")
-    if row["volume_error_percent"] is None:
+    if row["volume_error_percent"] is None and row["mode"] == "surface":
+        line += "mass and inertia from the mesh (the spheres are its contact shell), "
+    elif row["volume_error_percent"] is None:
         line += "volume and inertia errors n/a (an open mesh: mass from the spheres), "
     else:
         line += (f"volume error {row['volume_error_percent']:+.2f}%, "

@@ -206,3 +206,18 @@ def test_an_open_mesh_has_no_volume_error_to_show(tmp_path):
     box.export(closed)
     assert json.loads(run("spheres", str(closed), "-r", "4", "--json").stdout)[0][
         "volume_error_percent"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_surface_sets_report_no_cell_errors(tmp_path):
+    # A surface set is a shell of overlapping spheres: N d^3 against the mesh volume
+    # (+250 % for a ball) says nothing of the body, whose mass comes from the mesh.
+    rows = json.loads(run("spheres", "sphere", "-r", "6", "--mode", "both", "--no-errors",
+                          "--json").stdout)
+    lattice, surface = rows
+    assert (lattice["mode"], surface["mode"]) == ("lattice", "surface")
+    assert abs(lattice["volume_error_percent"]) < 40
+    assert surface["volume_error_percent"] is None and surface["inertia_error_percent"] is None
+    text = run("spheres", "sphere", "-r", "6", "--mode", "both", "--no-errors").stdout
+    lat_line, surf_line = text.splitlines()
+    assert "on the surface" in lat_line and "volume error" in lat_line
+    assert "mass and inertia from the mesh" in surf_line and "volume error" not in surf_line
