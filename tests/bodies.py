@@ -19,7 +19,8 @@ def box_set(nx, ny, nz, d):
     a, b, c = nx * d, ny * d, nz * d
     V = a * b * c
     inertia = V / 12.0 * np.diag([b * b + c * c, a * a + c * c, a * a + b * b])
-    ss = types.SimpleNamespace(centers=g, com=np.zeros(3), volume=V, inertia=inertia, diameter=d)
+    ss = types.SimpleNamespace(centers=g, com=np.zeros(3), volume=V, inertia=inertia, diameter=d,
+                               notes=())
     mesh = types.SimpleNamespace(
         vertices=np.array([[sx * a / 2, sy * b / 2, sz * c / 2] for sx in (-1, 1) for sy in (-1, 1)
                            for sz in (-1, 1)]),
@@ -31,6 +32,7 @@ def ball_set(d):
     """One sphere: a solid ball of diameter d (I = 2/5 m r²)."""
     V = math.pi / 6.0 * d**3
     ss = types.SimpleNamespace(centers=np.zeros((1, 3)), com=np.zeros(3), volume=V,
-                               inertia=np.eye(3) * 0.4 * V * (d / 2) ** 2, diameter=d)
+                               inertia=np.eye(3) * 0.4 * V * (d / 2) ** 2, diameter=d,
+                               notes=())
     mesh = types.SimpleNamespace(vertices=np.zeros((3, 3)), faces=np.array([[0, 1, 2]]))
     return ss, mesh

@@ -33,7 +33,7 @@ from dempipe.check.sizes import memory_estimate
 from dempipe.sim import glue, laws
 from dempipe.sim.model import Model, rotational_mass_factor
 from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP, frame0_overlap
-from dempipe.spheres.fidelity import mesh_beyond_spheres
+from dempipe.spheres.fidelity import mesh_beyond_spheres, off_axis_share
 
 #: Distance the fastest closing pair travels in one step, as a fraction of the
 #: diameter: above TUNNEL_WARN contacts start a visible fraction of a diameter
@@ -59,6 +59,11 @@ SMALL_EXTENT = 2.0
 #: a rook's battlements at 6 across) gets a warning: where it touches something the
 #: mesh looks sunk into it by up to that much.
 COARSE_DIAMETERS = 1.0
+#: A lattice shape more than this share of whose surface is curved or slanted to the
+#: lattice's axes (spheres.fidelity.off_axis_share: a ball, a cylinder, a chess piece;
+#: not a box or a brick) rests on terraces there: it does not roll (docs/spheres.md,
+#: "Rolling"). One warning names them; spheres = "surface" is the fix.
+ROUND_SHARE = 0.5
 
 ERROR = "error"
 WARNING = "warning"
@@ -578,17 +583,24 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
                 f"keep densities and sizes within {MASS_RATIO_WARN:g}× of each other, or give "
                 f"the light bodies' material an explicit, higher stiffness"))
 
-    # 5. shapes too small for their spheres
+    # 5. shapes too small for their spheres, or too coarse, or round on a lattice
     shapes = []
+    round_shapes = []
     for si, s in enumerate(model.shapes):
         c = np.asarray(s.sphere_set.centers)
         extent = float((c.max(axis=0) - c.min(axis=0)).max() + d) / d
         count = int(c.shape[0])
         small = count < SMALL_SPHERES or extent < SMALL_EXTENT
         beyond = mesh_beyond_spheres(c, d, s.vertices, s.faces) / d
+        lattice = "surface" not in s.sphere_set.notes
+        off_axis = off_axis_share(s.vertices, s.faces)
         shapes.append(dict(name=s.name, spheres=count, extent_diameters=extent,
                            rotational_mass_factor=float(factors[si]), small=small,
-                           mesh_beyond_spheres_diameters=beyond))
+                           mesh_beyond_spheres_diameters=beyond,
+                           mode="lattice" if lattice else "surface",
+                           off_axis_share=off_axis))
+        if lattice and off_axis > ROUND_SHARE and not small and s.inside_faces is None:
+            round_shapes.append((s.name, off_axis))   # (a fracture piece keeps its lattice)
         if beyond > COARSE_DIAMETERS and not small:
             findings.append(Finding(
                 WARNING, "coarse-shape",
@@ -604,6 +616,17 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
                 f"{extent:.3g} diameter{'s' * (extent != 1)} across: it will collide and roll like a ball",
                 "raise simulation.resolution or lower simulation.sphere_diameter (the "
                 "smallest shape sets the diameter)"))
+
+    if round_shapes:
+        names = ", ".join(f"{n!r} ({share:.0%})" for n, share in round_shapes)
+        findings.append(Finding(
+            WARNING, "round-lattice",
+            f"{src}: shape{'s' * (len(round_shapes) > 1)} {names}: that share of "
+            f"{'their' if len(round_shapes) > 1 else 'its'} surface is curved or slanted "
+            f"to the lattice, whose spheres follow it in terraces: such a body rolls "
+            f"badly or not at all (a ball, a wheel, a piece on its side)",
+            'where rolling shows, give the shape spheres = "surface" (more spheres, a '
+            'slower bake; docs/spheres.md, "Surface mode")'))
 
     # 6. far from the origin: grid keys hold ±2^20 cells per axis (kernels/cpu/stages.py);
     # beyond half of that the bake still collides correctly but slowly

@@ -151,6 +151,31 @@ def point_set_distance(p, q, chunk: int = 256) -> np.ndarray:
     return out
 
 
+#: A face lies along the lattice when its normal is within this angle [degrees] of one
+#: of the lattice's axes (±x, ±y, ±z of the shape's frame, which the lattice shares).
+AXIS_TOLERANCE_DEGREES = 5.0
+
+
+def off_axis_share(vertices, faces) -> float:
+    """The share of a mesh's area whose normal is more than AXIS_TOLERANCE_DEGREES from
+    every axis of the shape's frame: its curved or slanted surface, where a lattice
+    sphere set (cells along those axes) can only follow the mesh in terraces. 0 for a
+    box in its own axes, 0.98 for the built-in ball, 0.65 for the built-in cylinder
+    (its flat ends lie along the axes), 0.58-0.88 for the chess pieces."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    if f.shape[0] == 0:
+        return 0.0
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    area = np.linalg.norm(n, axis=1)        # twice each face's area
+    keep = area > 0.0
+    if not keep.any():
+        return 0.0
+    unit = n[keep] / area[keep, None]
+    along = np.abs(unit).max(axis=1) >= math.cos(math.radians(AXIS_TOLERANCE_DEGREES))
+    return float(area[keep][~along].sum() / area[keep].sum())
+
+
 def mesh_beyond_spheres(centers, diameter: float, vertices, faces, *, samples: int = 2000,
                         seed: int = 0) -> float:
     """How far [m] the mesh reaches beyond its spheres: the largest distance from the

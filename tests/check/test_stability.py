@@ -538,3 +538,47 @@ def test_a_shape_whose_mesh_reaches_past_its_spheres_is_flagged():
     reach = {s["name"]: s["mesh_beyond_spheres_diameters"] for s in r.shapes}
     assert 1.1 < reach["rook"] < 1.4 and reach["pawn"] < st.COARSE_DIAMETERS
     assert r.ok
+
+
+def test_round_shapes_on_a_lattice_are_named_in_one_warning():
+    # A lattice follows a curved surface in terraces, so a lattice ball does not roll
+    # (docs/spheres.md, "Rolling"). The ball and the cylinder on lattices are named,
+    # with their off-axis shares; the box (faces along the lattice's axes) and the
+    # ball built as a surface set are not.
+    from dempipe.mesh.shapes import build_shape
+    from dempipe.spheres.options import BuildOptions
+    from dempipe.spheres.sphere_set import build_sphere_set
+
+    d = 0.04 / 6                        # 6 across the built-in ball, box, can's height
+    b = ModelBuilder(d)
+    wood = b.add_material(Material("wood", density=700))
+    shapes = (("ball", "sphere", "lattice"), ("can", "cylinder", "lattice"),
+              ("crate", "box", "lattice"), ("smooth", "sphere", "surface"))
+    for i, (name, builtin, mode) in enumerate(shapes):
+        mesh = build_shape(builtin)
+        s = b.add_shape(name, mesh, build_sphere_set(mesh, d, name=name,
+                                                     options=BuildOptions(mode=mode)))
+        b.add_bodies(name, s, wood, [[0.1 * i, 0, 0.05]])
+    b.add_plane([0, 0, 0], [0, 0, 1], wood)
+    r = st.analyze(b.finalize(fps=24, n_frames=2))
+    found = [f for f in r.findings if f.code == "round-lattice"]
+    assert len(found) == 1 and found[0].level == "warning" and r.ok
+    assert "'ball' (98%), 'can' (65%)" in found[0].message, found[0].message
+    assert "'crate'" not in found[0].message and "'smooth'" not in found[0].message
+    assert 'spheres = "surface"' in found[0].fix
+    rows = {s["name"]: s for s in r.shapes}
+    assert rows["crate"]["off_axis_share"] == 0.0 and rows["smooth"]["mode"] == "surface"
+
+
+def test_off_axis_share_of_a_box_turned_about_its_axis():
+    # A box turned 45° about z: its four sides (2/3 of a cube's area) face away from
+    # the lattice's axes, its top and bottom do not; turned 3° it still lies along them.
+    import trimesh
+
+    from dempipe.spheres.fidelity import off_axis_share
+
+    for degrees, share in ((45.0, 2 / 3), (3.0, 0.0)):
+        box = trimesh.creation.box((1.0, 1.0, 1.0))
+        box.apply_transform(trimesh.transformations.rotation_matrix(math.radians(degrees),
+                                                                    [0, 0, 1]))
+        assert off_axis_share(box.vertices, box.faces) == pytest.approx(share, abs=1e-12)
