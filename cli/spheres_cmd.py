@@ -29,7 +29,7 @@ def _resolve_input(arg: str, scale: float):
     if path.exists():
         raise ShapeError(f"{arg}: not a mesh file (it is a folder or special file)")
     raise ShapeError(f"{arg}: no such mesh file and no built-in shape of that name "
-                     f"(shapes: {known})")
+                     f"(shapes: {known}){shapes.did_you_mean(arg, shapes.SHAPES)}")
 
 
 def _make_parent(out: str) -> None:

@@ -398,7 +398,8 @@ def list_shapes() -> list[ShapeSpec]:
     return [SHAPES[k] for k in sorted(SHAPES)]
 
 
-def _suggest(word: str, known: Sequence[str]) -> str:
+def did_you_mean(word: str, known: Sequence[str]) -> str:
+    """'; did you mean 'X'?' for the closest of ``known`` to ``word``, or ''."""
     close = difflib.get_close_matches(str(word).lower(), list(known), n=1, cutoff=0.6)
     return f"; did you mean {close[0]!r}?" if close else ""
 
@@ -446,13 +447,13 @@ def build_shape(name: str, **params: Any) -> trimesh.Trimesh:
     spec = SHAPES.get(name) if isinstance(name, str) else None
     if spec is None:
         known = ", ".join(sorted(SHAPES))
-        raise ShapeError(f"unknown shape {name!r} (known: {known}){_suggest(name, SHAPES)}")
+        raise ShapeError(f"unknown shape {name!r} (known: {known}){did_you_mean(name, SHAPES)}")
     for key in params:
         if key not in spec.params:
             known = ", ".join(spec.params)
             raise ShapeError(
                 f"shape {name!r}: unknown parameter {key!r} (known: {known})"
-                f"{_suggest(key, spec.params)}"
+                f"{did_you_mean(key, spec.params)}"
             )
     values = {
         key: _check_param(name, key, p, params.get(key, p.default)) for key, p in spec.params.items()

@@ -134,6 +134,7 @@ def test_cache_info_and_clear(tmp_path):
 
 @pytest.mark.parametrize("args, expect", [
     (["spheres", "pwn", "-r", "8"], "pwn: no such mesh file and no built-in shape"),
+    (["spheres", "shpere", "-r", "8"], "; did you mean 'sphere'?"),
     (["spheres", "missing.obj", "-r", "8"], "missing.obj: no such mesh file"),
     (["spheres", "pawn", "--diameter", "-1"], "diameter must be a positive finite"),
     (["spheres", "pawn", "--resolution", "0"], "resolution must be a positive number"),
