@@ -220,12 +220,14 @@ class StabilityReport:
         where = f" ({self.overlap_body})" if self.overlap_body else ""
         lines.append(f"  frame 0      largest overlap {self.overlap:.1%} of a diameter{where}")
         if self.pairs:
-            lines.append("  contacts     pair               k [N/m]    ζ     e    tc [s]     "
+            names = [" / ".join(p.materials) + ("" if p.kind == "body-body" else " (wall)")
+                     for p in self.pairs]
+            w = max(18, *(len(n) for n in names))      # the columns line up for any names
+            lines.append(f"  contacts     {'pair':<{w}} k [N/m]    ζ     e    tc [s]     "
                          "critical dt [s] transl. / rot.   dt/crit")
-            for p in self.pairs:
-                pair = " / ".join(p.materials) + ("" if p.kind == "body-body" else " (wall)")
+            for pair, p in zip(names, self.pairs):
                 lines.append(
-                    f"               {pair:<18} {p.k:<10.3g} {p.zeta:<5.3f} {p.restitution:<4.2f} "
+                    f"               {pair:<{w}} {p.k:<10.3g} {p.zeta:<5.3f} {p.restitution:<4.2f} "
                     f"{p.contact_time_rotational:<10.3g} {p.critical_dt_translational:<9.3g} / "
                     f"{p.critical_dt_rotational:<18.3g} {_ratio(p.dt_ratio)}")
         else:

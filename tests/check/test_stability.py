@@ -582,3 +582,21 @@ def test_off_axis_share_of_a_box_turned_about_its_axis():
         box.apply_transform(trimesh.transformations.rotation_matrix(math.radians(degrees),
                                                                     [0, 0, 1]))
         assert off_axis_share(box.vertices, box.faces) == pytest.approx(share, abs=1e-12)
+
+
+def test_contact_table_columns_line_up_for_long_material_names():
+    # "rubber / rubber (wall)" is longer than the pair column's 18 characters: the
+    # header and every row still start k at the same column.
+    b = ModelBuilder(D)
+    ss, mesh = ball_set(D)
+    s = b.add_shape("ball", mesh, ss)
+    m = b.add_material(Material("rubber", density=1000, restitution=0.5))
+    b.add_bodies("balls", s, m, [[0, 0, D], [0, 0, 3 * D]])
+    b.add_plane([0, 0, 0], [0, 0, 1], m)
+    lines = st.analyze(b.finalize(fps=24, n_frames=2)).format().splitlines()
+    head = next(i for i, line in enumerate(lines) if "k [N/m]" in line)
+    rows = lines[head + 1:head + 3]
+    assert rows[1].lstrip().startswith("rubber / rubber (wall)")
+    col = lines[head].index("k [N/m]")
+    for row in rows:
+        assert row[col - 1] == " " and row[col] != " ", (lines[head], row)
