@@ -131,6 +131,7 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
         build_sphere_set_with_info, diameter_for_resolution, mesh_for_errors, surface_mask)
     from dempipe.usd.sphere_set import save_sphere_set
     from dempipe.spheres.surface import envelope_errors
+    from dempipe.spheres.fidelity import off_axis_share
 
     cache = None
     if not no_cache:
@@ -173,6 +174,8 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
                 "inertia_error_percent": (None if "not_watertight" in sphere_set.notes
                                           or mode == "surface"
                                           else 100.0 * sphere_set.inertia_error),
+                # the area off the lattice's axes (check's round-lattice warning)
+                "off_axis_share": off_axis_share(mesh.vertices, mesh.faces),
                 "hausdorff": None,
                 "bump": None,
                 "build_seconds": info.seconds,
@@ -243,6 +246,11 @@ def _line(row) -> str:
     else:
         line += (f"volume error {row['volume_error_percent']:+.2f}%, "
                  f"inertia error {row['inertia_error_percent']:.2f}%, ")
+    from dempipe.check.stability import ROUND_SHARE
+
+    if row["mode"] == "lattice" and row["off_axis_share"] > ROUND_SHARE:
+        line += (f"{row['off_axis_share']:.0%} of the surface off the lattice's axes (round: "
+                 f"terraced, it rolls badly; --mode surface rolls), ")
     line += f"{row['build_seconds']:.2f} s, cache {row['cache']}"
     if row["output"]:
         line += f" -> {row['output']}"

@@ -222,3 +222,15 @@ def test_surface_sets_report_no_cell_errors(tmp_path):
     lat_line, surf_line = text.splitlines()
     assert "on the surface" in lat_line and "volume error" in lat_line
     assert "mass and inertia from the mesh" in surf_line and "volume error" not in surf_line
+
+
+def test_round_shapes_are_called_round_on_a_lattice():
+    # The same measure as `dempipe check`'s round-lattice warning: the share of the
+    # mesh's area off the lattice's axes (a ball 98 %, a box 0).
+    rows = {r["name"]: r for r in json.loads(run("spheres", "sphere", "box", "-r", "6",
+                                                 "--no-errors", "--json").stdout)}
+    assert rows["sphere"]["off_axis_share"] == pytest.approx(0.98, abs=0.01)
+    assert rows["box"]["off_axis_share"] == 0.0
+    ball, box = run("spheres", "sphere", "box", "-r", "6", "--no-errors").stdout.splitlines()
+    assert "98% of the surface off the lattice's axes" in ball and "--mode surface" in ball
+    assert "off the lattice's axes" not in box
