@@ -246,7 +246,7 @@ def _line(row) -> str:
     else:
         line += (f"volume error {row['volume_error_percent']:+.2f}%, "
                  f"inertia error {row['inertia_error_percent']:.2f}%, ")
-    from dempipe.check.stability import ROUND_SHARE
+    from dempipe.spheres.fidelity import ROUND_SHARE
 
     if row["mode"] == "lattice" and row["off_axis_share"] > ROUND_SHARE:
         line += (f"{row['off_axis_share']:.0%} of the surface off the lattice's axes (round: "

@@ -19,7 +19,9 @@ class DempipeSettings(bpy.types.PropertyGroup):
         items=[("lattice", "Lattice", "Fill each mesh with a lattice of spheres (fast; a body "
                 "resting exactly on another at the first frame overlaps it: leave a gap)"),
                ("surface", "Surface", "Spheres on the surface (round bodies roll, bodies may "
-                "touch at the first frame; more spheres, slower)")])
+                "touch at the first frame; more spheres, slower)"),
+               ("auto", "Auto", "Surface spheres for the round meshes, so they roll (balls, "
+                "wheels, tori); a lattice for the others (boxes, bricks)")])
     target_overlap: bpy.props.FloatProperty(
         name="Softness", default=0.0, min=0.0, max=0.5,
         description="Overlap of a contact, as a fraction of a sphere diameter, that the "

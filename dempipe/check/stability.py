@@ -33,7 +33,7 @@ from dempipe.check.sizes import memory_estimate
 from dempipe.sim import glue, laws
 from dempipe.sim.model import Model, rotational_mass_factor
 from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP, frame0_overlap
-from dempipe.spheres.fidelity import mesh_beyond_spheres, off_axis_share
+from dempipe.spheres.fidelity import ROUND_SHARE, mesh_beyond_spheres, off_axis_share
 
 #: Distance the fastest closing pair travels in one step, as a fraction of the
 #: diameter: above TUNNEL_WARN contacts start a visible fraction of a diameter
@@ -59,11 +59,6 @@ SMALL_EXTENT = 2.0
 #: a rook's battlements at 6 across) gets a warning: where it touches something the
 #: mesh looks sunk into it by up to that much.
 COARSE_DIAMETERS = 1.0
-#: A lattice shape more than this share of whose surface is curved or slanted to the
-#: lattice's axes (spheres.fidelity.off_axis_share: a ball, a cylinder, a chess piece;
-#: not a box or a brick) rests on terraces there: it does not roll (docs/spheres.md,
-#: "Rolling"). One warning names them; spheres = "surface" is the fix.
-ROUND_SHARE = 0.5
 
 ERROR = "error"
 WARNING = "warning"
@@ -627,8 +622,9 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
             f"{'their' if len(round_shapes) > 1 else 'its'} surface is curved or slanted "
             f"to the lattice, whose spheres follow it in terraces: such a body rolls "
             f"badly or not at all (a ball, a wheel, a piece on its side)",
-            'where rolling shows, give the shape spheres = "surface" (more spheres, a '
-            'slower bake; docs/spheres.md, "Surface mode")'))
+            'where rolling shows, give the shape spheres = "surface", or the scene '
+            'simulation.spheres = "auto" (surface sets for its round shapes only): more '
+            'spheres, a slower bake (docs/spheres.md, "Surface mode")'))
 
     # 6. far from the origin: grid keys hold ±2^20 cells per axis (kernels/cpu/stages.py);
     # beyond half of that the bake still collides correctly but slowly

@@ -25,6 +25,7 @@ from dempipe.scene.placement import (
 from dempipe.sim import laws
 from dempipe.sim.builder import ModelBuilder
 from dempipe.sim.model import Model, quat_to_matrix
+from dempipe.spheres.fidelity import auto_mode
 from dempipe.spheres.options import DEFAULT_MODE, BuildOptions
 from dempipe.spheres.pieces import build_pieces
 from dempipe.spheres.sphere_set import (
@@ -106,15 +107,20 @@ def collider_mesh(c, where: str):
     return mesh
 
 
-def sphere_options(scene, shape: str | None = None, overrides: Overrides | None = None):
+def sphere_options(scene, shape: str | None = None, overrides: Overrides | None = None,
+                   mesh=None):
     """The sphere builder's options for a shape of the scene (None: a mesh collider):
     the override's mode, else the shape's ``spheres``, else the scene's, else
-    spheres.DEFAULT_MODE."""
+    spheres.DEFAULT_MODE. "auto" becomes ``mesh``'s own (fidelity.auto_mode), and
+    the lattice for a fractured shape, whose pieces share one."""
     mode = overrides.spheres if overrides is not None else None
     if mode is None and shape is not None:
         mode = scene.shapes[shape].spheres
     if mode is None:
         mode = getattr(scene.simulation, "spheres", None) or DEFAULT_MODE
+    if mode == "auto":
+        fractured = shape is not None and scene.shapes[shape].fracture is not None
+        mode = "lattice" if fractured else auto_mode(mesh.vertices, mesh.faces)
     return BuildOptions(mode=mode)
 
 
@@ -166,7 +172,8 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
     for n in names:
         if scene.shapes[n].fracture is not None:
             fractured, info = build_pieces(meshes[n], d, scene.shapes[n].fracture, name=n,
-                                           cache=cache, options=sphere_options(scene, n, o))
+                                           cache=cache,
+                                           options=sphere_options(scene, n, o, meshes[n]))
             hits.append((n, info.cache, info.seconds,
                          sum(ps.count for ps in fractured.sphere_sets)))
             pieces[n] = []
@@ -176,7 +183,7 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
                 pieces[n].append((pn, ps.com, ps.volume))
             continue
         ss, info = build_sphere_set_with_info(meshes[n], d, name=n, cache=cache,
-                                              options=sphere_options(scene, n, o))
+                                              options=sphere_options(scene, n, o, meshes[n]))
         hits.append((n, info.cache, info.seconds, ss.count))
         if scene.shapes[n].center_of_mass is not None:
             ss = with_center_of_mass(ss, scene.shapes[n].center_of_mass)
@@ -220,7 +227,7 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
                           "Fix: scale the collider down or use a plane or box collider",
                           f"collider '{c.name}'")
             ss, info = build_sphere_set_with_info(mesh, d, name=c.name, cache=cache,
-                                                  options=sphere_options(scene, None, o))
+                                                  options=sphere_options(scene, None, o, mesh))
             hits.append((c.name, info.cache, info.seconds, ss.count))
             b.add_static_mesh(c.name, mesh, ss, mi, motion=c.motion,
                               frame=collider_frame(c))

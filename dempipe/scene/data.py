@@ -107,8 +107,9 @@ class SimulationSettings:
     contacts [integer ≥ 0]; 0 (or "all" in the file) keeps every sphere. Mass and
     inertia do not depend on it (docs/spheres.md, "Surface spheres")."""
     spheres: str | None = None
-    """Sphere-set mode of every shape that names none: "lattice" or "surface"
-    (docs/spheres.md); None: the library's default (spheres.DEFAULT_MODE)."""
+    """Sphere-set mode of every shape that names none: "lattice", "surface" or "auto"
+    (each shape's own: spheres.fidelity.auto_mode; docs/spheres.md); None: the
+    library's default (spheres.DEFAULT_MODE)."""
     contact_law: str = laws.DEFAULT
     """Contact force law (laws.LAWS): "linear" (the paper's spring-dashpot) or "hertz"
     (Hertz-Mindlin with Tsuji's damping); docs/physics.md."""
@@ -180,7 +181,7 @@ class ShapeSpec:
     """Centre of mass in the shape's own coordinates [m] when given rather than
     computed from the mesh (UsdPhysics MassAPI); None: the mesh's."""
     spheres: str | None = None
-    """This shape's sphere-set mode, "lattice" or "surface"; None: the scene's."""
+    """This shape's sphere-set mode, "lattice", "surface" or "auto"; None: the scene's."""
     fracture: Any = None
     """A ``dempipe.mesh.fracture.FractureSpec``: every body of this shape is its
     pieces, placed with the body's pose; None: whole."""

@@ -13,7 +13,7 @@ from dempipe.scene.data import (
 )
 from dempipe.scene.keys import SceneKeys
 from dempipe.sim.laws import LAWS
-from dempipe.spheres.options import MODES
+from dempipe.spheres.options import SCENE_MODES
 
 #: The keys of [output] and of [simulation] (and its [simulation.sleep]).
 _OUTPUT_KEYS = ("fps", "duration", "up_axis", "meters_per_unit", "start_frame")
@@ -105,7 +105,7 @@ def parse_simulation(ctx: SceneKeys, d: Any, up_axis: str) -> SimulationSettings
                                 f'expected {what}; 0 or "all" keeps every sphere')
             kw["contact_layers"] = n
     if "spheres" in d:
-        kw["spheres"] = ctx.string(d["spheres"], "simulation.spheres", MODES)
+        kw["spheres"] = ctx.string(d["spheres"], "simulation.spheres", SCENE_MODES)
     if "contact_law" in d:
         kw["contact_law"] = ctx.string(d["contact_law"], "simulation.contact_law", tuple(LAWS))
     if "sleep" in d:

@@ -28,7 +28,7 @@ from dempipe.scene.data import (
 from dempipe.scene.keys import SceneKeys, describe_value, known_names, suggestion
 from dempipe.scene.settings import parse_output, parse_simulation
 from dempipe.sim.motion import Key, Motion
-from dempipe.spheres.options import MODES
+from dempipe.spheres.options import SCENE_MODES
 
 # ------------------------------------------------------------------------- tables
 
@@ -186,7 +186,7 @@ def _parse_shapes(ctx: SceneKeys, d: Any, registry) -> dict[str, ShapeSpec]:
         s = ctx.table(s, key)
         mode = None
         if "spheres" in s:
-            mode = ctx.string(s["spheres"], f"{key}.spheres", MODES)
+            mode = ctx.string(s["spheres"], f"{key}.spheres", SCENE_MODES)
             s = {k: v for k, v in s.items() if k != "spheres"}
         fracture = None
         if "fracture" in s:

@@ -154,6 +154,11 @@ def point_set_distance(p, q, chunk: int = 256) -> np.ndarray:
 #: A face lies along the lattice when its normal is within this angle [degrees] of one
 #: of the lattice's axes (±x, ±y, ±z of the shape's frame, which the lattice shares).
 AXIS_TOLERANCE_DEGREES = 5.0
+#: A shape more than this share of whose area is off the lattice's axes is round for
+#: the lattice (off_axis_share): it rests on terraces there and does not roll
+#: (docs/spheres.md, "Rolling"). `dempipe check` names such lattice shapes
+#: (round-lattice) and spheres = "auto" gives them surface sets (auto_mode).
+ROUND_SHARE = 0.5
 
 
 def off_axis_share(vertices, faces) -> float:
@@ -174,6 +179,13 @@ def off_axis_share(vertices, faces) -> float:
     unit = n[keep] / area[keep, None]
     along = np.abs(unit).max(axis=1) >= math.cos(math.radians(AXIS_TOLERANCE_DEGREES))
     return float(area[keep][~along].sum() / area[keep].sum())
+
+
+def auto_mode(vertices, faces) -> str:
+    """The sphere-set mode spheres = "auto" picks for a mesh: "surface" when it is
+    round for the lattice (off_axis_share above ROUND_SHARE: a ball, a wheel, a torus,
+    a chess piece), else "lattice" (a box, a brick: faces along the axes)."""
+    return "surface" if off_axis_share(vertices, faces) > ROUND_SHARE else "lattice"
 
 
 def mesh_beyond_spheres(centers, diameter: float, vertices, faces, *, samples: int = 2000,

@@ -15,6 +15,10 @@ DEFAULT_SPACING = 0.3
 #: The sphere-set modes: "lattice" (solid voxelization, Harada et al.) and "surface"
 #: (centres on the inward offset of the surface, so round bodies roll).
 MODES = ("lattice", "surface")
+#: What a scene may name: a mode, or "auto": per shape, "surface" where most of the
+#: mesh is curved or slanted to the lattice (fidelity.ROUND_SHARE: it would not roll
+#: on a lattice), else "lattice" (spheres.fidelity.auto_mode).
+SCENE_MODES = MODES + ("auto",)
 #: The mode a scene gets when it names none (docs/spheres.md, "Surface mode": why).
 DEFAULT_MODE = "lattice"
 

@@ -258,6 +258,28 @@ def test_scene_key_per_scene_and_per_shape(tmp_path):
     assert "surface" in notes["brick"] and "surface" not in notes["ball"]
 
 
+def test_auto_gives_round_shapes_surface_sets_and_boxes_lattices(tmp_path):
+    # spheres = "auto": the ball (98 % of its area off the lattice's axes) gets a
+    # surface set and rolls, the brick (0 %) keeps its lattice; a shape's own key wins.
+    sc = parse_scene(SCENE.format(sim='spheres = "auto"', shape=""), tmp_path / "s.toml")
+    model = build_model(sc)
+    notes = {s.name: s.sphere_set.notes for s in model.shapes}
+    assert "surface" in notes["ball"] and "surface" not in notes["brick"]
+    sc = parse_scene(SCENE.format(sim='spheres = "auto"', shape='spheres = "lattice"'),
+                     tmp_path / "s.toml")
+    assert "surface" not in {s.name: s.sphere_set.notes for s in build_model(sc).shapes}["ball"]
+    sc = parse_scene(SCENE.format(sim="", shape='spheres = "auto"'), tmp_path / "s.toml")
+    assert "surface" in {s.name: s.sphere_set.notes for s in build_model(sc).shapes}["ball"]
+
+
+def test_auto_keeps_the_lattice_of_a_fractured_shape(tmp_path):
+    # a fractured shape's pieces share one lattice: "auto" gives them that, where
+    # "surface" is refused (test_scene_key_errors)
+    text = SCENE.format(sim='spheres = "auto"', shape="fracture = { pieces = 3 }")
+    sc = parse_scene(text, tmp_path / "s.toml")
+    assert sphere_options(sc, "ball").mode == "lattice"
+
+
 @pytest.mark.parametrize("sim, shape, where", [
     ('spheres = "round"', "", "simulation.spheres"),
     ("spheres = 1", "", "simulation.spheres"),
