@@ -105,6 +105,14 @@ class ReportResult:
     stage: str | None = None    # the USD stage's file name when it was given as the scene
 
 
+def seconds(x: float) -> str:
+    """A time in seconds to three figures (0.0436, 4.06, 42.8; 136 and up whole): a
+    fixed one decimal showed a small scene's 0.04 s run as "0.0"."""
+    if x is None or not math.isfinite(x):
+        return "—"
+    return f"{x:.0f}" if abs(x) >= 100 else f"{x:.3g}"
+
+
 def scene_settings(u: Run, target_overlap: float) -> list:
     """The scene-file lines that bake run ``u``'s setting."""
     lines = [f"resolution = {u.resolution}"]

@@ -23,6 +23,7 @@ from dempipe.report.results import (
     Run,
     chaos_floor,
     scene_settings,
+    seconds,
 )
 from dempipe.spheres import fidelity
 
@@ -115,7 +116,7 @@ def format_markdown(r: ReportResult) -> str:
             than = (f"{_num(1.0 / speed, '.1f')}× slower than the reference, which is "
                     "cheaper and more accurate here: keep its settings")
         L.append(f"Cheapest run with error within the tolerance {r.tolerance:g}{rolls}: "
-                 f"**{u.label}** (error {_num(u.error)}, {_num(u.wall_s, '.1f')} s, "
+                 f"**{u.label}** (error {_num(u.error)}, {seconds(u.wall_s)} s, "
                  f"{than}). "
                  + ("In the scene file:" if r.stage is None else
                     "dempipe's settings for a stage go in a small TOML beside it that names "
@@ -148,8 +149,8 @@ def format_markdown(r: ReportResult) -> str:
             continue
         name = f"**{u.label}** (ref.)" if u.reference else u.label
         L.append(f"| {name} | {u.spheres:,} | {_num(u.dt)} | {u.steps:,} | "
-                 f"{_num(u.wall_s, '.1f')} | {_num(u.s_per_step, '.2e')} | "
-                 f"{_num(u.s_per_sim_s, '.1f')} | {_num(u.memory_bytes / 2 ** 20, '.1f')} | "
+                 f"{seconds(u.wall_s)} | {_num(u.s_per_step, '.2e')} | "
+                 f"{seconds(u.s_per_sim_s)} | {_num(u.memory_bytes / 2 ** 20, '.1f')} | "
                  f"{_pct(u.geometry.get('hausdorff', math.nan))} | {_num(u.motion['position_h'])} | "
                  f"{_num(u.motion['orientation_h_deg'], '.1f')} | {_pct(u.physics['bounce'])} | "
                  f"{_pct(u.physics.get('incline', math.nan))} | "
@@ -218,7 +219,7 @@ def format_markdown(r: ReportResult) -> str:
             L.append(f"| {u.label} | {u.spheres:,} | {_num(e.get('hausdorff_d', math.nan))} | "
                      f"{_num(e.get('bump_d', math.nan))} | "
                      f"{_pct(u.physics.get('incline', math.nan))} | {_pct(u.error)} | "
-                     f"{_num(u.wall_s, '.1f')} |")
+                     f"{seconds(u.wall_s)} |")
         L.append("")
         L.append("Hausdorff and bump: the worst shape's spheres' envelope against its mesh "
                  "(docs/spheres.md, \"Surface mode\"), in sphere diameters. The geometry "
@@ -232,7 +233,7 @@ def format_markdown(r: ReportResult) -> str:
         for u in ok:
             L.append(f"| {u.label} | {_num(u.dt, '.3g')} | {u.steps:,} | "
                      f"{_pct(u.physics.get('bounce', math.nan))} | {_pct(u.error)} | "
-                     f"{_num(u.wall_s, '.1f')} |")
+                     f"{seconds(u.wall_s)} |")
         L.append("")
         L.append("Each law at its own automatic step (docs/physics.md, \"Contact laws\"): "
                  "for the same error, the cheaper is the one with the smaller wall time. "

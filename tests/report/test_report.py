@@ -7,6 +7,8 @@ and a shorter step bounces closer to e². Bad input must fail in one line.
 """
 
 import csv
+import math
+import re
 import struct
 
 import numpy as np
@@ -15,6 +17,7 @@ import pytest
 from dempipe.spheres import fidelity
 from dempipe.report.results import ReportError
 from dempipe.report.runs import Sweep, parse_values, run_report
+from dempipe.spheres.cache import SphereCache
 from dempipe_cli.main import main
 
 SCENE = """
@@ -243,3 +246,33 @@ def test_a_horizon_before_any_contact_is_said(tmp_path):
                            duration=0.2, plots=False))
     assert res.touched == 2
     assert "No body touched" not in (tmp_path / "out2" / "report.md").read_text()
+
+
+@pytest.fixture(scope="module")
+def modes_report(tmp_path_factory):
+    # --spheres lattice,surface --rolling-tolerance 0.2 on the two balls at 4 across:
+    # the reference takes the last mode (surface); a surface ball rolls down the
+    # incline (measured 0.10 off 5/7 g sin θ), a lattice ball does not (0.32)
+    pytest.importorskip("matplotlib")
+    root = tmp_path_factory.mktemp("modes")
+    scene = root / "tiny.toml"
+    scene.write_text(SCENE)
+    lines = []
+    res = run_report(scene, root / "out",
+                     Sweep(resolutions=(4,), dt_factors=(1.0,), stiffness_factors=(1.0,),
+                           duration=0.2, sphere_modes=("lattice", "surface"),
+                           rolling_tolerance=0.2),
+                     cache=SphereCache(root / "cache"), progress=lines.append)
+    return res, root / "out", lines
+
+
+def test_progress_lines_give_each_runs_time(modes_report):
+    # "N steps in T s": T is the run's simulation time, to 3 figures (a fast run
+    # printed "0.0 s"), and the run's whole time (sphere sets, kernels) beside it
+    res, _, lines = modes_report
+    for u in res.runs:
+        line = next(s for s in lines if s.startswith("run ") and f" {u.label}:" in s)
+        m = re.search(r"steps in ([0-9.e+-]+) s simulating \(([0-9.]+) s in all", line)
+        assert m, line
+        assert float(m.group(1)) == pytest.approx(u.wall_s, rel=0.01)
+        assert float(m.group(2)) >= float(m.group(1)) - 0.05
