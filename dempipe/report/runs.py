@@ -538,8 +538,12 @@ def _measure_physics(runs, ref, fixed_dt: bool, scene_mode=None, cache=None):
 
 
 def _mark_pareto(runs) -> None:
-    """Pareto front over (wall time, error): no other run is both faster and better."""
-    ok = [u for u in runs if u.ok and not u.reference and math.isfinite(u.error)]
+    """Pareto front over (wall time, error): the runs no other run beats in both, i.e.
+    none is at least as fast and as accurate and better in one (docs/accuracy.md).
+    The reference is one of them unless a run of its error 0 is faster: it must not be
+    left out, since every run is measured against it, and it is often the only
+    setting within the tolerances."""
+    ok = [u for u in runs if u.ok and math.isfinite(u.error)]
     for u in ok:
         u.pareto = not any(o is not u and o.wall_s <= u.wall_s and o.error <= u.error
                            and (o.wall_s < u.wall_s or o.error < u.error) for o in ok)

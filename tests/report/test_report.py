@@ -266,6 +266,14 @@ def modes_report(tmp_path_factory):
     return res, root / "out", lines
 
 
+def test_the_reference_is_on_the_pareto_front(modes_report, report_dir):
+    # error 0: no run beats it in error, so none beats it in both (docs/accuracy.md)
+    res, out, _ = modes_report
+    assert res.reference.pareto
+    for table in (rows(out), rows(report_dir)):
+        assert [r["pareto"] for r in table if r["reference"] == "1"] == ["1"]
+
+
 def test_progress_lines_give_each_runs_time(modes_report):
     # "N steps in T s": T is the run's simulation time, to 3 figures (a fast run
     # printed "0.0 s"), and the run's whole time (sphere sets, kernels) beside it
