@@ -92,10 +92,11 @@ def plot_report(r: ReportResult, out: Path) -> list:
 
     fig = Figure(figsize=(9.6, 3.9))
     a1, a2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
-    ress = sorted({res for (_, res) in r.shapes})
-    for name in sorted({n for (n, _) in r.shapes}):
-        a1.plot(ress, [r.shapes[(name, res)].hausdorff for res in ress], "o-", lw=0.8, ms=3,
-                alpha=0.7, label=f"{name}: Hausdorff")
+    ress = sorted({res for (_, res, _) in r.shapes})
+    for name, mode in dict.fromkeys((n, m) for (n, _, m) in r.shapes):
+        row = [res for res in ress if (name, res, mode) in r.shapes]
+        a1.plot(row, [r.shapes[(name, res, mode)].hausdorff for res in row], "o-", lw=0.8,
+                ms=3, alpha=0.7, label=f"{name}{f' {mode}' if mode else ''}: Hausdorff")
     k1 = [u for u in ok if u.stiffness_factor == 1.0]
     for f in sorted({u.dt_factor for u in k1}, reverse=True):
         row = sorted((u for u in k1 if u.dt_factor == f), key=lambda u: u.resolution)

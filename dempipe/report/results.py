@@ -87,7 +87,9 @@ class ReportResult:
     runs: list
     reference: Run
     recommended: Run | None
-    shapes: dict            # (shape name, resolution) -> accuracy.GeometryError
+    #: (shape name, resolution, sphere-set mode of the sweep's axis or None) ->
+    #: spheres.fidelity.GeometryError
+    shapes: dict
     files: list
     wall_s: float
     scene: str

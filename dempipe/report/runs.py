@@ -190,20 +190,50 @@ def _sphere_modes(sweep) -> tuple:
     return _axis(sweep.sphere_modes, MODES, "--spheres", "mode")
 
 
-def _envelope(model) -> dict:
-    """The worst shape's envelope errors (spheres.surface.envelope_errors) in diameters."""
+def _is_surface(shape) -> bool:
+    """Whether a model shape's sphere set was built in surface mode (its note says so;
+    a scene's spheres setting may give each shape its own mode)."""
+    return "surface" in shape.sphere_set.notes
+
+
+def _shape_envelopes(model) -> dict:
+    """Each shape's envelope errors (spheres.surface.envelope_errors) [m], by name."""
     import trimesh
 
 
-    worst = dict(hausdorff_d=0.0, bump_d=0.0)
+    out = {}
     for s in model.shapes:
         mesh = trimesh.Trimesh(vertices=np.asarray(s.vertices) + s.sphere_set.com,
                                faces=np.asarray(s.faces), process=False)
-        e = envelope_errors(mesh_for_errors(mesh), s.sphere_set.centers + s.sphere_set.com,
-                            model.diameter)
-        worst["hausdorff_d"] = max(worst["hausdorff_d"], e.hausdorff / model.diameter)
-        worst["bump_d"] = max(worst["bump_d"], e.bump / model.diameter)
-    return worst
+        out[s.name] = envelope_errors(mesh_for_errors(mesh),
+                                      s.sphere_set.centers + s.sphere_set.com, model.diameter)
+    return out
+
+
+def _worst_envelope(envelopes, diameter: float) -> dict:
+    """The worst shape's envelope errors, in sphere diameters (the modes table)."""
+    return dict(hausdorff_d=max((e.hausdorff / diameter for e in envelopes), default=0.0),
+                bump_d=max((e.bump / diameter for e in envelopes), default=0.0))
+
+
+def _shape_geometry(shape, envelope) -> fidelity.GeometryError:
+    """One shape's sphere set against its mesh (the geometry table's row).
+
+    A lattice set: fidelity.shape_geometry_error (its contact surface is found from
+    the 26 lattice neighbours). A surface set has no lattice: its spheres overlap,
+    so that contact surface and the cells' volume and inertia (N d³, which a shell
+    of overlapping spheres overcounts) mean nothing; its Hausdorff is its envelope's
+    (``envelope``, spheres.surface.envelope_errors: the mesh surface to the nearest
+    sphere, the spheres past the mesh), in shape sizes as the lattice's, and the
+    rest NaN (shown "—"). The bodies' mass properties come from the mesh in both."""
+    if not _is_surface(shape):
+        return fidelity.shape_geometry_error(shape.sphere_set, shape.vertices, shape.faces)
+    v = np.asarray(shape.vertices, dtype=np.float64)
+    size = float((v.max(axis=0) - v.min(axis=0)).max())
+    return fidelity.GeometryError(
+        spheres=shape.sphere_set.count, volume=math.nan, inertia=math.nan,
+        hausdorff=envelope.hausdorff / size, mesh_to_spheres=math.nan,
+        spheres_to_mesh=math.nan, size=size)
 
 
 def _dominant_material(model):
@@ -365,13 +395,13 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
                                     overrides=_overrides(scene, r, 1.0, 1.0, duration, mode))
                 built[(r, mode)] = (_cold_build_seconds(first),
                                     again.build_info.get("sphere_build_seconds", math.nan))
+                # every mode's geometry, each by its own measure (_shape_geometry)
+                env = _shape_envelopes(first) if mode is not None or \
+                    any(_is_surface(s) for s in first.shapes) else {}
                 if mode is not None:
-                    envelopes[(r, mode)] = _envelope(first)
-                if mode in (None, modes[0]):
-                    # the lattice-based measures (contact surface of lattice neighbours)
-                    for s in first.shapes:
-                        shapes[(s.name, r)] = fidelity.shape_geometry_error(s.sphere_set,
-                                                                       s.vertices, s.faces)
+                    envelopes[(r, mode)] = _worst_envelope(env.values(), first.diameter)
+                for s in first.shapes:
+                    shapes[(s.name, r, mode)] = _shape_geometry(s, env.get(s.name))
             model = build_model(scene, cache=cache,
                                 overrides=_overrides(scene, r, f, k, duration, mode, law))
             # what bake refuses before simulating (steps, frames beyond reason): the
@@ -382,8 +412,7 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
             run.sphere_build_cold_s, run.sphere_build_cached_s = built[(r, mode)]
             run.diameter, run.dt, run.spheres = model.diameter, model.dt, model.n_spheres
             run.memory_bytes = int(memory_estimate(model)["total"])
-            run.geometry = _worst_geometry([shapes[(s.name, r)] for s in model.shapes]) \
-                if mode in (None, modes[0]) else {}
+            run.geometry = _worst_geometry([shapes[(s.name, r, mode)] for s in model.shapes])
             if farm is not None:       # baked by a task; said when it finishes
                 farmed.append((i, run, farm.submit(_farm_bake, model, device, sweep.threads,
                                                    key=f"dempipe-report-{i}-{time.time_ns()}")))
@@ -457,8 +486,14 @@ def _rolls(u: Run, tolerance) -> bool:
 
 
 def _worst_geometry(errs) -> dict:
-    return dict(volume=max(abs(e.volume) for e in errs), inertia=max(e.inertia for e in errs),
-                hausdorff=max(e.hausdorff for e in errs))
+    """The worst shape's volume, inertia and Hausdorff errors (NaN where no shape has
+    the measure: a surface set's volume and inertia)."""
+    def worst(values):
+        values = [v for v in values if math.isfinite(v)]
+        return max(values) if values else math.nan
+
+    return dict(volume=worst(abs(e.volume) for e in errs), inertia=worst(e.inertia for e in errs),
+                hausdorff=worst(e.hausdorff for e in errs))
 
 
 def _measure_motion(runs, ref, horizon: float) -> None:

@@ -192,13 +192,21 @@ def format_markdown(r: ReportResult) -> str:
     L.append("")
     L.append("## Geometry: sphere sets against their meshes")
     L.append("")
-    L.append("| shape | resolution | spheres | volume | inertia | hausdorff | mesh→spheres | "
-             "spheres→mesh | build cold [s] | build cached [s] |")
-    L.append("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    build = {u.resolution: (u.sphere_build_cold_s, u.sphere_build_cached_s) for u in r.runs}
-    for (name, res), g in sorted(r.shapes.items(), key=lambda kv: (kv[0][0], kv[0][1])):
-        cold, cached = build.get(res, (math.nan, math.nan))
-        L.append(f"| {name} | {res} | {g.spheres} | {_pct(g.volume)} | {_pct(g.inertia)} | "
+    modes = list(dict.fromkeys(u.mode for u in r.runs))      # the sweep's order
+    by_mode = modes != [None]
+    L.append("| shape |" + (" mode |" if by_mode else "") + " resolution | spheres | volume | "
+             "inertia | hausdorff | mesh→spheres | spheres→mesh | build cold [s] | "
+             "build cached [s] |")
+    L.append("|---|" + ("---|" if by_mode else "") + "---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    build = {(u.resolution, u.mode): (u.sphere_build_cold_s, u.sphere_build_cached_s)
+             for u in r.runs}
+    order = sorted(r.shapes.items(), key=lambda kv: (kv[0][0], kv[0][1],
+                                                     modes.index(kv[0][2])
+                                                     if kv[0][2] in modes else 0))
+    for (name, res, mode), g in order:
+        cold, cached = build.get((res, mode), (math.nan, math.nan))
+        L.append(f"| {name} |" + (f" {mode} |" if by_mode else "")
+                 + f" {res} | {g.spheres} | {_pct(g.volume)} | {_pct(g.inertia)} | "
                  f"{_pct(g.hausdorff)} | {_pct(g.mesh_to_spheres)} | {_pct(g.spheres_to_mesh)} "
                  f"| {_num(cold, '.3f')} | {_num(cached, '.3f')} |")
     L.append("")
@@ -207,7 +215,11 @@ def format_markdown(r: ReportResult) -> str:
              f"distance between the mesh surface ({fidelity.MESH_SAMPLES} area-weighted samples) and "
              "the spheres' contact surface (the part another sphere can touch; "
              f"{fidelity.SPHERE_DIRECTIONS} directions per sphere), either way, in shape sizes. "
-             "Build times are for all shapes of the scene at that resolution (cold: no cache).")
+             "A surface set (overlapping spheres, no lattice cells) shows its envelope's "
+             "Hausdorff (docs/spheres.md, \"Surface mode\"), in shape sizes too; its cells' "
+             "volume and inertia would count the overlaps, and are left out (—). "
+             "Build times are for all shapes of the scene at that resolution and mode "
+             "(cold: no cache).")
     L.append("")
     if any(u.mode for u in r.runs):
         L.append("## Sphere-set modes")
@@ -222,8 +234,7 @@ def format_markdown(r: ReportResult) -> str:
                      f"{seconds(u.wall_s)} |")
         L.append("")
         L.append("Hausdorff and bump: the worst shape's spheres' envelope against its mesh "
-                 "(docs/spheres.md, \"Surface mode\"), in sphere diameters. The geometry "
-                 "table above is the first mode's.")
+                 "(docs/spheres.md, \"Surface mode\"), in sphere diameters.")
         L.append("")
     if any(u.law for u in r.runs):
         L.append("## Contact laws")

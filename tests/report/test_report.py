@@ -266,6 +266,26 @@ def modes_report(tmp_path_factory):
     return res, root / "out", lines
 
 
+def test_every_mode_has_its_geometry(modes_report):
+    # a surface set's geometry is measured too (its envelope's Hausdorff), not only
+    # the first mode's: the runs table, the CSV and the geometry table show it
+    res, out, _ = modes_report
+    runs = {u.mode: u for u in res.runs}
+    assert runs["surface"].reference
+    for mode in ("lattice", "surface"):
+        h = runs[mode].geometry["hausdorff"]
+        assert 0 < h < 0.5, (mode, h)
+        assert 0 < res.shapes[("ball", 4, mode)].hausdorff < 0.5
+    # the cells' volume and inertia (N d³) mean nothing for a shell of overlapping spheres
+    assert math.isnan(runs["surface"].geometry["volume"])
+    table = {r["sphere_mode"]: r for r in rows(out)}
+    assert 0 < float(table["surface"]["hausdorff"]) < 0.5
+    md = (out / "report.md").read_text()
+    geometry = md.split("## Geometry")[1].split("##")[0]
+    assert "| ball | surface | 4 |" in geometry and "| ball | lattice | 4 |" in geometry
+    assert (out / "error_vs_setting.png").exists()
+
+
 def test_the_reference_is_on_the_pareto_front(modes_report, report_dir):
     # error 0: no run beats it in error, so none beats it in both (docs/accuracy.md)
     res, out, _ = modes_report
