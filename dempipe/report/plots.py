@@ -74,13 +74,14 @@ def plot_report(r: ReportResult, out: Path) -> list:
     for u in ok:
         ax.annotate(f"r{u.resolution} dt×{u.dt_factor:g}", (u.wall_s, u.error), fontsize=6,
                     xytext=(4, 3), textcoords="offset points")
-    if r.recommended is not None:
+    if r.recommended is not None and r.recommended.error > 0:    # the reference: its line
         u = r.recommended
         ax.scatter([u.wall_s], [u.error], marker="*", s=160, c="C3", zorder=4,
                    label="recommended")
     ax.axhline(r.tolerance, color="0.4", ls="--", lw=0.8, label=f"tolerance {r.tolerance:g}")
     ax.axvline(r.reference.wall_s, color="0.4", ls=":", lw=0.8,
-               label=f"reference ({r.reference.label})")
+               label=f"reference ({r.reference.label}"
+               + (", recommended)" if r.recommended is r.reference else ")"))
     _log_axes(ax)
     ax.set_xlabel("run time [s] (simulation, wall clock)")
     ax.set_ylabel(f"error [body sizes] at t = {r.horizon:.3g} s")

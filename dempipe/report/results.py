@@ -115,6 +115,15 @@ def seconds(x: float) -> str:
     return f"{x:.0f}" if abs(x) >= 100 else f"{x:.3g}"
 
 
+def within_tolerances(u: Run, tolerance: float, rolling_tolerance: float | None) -> bool:
+    """Whether run ``u`` may be recommended: measured, its error within ``tolerance``
+    and, when given, its incline rolling error within ``rolling_tolerance`` (an incline
+    that could not be measured, NaN, passes: it says nothing against it)."""
+    if not (u.ok and u.error <= tolerance):
+        return False
+    return rolling_tolerance is None or not u.physics.get("incline", math.nan) > rolling_tolerance
+
+
 def scene_settings(u: Run, target_overlap: float) -> list:
     """The scene-file lines that bake run ``u``'s setting."""
     lines = [f"resolution = {u.resolution}"]

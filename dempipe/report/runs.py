@@ -36,6 +36,7 @@ from dempipe.report.results import (
     ReportResult,
     Run,
     seconds,
+    within_tolerances,
     write_atomically,
 )
 from dempipe.report.tables import format_markdown, write_csv
@@ -464,21 +465,14 @@ def run_report(scene_path, out_dir, sweep: Sweep = Sweep(), *, cache=None,
 
 
 def recommend(runs, tolerance: float, rolling_tolerance: float | None = None):
-    """The cheapest run (wall time) other than the reference whose error is within
-    ``tolerance`` and, when given, whose incline rolling error is within
-    ``rolling_tolerance``; None when there is none."""
-    candidates = [u for u in runs if u.ok and not u.reference and u.error <= tolerance
-                  and _rolls(u, rolling_tolerance)]
+    """The cheapest run (wall time) whose error is within ``tolerance`` and, when given,
+    whose incline rolling error is within ``rolling_tolerance`` (docs/accuracy.md);
+    None when there is none. The reference (error 0) is one of the candidates: when no
+    other run meets both, it is the setting to bake (with --spheres and
+    --rolling-tolerance, often a mode other than the scene's, which its scene lines
+    must then name); only a reference that does not roll leaves None."""
+    candidates = [u for u in runs if within_tolerances(u, tolerance, rolling_tolerance)]
     return min(candidates, key=lambda u: u.wall_s) if candidates else None
-
-
-def _rolls(u: Run, tolerance) -> bool:
-    """Whether run ``u``'s incline error is within ``tolerance`` (None: not asked; an
-    incline that could not be measured, NaN, passes: it says nothing against it)."""
-    if tolerance is None:
-        return True
-    e = u.physics.get("incline", math.nan)
-    return not e > tolerance
 
 
 

@@ -24,6 +24,7 @@ from dempipe.report.results import (
     chaos_floor,
     scene_settings,
     seconds,
+    within_tolerances,
 )
 from dempipe.spheres import fidelity
 
@@ -105,22 +106,38 @@ def format_markdown(r: ReportResult) -> str:
                  "this recommendation says nothing about contacts. Lengthen --duration, or "
                  "set --horizon after the first contacts.")
         L.append("")
+    rolls = ("" if r.rolling_tolerance is None else
+             f" and incline rolling error within {r.rolling_tolerance:g}")
+    others = [u for u in ok if not u.reference]
+    closest = min(others, key=lambda u: u.error, default=None)
+    why_not = ("" if closest is None else
+               f"; the closest is {closest.label} (error {_num(closest.error)}"
+               + ("" if r.rolling_tolerance is None else
+                  f", incline roll {_pct(closest.physics.get('incline', math.nan))}") + ")")
     if r.recommended is not None:
         u = r.recommended
-        rolls = ("" if r.rolling_tolerance is None else
-                 f" and incline rolling error within {r.rolling_tolerance:g}")
-        speed = ref.wall_s / u.wall_s
-        if speed >= 1.0:
-            than = f"{_num(speed, '.1f')}× faster than the reference"
-        else:                       # the reference is cheaper too: say so, not "0.6× faster"
-            than = (f"{_num(1.0 / speed, '.1f')}× slower than the reference, which is "
-                    "cheaper and more accurate here: keep its settings")
-        L.append(f"Cheapest run with error within the tolerance {r.tolerance:g}{rolls}: "
-                 f"**{u.label}** (error {_num(u.error)}, {seconds(u.wall_s)} s, "
-                 f"{than}). "
-                 + ("In the scene file:" if r.stage is None else
-                    "dempipe's settings for a stage go in a small TOML beside it that names "
-                    "it (docs/usd-input.md), baked with `dempipe bake SETTINGS.toml -o OUT`:"))
+        if u is not ref:
+            L.append(f"Cheapest run with error within the tolerance {r.tolerance:g}{rolls}: "
+                     f"**{u.label}** (error {_num(u.error)}, {seconds(u.wall_s)} s, "
+                     f"{_num(ref.wall_s / u.wall_s, '.1f')}× faster than the reference). ")
+        elif any(within_tolerances(o, r.tolerance, r.rolling_tolerance) for o in others):
+            L.append(f"Cheapest run with error within the tolerance {r.tolerance:g}{rolls}: "
+                     f"the reference **{u.label}** ({seconds(u.wall_s)} s): keep its "
+                     "setting. ")
+        else:
+            # the reference (error 0) is the only run within the tolerances, so by the
+            # rule it is the recommendation; its scene lines name its mode, law, dt and
+            # stiffness, which may not be the scene's
+            incline = ("" if r.rolling_tolerance is None else
+                       f" and incline roll {_pct(u.physics.get('incline', math.nan))}")
+            L.append(f"No run other than the reference stays within the tolerance "
+                     f"{r.tolerance:g}{rolls}{why_not}. The reference, with error 0"
+                     f"{incline}, does: **{u.label}** ({seconds(u.wall_s)} s) is the "
+                     "recommendation. Bake with its setting, or loosen the tolerances, or "
+                     "widen the sweep. ")
+        L[-1] += ("In the scene file:" if r.stage is None else
+                  "dempipe's settings for a stage go in a small TOML beside it that names "
+                  "it (docs/usd-input.md), baked with `dempipe bake SETTINGS.toml -o OUT`:")
         L.append("")
         L.append("```toml")
         if r.stage is not None:
@@ -129,12 +146,11 @@ def format_markdown(r: ReportResult) -> str:
         L += scene_settings(u, r.target_overlap)
         L.append("```")
     else:
-        best = min((u for u in ok if not u.reference), key=lambda u: u.error, default=None)
-        L.append(f"No run other than the reference stays within the tolerance {r.tolerance:g}"
-                 + ("" if r.rolling_tolerance is None else
-                    f" (and the incline rolling tolerance {r.rolling_tolerance:g})")
-                 + (f"; the closest is {best.label} (error {_num(best.error)})" if best else "")
-                 + ". Keep the reference's setting, loosen --tolerance, or widen the sweep.")
+        # only a rolling tolerance leaves no recommendation: not even the reference rolls
+        L.append(f"No run stays within the tolerance {r.tolerance:g}{rolls}, not even the "
+                 f"reference {ref.label} (incline roll "
+                 f"{_pct(ref.physics.get('incline', math.nan))}){why_not}. Loosen "
+                 "--rolling-tolerance, or sweep finer resolutions or --spheres surface.")
     L.append("")
     L.append("## Runs")
     L.append("")

@@ -294,6 +294,19 @@ def test_the_reference_is_on_the_pareto_front(modes_report, report_dir):
         assert [r["pareto"] for r in table if r["reference"] == "1"] == ["1"]
 
 
+def test_a_reference_only_it_rolls_is_recommended_with_its_mode(modes_report):
+    # only the surface reference meets the rolling tolerance: it is the recommendation
+    # (the cheapest run within both tolerances), and its scene lines name its mode
+    res, out, _ = modes_report
+    runs = {u.mode: u for u in res.runs}
+    assert runs["surface"].physics["incline"] <= 0.2 < runs["lattice"].physics["incline"]
+    assert res.recommended is res.reference
+    md = (out / "report.md").read_text()
+    rec = md.split("## Recommendation")[1].split("## Runs")[0]
+    assert 'spheres = "surface"' in rec and "resolution = 4" in rec
+    assert "r4 dt×1 k×1 lattice" in rec and "incline roll" in rec      # why not it
+
+
 def test_progress_lines_give_each_runs_time(modes_report):
     # "N steps in T s": T is the run's simulation time, to 3 figures (a fast run
     # printed "0.0 s"), and the run's whole time (sphere sets, kernels) beside it
