@@ -104,8 +104,8 @@ def report(scene, output, resolutions, dt_factors, stiffness_factors, duration, 
     click.echo(f"wrote {', '.join(str(p) for p in result.files)} ({len(result.runs)} runs, "
                f"{result.wall_s:.0f} s)")
     if rec is not None:
-        click.echo(f"recommended: {rec.label} (error {rec.error:.3g}, {rec.wall_s:.1f} s; "
-                   f"reference {result.reference.wall_s:.1f} s)")
+        click.echo(f"recommended: {rec.label} (error {rec.error:.3g}, {rec.wall_s:.3g} s; "
+                   f"reference {result.reference.wall_s:.3g} s)")
     else:
         click.echo(f"no run but the reference ({result.reference.label}) is within the "
                    f"tolerance {tolerance:g}")

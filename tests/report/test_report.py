@@ -57,12 +57,18 @@ ARGS = ["--resolutions", "2,4", "--dt-factors", "1,0.25", "--stiffness-factors",
         "--duration", "0.2"]
 
 
-@pytest.fixture(scope="module")
-def report_dir(tmp_path_factory):
+def tiny_scene(tmp_path_factory, name: str):
+    """(folder, SCENE written into it) for a module fixture's report."""
     pytest.importorskip("matplotlib")
-    root = tmp_path_factory.mktemp("report")
+    root = tmp_path_factory.mktemp(name)
     scene = root / "tiny.toml"
     scene.write_text(SCENE)
+    return root, scene
+
+
+@pytest.fixture(scope="module")
+def report_dir(tmp_path_factory):
+    root, scene = tiny_scene(tmp_path_factory, "report")
     out = root / "out"
     main(["report", str(scene), "-o", str(out), "--cache-dir", str(root / "cache"), "-q"]
          + ARGS)
@@ -253,10 +259,7 @@ def modes_report(tmp_path_factory):
     # --spheres lattice,surface --rolling-tolerance 0.2 on the two balls at 4 across:
     # the reference takes the last mode (surface); a surface ball rolls down the
     # incline (measured 0.10 off 5/7 g sin θ), a lattice ball does not (0.32)
-    pytest.importorskip("matplotlib")
-    root = tmp_path_factory.mktemp("modes")
-    scene = root / "tiny.toml"
-    scene.write_text(SCENE)
+    root, scene = tiny_scene(tmp_path_factory, "modes")
     lines = []
     res = run_report(scene, root / "out",
                      Sweep(resolutions=(4,), dt_factors=(1.0,), stiffness_factors=(1.0,),
