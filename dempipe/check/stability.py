@@ -222,8 +222,9 @@ class StabilityReport:
                          "critical dt [s] transl. / rot.   dt/crit")
             for pair, p in zip(names, self.pairs):
                 lines.append(
-                    f"               {pair:<{w}} {p.k:<10.3g} {p.zeta:<5.3f} {p.restitution:<4.2f} "
-                    f"{p.contact_time_rotational:<10.3g} {p.critical_dt_translational:<9.3g} / "
+                    f"               {pair:<{w}} {p.k:<10.3g} {p.zeta:<5.3f} "
+                    f"{p.restitution:<4.2f} {p.contact_time_rotational:<10.3g} "
+                    f"{p.critical_dt_translational:<9.3g} / "
                     f"{p.critical_dt_rotational:<18.3g} {_ratio(p.dt_ratio)}")
         else:
             lines.append("  contacts     none possible (one body, no colliders)")

@@ -224,30 +224,22 @@ def listed_end(k0, s1, work, n_work):
     return k1
 
 
-@numba.njit(inline="always", cache=True)
-def listed_range(s0, s1, work, n_work):
-    """(k0, k1): the entries of work[:n_work] (in slot order) that are slots s0 ..
-    s1-1 are work[k0 .. k1-1]."""
-    lo = 0
-    hi = n_work
-    while lo < hi:                      # the first entry at s0 or later
-        mid = (lo + hi) // 2
-        if work[mid] < s0:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo, listed_end(lo, s1, work, n_work)
-
-
 @numba.njit(parallel=True, cache=True)
 def stage_listed_from(body_sphere_start, slot_of, work, n_work, work_from):
     """work_from[b] = the first entry of work[:n_work] (slots in slot order) at or
-    after body b's first slot (0 for a body without spheres): where its run of
-    work starts (listed_range's k0), found once when work is made (a rebuild's
-    busy slots, a search's active ones) instead of by a binary search per body in
-    each pass of each step. The passes then end the run with listed_end."""
+    after body b's first slot (0 for a body without spheres): where its run of work
+    starts, found by a binary search once when work is made (a rebuild's busy slots,
+    a search's active ones) rather than in each pass of each step. The passes end
+    the run with listed_end."""
     for b in prange(work_from.shape[0]):
         i0 = body_sphere_start[b]
-        n = body_sphere_start[b + 1] - i0
-        s0 = slot_of[i0] if n > 0 else 0
-        work_from[b] = listed_range(s0, s0 + n, work, n_work)[0]
+        s0 = slot_of[i0] if body_sphere_start[b + 1] > i0 else 0
+        lo = 0
+        hi = n_work
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if work[mid] < s0:
+                lo = mid + 1
+            else:
+                hi = mid
+        work_from[b] = lo
