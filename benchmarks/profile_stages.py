@@ -82,7 +82,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                  b.sphere_tr)
         cpu.stage_listed_from(m.body_sphere_start, b.slot_of, b.busy, busy[0], b.busy_from)
         cpu.stage_note_built(state.body_x, state.body_q, b.built_bx, b.built_bq, b.seen_bx,
-                             b.seen_bq)
+                             b.seen_bq, m.body_sphere_start, b.slot_of, b.slot_mark, False)
     held = np.zeros(0, dtype=np.int32)      # the spheres whose rows the last build left busy
     known = [False]     # as run_steps: after the first re-sort, only held's rows are copied
 

@@ -216,6 +216,58 @@ def test_a_body_sliding_past_sleepers_enters_and_leaves_their_kept_lists():
     assert keep.span_ctl[2] > 0 and marks[2] > 0     # slots kept, a list lost the slider
 
 
+def lists_hold_what_reaches(be, model):
+    """Each slot's list is exactly the spheres of other bodies whose build position
+    (built_x) is within the lists' reach (1 + skin) d of its own, and every pair of
+    spheres closer than d where they are now (sorted_x) is listed."""
+    reach = (1.0 + be.skin_ctl[0]) * model.diameter
+    body = be.sorted_body
+    other = body[:, None] != body[None, :]
+    built = np.linalg.norm(be.built_x[:, None, :] - be.built_x[None, :, :], axis=2)
+    now = np.linalg.norm(be.sorted_x[:, None, :] - be.sorted_x[None, :, :], axis=2)
+    for s in range(body.shape[0]):
+        listed = set(be.nbr[s, :be.nbr_n[s]].tolist())
+        assert listed == set(np.nonzero(other[s] & (built[s] < reach))[0].tolist()), s
+        assert set(np.nonzero(other[s] & (now[s] < model.diameter))[0].tolist()) <= listed, s
+
+
+@pytest.mark.parametrize("gap", [0.1, -0.05])
+def test_rebuilds_that_keep_most_lists_where_they_were_built_change_nothing(gap):
+    # A box slides at 0.5 m/s past a row of boxes drifting at 1-3 mm/s on a
+    # frictionless floor, a tenth of a diameter clear of them or scraping them: no
+    # body is ever still, so keeping the slots only for bodies that moved at all
+    # (keep_move 0) never keeps them; with the default keep_move only the bodies
+    # that moved that share of half the skin are listed again, from where they
+    # are, and the others keep their lists and where they built them. Against
+    # rebuilds that sort every slot again (keep_share 0), the same State bit for
+    # bit at every frame, and every touching pair listed.
+    b = ModelBuilder(D)
+    ss, mesh = box_set(2, 2, 2, D)
+    s = b.add_shape("box", mesh, ss)
+    wood = b.add_material(Material("wood", density=700, restitution=0.3, friction=0.5))
+    ice = b.add_material(Material("ice", density=700, restitution=0.3, friction=0.0))
+    b.add_bodies("row", s, wood, [[0.022 * i, 0.0, D] for i in range(8)],
+                 velocities=[[0.002 * (1 + i % 3), 0.001 * (i % 2), 0.0] for i in range(8)])
+    b.add_bodies("slider", s, ice, [[-0.05, (2 + gap) * D, D]], velocities=[[0.5, 0.0, 0.0]])
+    b.add_plane([0, 0, 0], [0, 0, 1], ice)
+    model = b.finalize(fps=24, n_frames=17)
+    keep, anymove, never = (Simulator(model).backend for _ in range(3))
+    anymove.keep_move = 0.0
+    never.keep_share = 0.0
+    for be in (keep, anymove, never):   # the row's facing spheres drift across the reach
+        be.skin_ctl[0] = be.skin_ctl[2] = be.skin_ctl[4] = 0.2
+    a, c, e = model.initial_state(), model.initial_state(), model.initial_state()
+    for frame in range(16):
+        keep.step(a, model.steps_per_frame)
+        anymove.step(c, model.steps_per_frame)
+        never.step(e, model.steps_per_frame)
+        assert_same_state(a, e, frame)
+        assert_same_state(c, e, frame)
+        lists_hold_what_reaches(keep, model)
+    assert keep.span_ctl[2] > 0 and anymove.span_ctl[2] == 0
+    assert a.body_x[8, 0] > 0.022 * 7 + 0.03                # it passed the whole row
+
+
 def test_a_carried_platform_that_starts_moving_wakes_what_sleeps_on_it():
     # Boxes fall asleep on a keyed platform holding still, while a box far off keeps
     # sliding; then the platform lifts them. The active slots searched while it held

@@ -19,7 +19,13 @@ from dempipe.sim.kernels.cpu.grid import (
     stage_rows_to_pairs,
     stage_wall_reach,
 )
-from dempipe.sim.kernels.cpu.stages import KEEP_SLOTS_SHARE, QUIET_SHARE, kernels, stage_busy
+from dempipe.sim.kernels.cpu.stages import (
+    KEEP_MOVE,
+    KEEP_SLOTS_SHARE,
+    QUIET_SHARE,
+    kernels,
+    stage_busy,
+)
 from dempipe.sim.kernels.cpu.spheres import stage_listed_from
 from dempipe.sim.kernels.layout import (
     ContactScratch,
@@ -82,6 +88,9 @@ class CpuBackend:
         #: Largest share of moved spheres at which a rebuild keeps the slots and
         #: searches only the lists that can change (run_steps); 0: never (the same State).
         self.keep_share = KEEP_SLOTS_SHARE
+        #: At such a rebuild, the share of half the skin a body must have moved for its
+        #: lists to be searched again (run_steps); 0: any move (the same State).
+        self.keep_move = KEEP_MOVE
         if not self.features.friction:   # the histories in sorted-slot order, within a call
             self.hist_partner, self.hist_spring = self._no_partner, self._no_spring
         #: What a step reads of the Model (layout.StepModel), one structured argument.
@@ -117,7 +126,8 @@ class CpuBackend:
         while left > 0:
             done, computed = self.k.run_steps(
                 left, int(state.step), self.grid, float(self.quiet_share),
-                float(self.keep_share), int(self.broadphase_spheres), self.step_model,
+                float(self.keep_share), float(self.keep_move), int(self.broadphase_spheres),
+                self.step_model,
                 StepState(state.body_x, state.body_q, state.body_P, state.body_L,
                           self.rest(state), partner, spring),
                 self._scratch(), self.drive, self.glue_model, glue_scratch(state, self))

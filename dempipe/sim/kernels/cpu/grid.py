@@ -121,27 +121,51 @@ def stage_grid_gather(sorted_idx, grid_idx, n_grid, sphere_x, sphere_v, sphere_k
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_slot_marks(sorted_x, built_x, sorted_body, body_inv_mass, nbr, nbr_n, slot_mark):
-    """At a rebuild that may keep the slots (run_steps): slot_mark[s] = 1 when slot
-    s's sphere is not where its list was built (built_x; bit for bit: a sphere of a
-    body that has not moved since is where it was), else 2 when its list holds one
-    that is, else 0. Returns (dynamic spheres moved, static ones: a carried
-    collider's)."""
-    n = sorted_x.shape[0]
+def stage_slot_marks(body_sphere_start, slot_of, sorted_x, built_x, body_inv_mass, nbr, nbr_n,
+                     moved2, slot_mark):
+    """At a rebuild that may keep the slots (run_steps): slot_mark[s] = 1 for each
+    slot of a body one of whose spheres is farther than sqrt(moved2) [m] from where
+    its list was built (built_x; moved2 = 0, and for a static body always: not
+    where it was, bit for bit), whose built_x becomes where it is now: its lists
+    are searched again from there. Else 2 when the slot's list holds one marked 1,
+    else 0. A body below that distance keeps its lists and where they were built,
+    so each sphere keeps its own build position and the next rebuild still comes
+    when one of them is half the skin from it. Returns (dynamic spheres marked 1,
+    static ones: a carried collider's)."""
     cap = nbr.shape[1]
     moved = 0
     moved_static = 0
-    for s in prange(n):
-        if (sorted_x[s, 0] != built_x[s, 0] or sorted_x[s, 1] != built_x[s, 1]
-                or sorted_x[s, 2] != built_x[s, 2]):
-            slot_mark[s] = 1
-            if static_body(body_inv_mass[sorted_body[s]]):
-                moved_static += 1
+    for b in prange(body_sphere_start.shape[0] - 1):
+        i0 = body_sphere_start[b]
+        i1 = body_sphere_start[b + 1]
+        if i1 == i0:
+            continue
+        s0 = slot_of[i0]                # a body's slots are one run (stage_grid_sort)
+        s1 = s0 + i1 - i0
+        static = static_body(body_inv_mass[b])
+        limit = 0.0 if static else moved2
+        far = False
+        for s in range(s0, s1):
+            ex = sorted_x[s, 0] - built_x[s, 0]
+            ey = sorted_x[s, 1] - built_x[s, 1]
+            ez = sorted_x[s, 2] - built_x[s, 2]
+            if (ex != 0.0 or ey != 0.0 or ez != 0.0) and ex * ex + ey * ey + ez * ez >= limit:
+                far = True
+                break
+        for s in range(s0, s1):
+            if far:
+                slot_mark[s] = 1
+                built_x[s, 0] = sorted_x[s, 0]
+                built_x[s, 1] = sorted_x[s, 1]
+                built_x[s, 2] = sorted_x[s, 2]
             else:
-                moved += 1
-        else:
-            slot_mark[s] = 0
-    for s in prange(n):                 # (only 0 becomes 2 here: the 1s read are final)
+                slot_mark[s] = 0
+        if far:
+            if static:
+                moved_static += s1 - s0
+            else:
+                moved += s1 - s0
+    for s in prange(slot_mark.shape[0]):    # (only 0 becomes 2 here: the 1s read are final)
         if slot_mark[s] == 0:
             for e in range(min(nbr_n[s], cap)):
                 if slot_mark[nbr[s, e]] == 1:
@@ -151,26 +175,28 @@ def stage_slot_marks(sorted_x, built_x, sorted_body, body_inv_mass, nbr, nbr_n, 
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_grid_keep(sorted_x, sorted_body, slot_of, inv_cell, grid, sphere_key, sphere_hash,
+def stage_grid_keep(built_x, sorted_body, slot_of, inv_cell, grid, sphere_key, sphere_hash,
                     bucket_start, bucket_fill, grid_idx, grid_slot, grid_x, grid_key,
                     grid_body):
-    """At a rebuild that keeps the slots: the grid of the positions in them now,
-    as stage_grid_sort and stage_grid_gather make it (the same counting sort), the
-    slots left as they are."""
+    """At a rebuild that keeps the slots: the grid of where each slot's list is
+    built (built_x, after stage_slot_marks), as stage_grid_sort and stage_grid_gather
+    make it (the same counting sort), the slots left as they are. A list then holds
+    each sphere whose build position is within its reach of its own: a pair neither
+    lists is apart by the reach less what each moved since, more than d."""
     ns = slot_of.shape[0]
     for i in prange(ns):
         s = slot_of[i]
-        cx = cell_coord(sorted_x[s, 0], inv_cell)
-        cy = cell_coord(sorted_x[s, 1], inv_cell)
-        cz = cell_coord(sorted_x[s, 2], inv_cell)
+        cx = cell_coord(built_x[s, 0], inv_cell)
+        cy = cell_coord(built_x[s, 1], inv_cell)
+        cz = cell_coord(built_x[s, 2], inv_cell)
         sphere_key[i] = cell_key(cx, cy, cz)
         sphere_hash[i] = cell_hash(cx, cy, cz, grid)
     bucket_sort(sphere_hash, slot_of, grid, bucket_start, bucket_fill, grid_idx, grid_slot)
     for g in prange(ns):
         s = grid_slot[g]
-        grid_x[g, 0] = sorted_x[s, 0]
-        grid_x[g, 1] = sorted_x[s, 1]
-        grid_x[g, 2] = sorted_x[s, 2]
+        grid_x[g, 0] = built_x[s, 0]
+        grid_x[g, 1] = built_x[s, 1]
+        grid_x[g, 2] = built_x[s, 2]
         grid_key[g] = sphere_key[grid_idx[g]]
         grid_body[g] = sorted_body[s]
 
@@ -180,8 +206,9 @@ def stage_neighbours_marked(lo, hi, slot_mark, diameter, skin, grid, bucket_star
                             grid_x, grid_key, grid_body, grid_slot, sorted_idx, sorted_x,
                             sorted_body, body_inv_mass, built_x, nbr, nbr_n, body_start,
                             step):
-    """stage_neighbours for the slots whose mark (stage_slot_marks) is lo .. hi only;
-    the others keep their lists. Returns how many lists overflowed."""
+    """stage_neighbours for the slots whose mark (stage_slot_marks) is lo .. hi only,
+    each searched from ``sorted_x`` (run_steps passes built_x: where its list is
+    built); the others keep their lists. Returns how many lists overflowed."""
     n = sorted_idx.shape[0]
     n_chunks = (n + CONTACT_CHUNK - 1) // CONTACT_CHUNK
     cutoff = (1.0 + skin) * diameter

@@ -201,16 +201,24 @@ def stage_spheres_busy(body_sphere_start, slot_of, sphere_body, sphere_offset, b
 
 
 @numba.njit(parallel=True, cache=True)
-def stage_note_built(body_x, body_q, built_bx, built_bq, seen_bx, seen_bq):
-    """At a rebuild: each body's pose, where its spheres' lists were built
-    (stage_spheres_busy's body_moved) and where this step sees it."""
+def stage_note_built(body_x, body_q, built_bx, built_bq, seen_bx, seen_bq, body_sphere_start,
+                     slot_of, slot_mark, kept):
+    """At a rebuild: each body's pose where this step sees it, and where its
+    spheres' lists were built (stage_spheres_busy's body_moved): here, unless the
+    rebuild kept the slots (``kept``) and the body's lists stay where they were
+    built (its slots not marked 1 by stage_slot_marks)."""
     for b in prange(body_x.shape[0]):
+        i0 = body_sphere_start[b]
         for a in range(3):
-            built_bx[b, a] = body_x[b, a]
             seen_bx[b, a] = body_x[b, a]
         for a in range(4):
-            built_bq[b, a] = body_q[b, a]
             seen_bq[b, a] = body_q[b, a]
+        if kept and body_sphere_start[b + 1] > i0 and slot_mark[slot_of[i0]] != 1:
+            continue
+        for a in range(3):
+            built_bx[b, a] = body_x[b, a]
+        for a in range(4):
+            built_bq[b, a] = body_q[b, a]
 
 
 @numba.njit(inline="always", cache=True)

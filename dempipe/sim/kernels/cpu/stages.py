@@ -104,6 +104,13 @@ SEARCH_GAP = 8
 #: (stage_slot_marks). Above it the slots are sorted again as at any rebuild.
 KEEP_SLOTS_SHARE = 0.25
 
+#: At a rebuild that keeps the slots, a body's lists are searched again when one of
+#: its spheres has moved this share of half the skin since they were built; the
+#: others keep theirs, and where they were built (stage_slot_marks). So a pile with
+#: a few bodies still rolling across it re-lists those bodies and their partners,
+#: not the pile, each time one of them forces a rebuild.
+KEEP_MOVE = 0.5
+
 #: Rebuilds in a row that may keep the slots: then one sorts them again, so bodies
 #: that moved far get slots next to their new neighbours (memory order).
 KEEP_SLOTS_RUN = 8
@@ -327,8 +334,8 @@ def held_rows(src, n, index, keep, dst):
         dst[k] = src[k] if keep else index[src[k]]
 
 
-def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_spheres, model,
-              state, scratch, drive, gm, gs):
+def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
+              broadphase_spheres, model, state, scratch, drive, gm, gs):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
     compiled code. Returns (steps done, steps computed). Done is fewer than
     n_steps only when a rebuild found a neighbour list longer than nbr holds
@@ -349,15 +356,19 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
     the next, written once.
 
     A rebuild forced by a move keeps the slots (span_ctl[2] counts those) when at
-    most keep_share of the spheres moved since the lists were built, the skin stays
-    and no static sphere moved: then only the lists that can differ are searched
-    again (stage_slot_marks): a moved sphere's, one holding a moved sphere, then one
-    a moved sphere's new list reaches (stage_mark_partners). The others hold the same
-    partners a search would find (the sphere did not move, nor did any partner it
-    lists, and no moved sphere came within reach: its search would have found it),
-    so the lists, hence the frames, are a full rebuild's; the slots' order never
-    enters a force. At most KEEP_SLOTS_RUN such rebuilds in a row (keep_share 0:
-    none).
+    most keep_share of the spheres belong to bodies that moved keep_move × half the
+    skin since their lists were built, the skin stays and no static sphere moved:
+    then only those bodies' lists are searched again, from where they are now
+    (stage_slot_marks), then the lists that held one of their spheres, then the
+    lists their new lists reach (stage_mark_partners), each from where it was
+    built. Every list then holds each sphere whose build position (built_x) is
+    within the reach (1 + skin) d of its own, and each sphere is less than half the
+    skin from its build position until the next rebuild, so every pair that can
+    touch is listed, as after a full rebuild; lists also hold pairs a full rebuild
+    would leave out, which exert no force. The forces are summed in each list's
+    partner index order, so the frames are a full rebuild's; the slots' order
+    never enters a force. At most KEEP_SLOTS_RUN such rebuilds in a row
+    (keep_share 0: none; keep_move 0: only the bodies that moved at all re-list).
 
     With sleeping, once every body is asleep and no wall moves the remaining steps
     are skipped: a step then changes nothing (a sleeping body moves only when a
@@ -461,8 +472,9 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
                 adapt_skin(skin, since, skin_ctl[4], skin_ctl[2], moved) == skin:
             stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x, body_q, body_v,
                                  body_w, dt, sorted_x, sorted_v, sphere_r)
-            n_moved, n_static_moved = stage_slot_marks(sorted_x, built_x, sorted_body,
-                                                       body_inv_mass, nbr, nbr_n, slot_mark)
+            n_moved, n_static_moved = stage_slot_marks(
+                body_sphere_start, slot_of, sorted_x, built_x, body_inv_mass, nbr, nbr_n,
+                (keep_move * half_skin) ** 2, slot_mark)
             keep = n_static_moved == 0 and n_moved <= keep_share * n_slots
         if rebuild:
             if keep:
@@ -496,19 +508,19 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
                         state_rows[k] = held[k]
                     n_state_rows = n_held
             if keep:                            # the slots stay: only the marked lists
-                stage_grid_keep(sorted_x, sorted_body, slot_of, inv_cell, grid, sphere_key,
+                stage_grid_keep(built_x, sorted_body, slot_of, inv_cell, grid, sphere_key,
                                 sphere_hash, bucket_start, bucket_fill, grid_idx, grid_slot,
                                 grid_x, grid_key, grid_body)
                 over = stage_neighbours_marked(1, 2, slot_mark, diameter, skin, grid,
                                                bucket_start, grid_idx, grid_x, grid_key,
-                                               grid_body, grid_slot, sorted_idx, sorted_x,
+                                               grid_body, grid_slot, sorted_idx, built_x,
                                                sorted_body, body_inv_mass, built_x, nbr,
                                                nbr_n, body_start, step)
                 if over == 0:
                     stage_mark_partners(nbr, nbr_n, slot_mark)
                     over = stage_neighbours_marked(3, 3, slot_mark, diameter, skin, grid,
                                                    bucket_start, grid_idx, grid_x, grid_key,
-                                                   grid_body, grid_slot, sorted_idx, sorted_x,
+                                                   grid_body, grid_slot, sorted_idx, built_x,
                                                    sorted_body, body_inv_mass, built_x, nbr,
                                                    nbr_n, body_start, step)
             else:
@@ -542,7 +554,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
                     stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
                                 pair_start, pidx, pair_t, pair_f.shape[0], list_start,
                                 list_e) > 0 or \
-                    (WALLS and stage_wall_reach(diameter, skin, sorted_x, wall_normal,
+                    (WALLS and stage_wall_reach(diameter, skin, built_x, wall_normal,
                                                 wall_offset, wall_lo, wall_hi, wall_depth,
                                                 wall_mask, wall_start,
                                                 hist_partner.shape[1] if FRICTION and friction
@@ -560,7 +572,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, broadphase_sph
             n_busy = stage_busy(nbr_n, wall_mask, sorted_idx, sorted_body, body_inv_mass,
                                 chunk_n, busy, sphere_f, sphere_t, sphere_tr)
             stage_listed_from(body_sphere_start, slot_of, busy, n_busy, busy_from)
-            stage_note_built(body_x, body_q, built_bx, built_bq, seen_bx, seen_bq)
+            stage_note_built(body_x, body_q, built_bx, built_bq, seen_bx, seen_bq,
+                             body_sphere_start, slot_of, slot_mark, keep)
             active_ok = False                   # new lists (and slots)
             rebuilt = True
             if FRICTION and friction and step == first_step:     # rows from the State
