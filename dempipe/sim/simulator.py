@@ -49,7 +49,12 @@ MAX_STEP_TRAVEL = 0.5
 
 #: A stepping call lasts about this long [s] (Simulator.run), so that a stop
 #: signal is seen within it; a frame whose steps take longer is split into calls.
-CALL_SECONDS = 0.2
+#: Each call costs a full rebuild of the neighbour lists at its start and the
+#: State's histories at its end (about 0.1 s on 4,096 chess pieces, one thread),
+#: and the steps per call are timed with that cost in: at 0.2 s the calls of that
+#: pile shrank to a few steps each and half its time went to calls; at 1 s they are
+#: about 65 steps.
+CALL_SECONDS = 1.0
 #: Steps of the first call of a run, before a step has been timed.
 FIRST_CALL_STEPS = 1
 
