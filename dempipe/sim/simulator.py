@@ -49,11 +49,11 @@ MAX_STEP_TRAVEL = 0.5
 
 #: A stepping call lasts about this long [s] (Simulator.run), so that a stop
 #: signal is seen within it; a frame whose steps take longer is split into calls.
-#: Each call costs a full rebuild of the neighbour lists at its start and the
-#: State's histories at its end (about 0.1 s on 4,096 chess pieces, one thread),
-#: and the steps per call are timed with that cost in: at 0.2 s the calls of that
-#: pile shrank to a few steps each and half its time went to calls; at 1 s they are
-#: about 65 steps.
+#: Each call begins with a full rebuild of the neighbour lists and ends by placing
+#: every sphere and writing the State's contact histories, and the steps per call
+#: are timed with that in: at 0.2 s the 4,096-piece chess pile's calls held about 11
+#: steps and its bake's frames took 17-19 s, at 1 s about 65 steps and 9-12 s
+#: (docs/performance.md, "The 4,096-piece pile").
 CALL_SECONDS = 1.0
 #: Steps of the first call of a run, before a step has been timed.
 FIRST_CALL_STEPS = 1
