@@ -67,7 +67,7 @@ def body_bounds(sphere_offset, body_sphere_start, body_reach, body_box):
     body_box[held, 3:] = 0.5 * (hi - lo)
 
 
-@numba.njit(cache=True)
+@numba.njit(error_model="numpy", cache=True)
 def sweep(fill, order, live, lo, axis, half, reach, body_x, body_reach, body_inv_mass, count,
           other):
     """body_partners' sweep: counts each body's partners into count[b + 1] (fill
@@ -99,7 +99,7 @@ def sweep(fill, order, live, lo, axis, half, reach, body_x, body_reach, body_inv
                 count[b + 1] += 1
 
 
-@numba.njit(cache=True)
+@numba.njit(error_model="numpy", cache=True)
 def body_partners(reach, body_x, body_reach, body_sphere_start, body_inv_mass, body_start,
                   step):
     """The pairs of bodies whose centres are closer than R_A + R_B + reach [m], at
@@ -160,7 +160,7 @@ def axis_in_frame(qa, qb, j):
     return quat_rotate_inv(qa[0], qa[1], qa[2], qa[3], wx, wy, wz)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_near_others(min_spheres, reach, offset_t, body_x, body_q, body_sphere_start,
                       body_reach, body_box, body_inv_mass, body_start, step, sphere_hash):
     """At a rebuild, before the grid's sort: each sphere of a dynamic body that no

@@ -34,7 +34,7 @@ from dempipe.sim.kernels.pairing import WALL_SLACK
 invalidate_stale_cache(__file__)
 
 
-@numba.njit(cache=True)
+@numba.njit(error_model="numpy", cache=True)
 def stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start, bucket_start,
                     bucket_fill, body_key, sorted_idx, slot_of, grid_idx, grid_slot):
     """Stage 2 at a rebuild: the slots, and the grid (serial, stable).
@@ -69,7 +69,7 @@ def stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start, buck
     bucket_sort(sphere_hash, slot_of, grid, bucket_start, bucket_fill, grid_idx, grid_slot)
 
 
-@numba.njit(cache=True)
+@numba.njit(error_model="numpy", cache=True)
 def bucket_sort(sphere_hash, slot_of, grid, bucket_start, bucket_fill, grid_idx, grid_slot):
     """The grid's counting sort of the spheres by bucket (sphere_hash, in sphere
     order; serial, stable: spheres in index order within a bucket), with each
@@ -94,7 +94,7 @@ def bucket_sort(sphere_hash, slot_of, grid, bucket_start, bucket_fill, grid_idx,
         bucket_fill[h] += 1
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_grid_gather(sorted_idx, grid_idx, n_grid, sphere_x, sphere_v, sphere_key,
                       sphere_body, sorted_x, sorted_v, sorted_body, grid_x, grid_key,
                       grid_body):
@@ -120,7 +120,7 @@ def stage_grid_gather(sorted_idx, grid_idx, n_grid, sphere_x, sphere_v, sphere_k
         grid_body[g] = sphere_body[i]
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_slot_marks(body_sphere_start, slot_of, sorted_x, built_x, body_inv_mass, nbr, nbr_n,
                      moved2, slot_mark):
     """At a rebuild that may keep the slots (run_steps): slot_mark[s] = 1 for each
@@ -174,7 +174,7 @@ def stage_slot_marks(body_sphere_start, slot_of, sorted_x, built_x, body_inv_mas
     return moved, moved_static
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_grid_keep(built_x, sorted_body, slot_of, inv_cell, grid, sphere_key, sphere_hash,
                     bucket_start, bucket_fill, grid_idx, grid_slot, grid_x, grid_key,
                     grid_body):
@@ -201,7 +201,7 @@ def stage_grid_keep(built_x, sorted_body, slot_of, inv_cell, grid, sphere_key, s
         grid_body[g] = sorted_body[s]
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_neighbours_marked(lo, hi, slot_mark, diameter, skin, grid, bucket_start, grid_idx,
                             grid_x, grid_key, grid_body, grid_slot, sorted_idx, sorted_x,
                             sorted_body, body_inv_mass, built_x, nbr, nbr_n, body_start,
@@ -224,7 +224,7 @@ def stage_neighbours_marked(lo, hi, slot_mark, diameter, skin, grid, bucket_star
     return over
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_mark_partners(nbr, nbr_n, slot_mark):
     """After the new lists of the slots marked 1 (moved): each partner in them with
     no mark kept a list without that sphere, which is now within reach: marked 3, to
@@ -238,7 +238,7 @@ def stage_mark_partners(nbr, nbr_n, slot_mark):
                     slot_mark[t] = 3
 
 
-@numba.njit(cache=True)
+@numba.njit(error_model="numpy", cache=True)
 def sphere_neighbours(s0, s1, cutoff2, inv_cell, grid, bucket_start, grid_idx, grid_x,
                       grid_key, grid_body, grid_slot, sorted_idx, sorted_x, sorted_body,
                       body_inv_mass, built_x, nbr, nbr_n, body_start, step, sphere_hash):
@@ -261,7 +261,7 @@ def sphere_neighbours(s0, s1, cutoff2, inv_cell, grid, bucket_start, grid_idx, g
     return over
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_key, grid_body,
                      grid_slot, sorted_idx, sorted_x, sorted_body, body_inv_mass, built_x,
                      nbr, nbr_n, body_start, step, sphere_hash):
@@ -282,7 +282,7 @@ def stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_
     return over
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, pidx, pair_t,
                 rows, list_start, list_e):
     """At a rebuild, after stage_neighbours: each list entry's pair index
@@ -322,7 +322,7 @@ def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, 
     return 0
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_wall_reach(diameter, skin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
                      wall_depth, wall_mask, wall_start, cap, rows, wall_motion, sorted_body,
                      body_start, step):
@@ -398,7 +398,7 @@ def slot_rows_to_pairs(s, nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_ma
         wall_s[q + j, 3] = 1.0 + (code & 1) if code != 0 else 0.0
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass, wall_mask,
                         hist_partner, hist_spring, pair_f, wall_start, wall_s):
     """At a rebuild, with friction: the owned pairs' stretches from the history rows
@@ -412,7 +412,7 @@ def stage_rows_to_pairs(nbr, nbr_n, pidx, sorted_idx, sorted_body, body_inv_mass
                            wall_mask, hist_partner, hist_spring, pair_f, wall_start, wall_s)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_rows_to_pairs_busy(busy, n_busy, held, n_held, nbr, nbr_n, pidx, sorted_idx,
                              sorted_body, body_inv_mass, wall_mask, hist_partner, hist_spring,
                              pair_f, wall_start, wall_s):
@@ -454,7 +454,7 @@ def slot_pairs_to_rows(s, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_sprin
     pairs_to_rows(s, s, nbr, nbr_n, pidx, sorted_idx, hist_partner, hist_spring, pair_f)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_pairs_to_rows_busy(busy, n_busy, nbr, nbr_n, pidx, sorted_idx, hist_partner,
                              hist_spring, pair_f, wall_mask, wall_start, wall_s):
     """Before a re-sort and at the end of a call, with friction: the packed wall rows
@@ -484,7 +484,7 @@ def history_row_copy(src_partner, src_spring, a, dst_partner, dst_spring, b):
         dst_spring[b, h, 2] = src_spring[a, h, 2]
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_history_to_slots(sorted_idx, contact_partner, contact_spring, hist_partner,
                            hist_spring):
     """Contact histories from sphere order (the State's) into sorted-slot order.
@@ -497,7 +497,7 @@ def stage_history_to_slots(sorted_idx, contact_partner, contact_spring, hist_par
                          hist_spring, s)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_history_to_spheres(sorted_idx, hist_partner, hist_spring, contact_partner,
                              contact_spring):
     """The inverse of stage_history_to_slots (before a re-sort, and at the end of a call)."""
@@ -506,7 +506,7 @@ def stage_history_to_spheres(sorted_idx, hist_partner, hist_spring, contact_part
                          sorted_idx[s])
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_history_out(busy, n_busy, prev, n_prev, slot_of, sorted_idx, nbr_n, wall_mask,
                       sorted_body, body_inv_mass, hist_partner, hist_spring, contact_partner,
                       contact_spring):
@@ -531,7 +531,7 @@ def stage_history_out(busy, n_busy, prev, n_prev, slot_of, sorted_idx, nbr_n, wa
         history_row_clear(hist_partner, hist_spring, s)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_history_in(rows, n_rows, slot_of, contact_partner, contact_spring, hist_partner,
                      hist_spring):
     """stage_history_to_slots after stage_history_out's re-sort: the rows of the
@@ -543,7 +543,7 @@ def stage_history_in(rows, n_rows, slot_of, contact_partner, contact_spring, his
                          slot_of[i])
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_unsort(sorted_idx, sorted_x, sphere_x):
     """sphere_x in sphere order from the sorted slots (where the spheres were at
     the last step's contact search), for callers that look at them."""

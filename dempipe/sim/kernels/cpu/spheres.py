@@ -200,7 +200,7 @@ def stage_spheres_busy(body_sphere_start, slot_of, sphere_body, sphere_offset, b
     return moved
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_note_built(body_x, body_q, built_bx, built_bq, seen_bx, seen_bq, body_sphere_start,
                      slot_of, slot_mark, kept):
     """At a rebuild: each body's pose where this step sees it, and where its
@@ -232,7 +232,7 @@ def listed_end(k0, s1, work, n_work):
     return k1
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_listed_from(body_sphere_start, slot_of, work, n_work, work_from):
     """work_from[b] = the first entry of work[:n_work] (slots in slot order) at or
     after body b's first slot (0 for a body without spheres): where its run of work

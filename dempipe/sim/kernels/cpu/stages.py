@@ -116,7 +116,7 @@ KEEP_MOVE = 0.5
 KEEP_SLOTS_RUN = 8
 
 
-@numba.njit(cache=True)
+@numba.njit(error_model="numpy", cache=True)
 def pack_blocks(work, block_n, n_blocks):
     """Move each block's entries (block c's block_n[c] first entries of work[c *
     CONTACT_CHUNK ..]) down into one run at the front of ``work``, in block order;
@@ -130,7 +130,7 @@ def pack_blocks(work, block_n, n_blocks):
     return n
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_busy(nbr_n, wall_mask, sorted_idx, sorted_body, body_inv_mass, chunk_n, busy,
                sphere_f, sphere_t, sphere_tr):
     """After a rebuild: busy[:n] (n returned) = the sorted slots of dynamic bodies with
@@ -169,7 +169,7 @@ def body_quiet(b, body_inv_mass, body_rest, body_still, sleep_steps):
         body_rest[b] >= sleep_steps and body_still[b] != 0)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_active(busy, n_busy, sorted_body, nbr, nbr_n, body_inv_mass, body_rest, body_still,
                  sleep_steps, chunk_n, active, wall_mask, moving_walls):
     """After the body stage: active[:n] (n returned) = the busy slots (stage_busy's
@@ -325,7 +325,7 @@ def stage_bodies(n_bodies, bm, bs, step, slot_of, busy, n_busy, busy_from):
     return awake, woke, quiet, calmed
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def held_rows(src, n, index, keep, dst):
     """dst[:n] = src[:n] when ``keep``, else index[src[:n]] (a slot's sphere before a
     new sort, then that sphere's new slot): at a rebuild within a call, where the
@@ -655,36 +655,39 @@ _STAGES = (stage_body_velocities, motion_row, driven_row, stage_motion, stage_dr
            contacts.pair_forces, contacts.sphere_forces, stage_contacts, stage_sums,
            glue.bond_forces, glue.bond_contacts, glue.body_glue_sum, stage_glue,
            stage_glue_contacts, stage_glue_bodies, body_update, stage_bodies, run_steps)
+# error_model="numpy" (CUDA's): a float division is not checked for a zero divisor
+# on every "/" of the passes. The same bits; a division by zero would give inf or
+# nan instead of an exception, which the Simulator's check of every frame reports.
 _JITS = {
-    "stage_body_velocities": numba.njit(parallel=True, cache=True),
+    "stage_body_velocities": numba.njit(error_model="numpy", parallel=True, cache=True),
     "motion_row": numba.njit(inline="always", cache=True),
     "driven_row": numba.njit(inline="always", cache=True),
-    "stage_motion": numba.njit(cache=True),
-    "stage_driven": numba.njit(cache=True),
+    "stage_motion": numba.njit(error_model="numpy", cache=True),
+    "stage_driven": numba.njit(error_model="numpy", cache=True),
     "sphere_state": numba.njit(inline="always", cache=True),
-    "stage_spheres": numba.njit(parallel=True, cache=True),
-    "stage_spheres_sorted": numba.njit(parallel=True, cache=True),
-    "stage_spheres_busy": numba.njit(parallel=True, cache=True),
+    "stage_spheres": numba.njit(error_model="numpy", parallel=True, cache=True),
+    "stage_spheres_sorted": numba.njit(error_model="numpy", parallel=True, cache=True),
+    "stage_spheres_busy": numba.njit(error_model="numpy", parallel=True, cache=True),
     "wall_gap": numba.njit(inline="always", cache=True),
     "pair_ended": numba.njit(inline="always", cache=True),
     "patch_add": numba.njit(inline="always", cache=True),
-    "body_patches": numba.njit(cache=True),
+    "body_patches": numba.njit(error_model="numpy", cache=True),
     "patch_share": numba.njit(inline="always", cache=True),
     "pair_share": numba.njit(inline="always", cache=True),
-    "stage_patches": numba.njit(parallel=True, cache=True),
-    "pair_forces": numba.njit(cache=True),
-    "sphere_forces": numba.njit(cache=True),
-    "stage_contacts": numba.njit(parallel=True, cache=True),
-    "stage_sums": numba.njit(parallel=True, cache=True),
-    "bond_forces": numba.njit(cache=True),
+    "stage_patches": numba.njit(error_model="numpy", parallel=True, cache=True),
+    "pair_forces": numba.njit(error_model="numpy", cache=True),
+    "sphere_forces": numba.njit(error_model="numpy", cache=True),
+    "stage_contacts": numba.njit(error_model="numpy", parallel=True, cache=True),
+    "stage_sums": numba.njit(error_model="numpy", parallel=True, cache=True),
+    "bond_forces": numba.njit(error_model="numpy", cache=True),
     "bond_contacts": numba.njit(inline="always", cache=True),
-    "body_glue_sum": numba.njit(cache=True),
-    "stage_glue": numba.njit(parallel=True, cache=True),
-    "stage_glue_contacts": numba.njit(parallel=True, cache=True),
-    "stage_glue_bodies": numba.njit(parallel=True, cache=True),
-    "body_update": numba.njit(cache=True),
-    "stage_bodies": numba.njit(parallel=True, cache=True),
-    "run_steps": numba.njit(cache=True),
+    "body_glue_sum": numba.njit(error_model="numpy", cache=True),
+    "stage_glue": numba.njit(error_model="numpy", parallel=True, cache=True),
+    "stage_glue_contacts": numba.njit(error_model="numpy", parallel=True, cache=True),
+    "stage_glue_bodies": numba.njit(error_model="numpy", parallel=True, cache=True),
+    "body_update": numba.njit(error_model="numpy", cache=True),
+    "stage_bodies": numba.njit(error_model="numpy", parallel=True, cache=True),
+    "run_steps": numba.njit(error_model="numpy", cache=True),
 }
 _VARIANTS: dict = {}
 
