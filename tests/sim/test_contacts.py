@@ -17,6 +17,7 @@ from dempipe.sim import physics
 from dempipe.sim.laws import law
 from dempipe.sim.kernels.cpu import grid
 from dempipe.sim.kernels.cpu import stages as cpu
+from dempipe.sim.kernels.pairing import LIST_COLS
 from dempipe.sim.materials import Material
 from dempipe.sim.builder import ModelBuilder
 from dempipe.sim.simulator import Simulator
@@ -515,7 +516,7 @@ def test_packed_lists_grow_and_change_nothing():
 
     def room(be, give):
         if give:
-            be.list_e = np.zeros((16 * model.n_spheres, 2), dtype=np.int32)
+            be.list_e = np.zeros((16 * model.n_spheres, LIST_COLS), dtype=np.int32)
         return be.list_e.shape[0]
 
     runs, be, rows0 = three_ways(model, 100, room)

@@ -552,12 +552,15 @@ def sphere_forces(k0, k1, work, listed, cm, cs):
         near2 = d2
         e0, e1 = entry_range(LIST_ROWS, list_start, nbr_n, s)  # noqa: F821
         for e in range(e0, e1):
+            if LIST_ROWS and list_e[e, 2] == 0:  # noqa: F821 (body_patches' test, this step)
+                continue
             t = list_e[e, 0] if LIST_ROWS else nbr[s, e]  # noqa: F821
             rx = sorted_x[t, 0] - xi
             ry = sorted_x[t, 1] - yi
             rz = sorted_x[t, 2] - zi
             dist2 = rx * rx + ry * ry + rz * rz
-            if dist2 >= d2 and not pair_ended(  # touching, or in the step after
+            # touching, or in the step after (the CPU: body_patches' mark, above)
+            if not LIST_ROWS and dist2 >= d2 and not pair_ended(  # noqa: F821
                     dist2, d2, diameter, rx, ry, rz, sorted_v[t, 0] - vxi,
                     sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi, dt, onset_speed):
                 continue

@@ -23,7 +23,7 @@ import numpy as np
 from dempipe.errors import DeviceError
 from dempipe.sim.kernels.contacts import CONTACT_CHUNK
 from dempipe.sim.kernels.neighbours import NEIGHBOURS, cell_size
-from dempipe.sim.kernels.pairing import LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE
+from dempipe.sim.kernels.pairing import LIST_COLS, LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE
 from dempipe.sim.kernels.patches import BODY_PATCHES
 from dempipe.sim.state import CONTACT_SLOTS
 
@@ -124,8 +124,10 @@ def cpu_scratch(model, friction: bool) -> dict:
         "pidx": ((ns, NEIGHBOURS), i4), "pair_start": ((ns + 1,), i8),
         "pair_f": ((max(PAIRS_PER_SPHERE * ns, 1), PAIR_COLS), f8),
         "pair_t": ((max(PAIRS_PER_SPHERE * ns, 1),), i4),     # each row's partner
-        # the lists packed for the second pass (contacts.py LIST_ROWS)
-        "list_start": ((ns + 1,), i8), "list_e": ((max(LIST_PER_SPHERE * ns, 1), 2), i4),
+        # the lists packed for the second pass (contacts.py LIST_ROWS): partner slot,
+        # pair index, and whether the pair touches this step (patches.body_patches)
+        "list_start": ((ns + 1,), i8),
+        "list_e": ((max(LIST_PER_SPHERE * ns, 1), LIST_COLS), i4),
         "wall_mask": ((ns,), i8),                # walls within reach (contacts.py)
         # with friction, the walls' stretches while stepping (contacts.py WALL_ROWS):
         # an eighth of the spheres to start with (a pile in a box: 15 % touch a wall)
@@ -205,8 +207,11 @@ GENERAL = (True, True, True, True)
 #: WALL_ROWS: the walls' stretches in packed rows (wall_s) while stepping, so the
 #:   few spheres near a wall read consecutive memory (CPU); CUDA keeps them in the
 #:   history row.
-#: LIST_ROWS: the second pass walks packed (partner, pair) entries (list_e), 8 bytes
-#:   an entry instead of two 64-byte rows a sphere (CPU); CUDA walks the list.
+#: LIST_ROWS: the second pass walks packed (partner, pair, touching) entries (list_e),
+#:   12 bytes an entry instead of two 64-byte rows a sphere (CPU); CUDA walks the
+#:   list. The patches pass, which tests every entry first, marks the ones touching
+#:   (or in the step after) in the third column, so the second pass skips the rest
+#:   without reading where their partners are.
 #: The same pairs in the same order either way: the targets stay bit-identical.
 CPU_LAYOUT = dict(HIST_BY_SLOT=True, PAIR_ROWS=True, WALL_ROWS=True, LIST_ROWS=True)
 CUDA_LAYOUT = dict(HIST_BY_SLOT=False, PAIR_ROWS=False, WALL_ROWS=False, LIST_ROWS=False)

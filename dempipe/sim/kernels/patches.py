@@ -88,7 +88,14 @@ def body_patches(b, k0, k1, work, listed, cm, cs, motion_now, body_sphere_start,
     or a wall, stage_busy's, in slot order, which is the body's sphere order:
     stage_grid_sort), else every one (``work`` unread; CUDA).
     cm, cs, motion_now: as pair_forces; body_sphere_start: the body's spheres;
-    slot_of: each sphere's sorted slot."""
+    slot_of: each sphere's sorted slot.
+
+    With LIST_ROWS (the CPU) each list entry tested is marked in list_e[e, 2]: 1 when
+    the pair touches or is in the step after it ends, else 0 (pairing.LIST_COLS). The
+    test is sphere_forces' own, on the same positions from the same side, so its
+    pass over the same slots reads the mark instead of the partner's position. An
+    entry the sleeping rule skips keeps its old mark: its slot is asleep, and
+    sphere_forces does not walk a sleeping slot's list."""
     diameter = cm.diameter
     dt = cm.dt
     onset_speed = cm.onset_speed
@@ -157,7 +164,11 @@ def body_patches(b, k0, k1, work, listed, cm, cs, motion_now, body_sphere_start,
                 dist = sqrt(dist2)  # noqa: F821 (the overlap of the step before)
                 ov = diameter - dist + (dvx * rx + dvy * ry + dvz * rz) / dist * dt
             else:
+                if LIST_ROWS:  # noqa: F821
+                    list_e[e, 2] = 0
                 continue
+            if LIST_ROWS:  # noqa: F821
+                list_e[e, 2] = 1            # touching, or in the step after: sphere_forces'
             if bj != last:
                 if last >= 0:
                     patch_add(row, slots, last, r1, r2)  # noqa: F821

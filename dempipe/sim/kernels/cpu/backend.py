@@ -43,7 +43,7 @@ from dempipe.sim.kernels.layout import (
     step_model,
 )
 from dempipe.sim.kernels.neighbours import SKIN, cell_size, skin_range
-from dempipe.sim.kernels.pairing import PAIR_COLS
+from dempipe.sim.kernels.pairing import LIST_COLS, PAIR_COLS
 
 
 class CpuBackend:
@@ -157,7 +157,7 @@ class CpuBackend:
             return
         entries = int(self.list_start[-1])
         if entries > self.list_e.shape[0]:
-            self.list_e = np.zeros((entries + entries // 2, 2), dtype=np.int32)
+            self.list_e = np.zeros((entries + entries // 2, LIST_COLS), dtype=np.int32)
         walls = int(self.wall_start[-1])
         if walls > self.wall_s.shape[0]:
             self.wall_s = np.zeros((walls + walls // 2, 4))
