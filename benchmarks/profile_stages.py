@@ -137,7 +137,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                           m.body_inv_mass, b.built_x, b.nbr, b.nbr_n,
                                           b.drive.body_start, s, b.sphere_hash)
                      or cpu.stage_pairs(b.nbr, b.nbr_n, b.sorted_idx, b.sorted_body,
-                                        m.body_inv_mass, b.pair_start, b._pidx(), b.pair_t,
+                                        m.body_inv_mass, b.pair_start, b._pidx(), b.pair_e,
                                         b.pair_f.shape[0], b.list_start, b.list_e)
                      or cpu.stage_wall_reach(m.diameter, SKIN, b.sorted_x, m.wall_normal,
                                              m.wall_offset, m.wall_lo, m.wall_hi,

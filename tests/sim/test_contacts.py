@@ -227,7 +227,8 @@ def test_pair_indices_pair_each_entry_with_its_owner(case):
             t, p = be.nbr[s, e], be.pidx[s, e]
             if inv[body[t]] == 0.0 or idx[s] < idx[t]:      # s owns the pair
                 assert be.pair_start[s] <= p < be.pair_start[s + 1], name
-                assert be.pair_t[p] == t, name               # the row knows its partner
+                assert be.list_e[be.pair_e[p], 0] == t, name  # the row knows its partner
+                assert be.list_start[s] <= be.pair_e[p] < be.list_start[s + 1], name
                 rows.append(p)
             else:                                            # t owns it: t lists s
                 back = list(be.nbr[t, : be.nbr_n[t]]).index(s)

@@ -52,8 +52,8 @@ Written once, compiled for each target with that target's formulas and flags
 ROTATION, SLEEPING, WALLS as in kernels/cpu/stages.py, HIST_BY_SLOT: the history
 rows are in sorted-slot order (the CPU, within a call) or in sphere order (CUDA),
 PAIR_ROWS: the first pass walks each slot's own rows pair_start[s] ..
-pair_start[s + 1] - 1 with their partners in ``pair_t`` (the CPU's packed rows),
-rather than the whole list, skipping the entries the partner owns (CUDA), and
+pair_start[s + 1] - 1, row p's entry of the packed list (partner slot, touch
+mark) at ``pair_e[p]`` (the CPU's packed rows), rather than the whole list, skipping the entries the partner owns (CUDA), and
 WALL_ROWS: while stepping, the stretch of the wall at column j of slot s's
 history row lives in row wall_start[s] + j of ``wall_s`` (the CPU's packed wall
 rows, filled and emptied at each rebuild by kernels/cpu/stages.py), rather than in the
@@ -153,7 +153,9 @@ def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
     (body_wake): a sleeper wakes, an awake body's rest count stays 0. A moving
     wall is given in its anchor frame; its surface velocity V + W × (y − P) at the
     contact point y enters the dashpot and friction.
-    pair_start, pair_t: slot s's rows and their partners' slots (PAIR_ROWS);
+    pair_start, pair_e: slot s's rows and each row's entry of list_e, whose partner
+    slot it reads, and whose mark (patches.body_patches, this step) says whether
+    the pair touches (PAIR_ROWS, with LIST_ROWS);
     wall_start, wall_s: its walls' packed rows, (stretch [m], 1 + parity or 0)
     (WALL_ROWS); unread otherwise.
 
@@ -163,7 +165,7 @@ def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
     (diameter, dt, onset_speed, body_inv_mass, body_material, pair_k, pair_damp, pair_mu,
      kt_ratio, ks_ratio, friction, sleep_steps, wall_normal, wall_offset, wall_lo, wall_hi,
      wall_depth, wall_material, wall_motion, rolling, pair_rolling, body_inv_radius) = cm
-    (nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s, _list_start, _list_e,
+    (nbr, nbr_n, pidx, pair_start, pair_e, wall_start, wall_s, _list_start, list_e,
      sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest, body_wake, wall_mask,
      hist_partner, hist_spring, pair_f, wall_f, _sphere_f, _sphere_t, _sphere_tr,
      _sphere_overlap, body_patch) = cs
@@ -199,9 +201,11 @@ def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
         kept = 0                            # pairs that remember a stretch after this step
         e0, e1 = entry_range(PAIR_ROWS, pair_start, nbr_n, s)  # noqa: F821
         for e in range(e0, e1):
+            on = True                       # PAIR_ROWS: the mark says
             if PAIR_ROWS:  # noqa: F821
                 p = e
-                t = pair_t[e]
+                t = list_e[pair_e[e], 0]
+                on = list_e[pair_e[e], 2] != 0
             else:
                 p = pidx[s, e]
                 if p < 0:
@@ -215,15 +219,19 @@ def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
                     if FRICTION and friction and pair_f[p, 9] != 0.0:  # noqa: F821
                         kept += 1
                     continue                # neither feels it: both keep their state
+            if not on:                      # apart (body_patches' test, this step)
+                if FRICTION and friction:  # noqa: F821
+                    pair_f[p, 9] = 0.0      # not touching: the contact ends, its stretch goes
+                continue
             rx = sorted_x[t, 0] - xi
             ry = sorted_x[t, 1] - yi
             rz = sorted_x[t, 2] - zi
             dist2 = rx * rx + ry * ry + rz * rz
-            if dist2 >= d2 and not pair_ended(
+            if not PAIR_ROWS and dist2 >= d2 and not pair_ended(  # noqa: F821
                     dist2, d2, diameter, rx, ry, rz, sorted_v[t, 0] - vxi,
                     sorted_v[t, 1] - vyi, sorted_v[t, 2] - vzi, dt, onset_speed):
                 if FRICTION and friction:  # noqa: F821
-                    pair_f[p, 9] = 0.0      # not touching: the contact ends, its stretch goes
+                    pair_f[p, 9] = 0.0
                 continue
             if SLEEPING and sleep_steps > 0:  # noqa: F821
                 # a moving body touches a sleeper (the same value from any thread)
@@ -500,7 +508,7 @@ def sphere_forces(k0, k1, work, listed, cm, cs):
     body_material = cm.body_material
     pair_rolling = cm.pair_rolling
     body_inv_radius = cm.body_inv_radius
-    (nbr, nbr_n, pidx, _pair_start, _pair_t, _wall_start, _wall_s, list_start, list_e,
+    (nbr, nbr_n, pidx, _pair_start, _pair_e, _wall_start, _wall_s, list_start, list_e,
      sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest, _body_wake, wall_mask,
      _hist_partner, _hist_spring, pair_f, wall_f, sphere_f, sphere_t, sphere_tr,
      sphere_overlap, _body_patch) = cs

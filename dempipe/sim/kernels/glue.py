@@ -105,13 +105,14 @@ def bond_forces(n, gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w, bod
 
 
 def bond_contacts(n, gm, gs, slot_of, sorted_body, body_inv_mass, pair_start,
-                  pair_t, nbr, nbr_n, pidx, pair_f):
+                  pair_e, list_e, nbr, nbr_n, pidx, pair_f):
     """Pass 2 for bond n: while it holds, the contact rows of its sphere pairs are
     zeroed (force, torque, friction stretch), so that the second contact pass sums
     nothing for them. The owner's rows are found as the first pass walks them
     (contacts.py PAIR_ROWS): the CPU's packed rows pair_start[s] .. with their
-    partners in pair_t, or (CUDA) the owner's list nbr[s, :nbr_n[s]] with its rows
-    in pidx (the partner's entries, pidx < 0, skipped)."""
+    partners in their packed list entries (list_e[pair_e[row], 0]), or (CUDA) the
+    owner's list nbr[s, :nbr_n[s]] with its rows in pidx (the partner's entries,
+    pidx < 0, skipped)."""
     (pair_i, pair_j, _pair_rest, bond_start, _bond_body, _bond_k, _bond_eta, _bond_limit,
      _body_bond_start, _body_bond) = gm
     bond_broken = gs.bond_broken
@@ -126,7 +127,7 @@ def bond_contacts(n, gm, gs, slot_of, sorted_body, body_inv_mass, pair_start,
         for e in range(e0, e1):
             if PAIR_ROWS:  # noqa: F821
                 row = e
-                u = pair_t[e]
+                u = list_e[pair_e[e], 0]
             else:
                 row = pidx[s, e]
                 u = nbr[s, e]

@@ -123,7 +123,7 @@ def cpu_scratch(model, friction: bool) -> dict:
         # each contact computed once (contacts.py): pair indices, rows of pair forces
         "pidx": ((ns, NEIGHBOURS), i4), "pair_start": ((ns + 1,), i8),
         "pair_f": ((max(PAIRS_PER_SPHERE * ns, 1), PAIR_COLS), f8),
-        "pair_t": ((max(PAIRS_PER_SPHERE * ns, 1),), i4),     # each row's partner
+        "pair_e": ((max(PAIRS_PER_SPHERE * ns, 1),), i4),     # each row's list entry
         # the lists packed for the second pass (contacts.py LIST_ROWS): partner slot,
         # pair index, and whether the pair touches this step (patches.body_patches)
         "list_start": ((ns + 1,), i8),
@@ -202,15 +202,16 @@ GENERAL = (True, True, True, True)
 #:   (the CPU re-sorts them at each rebuild: its passes then read them in slot
 #:   order); CUDA keeps them in sphere order (its threads read any row anyway).
 #: PAIR_ROWS: the first pass walks each slot's own pairs as a run of packed rows
-#:   (pair_start, pair_t) instead of its list: 128 bytes a sphere less to read on a
-#:   CPU core's cache; CUDA walks the list (one thread per slot, no scan needed).
+#:   (pair_start, pair_e: each row's entry of list_e) instead of its list: 128 bytes
+#:   a sphere less to read on a CPU core's cache; CUDA walks the list (one thread per
+#:   slot, no scan needed).
 #: WALL_ROWS: the walls' stretches in packed rows (wall_s) while stepping, so the
 #:   few spheres near a wall read consecutive memory (CPU); CUDA keeps them in the
 #:   history row.
 #: LIST_ROWS: the second pass walks packed (partner, pair, touching) entries (list_e),
 #:   12 bytes an entry instead of two 64-byte rows a sphere (CPU); CUDA walks the
 #:   list. The patches pass, which tests every entry first, marks the ones touching
-#:   (or in the step after) in the third column, so the second pass skips the rest
+#:   (or in the step after) in the third column, so both later passes skip the rest
 #:   without reading where their partners are.
 #: The same pairs in the same order either way: the targets stay bit-identical.
 CPU_LAYOUT = dict(HIST_BY_SLOT=True, PAIR_ROWS=True, WALL_ROWS=True, LIST_ROWS=True)
@@ -360,7 +361,7 @@ class Scratch(NamedTuple):
     nbr_n: Any
     pidx: Any
     pair_start: Any
-    pair_t: Any
+    pair_e: Any
     pair_f: Any
     list_start: Any
     list_e: Any
@@ -425,7 +426,7 @@ class ContactModel(NamedTuple):
 class ContactScratch(NamedTuple):
     """The arrays the contact passes read and write, in sorted-slot order: the
     lists and pair indices (nbr, nbr_n, pidx), the CPU's packed rows (pair_start,
-    pair_t, wall_start, wall_s, list_start, list_e: contacts.py PAIR_ROWS,
+    pair_e, wall_start, wall_s, list_start, list_e: contacts.py PAIR_ROWS,
     WALL_ROWS, LIST_ROWS; CUDA passes stand-ins of the same kinds, unread), the
     slots' spheres (sorted_idx, sorted_x [m], sorted_v [m/s], sorted_body), the
     bodies' spin body_w [rad/s] and rest counts, the wake flags, the walls in
@@ -437,7 +438,7 @@ class ContactScratch(NamedTuple):
     nbr_n: Any
     pidx: Any
     pair_start: Any
-    pair_t: Any
+    pair_e: Any
     wall_start: Any
     wall_s: Any
     list_start: Any

@@ -35,7 +35,8 @@ LIST_PER_SPHERE = 4
 
 #: Columns of a packed list entry (list_e, the CPU's): the partner slot, the pair
 #: index (as pidx), and 1 when the pair touches this step or is in the step after
-#: (pair_ended), else 0: written by patches.body_patches, read by sphere_forces.
+#: (pair_ended), else 0: written by patches.body_patches, read by pair_forces
+#: (through pair_e) and sphere_forces.
 LIST_COLS = 3
 
 #: Walls a slot's bit mask can name (wall_reach); with more, every slot checks every wall.

@@ -92,10 +92,11 @@ def body_patches(b, k0, k1, work, listed, cm, cs, motion_now, body_sphere_start,
 
     With LIST_ROWS (the CPU) each list entry tested is marked in list_e[e, 2]: 1 when
     the pair touches or is in the step after it ends, else 0 (pairing.LIST_COLS). The
-    test is sphere_forces' own, on the same positions from the same side, so its
-    pass over the same slots reads the mark instead of the partner's position. An
-    entry the sleeping rule skips keeps its old mark: its slot is asleep, and
-    sphere_forces does not walk a sleeping slot's list."""
+    test is pair_forces' and sphere_forces' own, on the same positions from the same
+    side, so their passes over the same slots read the mark instead of the partner's
+    position. An entry the sleeping rule skips keeps its old mark: its slot is
+    asleep, sphere_forces does not walk a sleeping slot's list, and pair_forces
+    applies the same rule before it reads the mark."""
     diameter = cm.diameter
     dt = cm.dt
     onset_speed = cm.onset_speed
@@ -168,7 +169,7 @@ def body_patches(b, k0, k1, work, listed, cm, cs, motion_now, body_sphere_start,
                     list_e[e, 2] = 0
                 continue
             if LIST_ROWS:  # noqa: F821
-                list_e[e, 2] = 1            # touching, or in the step after: sphere_forces'
+                list_e[e, 2] = 1            # touching, or in the step after (LIST_COLS)
             if bj != last:
                 if last >= 0:
                     patch_add(row, slots, last, r1, r2)  # noqa: F821

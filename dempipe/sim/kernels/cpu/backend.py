@@ -164,7 +164,7 @@ class CpuBackend:
         pairs = int(self.pair_start[-1])
         if pairs > self.pair_f.shape[0]:
             self.pair_f = np.zeros((pairs + pairs // 2, PAIR_COLS))
-            self.pair_t = np.zeros(self.pair_f.shape[0], dtype=np.int32)
+            self.pair_e = np.zeros(self.pair_f.shape[0], dtype=np.int32)
 
     def _pidx(self):
         """The pair indices, shaped as the lists (which grow, or a test replaces)."""
@@ -217,7 +217,7 @@ class CpuBackend:
                                 m.body_inv_mass, self.built_x, self.nbr, self.nbr_n,
                                 self.drive.body_start, int(state.step), self.sphere_hash) > 0
                or stage_pairs(self.nbr, self.nbr_n, self.sorted_idx, self.sorted_body,
-                              m.body_inv_mass, self.pair_start, self._pidx(), self.pair_t,
+                              m.body_inv_mass, self.pair_start, self._pidx(), self.pair_e,
                               self.pair_f.shape[0], self.list_start, self.list_e) > 0
                or stage_wall_reach(m.diameter, SKIN, self.sorted_x, m.wall_normal,
                                    m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth,

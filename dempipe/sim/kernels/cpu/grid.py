@@ -283,14 +283,15 @@ def stage_neighbours(diameter, skin, grid, bucket_start, grid_idx, grid_x, grid_
 
 
 @numba.njit(error_model="numpy", parallel=True, cache=True)
-def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, pidx, pair_t,
+def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, pidx, pair_e,
                 rows, list_start, list_e):
     """At a rebuild, after stage_neighbours: each list entry's pair index
     (contacts.py). The pairs a slot owns get consecutive rows of pair_f, slot
     after slot: pair_start[s] is slot s's first (a prefix sum of the owners'
-    counts, serial: a fixed order), and pair_t[p] is row p's partner slot.
+    counts, serial: a fixed order), and pair_e[p] is row p's entry of its owner's
+    packed list (below), which holds its partner slot.
     Returns 0, or the rows needed when that is more than ``rows`` (pair_start
-    has the counts; the caller grows pair_f and pair_t). Then each slot's list
+    has the counts; the caller grows pair_f and pair_e). Then each slot's list
     entries packed, (partner slot, pair index), into list_e[list_start[s] ..]
     (contacts.py LIST_ROWS; a serial prefix sum), or a return of the rows needed
     when list_e is too short."""
@@ -304,16 +305,16 @@ def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, 
         return pair_start[n]
     for s in prange(n):
         pair_slots(s, pair_start[s], nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
-    for s in prange(n):
-        pair_mirror(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
-        for e in range(nbr_n[s]):        # (pair_mirror has set every entry of s's row)
-            if pidx[s, e] >= 0:
-                pair_t[pidx[s, e]] = nbr[s, e]
     list_start[0] = 0
     for s in range(n):
         list_start[s + 1] = list_start[s] + nbr_n[s]
     if list_start[n] > list_e.shape[0]:
         return list_start[n]
+    for s in prange(n):
+        pair_mirror(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
+        for e in range(nbr_n[s]):        # (pair_mirror has set every entry of s's row)
+            if pidx[s, e] >= 0:
+                pair_e[pidx[s, e]] = list_start[s] + e
     for s in prange(n):
         q = list_start[s]
         for e in range(nbr_n[s]):

@@ -280,12 +280,12 @@ def stage_glue(gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w, body_in
     return broke
 
 
-def stage_glue_contacts(gm, gs, slot_of, sorted_body, body_inv_mass, pair_start, pair_t,
-                        nbr, nbr_n, pidx, pair_f):
+def stage_glue_contacts(gm, gs, slot_of, sorted_body, body_inv_mass, pair_start, pair_e,
+                        list_e, nbr, nbr_n, pidx, pair_f):
     """A holding bond's sphere pairs are not also contacts (glue.bond_contacts)."""
     for n in prange(gm.bond_body.shape[0]):
         bond_contacts(n, gm, gs, slot_of, sorted_body, body_inv_mass, pair_start,  # noqa: F821
-                      pair_t, nbr, nbr_n, pidx, pair_f)
+                      pair_e, list_e, nbr, nbr_n, pidx, pair_f)
 
 
 def stage_glue_bodies(n_bodies, gm, gs, sphere_body, sphere_r):
@@ -402,7 +402,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
      body_reach, body_box, offset_t, body_v, body_w, sphere_x, sphere_v,
      sphere_r, sphere_key, sphere_hash, bucket_start, bucket_fill, body_key, grid_slot,
      sorted_idx, slot_of, sorted_x, sorted_v, sorted_body, grid_idx, grid_x, grid_key,
-     grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_t, pair_f, list_start, list_e,
+     grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_e, pair_f, list_start, list_e,
      wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_tr, sphere_overlap,
      body_patch, skin_ctl, chunk_n, busy, active, span_ctl, slot_mark, state_rows, busy_from,
      active_from) = scratch
@@ -411,7 +411,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
                       pair_damp, pair_mu, kt_ratio, ks_ratio, friction, sleep_steps,
                       wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
                       drive.wall_motion, rolling, pair_rolling, body_inv_radius)
-    cs = ContactScratch(nbr, nbr_n, pidx, pair_start, pair_t, wall_start, wall_s, list_start,
+    cs = ContactScratch(nbr, nbr_n, pidx, pair_start, pair_e, wall_start, wall_s, list_start,
                         list_e, sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest,
                         body_wake, wall_mask, hist_partner, hist_spring, pair_f, wall_f,
                         sphere_f, sphere_t, sphere_tr, sphere_overlap, body_patch)
@@ -552,7 +552,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
                                         body_start, step, sphere_hash)
             if over > 0 or \
                     stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
-                                pair_start, pidx, pair_t, pair_f.shape[0], list_start,
+                                pair_start, pidx, pair_e, pair_f.shape[0], list_start,
                                 list_e) > 0 or \
                     (WALLS and stage_wall_reach(diameter, skin, built_x, wall_normal,
                                                 wall_offset, wall_lo, wall_hi, wall_depth,
@@ -598,7 +598,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
             stage_glue(gm, gs, sphere_body, slot_of, sorted_x, sorted_v, body_w,
                        body_inv_mass, body_rest, body_wake, sleep_steps, dt)
             stage_glue_contacts(gm, gs, slot_of, sorted_body, body_inv_mass, pair_start,
-                                pair_t, nbr, nbr_n, pidx, pair_f)
+                                pair_e, list_e, nbr, nbr_n, pidx, pair_f)
         stage_sums(cm, cs, work, n_work)
         if GLUE:
             stage_glue_bodies(n_bodies, gm, gs, sphere_body, sphere_r)

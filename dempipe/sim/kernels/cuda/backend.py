@@ -518,7 +518,7 @@ class CudaBackend:
         # of the same array kinds, unread, so that the kernels type either way
         cs = ContactScratch(
             nbr=d["nbr"], nbr_n=d["nbr_n"], pidx=d["pidx"], pair_start=d["nbr_n"],
-            pair_t=d["nbr_n"], wall_start=d["nbr_n"], wall_s=d["pair_f"],
+            pair_e=d["nbr_n"], wall_start=d["nbr_n"], wall_s=d["pair_f"],
             list_start=d["nbr_n"], list_e=d["nbr"], sorted_idx=d["sorted_idx"],
             sorted_x=d["sorted_x"], sorted_v=d["sorted_v"], sorted_body=d["sorted_body"],
             body_w=d["body_w"], body_rest=d["body_rest"],

@@ -154,9 +154,9 @@ def k_bond_contacts(gm, gs, slot_of, sorted_body, body_inv_mass, nbr, nbr_n, pid
     n = cuda.grid(1)
     if n >= gm.bond_body.shape[0] or ctl[CTL_OVER] != 0 or ctl[CTL_IDLE] != 0:
         return
-    # the CPU's packed rows (PAIR_ROWS is off here): nbr_n stands in, unread
-    bond_contacts(n, gm, gs, slot_of, sorted_body, body_inv_mass, nbr_n, nbr_n, nbr, nbr_n,
-                  pidx, pair_f)
+    # the CPU's packed rows (PAIR_ROWS is off here): nbr_n and nbr stand in, unread
+    bond_contacts(n, gm, gs, slot_of, sorted_body, body_inv_mass, nbr_n, nbr_n, nbr, nbr,
+                  nbr_n, pidx, pair_f)
 
 
 @cuda.jit
