@@ -37,8 +37,11 @@ SKIN = 0.2
 #: landing: the rebuilds cost more than walking longer lists), up to SKIN_MAX; and
 #: shrinks by SKIN_STEP, down to SKIN, at any rebuild more than SKIN_SHRINK_ABOVE
 #: steps after the last (a pile coming to rest: walking the lists is the cost; a
-#: wide skin that no move forces a rebuild of is rebuilt then, to shrink). Measured on
-#: the quickstart, the dense pile and the chess scene: docs/performance.md.
+#: wide skin that no move forces a rebuild of is rebuilt then, to shrink), and at a
+#: rebuild that few bodies force SKIN_GROW_BELOW steps or more after the last
+#: (shrink_skin; kernels/cpu/stages.py run_steps: a pile where a few pieces still
+#: roll, whose rebuilds keep the slots). Measured on the quickstart, the dense pile
+#: and the chess scene: docs/performance.md.
 SKIN_MAX = 0.6
 SKIN_STEP = 0.1
 SKIN_GROW_BELOW = 20
@@ -92,6 +95,11 @@ def adapt_skin(skin, since, skin_min, skin_max, moved):
     if moved and since < SKIN_GROW_BELOW:
         return min(skin_max, skin + SKIN_STEP)
     return skin
+
+
+def shrink_skin(skin, skin_min):
+    """The skin one SKIN_STEP narrower, down to exactly skin_min."""
+    return skin_min if skin - SKIN_STEP < skin_min + 0.5 * SKIN_STEP else skin - SKIN_STEP
 
 
 def skin_range(model) -> tuple[float, float]:

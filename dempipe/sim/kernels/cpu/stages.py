@@ -25,7 +25,8 @@ from dempipe.sim.kernels.layout import (
 from dempipe.sim.kernels.contacts import CONTACT_CHUNK
 from dempipe.sim.kernels.neighbours import SKIN_SHRINK_ABOVE
 from dempipe.sim.kernels.cpu.broadphase import stage_near_others
-from dempipe.sim.kernels.cpu.device import adapt_skin, static_body
+from dempipe.sim.kernels.cpu.device import adapt_skin, shrink_skin, static_body
+from dempipe.sim.kernels.neighbours import SKIN_GROW_BELOW
 from dempipe.sim.kernels.cpu.spheres import (
     listed_end, sphere_state, stage_body_velocities, stage_driven, stage_listed_from,
     stage_motion, stage_note_built, stage_spheres, stage_spheres_busy, stage_spheres_sorted)
@@ -99,9 +100,10 @@ SEARCH_GAP = 8
 
 #: A rebuild forced by spheres moving keeps the slots, and searches again only the
 #: lists that can have changed, when at most this share of the spheres moved since
-#: the lists were built (and the skin stays, and no static sphere moved): a pile
-#: settling but for a few bodies then pays for their lists, not for every sphere's
-#: (stage_slot_marks). Above it the slots are sorted again as at any rebuild.
+#: the lists were built (and no static sphere moved, and the skin need not narrow:
+#: run_steps): a pile settling but for a few bodies then pays for their lists, not
+#: for every sphere's (stage_slot_marks). Above it the slots are sorted again as at
+#: any rebuild.
 KEEP_SLOTS_SHARE = 0.25
 
 #: At a rebuild that keeps the slots, a body's lists are searched again when one of
@@ -357,8 +359,12 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
 
     A rebuild forced by a move keeps the slots (span_ctl[2] counts those) when at
     most keep_share of the spheres belong to bodies that moved keep_move × half the
-    skin since their lists were built, the skin stays and no static sphere moved:
-    then only those bodies' lists are searched again, from where they are now
+    skin since their lists were built and no static sphere moved ("few"), and the
+    skin is the smallest or the rebuild came fewer than SKIN_GROW_BELOW steps after
+    the last; a rebuild that few bodies force later than that, with a wider skin,
+    sorts every slot again at a skin one step narrower (neighbours.shrink_skin):
+    where few bodies move, kept rebuilds are cheap and a wide skin only adds listed
+    pairs to every step. When keeping, only those bodies' lists are searched again, from where they are now
     (stage_slot_marks), then the lists that held one of their spheres, then the
     lists their new lists reach (stage_mark_partners), each from where it was
     built. Every list then holds each sphere whose build position (built_x) is
@@ -468,20 +474,24 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
             if not rebuild and skin > skin_ctl[4] and since > SKIN_SHRINK_ABOVE:
                 rebuild = True                  # at rest with a wide skin: shrink it
         keep = False
-        if rebuild and moved and keep_share > 0.0 and kept_run < KEEP_SLOTS_RUN and \
-                adapt_skin(skin, since, skin_ctl[4], skin_ctl[2], moved) == skin:
+        few = False
+        if rebuild and moved and keep_share > 0.0 and kept_run < KEEP_SLOTS_RUN:
             stage_spheres_sorted(slot_of, sphere_body, sphere_offset, body_x, body_q, body_v,
                                  body_w, dt, sorted_x, sorted_v, sphere_r)
             n_moved, n_static_moved = stage_slot_marks(
                 body_sphere_start, slot_of, sorted_x, built_x, body_inv_mass, nbr, nbr_n,
                 (keep_move * half_skin) ** 2, slot_mark)
-            keep = n_static_moved == 0 and n_moved <= keep_share * n_slots
+            few = n_static_moved == 0 and n_moved <= keep_share * n_slots
+            keep = few and (skin <= skin_ctl[4] or since < SKIN_GROW_BELOW)
         if rebuild:
             if keep:
                 kept_run += 1
             else:
                 kept_run = 0
-                skin = adapt_skin(skin, since, skin_ctl[4], skin_ctl[2], moved)  # this build's
+                if few:
+                    skin = shrink_skin(skin, skin_ctl[4])
+                else:
+                    skin = adapt_skin(skin, since, skin_ctl[4], skin_ctl[2], moved)
                 inv_cell = 1.0 / ((1.0 + skin) * diameter)
                 half_skin = 0.5 * skin * diameter
             since = 0.0
