@@ -36,3 +36,25 @@ def ball_set(d):
                                notes=())
     mesh = types.SimpleNamespace(vertices=np.zeros((3, 3)), faces=np.array([[0, 1, 2]]))
     return ss, mesh
+
+
+def slider_past_drifting_row(d, n_row, gap, speed, n_frames):
+    """The Model of a pile where few bodies move: n_row boxes of 2 × 2 × 2 spheres of
+    diameter d [m], 0.022 m apart along x, drifting at 1-3 mm/s on a frictionless
+    floor, and one frictionless box (the last body) sliding along x at ``speed``
+    [m/s] from x = -0.05 m, (2 + gap) d from the row's centre line (gap 0.1: inside
+    the lists' reach, never touching; below 0: scraping the row). 24 fps."""
+    from dempipe.sim.builder import ModelBuilder
+    from dempipe.sim.materials import Material
+
+    b = ModelBuilder(d)
+    ss, mesh = box_set(2, 2, 2, d)
+    s = b.add_shape("box", mesh, ss)
+    wood = b.add_material(Material("wood", density=700, restitution=0.3, friction=0.5))
+    ice = b.add_material(Material("ice", density=700, restitution=0.3, friction=0.0))
+    b.add_bodies("row", s, wood, [[0.022 * i, 0.0, d] for i in range(n_row)],
+                 velocities=[[0.002 * (1 + i % 3), 0.001 * (i % 2), 0.0]
+                             for i in range(n_row)])
+    b.add_bodies("slider", s, ice, [[-0.05, (2 + gap) * d, d]], velocities=[[speed, 0.0, 0.0]])
+    b.add_plane([0, 0, 0], [0, 0, 1], ice)
+    return b.finalize(fps=24, n_frames=n_frames)

@@ -8,7 +8,7 @@ pair farther apart than d adds nothing). Both are asserted exactly here.
 
 import numpy as np
 
-from bodies import ball_set, box_set
+from bodies import ball_set, box_set, slider_past_drifting_row
 from dempipe.sim.kernels.neighbours import SKIN, SKIN_MAX, adapt_skin, cell_size
 from dempipe.sim.materials import Material
 from dempipe.sim.builder import ModelBuilder
@@ -286,16 +286,7 @@ def test_rebuilds_a_few_fast_bodies_force_narrow_the_skin_and_then_keep_the_slot
     # last, narrows the skin by a step, down to the smallest, and from there keeps
     # the slots. Started at the widest skin, it ends at the smallest with most
     # rebuilds kept, and the State is the same bit for bit as with the skin held.
-    b = ModelBuilder(D)
-    ss, mesh = box_set(2, 2, 2, D)
-    s = b.add_shape("box", mesh, ss)
-    wood = b.add_material(Material("wood", density=700, restitution=0.3, friction=0.5))
-    ice = b.add_material(Material("ice", density=700, restitution=0.3, friction=0.0))
-    b.add_bodies("row", s, wood, [[0.022 * i, 0.0, D] for i in range(20)],
-                 velocities=[[0.002 * (1 + i % 3), 0.001 * (i % 2), 0.0] for i in range(20)])
-    b.add_bodies("slider", s, ice, [[-0.05, 2.1 * D, D]], velocities=[[2.0, 0.0, 0.0]])
-    b.add_plane([0, 0, 0], [0, 0, 1], ice)
-    model = b.finalize(fps=24, n_frames=6)
+    model = slider_past_drifting_row(D, 20, 0.1, 2.0, 6)
     wide, held = Simulator(model).backend, Simulator(model).backend
     wide.skin_ctl[0] = SKIN_MAX
     held.skin_ctl[2] = SKIN

@@ -4,7 +4,7 @@ moving body touches them."""
 import numpy as np
 import pytest
 
-from bodies import ball_set, box_set
+from bodies import ball_set, box_set, slider_past_drifting_row
 from dempipe.sim.materials import Material
 from dempipe.sim.motion import Key, Motion
 from dempipe.sim.builder import ModelBuilder
@@ -241,16 +241,7 @@ def test_rebuilds_that_keep_most_lists_where_they_were_built_change_nothing(gap)
     # are, and the others keep their lists and where they built them. Against
     # rebuilds that sort every slot again (keep_share 0), the same State bit for
     # bit at every frame, and every touching pair listed.
-    b = ModelBuilder(D)
-    ss, mesh = box_set(2, 2, 2, D)
-    s = b.add_shape("box", mesh, ss)
-    wood = b.add_material(Material("wood", density=700, restitution=0.3, friction=0.5))
-    ice = b.add_material(Material("ice", density=700, restitution=0.3, friction=0.0))
-    b.add_bodies("row", s, wood, [[0.022 * i, 0.0, D] for i in range(8)],
-                 velocities=[[0.002 * (1 + i % 3), 0.001 * (i % 2), 0.0] for i in range(8)])
-    b.add_bodies("slider", s, ice, [[-0.05, (2 + gap) * D, D]], velocities=[[0.5, 0.0, 0.0]])
-    b.add_plane([0, 0, 0], [0, 0, 1], ice)
-    model = b.finalize(fps=24, n_frames=17)
+    model = slider_past_drifting_row(D, 8, gap, 0.5, 17)
     keep, anymove, never = (Simulator(model).backend for _ in range(3))
     anymove.keep_move = 0.0
     never.keep_share = 0.0
