@@ -23,10 +23,9 @@ from dempipe.sim.kernels.compile import compile_formulas, invalidate_stale_cache
 from dempipe.sim.kernels.layout import (
     FLAGS, BodyModel, BodyScratch, ContactModel, ContactScratch)
 from dempipe.sim.kernels.contacts import CONTACT_CHUNK
-from dempipe.sim.kernels.neighbours import SKIN_SHRINK_ABOVE
+from dempipe.sim.kernels.neighbours import SKIN_GROW_BELOW, SKIN_SHRINK_ABOVE
 from dempipe.sim.kernels.cpu.broadphase import stage_near_others
 from dempipe.sim.kernels.cpu.device import adapt_skin, shrink_skin, static_body
-from dempipe.sim.kernels.neighbours import SKIN_GROW_BELOW
 from dempipe.sim.kernels.cpu.spheres import (
     listed_end, sphere_state, stage_body_velocities, stage_driven, stage_listed_from,
     stage_motion, stage_note_built, stage_spheres, stage_spheres_busy, stage_spheres_sorted)
