@@ -81,6 +81,13 @@ def cell_size(diameter: float) -> float:
     return (1.0 + SKIN) * diameter
 
 
+def shrink_skin(skin, skin_min):
+    """The skin one SKIN_STEP narrower, down to exactly skin_min (0.2 + 0.1 - 0.1 is
+    0.20000000000000004 in floating point, which would keep asking run_steps for a
+    rebuild to shrink)."""
+    return skin_min if skin - SKIN_STEP < skin_min + 0.5 * SKIN_STEP else skin - SKIN_STEP
+
+
 def adapt_skin(skin, since, skin_min, skin_max, moved):
     """The skin [diameters] for a rebuild ``since`` steps after the last one, forced
     by a sphere's move (``moved``) or not (a call's first step, or to shrink; see
@@ -88,18 +95,10 @@ def adapt_skin(skin, since, skin_min, skin_max, moved):
     depend on it: a list holds every pair that can touch before the next rebuild,
     whatever its reach."""
     if since > SKIN_SHRINK_ABOVE:
-        # exactly skin_min at the bottom (0.2 + 0.1 - 0.1 is 0.20000000000000004 in
-        # floating point, which would keep asking run_steps for a rebuild to shrink)
-        return skin_min if skin - SKIN_STEP < skin_min + 0.5 * SKIN_STEP \
-            else skin - SKIN_STEP
+        return shrink_skin(skin, skin_min)
     if moved and since < SKIN_GROW_BELOW:
         return min(skin_max, skin + SKIN_STEP)
     return skin
-
-
-def shrink_skin(skin, skin_min):
-    """The skin one SKIN_STEP narrower, down to exactly skin_min."""
-    return skin_min if skin - SKIN_STEP < skin_min + 0.5 * SKIN_STEP else skin - SKIN_STEP
 
 
 def skin_range(model) -> tuple[float, float]:

@@ -124,7 +124,7 @@ def morton_key(cx, cy, cz):
 _slots = compile_slot_store(numba.njit(inline="always", cache=False))
 slot_place = _slots.slot_place
 slot_store = _slots.slot_store
-_skins = compile_chain(neighbours, ("adapt_skin", "shrink_skin"),
+_skins = compile_chain(neighbours, ("shrink_skin", "adapt_skin"),
                        numba.njit(inline="always", cache=False), {})
 adapt_skin = _skins.adapt_skin
 shrink_skin = _skins.shrink_skin

@@ -363,8 +363,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
     the last; a rebuild that few bodies force later than that, with a wider skin,
     sorts every slot again at a skin one step narrower (neighbours.shrink_skin):
     where few bodies move, kept rebuilds are cheap and a wide skin only adds listed
-    pairs to every step. When keeping, only those bodies' lists are searched again, from where they are now
-    (stage_slot_marks), then the lists that held one of their spheres, then the
+    pairs to every step. When keeping, only those bodies' lists are searched again,
+    from where they are now (stage_slot_marks), then the lists that held one of their spheres, then the
     lists their new lists reach (stage_mark_partners), each from where it was
     built. Every list then holds each sphere whose build position (built_x) is
     within the reach (1 + skin) d of its own, and each sphere is less than half the
