@@ -7,6 +7,11 @@ from dataclasses import asdict, dataclass
 
 from dempipe.errors import ShapeError
 
+#: Bumped whenever the surface mode's output for the same input could change (its
+#: cache keys change; the lattice's do not): 2, thin-part rays no longer hit a face
+#: they run along.
+SURFACE_BUILDER = 2
+
 #: Default spacing of the surface mode's shell centres, as a fraction of the diameter
 #: d. Chosen from the measured bump height (docs/spheres.md, "Surface mode"): at 0.3 d
 #: the envelope of a flat face or a round one dips at most ~0.03 d between neighbours.
@@ -55,6 +60,8 @@ class BuildOptions:
         if self.mode == "lattice":
             # the lattice ignores the surface options: its keys stay those of before
             items = {k: v for k, v in items.items() if k not in ("mode", "spacing")}
+        else:
+            items["surface_builder"] = SURFACE_BUILDER
         return repr(sorted((k, repr(v)) for k, v in items.items()))
 
 

@@ -50,6 +50,8 @@ from dempipe.spheres.options import DEFAULT_SPACING
 _PROJECT_ITERS = 8
 #: A candidate is on the offset when its depth is within this fraction of r of r.
 _DEPTH_TOL = 1e-3
+#: Rays within asin(GRAZE) of a triangle's plane miss it (_ray_kernel): 0.57°.
+GRAZE = 0.01
 #: Metric sample spacing on the mesh surface, as a fraction of d.
 METRIC_SPACING = 0.1
 
@@ -177,7 +179,11 @@ def _closest_kernel(points, tris, origin, cell, dims, start, items, reach, out_d
 @numba.njit(parallel=True, cache=True)
 def _ray_kernel(points, dirs, tris, origin, cell, dims, start, items, length, out_t):
     """Distance along dirs (unit) from points to the nearest triangle hit beyond
-    1e-9 length, within ``length``; inf where none (Moller-Trumbore, both sides)."""
+    1e-9 length, within ``length``; inf where none (Moller-Trumbore, both sides).
+    A triangle the ray runs along (|cos| of its angle to the triangle's normal below
+    GRAZE) is not hit: a ray from a point on an edge, inwards along one face's normal,
+    runs in the plane of the other face where the edge is square, and rounding would
+    otherwise hit that face at any distance, 0 included."""
     n = points.shape[0]
     for p in numba.prange(n):
         px, py, pz = points[p, 0], points[p, 1], points[p, 2]
@@ -199,7 +205,10 @@ def _ray_kernel(points, dirs, tris, origin, cell, dims, start, items, length, ou
                         hy = dz * e2x - dx * e2z
                         hz = dx * e2y - dy * e2x
                         a = e1x * hx + e1y * hy + e1z * hz
-                        if abs(a) < 1e-300:
+                        nx = e1y * e2z - e1z * e2y
+                        ny = e1z * e2x - e1x * e2z
+                        nz = e1x * e2y - e1y * e2x
+                        if abs(a) < 1e-300 or a * a < GRAZE * GRAZE * (nx * nx + ny * ny + nz * nz):
                             continue
                         f = 1.0 / a
                         sx, sy, sz = px - t[0, 0], py - t[0, 1], pz - t[0, 2]
