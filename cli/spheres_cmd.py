@@ -178,6 +178,10 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
                 "off_axis_share": off_axis_share(mesh.vertices, mesh.faces),
                 "hausdorff": None,
                 "bump": None,
+                # a surface set's spheres that meet walls through their inscribed ball
+                # or ring (spheres.inscribed: how round bodies roll), as a bake builds them
+                "inscribed": (None if mode != "surface" else _inscribed_count(
+                    sphere_set, mesh)),
                 "build_seconds": info.seconds,
                 "cache": info.cache,
                 "mesh_sha256": sphere_set.mesh_sha256,
@@ -231,6 +235,16 @@ def _fracture_rows(name, arg, mesh, d, n, seed, cache, output, as_json) -> dict:
     return result
 
 
+def _inscribed_count(sphere_set, mesh) -> int:
+    import numpy as np
+
+    from dempipe.spheres.inscribed import inscribed_balls
+
+    rows = inscribed_balls(sphere_set.centers, sphere_set.diameter,
+                           mesh.vertices - sphere_set.com, mesh.faces)
+    return int(np.count_nonzero(np.any(rows[:, 0:3] != 0.0, axis=1)))
+
+
 def _line(row) -> str:
     d = row["diameter"]
     line = f"{row['name']}: {row['count']} spheres ({row['mode']}) of d={d:.6g} m, "
@@ -239,6 +253,8 @@ def _line(row) -> str:
     if row["hausdorff"] is not None:
         line += (f"Hausdorff {row['hausdorff']:.3g} m ({row['hausdorff'] / d:.2f} d), "
                  f"bump {row['bump']:.3g} m ({row['bump'] / d:.3f} d), ")
+    if row["inscribed"] is not None:
+        line += f"{row['inscribed']} meet walls through inscribed balls or rings, "
     if row["volume_error_percent"] is None and row["mode"] == "surface":
         line += "mass and inertia from the mesh (the spheres are its contact shell), "
     elif row["volume_error_percent"] is None:

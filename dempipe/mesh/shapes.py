@@ -359,7 +359,7 @@ SHAPES: dict[str, ShapeSpec] = {
                 "icosphere centred on the origin",
                 {
                     "diameter": Param(0.04, "diameter [m]"),
-                    "subdivisions": Param(3, "icosphere subdivisions (faces = 20 x 4^n)", "int", 0, 5),
+                    "subdivisions": Param(4, "icosphere subdivisions (faces = 20 x 4^n)", "int", 0, 5),
                 },
                 _build_sphere,
             ),

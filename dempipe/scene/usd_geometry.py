@@ -26,7 +26,7 @@ __all__ = ["polar", "matrix_to_quat", "matrix_array", "quat_matrix"]
 
 #: Segments of tessellated round gprims (Sphere: icosphere subdivisions instead).
 ROUND_SECTIONS = 48
-SPHERE_SUBDIVISIONS = 3
+SPHERE_SUBDIVISIONS = 4         # the built-in sphere's: its facets are what it rolls on
 
 
 # ------------------------------------------------------------------------- matrices

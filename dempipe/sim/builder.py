@@ -41,6 +41,7 @@ from dempipe.sim.model import (
     rotational_mass_factor,
     sleep_defaults,
 )
+from dempipe.spheres.inscribed import COLUMNS, inscribed_balls
 from dempipe.spheres.sphere_set import surface_mask
 
 if TYPE_CHECKING:  # spheres imports numba; the model only needs the type
@@ -120,9 +121,14 @@ class ModelBuilder:
         verts = np.asarray(mesh.vertices, dtype=np.float64) - com
         inside = None if inside_faces is None else frozen(
             np.flatnonzero(np.asarray(inside_faces, bool)), np.int32)
+        centers = self._contact_centers(sphere_set)
+        inscribed = None
+        if "surface" in getattr(sphere_set, "notes", ()):
+            inscribed = inscribed_balls(centers, self.diameter, verts, mesh.faces)
+            inscribed = frozen(inscribed) if np.any(inscribed[:, :3] != 0.0) else None
         self._shapes.append(ShapeInstance(name, frozen(verts), frozen(mesh.faces, np.int32),
-                                          frozen(com), sphere_set,
-                                          self._contact_centers(sphere_set), inside))
+                                          frozen(com), sphere_set, centers, inside,
+                                          inscribed))
         return len(self._shapes) - 1
 
     def add_bodies(self, group: str, shape, material: int, positions, rotations=None,
@@ -387,6 +393,16 @@ class ModelBuilder:
         start = np.zeros(len(counts) + 1, dtype=np.int32)
         start[1:] = np.cumsum(counts) if counts else []
         sphere_offset = np.concatenate(offsets) if offsets else np.zeros((0, 3))
+        # each contact sphere's inscribed ball (none at all where every set is a lattice)
+        if any(self._shapes[s].inscribed is not None for s in set(body_shape.tolist())):
+            own = np.zeros(COLUMNS)
+            own[10] = 0.5 * d
+            sphere_inscribed = np.concatenate(
+                [self._shapes[s].inscribed if self._shapes[s].inscribed is not None
+                 else np.tile(own, (self._shapes[s].contact_count, 1)) for s in body_shape]
+                + [np.tile(own, (c.shape[0], 1)) for (_, _, _, _, c) in self._static])
+        else:
+            sphere_inscribed = np.zeros((0, COLUMNS))
         sphere_body = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
         body_radius = np.array([np.linalg.norm(self._shapes[s].sphere_set.centers, axis=1).max()
                                 + 0.5 * d for s in body_shape]) if n_dyn else np.zeros(0)
@@ -558,6 +574,7 @@ class ModelBuilder:
             body_labels=tuple(lab for g in groups for lab in g["labels"]),
             body_radius=frozen(body_radius),
             sphere_body=frozen(sphere_body, np.int32), sphere_offset=frozen(sphere_offset),
+            sphere_inscribed=frozen(sphere_inscribed),
             wall_normal=frozen(wall_arr(0, (0, 3)).reshape(-1, 3)),
             wall_offset=frozen(wall_arr(1, (0,))),
             wall_lo=frozen(wall_arr(2, (0, 3)).reshape(-1, 3)),

@@ -165,7 +165,7 @@ def off_axis_share(vertices, faces) -> float:
     """The share of a mesh's area whose normal is more than AXIS_TOLERANCE_DEGREES from
     every axis of the shape's frame: its curved or slanted surface, where a lattice
     sphere set (cells along those axes) can only follow the mesh in terraces. 0 for a
-    box in its own axes, 0.98 for the built-in ball, 0.65 for the built-in cylinder
+    box in its own axes, 0.99 for the built-in ball, 0.65 for the built-in cylinder
     (its flat ends lie along the axes), 0.58-0.88 for the chess pieces."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)

@@ -563,7 +563,7 @@ def test_round_shapes_on_a_lattice_are_named_in_one_warning():
     r = st.analyze(b.finalize(fps=24, n_frames=2))
     found = [f for f in r.findings if f.code == "round-lattice"]
     assert len(found) == 1 and found[0].level == "warning" and r.ok
-    assert "'ball' (98%), 'can' (65%)" in found[0].message, found[0].message
+    assert "'ball' (99%), 'can' (65%)" in found[0].message, found[0].message
     assert "'crate'" not in found[0].message and "'smooth'" not in found[0].message
     assert 'spheres = "surface"' in found[0].fix
     rows = {s["name"]: s for s in r.shapes}

@@ -24,6 +24,7 @@ contraction changes the last bits of a product-sum; see docs/cuda.md).
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import replace
 import os
 import subprocess
@@ -185,6 +186,31 @@ def _rel(a, b) -> float:
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     return float(np.abs(a - b).max() / (np.abs(b).max() + 1e-300)) if a.size else 0.0
+
+
+def inscribed_ball_model():
+    """A ball 0.1 m across, a surface set 4 spheres across, rolling on a 20° slope
+    (tilted gravity over the plane z = 0) for 3 frames of 8 steps: its shell spheres
+    meet the plane through their inscribed balls (spheres/inscribed.py)."""
+    from dempipe.mesh.shapes import build_shape
+    from dempipe.sim.builder import ModelBuilder
+    from dempipe.sim.materials import Material
+    from dempipe.spheres.options import BuildOptions
+    from dempipe.spheres.sphere_set import build_sphere_set
+
+    d = 0.025
+    mesh = build_shape("sphere", diameter=0.1)
+    ss = build_sphere_set(mesh, d, name="cuda-ball", options=BuildOptions(mode="surface"))
+    th = math.radians(20.0)
+    b = ModelBuilder(d, gravity=(9.81 * math.sin(th), 0.0, -9.81 * math.cos(th)))
+    s = b.add_shape("ball", mesh, ss)
+    m = b.add_material(Material("wood", density=700.0, restitution=0.5, friction=0.9,
+                                stiffness=2e5))
+    low = float(-np.asarray(ss.centers)[:, 2].min()) + 0.5 * d
+    b.add_bodies("ball", s, m, [[0.0, 0.0, low - 1e-5]], velocities=[[0.5, 0.0, 0.0]],
+                 angular_velocities=[[0.0, 10.0, 0.0]])
+    b.add_plane([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], m)
+    return b.finalize(fps=1.0 / (8 * 5e-5), n_frames=3, dt=5e-5, sleep=None)
 
 
 # ---------------------------------------------------------------------------
@@ -407,6 +433,17 @@ def _sim_main() -> dict:
         "boxes_moved": float(np.abs(u.body_x[:2, 0] - pm.initial_x[:2, 0]).max()),
     }
 
+    # a surface ball rolling down a slope: its wall contacts through inscribed balls
+    ball = inscribed_ball_model()
+    i_cpu = Simulator(ball, device="cpu").advance(ball.initial_state())
+    i_cu = Simulator(ball, device="cuda").advance(ball.initial_state())
+    out["inscribed"] = {
+        "balls": int(np.count_nonzero(ball.sphere_inscribed[:, 10] > 0.5 * ball.diameter)),
+        "identical": all(np.array_equal(getattr(i_cu, n), getattr(i_cpu, n))
+                         for n in ("x", "q", "v", "w")),
+        "rolled": float(i_cpu.x[-1, 0, 0] - i_cpu.x[0, 0, 0]),
+    }
+
     # the whole Simulator path on device="cuda": a few steps per frame
     fast = contact_model(fps=1.0 / (4 * model.dt), n_frames=4)
     f_cpu = Simulator(fast, device="cpu")
@@ -481,6 +518,15 @@ def test_sim_is_bit_identical_to_cpu(sim):
     assert all(sim["probe"]["identical"].values()), sim["probe"]["identical"]
     assert sim["step1"]["identical"] and sim["step20"]["identical"]
     assert sim["new_state_identical"] and sim["simulator"]["identical"]
+
+
+def test_sim_inscribed_wall_contacts_are_bit_identical_to_cpu(sim):
+    # a surface ball rolling on a plane: every shell sphere's wall contact goes through
+    # its inscribed ball on both targets
+    s = sim["inscribed"]
+    assert s["balls"] > 50
+    assert s["rolled"] > 0.0
+    assert s["identical"]
 
 
 def test_sim_hertz_law_is_bit_identical_to_cpu(sim):

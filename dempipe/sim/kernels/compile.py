@@ -101,10 +101,13 @@ def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNam
                  sphere_pair_force=formulas.sphere_pair_force,
                  sphere_wall_force=formulas.sphere_wall_force,
                  rolling_torque=formulas.rolling_torque,
-                 anchor_local=formulas.anchor_local, anchor_surface=formulas.anchor_surface)
+                 anchor_local=formulas.anchor_local, anchor_surface=formulas.anchor_surface,
+                 quat_rotate=formulas.quat_rotate, INSCRIBED_REACH=contacts.INSCRIBED_REACH,
+                 RING_TIE=contacts.RING_TIE, INSCRIBED=True)
     given.update(constants)
-    c = compile_chain(contacts, ("wall_gap", "pair_ended"), jit, given)
-    given.update(wall_gap=c.wall_gap, pair_ended=c.pair_ended)
+    c = compile_chain(contacts, ("wall_gap", "pair_ended", "inscribed_wall"), jit, given)
+    given.update(wall_gap=c.wall_gap, pair_ended=c.pair_ended,
+                 inscribed_wall=c.inscribed_wall)
     pt = compile_chain(patches, patches.KERNEL, jit, given)
     given.update(vars(pt))
     return compile_chain(contacts, ("pair_forces", "sphere_forces"), jit, given)

@@ -70,7 +70,7 @@ rows a sphere.
 # The rebuild's bookkeeping (pair indices, walls in reach, histories into pair rows)
 # lives in kernels/pairing.py; its names are imported from here too, and read by the
 # passes below (compiled with this module's globals on CUDA).
-from dempipe.sim.kernels.pairing import UNPAIRED, entry_range
+from dempipe.sim.kernels.pairing import INSCRIBED_REACH, RING_TIE, UNPAIRED, entry_range
 
 #: (reach / d)² within which a pair apart is tested for ``closing``: touching one
 #: step ago, so that its dashpot's last impulse lands (laws.linear.normal_force).
@@ -107,6 +107,63 @@ def wall_gap(w, xi, yi, zi, wall_normal, wall_offset, wall_lo, wall_hi, wall_mot
     inside = (lx >= wall_lo[w, 0] and lx <= wall_hi[w, 0] and ly >= wall_lo[w, 1]
               and ly <= wall_hi[w, 1] and lz >= wall_lo[w, 2] and lz <= wall_hi[w, 2])
     return dist, inside
+
+
+def inscribed_wall(sphere_inscribed, body_q, i, bi, dist, radius, reach, nx, ny, nz,
+                   ux, uy, uz, wx, wy, wz):
+    """Sphere i (of body bi, at signed distance ``dist`` [m] from a wall of normal n,
+    pointing into the free side) meets the wall through its inscribed torus
+    (spheres/inscribed.py; a ball when its circle's radius is 0): row i of
+    ``sphere_inscribed`` holds, body frame, the vector from the sphere's centre to the
+    torus's centre, the circle's axis, the direction from that centre to the tube's
+    centre under the sphere [m, 1, 1], the circle's radius a and the tube's b [m],
+    turned by body_q[bi]. The tube's centre at the circle's point lowest towards the
+    wall is the contact's centre: returns (overlap [m], that centre's distance from the
+    wall [m], its offset from the sphere's centre (world) [m], its velocity u + w × that
+    offset [m/s]), from u, the sphere centre's velocity relative to the wall, and w, its
+    body's angular velocity.
+
+    The overlap is the tube's, b − its centre's distance, but at most ``reach`` [m]
+    more than the sphere's own, radius − dist: a round body's contact follows its
+    surface across the dips between its shell's spheres (a ball rolls as a ball, a
+    cylinder on its side along its bottom line), while a torus fitted badly (across
+    an edge) cannot push a body further out than that. Without inscribed tori (an
+    empty table: lattice sets) it is the sphere's own contact, bit for bit."""
+    if sphere_inscribed.shape[0] == 0:          # every sphere is its own
+        return radius - dist, dist, 0.0, 0.0, 0.0, ux, uy, uz
+    ax = sphere_inscribed[i, 0]
+    ay = sphere_inscribed[i, 1]
+    az = sphere_inscribed[i, 2]
+    ring = sphere_inscribed[i, 9]
+    rho = sphere_inscribed[i, 10]
+    if ax != 0.0 or ay != 0.0 or az != 0.0:
+        qw = body_q[bi, 0]
+        qx = body_q[bi, 1]
+        qy = body_q[bi, 2]
+        qz = body_q[bi, 3]
+        ax, ay, az = quat_rotate(qw, qx, qy, qz, ax, ay, az)  # noqa: F821
+        if ring > 0.0:
+            # the circle's point lowest towards the wall: along -n's part across the
+            # axis, or (the axis along n: every point as low) the one under the sphere
+            tx, ty, tz = quat_rotate(qw, qx, qy, qz, sphere_inscribed[i, 3],  # noqa: F821
+                                     sphere_inscribed[i, 4], sphere_inscribed[i, 5])
+            sx, sy, sz = quat_rotate(qw, qx, qy, qz, sphere_inscribed[i, 6],  # noqa: F821
+                                     sphere_inscribed[i, 7], sphere_inscribed[i, 8])
+            nt = nx * tx + ny * ty + nz * tz
+            px = nt * tx - nx + RING_TIE * sx
+            py = nt * ty - ny + RING_TIE * sy
+            pz = nt * tz - nz + RING_TIE * sz
+            s = ring / sqrt(px * px + py * py + pz * pz)  # noqa: F821
+            ax += s * px
+            ay += s * py
+            az += s * pz
+    da = dist + nx * ax + ny * ay + nz * az
+    ov = rho - da
+    gate = radius + reach - dist
+    if gate < ov:
+        ov = gate
+    return (ov, da, ax, ay, az, ux + (wy * az - wz * ay), uy + (wz * ax - wx * az),
+            uz + (wx * ay - wy * ax))
 
 
 def pair_ended(dist2, d2, diameter, rx, ry, rz, dvx, dvy, dvz, dt, vc):
@@ -164,11 +221,12 @@ def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
     step's (step & 1), which marks the histories touched this step."""
     (diameter, dt, onset_speed, body_inv_mass, body_material, pair_k, pair_damp, pair_mu,
      kt_ratio, ks_ratio, friction, sleep_steps, wall_normal, wall_offset, wall_lo, wall_hi,
-     wall_depth, wall_material, wall_motion, rolling, pair_rolling, body_inv_radius) = cm
+     wall_depth, wall_material, wall_motion, rolling, pair_rolling, body_inv_radius,
+     sphere_inscribed) = cm
     (nbr, nbr_n, pidx, pair_start, pair_e, wall_start, wall_s, _list_start, list_e,
      sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest, body_wake, wall_mask,
      hist_partner, hist_spring, pair_f, wall_f, _sphere_f, _sphere_t, _sphere_tr,
-     _sphere_overlap, body_patch) = cs
+     _sphere_overlap, body_patch, body_q) = cs
     d2 = diameter * diameter
     radius = 0.5 * diameter
     n_walls = wall_normal.shape[0]
@@ -348,10 +406,20 @@ def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
                     Wx = motion_now[m, 10]
                     Wy = motion_now[m, 11]
                     Wz = motion_now[m, 12]
+                if INSCRIBED:  # noqa: F821 (the target's: a model with inscribed tori)
+                    ov, da, ax, ay, az, uxi, uyi, uzi = inscribed_wall(
+                        sphere_inscribed, body_q, sorted_idx[s], bi, dist, radius,
+                        INSCRIBED_REACH * diameter, nx, ny, nz, uxi, uyi, uzi, wxi, wyi, wzi)
+                else:
+                    ov = radius - dist
+                    da = dist
+                    ax = 0.0
+                    ay = 0.0
+                    az = 0.0
                 away = uxi * nx + uyi * ny + uzi * nz   # its speed away from the wall [m/s]
                 if (not inside or dist <= -wall_depth[w]
-                        or (dist >= radius and not (away > onset_speed and closing(  # noqa: F821
-                            radius - dist, away, dt)))):    # (touching a step ago: pair_ended)
+                        or (ov <= 0.0 and not (away > onset_speed and closing(  # noqa: F821
+                            ov, away, dt)))):    # (touching a step ago: pair_ended)
                     if FRICTION and friction and 0 <= col < cap:  # noqa: F821
                         if WALL_ROWS:  # noqa: F821
                             if wall_s[qw + col, 3] != 0.0:
@@ -368,7 +436,7 @@ def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
                 mj = wall_material[w]
                 k, eta, kt, ks = contact_coefficients(  # noqa: F821 (the law's; a wall adds
                     pair_k[mi, mj], pair_damp, mi, mj, imi, kt_ratio, ks_ratio, dt,  # no 1/m)
-                    radius - dist)
+                    ov)
                 share = patch_share(body_patch, bi, n_bodies + w)  # noqa: F821
                 k *= share
                 eta *= share
@@ -403,8 +471,12 @@ def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
                 if SLEEPING and m >= 0 and motion_now[m, 13] != 0.0:  # noqa: F821
                     body_wake[bi] = 1       # never asleep on a moving surface
                 (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(  # noqa: F821
-                    -nx, -ny, -nz, radius - dist, radius, uxi, uyi, uzi, wxi, wyi, wzi,
+                    -nx, -ny, -nz, ov, ov + da, uxi, uyi, uzi, wxi, wyi, wzi,
                     Wx, Wy, Wz, k, eta, kt, ks, mu, sx, sy, sz, dt, onset_speed)
+                if ROTATION:  # noqa: F821 (about the sphere's centre: the ball's is a away)
+                    ptx += ay * pfz - az * pfy
+                    pty += az * pfx - ax * pfz
+                    ptz += ax * pfy - ay * pfx
                 if FRICTION and friction:  # noqa: F821
                     if walls == -1:
                         history_store(hist_partner, hist_spring, h, slot, code,  # noqa: F821
@@ -424,7 +496,8 @@ def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
                 fx += pfx
                 fy += pfy
                 fz += pfz
-                if ROTATION and FRICTION and mu > 0.0:  # noqa: F821 (TORQUE_NOTE)
+                if ROTATION and ((FRICTION and mu > 0.0)  # noqa: F821 (TORQUE_NOTE)
+                                 or ax != 0.0 or ay != 0.0 or az != 0.0):
                     tx += ptx
                     ty += pty
                     tz += ptz
@@ -438,7 +511,6 @@ def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
                     qx += rtx
                     qy += rty
                     qz += rtz
-                ov = radius - dist
                 if ov > max_ov:
                     max_ov = ov
             wall_f[s, 0] = fx
@@ -511,7 +583,7 @@ def sphere_forces(k0, k1, work, listed, cm, cs):
     (nbr, nbr_n, pidx, _pair_start, _pair_e, _wall_start, _wall_s, list_start, list_e,
      sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest, _body_wake, wall_mask,
      _hist_partner, _hist_spring, pair_f, wall_f, sphere_f, sphere_t, sphere_tr,
-     sphere_overlap, _body_patch) = cs
+     sphere_overlap, _body_patch, _body_q) = cs
     d2 = diameter * diameter
     for k in range(k0, k1):
         s = work[k] if listed else k

@@ -26,6 +26,7 @@ from dempipe.sim.kernels.neighbours import NEIGHBOURS, cell_size
 from dempipe.sim.kernels.pairing import LIST_COLS, LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE
 from dempipe.sim.kernels.patches import BODY_PATCHES
 from dempipe.sim.state import CONTACT_SLOTS
+from dempipe.spheres.inscribed import COLUMNS
 
 #: Most buckets per sphere the grid may use: its table has 2^k >= this × spheres
 #: buckets (memory follows the spheres, never the bounding box).
@@ -306,6 +307,7 @@ class StepModel(NamedTuple):
     rolling: Any
     pair_rolling: Any
     body_inv_radius: Any
+    sphere_inscribed: Any
 
 
 class StepState(NamedTuple):
@@ -397,7 +399,8 @@ class ContactModel(NamedTuple):
     sleep_steps, the walls (wall_normal, wall_offset [m], wall_lo, wall_hi [m],
     wall_depth [m], wall_material) and each wall's motion (wall_motion, -1: fixed;
     control.Drive); rolling resistance (rolling: Features.rolling and friction, the
-    pair table pair_rolling [1], body_inv_radius [1/m]: physics.rolling_torque)."""
+    pair table pair_rolling [1], body_inv_radius [1/m]: physics.rolling_torque);
+    sphere_inscribed: the Model's, (0, 4) for none (contacts.inscribed_wall)."""
 
     diameter: Any
     dt: Any
@@ -421,6 +424,7 @@ class ContactModel(NamedTuple):
     rolling: Any
     pair_rolling: Any
     body_inv_radius: Any
+    sphere_inscribed: Any
 
 
 class ContactScratch(NamedTuple):
@@ -432,7 +436,8 @@ class ContactScratch(NamedTuple):
     bodies' spin body_w [rad/s] and rest counts, the wake flags, the walls in
     reach, the contact histories (hist_partner, hist_spring) and what the passes
     write: pair_f, wall_f, sphere_f [N], sphere_t [N m], sphere_overlap [m]; and the
-    contact patches' sums per body (body_patch: patches.py)."""
+    contact patches' sums per body (body_patch: patches.py); the bodies'
+    orientations body_q (w, x, y, z), which turn the inscribed balls."""
 
     nbr: Any
     nbr_n: Any
@@ -460,6 +465,7 @@ class ContactScratch(NamedTuple):
     sphere_tr: Any
     sphere_overlap: Any
     body_patch: Any
+    body_q: Any
 
 
 class BodyModel(NamedTuple):
@@ -516,6 +522,13 @@ def body_model(model, body_start, friction: bool, arrays=None) -> BodyModel:
                      rolling=bool(model.features.rolling and friction))
 
 
+def inscribed_rows(model) -> np.ndarray:
+    """The Model's sphere_inscribed, or none (0, COLUMNS): every sphere is its own."""
+    if model.sphere_inscribed is None:
+        return np.zeros((0, COLUMNS))
+    return model.sphere_inscribed
+
+
 def contact_model(model, friction: bool, wall_motion, arrays=None) -> ContactModel:
     """The ContactModel of ``model``; ``friction``: the backend's feature;
     ``wall_motion``: control.Drive's; ``arrays``: where to take the Model's
@@ -530,7 +543,8 @@ def contact_model(model, friction: bool, wall_motion, arrays=None) -> ContactMod
         wall_normal=a("wall_normal"), wall_offset=a("wall_offset"), wall_lo=a("wall_lo"),
         wall_hi=a("wall_hi"), wall_depth=a("wall_depth"), wall_material=a("wall_material"),
         wall_motion=wall_motion, rolling=bool(model.features.rolling and friction),
-        pair_rolling=a("pair_rolling"), body_inv_radius=a("body_inv_radius"))
+        pair_rolling=a("pair_rolling"), body_inv_radius=a("body_inv_radius"),
+        sphere_inscribed=inscribed_rows(model) if arrays is None else a("sphere_inscribed"))
 
 
 def step_model(model, friction: bool) -> StepModel:
@@ -549,7 +563,7 @@ def step_model(model, friction: bool) -> StepModel:
         wall_normal=model.wall_normal, wall_offset=model.wall_offset, wall_lo=model.wall_lo,
         wall_hi=model.wall_hi, wall_depth=model.wall_depth, wall_material=model.wall_material,
         rolling=bool(model.features.rolling and friction), pair_rolling=model.pair_rolling,
-        body_inv_radius=model.body_inv_radius)
+        body_inv_radius=model.body_inv_radius, sphere_inscribed=inscribed_rows(model))
 
 
 def scratch_of(backend) -> Scratch:

@@ -118,6 +118,10 @@ def body_patches(b, k0, k1, work, listed, cm, cs, motion_now, body_sphere_start,
     body_rest = cs.body_rest
     wall_mask = cs.wall_mask
     body_patch = cs.body_patch
+    body_q = cs.body_q
+    body_w = cs.body_w
+    sphere_inscribed = cm.sphere_inscribed
+    sorted_idx = cs.sorted_idx
     if static_body(body_inv_mass[b]):  # noqa: F821
         return
     row = body_patch[b]
@@ -200,11 +204,17 @@ def body_patches(b, k0, k1, work, listed, cm, cs, motion_now, body_sphere_start,
                     uxi -= sux
                     uyi -= suy
                     uzi -= suz
+                if INSCRIBED:  # noqa: F821 (as pair_forces)
+                    ov, da, ax, ay, az, uxi, uyi, uzi = inscribed_wall(  # noqa: F821
+                        sphere_inscribed, body_q, sorted_idx[s], b, dist, radius,
+                        INSCRIBED_REACH * diameter, nx, ny, nz, uxi, uyi, uzi,  # noqa: F821
+                        body_w[b, 0], body_w[b, 1], body_w[b, 2])
+                else:
+                    ov = radius - dist
                 away = uxi * nx + uyi * ny + uzi * nz
                 if not inside or dist <= -wall_depth[w]:
                     continue
-                ov = radius - dist
-                if dist >= radius:
+                if ov <= 0.0:
                     if not (away > onset_speed and closing(ov, away, dt)):  # noqa: F821
                         continue
                     ov += away * dt                 # the overlap of the step before

@@ -36,6 +36,7 @@ from dempipe.sim.kernels.layout import (
     glue_model,
     glue_scratch,
     grid_table,
+    inscribed_rows,
     run_flags,
     scene_features,
     scratch_of,
@@ -63,7 +64,8 @@ class CpuBackend:
         self.steps_skipped = 0
         self.features = scene_features(model, features)
         self.flags = run_flags(self.features, specialize)
-        self.k = kernels(self.flags, model.contact_law, glue=model.n_bonds > 0)
+        self.k = kernels(self.flags, model.contact_law, glue=model.n_bonds > 0,
+                         inscribed=inscribed_rows(model).shape[0] > 0)
         #: The glue bonds as the kernels read them (layout.GlueModel).
         self.glue_model = glue_model(model)
         # every array, by name (layout.cpu_scratch: what memory_estimate counts and a
@@ -225,7 +227,7 @@ class CpuBackend:
                                    self.hist_partner.shape[1] if self.features.friction else 0,
                                    self.wall_s.shape[0], self.drive.wall_motion,
                                    self.sorted_body, self.drive.body_start,
-                                   int(state.step)) > 0):
+                                   int(state.step), inscribed_rows(m).shape[0] > 0) > 0):
             self.grow_neighbours()
         self.sphere_overlap[:] = 0.0
         partner, spring = self.contacts(state)
@@ -253,6 +255,7 @@ class CpuBackend:
         ``state``, as run_steps builds them: the backend's arrays and the State's rest
         counts, but for the arrays ``given`` by name (the probe's copies)."""
         given.setdefault("body_rest", self.rest(state))
+        given.setdefault("body_q", state.body_q)
         cs = ContactScratch(*(given[n] if n in given else getattr(self, n)
                               for n in ContactScratch._fields))
         return contact_model(self.model, self.features.friction, self.drive.wall_motion), cs

@@ -41,7 +41,7 @@ from dempipe.sim.kernels.cpu.spheres import body_moved  # noqa: F401
 from dempipe.sim.kernels.cpu.device import (  # noqa: F401
     angular_velocity, cell_coord, cell_hash, cell_key, quat_rotate, slot_place, slot_store,
     sphere_kinematics)
-from dempipe.sim.kernels.contacts import CLOSE_REACH2  # noqa: F401
+from dempipe.sim.kernels.contacts import CLOSE_REACH2, INSCRIBED_REACH, RING_TIE  # noqa: F401
 from dempipe.sim.kernels.pairing import UNPAIRED  # noqa: F401
 from dempipe.sim.kernels.cpu.device import (  # noqa: F401
     HIST_BY_SLOT, LIST_ROWS, PAIR_ROWS, WALL_ROWS, anchor_local, anchor_state,
@@ -401,7 +401,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
      body_mass, body_inv_mass, body_inv_inertia, body_material, pair_k, pair_damp, pair_mu,
      kt_ratio, ks_ratio, friction, sleep_steps, v_sleep, w_sleep, wall_normal, wall_offset,
      wall_lo, wall_hi, wall_depth, wall_material, rolling, pair_rolling,
-     body_inv_radius) = model
+     body_inv_radius, sphere_inscribed) = model
     (body_x, body_q, body_P, body_L, body_rest, contact_partner, contact_spring) = state
     (hist_partner, hist_spring, body_wake, body_still, built_bx, built_bq, seen_bx, seen_bq,
      body_reach, body_box, offset_t, body_v, body_w, sphere_x, sphere_v,
@@ -415,11 +415,12 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
     cm = ContactModel(diameter, dt, onset_speed, body_inv_mass, body_material, pair_k,
                       pair_damp, pair_mu, kt_ratio, ks_ratio, friction, sleep_steps,
                       wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_material,
-                      drive.wall_motion, rolling, pair_rolling, body_inv_radius)
+                      drive.wall_motion, rolling, pair_rolling, body_inv_radius,
+                      sphere_inscribed)
     cs = ContactScratch(nbr, nbr_n, pidx, pair_start, pair_e, wall_start, wall_s, list_start,
                         list_e, sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest,
                         body_wake, wall_mask, hist_partner, hist_spring, pair_f, wall_f,
-                        sphere_f, sphere_t, sphere_tr, sphere_overlap, body_patch)
+                        sphere_f, sphere_t, sphere_tr, sphere_overlap, body_patch, body_q)
     bm = BodyModel(dt, gravity, body_sphere_start, body_mass, body_inv_mass, body_inv_inertia,
                    sleep_steps, v_sleep, w_sleep, drive.body_start, rolling)
     bs = BodyScratch(sphere_f, sphere_t, sphere_tr, sphere_r, body_x, body_q, body_P, body_L,
@@ -568,7 +569,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
                                                 wall_mask, wall_start,
                                                 hist_partner.shape[1] if FRICTION and friction
                                                 else 0, wall_s.shape[0], drive.wall_motion,
-                                                sorted_body, body_start, step) > 0):
+                                                sorted_body, body_start, step,
+                                                sphere_inscribed.shape[0] > 0) > 0):
                 if keep and FRICTION and friction:  # the State's histories current
                     stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
                                              contact_partner, contact_spring)
@@ -659,7 +661,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
 _STAGES = (stage_body_velocities, motion_row, driven_row, stage_motion, stage_driven,
            sphere_state, stage_spheres,
            stage_spheres_sorted, stage_spheres_busy,
-           contacts.wall_gap, contacts.pair_ended, patches.patch_add, patches.body_patches,
+           contacts.wall_gap, contacts.pair_ended, contacts.inscribed_wall, patches.patch_add, patches.body_patches,
            patches.patch_share, patches.pair_share, stage_patches,
            contacts.pair_forces, contacts.sphere_forces, stage_contacts, stage_sums,
            glue.bond_forces, glue.bond_contacts, glue.body_glue_sum, stage_glue,
@@ -679,6 +681,7 @@ _JITS = {
     "stage_spheres_busy": numba.njit(error_model="numpy", parallel=True, cache=True),
     "wall_gap": numba.njit(inline="always", cache=True),
     "pair_ended": numba.njit(inline="always", cache=True),
+    "inscribed_wall": numba.njit(inline="always", cache=True),
     "patch_add": numba.njit(inline="always", cache=True),
     "body_patches": numba.njit(error_model="numpy", cache=True),
     "patch_share": numba.njit(inline="always", cache=True),
@@ -701,20 +704,26 @@ _JITS = {
 _VARIANTS: dict = {}
 
 
-def kernels(flags, law: str = "linear", glue: bool = False) -> "types.SimpleNamespace":
+def kernels(flags, law: str = "linear", glue: bool = False,
+            inscribed: bool = False) -> "types.SimpleNamespace":
     """The stage drivers compiled for ``flags`` (friction, rotation, sleeping, walls)
     and the contact ``law`` (laws.LAWS; the module's formulas are the linear law's,
     another law's are compiled and overlaid), with the glue passes when ``glue``
-    (kernels/glue.py), created on first use; numba compiles each (or loads it from
+    (kernels/glue.py) and the wall contacts through inscribed tori when ``inscribed``
+    (contacts.inscribed_wall: a model with surface sets; without, the sphere's own
+    contact is compiled alone), created on first use; numba compiles each (or loads it from
     its disk cache) at its first call."""
     flags = tuple(bool(f) for f in flags)
     key = flags if law == "linear" else (flags, law)
     if glue:
         key = (key, "glue")
+    if inscribed:
+        key = (key, "inscribed")
     if key not in _VARIANTS:
         tag = "".join(f"{n[0].upper()}{int(f)}" for n, f in zip(FLAGS, flags))
         consts = {n.upper(): f for n, f in zip(FLAGS, flags)}
         consts["GLUE"] = bool(glue)
+        consts["INSCRIBED"] = bool(inscribed)
         if law != "linear":
             tag += f"_{law}"
             fl = compile_formulas(numba.njit(inline="always", cache=False), law)
@@ -723,6 +732,8 @@ def kernels(flags, law: str = "linear", glue: bool = False) -> "types.SimpleName
                           contact_coefficients=fl.contact_coefficients, closing=fl.closing)
         if glue:
             tag += "_glue"
+        if inscribed:
+            tag += "_ins"
         _VARIANTS[key] = specialize(_STAGES, _JITS, consts, tag, globals())
     return _VARIANTS[key]
 

@@ -45,11 +45,11 @@ from dempipe.sim.laws.linear import DAMP_TERMS
 from dempipe.sim.state import CONTACT_SLOTS
 from dempipe.sim.backend import copy_matching
 from dempipe.sim.kernels.compile import compile_contacts, compile_formulas, compile_glue
-from dempipe.sim.kernels.pairing import PAIR_COLS, WALL_SLACK
+from dempipe.sim.kernels.pairing import INSCRIBED_REACH, PAIR_COLS, WALL_SLACK
 from dempipe.sim.kernels.patches import BODY_PATCHES
 from dempipe.sim.kernels.layout import (
     CUDA_LAYOUT, FLAGS, GENERAL, ContactScratch, BodyScratch, GlueModel, GlueScratch,
-    body_model, layout_bytes, contact_model, fit_grid, glue_model, grid_table, run_flags,
+    body_model, inscribed_rows, layout_bytes, contact_model, fit_grid, glue_model, grid_table, run_flags,
     scene_features, static_extent)
 from dempipe.sim.kernels.neighbours import NEIGHBOURS, SKIN, cell_size
 # The device side, by stage (each module's docstring says what it holds); the kernels
@@ -209,6 +209,7 @@ def scratch_layout(model, friction=None) -> dict:
         "pair_damp": ((nm, nm, DAMP_TERMS), f8),
         "pair_mu": ((nm, nm), f8), "pair_rolling": ((nm, nm), f8),
         "body_inv_radius": ((nb,), f8),
+        "sphere_inscribed": (inscribed_rows(model).shape, f8),
         "wall_normal": ((nw, 3), f8), "wall_offset": ((nw,), f8),
         "wall_lo": ((nw, 3), f8), "wall_hi": ((nw, 3), f8), "wall_depth": ((nw,), f8),
         "wall_material": ((nw,), i4), "gravity": ((3,), f8), "grid": ((6,), i8),
@@ -325,6 +326,7 @@ class CudaBackend:
             shape, dt = layout[name]
             a = np.ascontiguousarray(getattr(model, name), dtype=dt).reshape(shape)
             d[name] = cuda.to_device(a)
+        d["sphere_inscribed"] = cuda.to_device(np.ascontiguousarray(inscribed_rows(model)))
         d["grid"] = cuda.to_device(self.grid)
         if self.glue:                   # the bonds (layout.GlueModel), as the CPU's
             for name, a in glue_model(model)._asdict().items():
@@ -494,7 +496,9 @@ class CudaBackend:
         k_pair_slots[blocks, THREADS](d["nbr"], d["nbr_n"], d["sorted_idx"], d["sorted_body"],
                                       d["body_inv_mass"], d["pidx"], d["ctl"])
         k_pair_mirror[blocks, THREADS](
-            0.5 * m.diameter, WALL_SLACK * 0.5 * SKIN * m.diameter, d["nbr"], d["nbr_n"],
+            0.5 * m.diameter, WALL_SLACK * 0.5 * SKIN * m.diameter
+            + (INSCRIBED_REACH * m.diameter if inscribed_rows(m).shape[0] else 0.0),
+            d["nbr"], d["nbr_n"],
             d["sorted_idx"], d["sorted_x"], d["sorted_body"], d["body_inv_mass"],
             d["wall_normal"], d["wall_offset"], d["wall_lo"], d["wall_hi"], d["wall_depth"],
             d["wall_motion"], d["body_start"], d["wall_mask"], d["pidx"], d["ctl"])
@@ -527,7 +531,7 @@ class CudaBackend:
             hist_spring=d["contact_spring"] if spring is None else spring,
             pair_f=d["pair_f"], wall_f=d["wall_f"], sphere_f=d["sphere_f"],
             sphere_t=d["sphere_t"], sphere_tr=d["sphere_tr"],
-            sphere_overlap=d["sphere_overlap"], body_patch=d["body_patch"])
+            sphere_overlap=d["sphere_overlap"], body_patch=d["body_patch"], body_q=d["body_q"])
         self.k.k_body_patches[_blocks(d["body_patch"].shape[0], THREADS), THREADS](
             cm, cs, d["motion_now"], d["body_sphere_start"], d["slot_of"], d["ctl"])
         self.k.k_pair_forces[_blocks(m.n_spheres, CONTACT_THREADS), CONTACT_THREADS](

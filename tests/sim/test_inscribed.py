@@ -1,0 +1,181 @@
+"""Inscribed balls: a surface set meets a wall through the largest ball its surface's
+curvature allows at each shell sphere (spheres/inscribed.py, contacts.inscribed_wall).
+
+What must hold: the balls are the body's own surface where it is round (a ball's are
+the ball), stay inside the mesh where it is flat or has edges, and a body dropped on
+its edges, rims and round parts never gains energy through them; a ball then rolls
+at 5/7 g sin θ past the speed where its envelope's bumps made it hop (tests/sim/
+test_rolling.py, docs/spheres.md "Rolling").
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from dempipe.mesh.shapes import build_shape
+from dempipe.scene.build import build_model
+from dempipe.scene.load import parse_scene
+from dempipe.sim.simulator import Simulator
+from dempipe.spheres.inscribed import SHRINK_SLACK, inscribed_balls
+from dempipe.spheres.options import BuildOptions
+from dempipe.spheres.sphere_set import build_sphere_set
+
+G = 9.81
+
+
+def _balls(name, across, **params):
+    mesh = build_shape(name, **params)
+    size = float((mesh.bounds[1] - mesh.bounds[0]).max())
+    d = size / across
+    ss = build_sphere_set(mesh, d, name=f"inscribed-{name}", options=BuildOptions(mode="surface"))
+    verts = np.asarray(mesh.vertices) - ss.com
+    ins = inscribed_balls(ss.centers, d, verts, mesh.faces)
+    return mesh, ss, d, ins
+
+
+def _torus_points(ss, ins, rows, n=24):
+    """Points on the tori of ``rows`` (body frame): n around the circle by n around the
+    tube, the circle's at radius a about the axis through the torus's centre."""
+    c = np.asarray(ss.centers)[rows]
+    o = c + ins[rows, 0:3]
+    t = ins[rows, 3:6]
+    u = ins[rows, 6:9]
+    a = ins[rows, 9][:, None, None]
+    b = ins[rows, 10][:, None, None]
+    ring = np.linalg.norm(t, axis=1) > 0.5
+    # a ball's rows have no axis: any frame
+    t = np.where(ring[:, None], t, [[0.0, 0.0, 1.0]])
+    u = np.where(ring[:, None], u, [[1.0, 0.0, 0.0]])
+    w = np.cross(t, u)
+    phi = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    circle = o[:, None, :] + a * (np.cos(phi)[None, :, None] * u[:, None, :]
+                                  + np.sin(phi)[None, :, None] * w[:, None, :])
+    # the tube: a ball of radius b about each circle point, sampled along the axes
+    dirs = np.concatenate([np.eye(3), -np.eye(3)])
+    return (circle[:, :, None, :] + b[..., None] * dirs[None, None, :, :]).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("across", [8, 16])
+def test_a_balls_inscribed_balls_are_the_ball(across):
+    # the built-in ball (an icosphere of 5,120 faces, 0.1 m across): most shell spheres
+    # carry the ball, or where the fitted curvatures differ a little a torus close to
+    # it: the tube's centre under the sphere within the tube's shortfall (+0.1 d) of
+    # the ball's centre, so the torus touches the mesh where its sphere does and stays
+    # inside it, and the torus's outer radius a + b (its curvature along the circle)
+    # near the ball's. Measured: 89 % / 77 % of the set at 8 / 16 across, a + b within
+    # 3 % / 4 % (median); asked 60 % and 10 %
+    mesh, ss, d, ins = _balls("sphere", across, diameter=0.1)
+    grown = np.any(ins[:, 0:3] != 0.0, axis=1)
+    assert grown.mean() > 0.6
+    a, b = ins[grown, 9], ins[grown, 10]
+    assert np.median(a + b) == pytest.approx(0.05, rel=0.1)
+    tube = np.asarray(ss.centers)[grown] + ins[grown, 0:3] + a[:, None] * ins[grown, 6:9]
+    assert np.all(np.linalg.norm(tube, axis=1) <= 0.05 - b + 0.1 * d)
+
+
+@pytest.mark.parametrize("name, params", [
+    ("box", dict(size=[0.1, 0.06, 0.04])),
+    ("cylinder", dict(diameter=0.1, height=0.05)),
+])
+def test_balls_and_rings_stay_inside_flat_faces_and_edges(name, params):
+    # the box's balls and the cylinder's balls and rings reach no further out of the
+    # mesh than 0.1 d: SHRINK_SLACK d (the slack the fit over a faceted offset surface
+    # is given) and the bulge of a ball held off centres a spacing h apart between
+    # them (measured 0.08 d on the cylinder, 8 across; a wall contact never takes more
+    # than INSCRIBED_REACH = 0.05 d beyond the sphere's own): points all round each
+    # torus against the mesh's bounds, and for the cylinder from its axis
+    mesh, ss, d, ins = _balls(name, 8, **params)
+    grown = np.flatnonzero(np.any(ins[:, 0:3] != 0.0, axis=1))
+    assert grown.size > 0.1 * len(ins)
+    pts = _torus_points(ss, ins, grown)
+    lo, hi = mesh.bounds - ss.com
+    slack = 2.0 * SHRINK_SLACK * d
+    assert np.all(pts >= lo - slack) and np.all(pts <= hi + slack)
+    if name == "cylinder":
+        assert np.linalg.norm(pts[:, :2], axis=1).max() <= 0.05 + slack
+        # the side's spheres near a cap roll on rings about the axis
+        assert np.count_nonzero(ins[:, 9] > 0.0) > 0
+
+
+def test_edges_and_corners_keep_their_own_spheres():
+    # a box's edge and corner spheres (closest mesh point on an edge: a quadric fitted
+    # over two faces is no surface) carry nothing: every grown sphere's ball centre is
+    # inward along a face's normal, within a few degrees
+    mesh, ss, d, ins = _balls("box", 8, size=[0.1, 0.1, 0.1])
+    grown = np.any(ins[:, 0:3] != 0.0, axis=1)
+    a = ins[grown, 0:3]
+    n = -a / np.linalg.norm(a, axis=1)[:, None]
+    assert np.abs(n).max(axis=1).min() > math.cos(math.radians(12.0))
+
+
+DROP = """
+[output]
+fps = 240
+duration = {duration}
+[simulation]
+resolution = 8
+spheres = "surface"
+sleeping = false
+[materials.wood]
+density = 700.0
+restitution = 0.5
+friction = 0.6
+rolling_friction = 0.0
+[shapes.s]
+{shape}
+[[bodies]]
+name = "b"
+shape = "s"
+material = "wood"
+position = [0.0, 0.0, {z}]
+rotation = {rotation}
+velocity = [0.4, 0.2, 0.0]
+angular_velocity = [3.0, -5.0, 2.0]
+[[colliders]]
+type = "plane"
+material = "wood"
+"""
+
+
+def _energy(model, frames):
+    m = float(model.body_mass[0])
+    s = model.body_inv_inertia[0]
+    inertia = np.linalg.inv(np.array([[s[0], s[3], s[4]], [s[3], s[1], s[5]],
+                                      [s[4], s[5], s[2]]]))
+    out = []
+    for x, q, v, w in zip(frames.x[:, 0], frames.q[:, 0], frames.v[:, 0], frames.w[:, 0]):
+        qw, qx, qy, qz = q
+        R = np.array([[1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)],
+                      [2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)],
+                      [2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)]])
+        out.append(0.5 * m * v @ v + 0.5 * w @ (R @ inertia @ R.T) @ w + m * G * x[2])
+    return np.array(out)
+
+
+@pytest.mark.parametrize("shape", [
+    'builtin = "pawn"\nheight = 0.05',
+    'builtin = "knight"\nheight = 0.06',
+    'builtin = "cylinder"\ndiameter = 0.1\nheight = 0.05',
+    'builtin = "torus"\nmajor_radius = 0.03\nminor_radius = 0.02',
+    'builtin = "sphere"\ndiameter = 0.1',
+])
+def test_dropped_spinning_bodies_never_gain_energy(tmp_path, shape):
+    # dropped from 0.1 m above its size, turned 40° about a tilted axis, sliding and
+    # spinning: it lands on rims, edges and round parts, tumbles and rolls on the plane
+    # for 1.5 s. Its energy (kinetic + potential; the springs' is left out, so it dips
+    # in a contact and comes back) never rises above the most it had before, to 1e-6 of
+    # the drop's energy per frame (the elastic energy still stored at a frame's end)
+    a = math.radians(40.0)
+    axis = np.array([1.0, 0.6, 0.2]) / np.linalg.norm([1.0, 0.6, 0.2])
+    q = [math.cos(a / 2)] + list(math.sin(a / 2) * axis)
+    text = DROP.format(duration=1.5, shape=shape, z=0.15,
+                       rotation="[" + ", ".join(repr(float(c)) for c in q) + "]")
+    model = build_model(parse_scene(text, tmp_path / "drop.toml"))
+    assert model.sphere_inscribed.shape[0] > 0
+    frames = Simulator(model).advance(model.initial_state())
+    energy = _energy(model, frames)
+    scale = energy[0] - energy.min()
+    assert np.all(np.diff(np.maximum.accumulate(energy)) <= 1e-6 * scale)
+    assert energy[-1] < energy[0]
+
