@@ -58,3 +58,25 @@ def slider_past_drifting_row(d, n_row, gap, speed, n_frames):
     b.add_bodies("slider", s, ice, [[-0.05, (2 + gap) * d, d]], velocities=[[speed, 0.0, 0.0]])
     b.add_plane([0, 0, 0], [0, 0, 1], ice)
     return b.finalize(fps=24, n_frames=n_frames)
+
+
+def rotation_matrix(q):
+    """The rotation matrix of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def body_energy(model, frames, g: float = 9.81) -> np.ndarray:
+    """Kinetic plus potential energy [J] of body 0 at each frame (gravity g along -z;
+    the contact springs' energy is left out)."""
+    m = float(model.body_mass[0])
+    s = model.body_inv_inertia[0]
+    inertia = np.linalg.inv(np.array([[s[0], s[3], s[4]], [s[3], s[1], s[5]],
+                                      [s[4], s[5], s[2]]]))
+    out = []
+    for x, q, v, w in zip(frames.x[:, 0], frames.q[:, 0], frames.v[:, 0], frames.w[:, 0]):
+        R = rotation_matrix(q)
+        out.append(0.5 * m * v @ v + 0.5 * w @ (R @ inertia @ R.T) @ w + m * g * x[2])
+    return np.array(out)

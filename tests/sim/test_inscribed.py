@@ -20,6 +20,7 @@ from dempipe.sim.simulator import Simulator
 from dempipe.spheres.inscribed import SHRINK_SLACK, inscribed_balls
 from dempipe.spheres.options import BuildOptions
 from dempipe.spheres.sphere_set import build_sphere_set
+from bodies import body_energy
 
 G = 9.81
 
@@ -138,21 +139,6 @@ material = "wood"
 """
 
 
-def _energy(model, frames):
-    m = float(model.body_mass[0])
-    s = model.body_inv_inertia[0]
-    inertia = np.linalg.inv(np.array([[s[0], s[3], s[4]], [s[3], s[1], s[5]],
-                                      [s[4], s[5], s[2]]]))
-    out = []
-    for x, q, v, w in zip(frames.x[:, 0], frames.q[:, 0], frames.v[:, 0], frames.w[:, 0]):
-        qw, qx, qy, qz = q
-        R = np.array([[1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)],
-                      [2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)],
-                      [2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)]])
-        out.append(0.5 * m * v @ v + 0.5 * w @ (R @ inertia @ R.T) @ w + m * G * x[2])
-    return np.array(out)
-
-
 @pytest.mark.parametrize("shape", [
     'builtin = "pawn"\nheight = 0.05',
     'builtin = "knight"\nheight = 0.06',
@@ -174,7 +160,7 @@ def test_dropped_spinning_bodies_never_gain_energy(tmp_path, shape):
     model = build_model(parse_scene(text, tmp_path / "drop.toml"))
     assert model.sphere_inscribed.shape[0] > 0
     frames = Simulator(model).advance(model.initial_state())
-    energy = _energy(model, frames)
+    energy = body_energy(model, frames, G)
     scale = energy[0] - energy.min()
     assert np.all(np.diff(np.maximum.accumulate(energy)) <= 1e-6 * scale)
     assert energy[-1] < energy[0]

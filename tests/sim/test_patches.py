@@ -15,6 +15,7 @@ import pytest
 from dempipe.scene.build import build_model
 from dempipe.scene.load import parse_scene
 from dempipe.sim.simulator import Simulator
+from bodies import body_energy, rotation_matrix
 
 G = 9.81
 SIZE = 0.1          # the box's edge, the cylinder's diameter and height [m]
@@ -121,29 +122,6 @@ def test_the_auto_step_does_not_depend_on_the_resolution(shape):
     assert max(dts) / min(dts) <= 1.5, dts
 
 
-def _energy(model, frames):
-    """Kinetic plus potential energy [J] of the one body at each frame."""
-    m = float(model.body_mass[0])
-    inertia = np.linalg.inv(_sym(model.body_inv_inertia[0]))
-    ke = []
-    for x, q, v, w in zip(frames.x[:, 0], frames.q[:, 0], frames.v[:, 0], frames.w[:, 0]):
-        R = _rot(q)
-        iw = R @ inertia @ R.T
-        ke.append(0.5 * m * v @ v + 0.5 * w @ iw @ w + m * G * x[2])
-    return np.array(ke)
-
-
-def _sym(s):
-    return np.array([[s[0], s[3], s[4]], [s[3], s[1], s[5]], [s[4], s[5], s[2]]])
-
-
-def _rot(q):
-    w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
-
 @pytest.mark.parametrize("law", ["linear", "hertz"])
 def test_edge_and_corner_landings_lose_energy_and_come_to_rest_on_a_face(law):
     # A box dropped from 0.3 m turned 35° about x and 20° about y (lands on a corner,
@@ -159,12 +137,12 @@ def test_edge_and_corner_landings_lose_energy_and_come_to_rest_on_a_face(law):
     model = scene("box", 6, 0.5, law=law, z=0.35, duration=2.0, fps=60, friction=0.5,
                   rotation="[" + ", ".join(repr(float(c)) for c in q) + "]")
     frames = Simulator(model).advance(model.initial_state())
-    energy = _energy(model, frames)
+    energy = body_energy(model, frames, G)
     drop = energy[0] - float(model.body_mass[0]) * G * 0.05
     assert np.all(np.diff(np.maximum.accumulate(energy)) <= 1e-6 * drop)
     assert np.all(energy[1:] <= energy[0] + 1e-6 * drop)
     assert np.linalg.norm(frames.v[-1, 0]) < 1e-3 and np.linalg.norm(frames.w[-1, 0]) < 1e-2
-    R = _rot(frames.q[-1, 0])
+    R = rotation_matrix(frames.q[-1, 0])
     assert 1.0 - np.abs(R[2]).max() < 1 - math.cos(math.radians(0.5))   # a body axis up
     assert frames.x[-1, 0, 2] == pytest.approx(0.05, abs=0.01 * model.diameter)
 
