@@ -473,7 +473,7 @@ def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
                 (pfx, pfy, pfz, ptx, pty, ptz, sx, sy, sz) = sphere_wall_force(  # noqa: F821
                     -nx, -ny, -nz, ov, ov + da, uxi, uyi, uzi, wxi, wyi, wzi,
                     Wx, Wy, Wz, k, eta, kt, ks, mu, sx, sy, sz, dt, onset_speed)
-                if ROTATION:  # noqa: F821 (about the sphere's centre: the ball's is a away)
+                if INSCRIBED and ROTATION:  # noqa: F821 (about the sphere's centre: a away)
                     ptx += ay * pfz - az * pfy
                     pty += az * pfx - ax * pfz
                     ptz += ax * pfy - ay * pfx
