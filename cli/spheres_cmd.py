@@ -178,7 +178,7 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
                 "off_axis_share": off_axis_share(mesh.vertices, mesh.faces),
                 "hausdorff": None,
                 "bump": None,
-                # a surface set's spheres that meet walls through their inscribed ball
+                # a surface set's spheres that meet walls through their inscribed torus
                 # or ring (spheres.inscribed: how round bodies roll), as a bake builds them
                 "inscribed": (None if mode != "surface" else _inscribed_count(
                     sphere_set, mesh)),
@@ -238,9 +238,9 @@ def _fracture_rows(name, arg, mesh, d, n, seed, cache, output, as_json) -> dict:
 def _inscribed_count(sphere_set, mesh) -> int:
     import numpy as np
 
-    from dempipe.spheres.inscribed import inscribed_balls
+    from dempipe.spheres.inscribed import inscribed_tori
 
-    rows = inscribed_balls(sphere_set.centers, sphere_set.diameter,
+    rows = inscribed_tori(sphere_set.centers, sphere_set.diameter,
                            mesh.vertices - sphere_set.com, mesh.faces)
     return int(np.count_nonzero(np.any(rows[:, 0:3] != 0.0, axis=1)))
 

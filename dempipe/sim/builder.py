@@ -41,7 +41,7 @@ from dempipe.sim.model import (
     rotational_mass_factor,
     sleep_defaults,
 )
-from dempipe.spheres.inscribed import COLUMNS, inscribed_balls
+from dempipe.spheres.inscribed import COLUMNS, inscribed_tori
 from dempipe.spheres.sphere_set import surface_mask
 
 if TYPE_CHECKING:  # spheres imports numba; the model only needs the type
@@ -124,7 +124,7 @@ class ModelBuilder:
         centers = self._contact_centers(sphere_set)
         inscribed = None
         if "surface" in getattr(sphere_set, "notes", ()):
-            inscribed = inscribed_balls(centers, self.diameter, verts, mesh.faces)
+            inscribed = inscribed_tori(centers, self.diameter, verts, mesh.faces)
             inscribed = frozen(inscribed) if np.any(inscribed[:, :3] != 0.0) else None
         self._shapes.append(ShapeInstance(name, frozen(verts), frozen(mesh.faces, np.int32),
                                           frozen(com), sphere_set, centers, inside,
@@ -393,7 +393,7 @@ class ModelBuilder:
         start = np.zeros(len(counts) + 1, dtype=np.int32)
         start[1:] = np.cumsum(counts) if counts else []
         sphere_offset = np.concatenate(offsets) if offsets else np.zeros((0, 3))
-        # each contact sphere's inscribed ball (none at all where every set is a lattice)
+        # each contact sphere's inscribed torus (no rows at all where every set is a lattice)
         if any(self._shapes[s].inscribed is not None for s in set(body_shape.tolist())):
             own = np.zeros(COLUMNS)
             own[10] = 0.5 * d

@@ -56,9 +56,9 @@ class ShapeInstance:
         contacts [m]: the full set's within ``contact_layers`` layers of its
         surface (spheres.surface_mask), in the set's order; all of them when
         contact_layers is 0. These become the Model's sphere_offset.
-    inscribed : (K, 4) per contact sphere, its inscribed ball (spheres.inscribed): the
-        body-frame vector from the sphere's centre to the ball's [m] and the ball's
-        radius [m]; None where every sphere is its own (a lattice set).
+    inscribed : (K, spheres.inscribed.COLUMNS) per contact sphere, its inscribed torus
+        (spheres.inscribed.inscribed_tori: a ball or a ring, body frame [m]); None where
+        every sphere is its own (a lattice set).
     """
 
     name: str
@@ -139,9 +139,9 @@ class Model:
       body_labels, each body's name after its group's (its index, or for a fracture
       piece "3_piece_07"; empty: indices).
     Per sphere (S,): sphere_body int32; sphere_offset (S, 3) from the body's centre
-      of mass, body frame [m]; sphere_inscribed (S, 4) each sphere's inscribed ball for
-      wall contacts (ShapeInstance.inscribed: the body-frame vector to its centre [m],
-      its radius [m]), or (0, 4) when every sphere is its own (lattice sets).
+      of mass, body frame [m]; sphere_inscribed (S, COLUMNS) each sphere's inscribed
+      torus for wall contacts (ShapeInstance.inscribed, spheres.inscribed), or
+      (0, COLUMNS) when every sphere is its own (lattice sets).
     Walls (planes and box walls) as bounded half-spaces (W,): wall_normal (W, 3)
       unit, pointing into the free side; wall_offset (W,) [m], n·x = offset on the
       surface; wall_lo, wall_hi (W, 3) box the sphere centre must be in [m];
@@ -174,6 +174,7 @@ class Model:
     body_radius: np.ndarray
     sphere_body: np.ndarray
     sphere_offset: np.ndarray
+    sphere_inscribed: np.ndarray
     wall_normal: np.ndarray
     wall_offset: np.ndarray
     wall_lo: np.ndarray
@@ -253,7 +254,6 @@ class Model:
     """(M, M): each material pair's rolling-friction coefficient μ_r [1]
     (materials.mix_rolling; physics.rolling_torque)."""
     body_inv_radius: np.ndarray = None
-    sphere_inscribed: np.ndarray = None
     """(B,) [1/m]: 1 / each dynamic body's radius (its rolling radius; the pair's is
     1 / (1/R_i + 1/R_j)); 0 for static and kinematic bodies, which roll as a wall."""
     bonds: Any = None

@@ -30,19 +30,20 @@ import numpy as np
 SHELL_TOLERANCE = 0.02
 #: Neighbours (the sphere itself included) each shell sphere's quadric is fitted to.
 FIT_NEIGHBOURS = 32
-#: An inscribed ball's radius is at most this share of the shape's smallest extent
-#: (its bounding box's, body frame): a ball's own radius, a box's half side.
+#: A torus's tube radius is at most this share of the shape's smallest extent (its
+#: bounding box's, body frame): a ball's own radius, a box's half side.
 RHO_MAX_SHARE = 0.5
 #: A fit whose RMS residual exceeds this [d], or whose tangent plane leans more than
-#: this [rad] from the closest point's normal, spans an edge: no inscribed ball.
+#: this [rad] from the closest point's normal, spans an edge: no torus.
 FIT_RESIDUAL = 0.01
 FIT_TILT = 0.2
-#: The offset surface of a faceted mesh is faceted: an inscribed ball may reach this
-#: far [d] past its neighbouring centres (below the contact's INSCRIBED_REACH).
+#: The offset surface of a faceted mesh is faceted: a torus's tube may reach this
+#: far [d] past its neighbouring centres (a wall contact never takes more than
+#: pairing.INSCRIBED_REACH beyond the sphere's own).
 SHRINK_SLACK = 0.05
 
 
-#: Columns of a sphere's row (inscribed_balls): the vector from the sphere's centre to
+#: Columns of a sphere's row (inscribed_tori): the vector from the sphere's centre to
 #: the torus's centre (3), its axis (3), the direction from its centre to the tube's
 #: centre under the sphere (3), the circle's radius a, the tube's radius b [m], unused.
 COLUMNS = 12
@@ -51,7 +52,7 @@ COLUMNS = 12
 CIRCLE_MAX_SHARE = 4.0
 
 
-def inscribed_balls(centers, diameter: float, vertices, faces) -> np.ndarray:
+def inscribed_tori(centers, diameter: float, vertices, faces) -> np.ndarray:
     """(N, COLUMNS) per sphere of ``centers`` (body frame [m], the set's order): its
     osculating torus, the torus inside the mesh that touches the surface where the
     sphere does with the surface's two curvatures there: a circle of radius a about an

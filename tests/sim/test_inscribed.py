@@ -17,7 +17,7 @@ from dempipe.mesh.shapes import build_shape
 from dempipe.scene.build import build_model
 from dempipe.scene.load import parse_scene
 from dempipe.sim.simulator import Simulator
-from dempipe.spheres.inscribed import SHRINK_SLACK, inscribed_balls
+from dempipe.spheres.inscribed import SHRINK_SLACK, inscribed_tori
 from dempipe.spheres.options import BuildOptions
 from dempipe.spheres.sphere_set import build_sphere_set
 from bodies import body_energy
@@ -31,7 +31,7 @@ def _balls(name, across, **params):
     d = size / across
     ss = build_sphere_set(mesh, d, name=f"inscribed-{name}", options=BuildOptions(mode="surface"))
     verts = np.asarray(mesh.vertices) - ss.com
-    ins = inscribed_balls(ss.centers, d, verts, mesh.faces)
+    ins = inscribed_tori(ss.centers, d, verts, mesh.faces)
     return mesh, ss, d, ins
 
 
@@ -58,7 +58,7 @@ def _torus_points(ss, ins, rows, n=24):
 
 
 @pytest.mark.parametrize("across", [8, 16])
-def test_a_balls_inscribed_balls_are_the_ball(across):
+def test_a_balls_inscribed_tori_are_the_ball(across):
     # the built-in ball (an icosphere of 5,120 faces, 0.1 m across): most shell spheres
     # carry the ball, or where the fitted curvatures differ a little a torus close to
     # it: the tube's centre under the sphere within the tube's shortfall (+0.1 d) of

@@ -26,7 +26,6 @@ from dempipe.sim.kernels.neighbours import NEIGHBOURS, cell_size
 from dempipe.sim.kernels.pairing import LIST_COLS, LIST_PER_SPHERE, PAIR_COLS, PAIRS_PER_SPHERE
 from dempipe.sim.kernels.patches import BODY_PATCHES
 from dempipe.sim.state import CONTACT_SLOTS
-from dempipe.spheres.inscribed import COLUMNS
 
 #: Most buckets per sphere the grid may use: its table has 2^k >= this × spheres
 #: buckets (memory follows the spheres, never the bounding box).
@@ -400,7 +399,7 @@ class ContactModel(NamedTuple):
     wall_depth [m], wall_material) and each wall's motion (wall_motion, -1: fixed;
     control.Drive); rolling resistance (rolling: Features.rolling and friction, the
     pair table pair_rolling [1], body_inv_radius [1/m]: physics.rolling_torque);
-    sphere_inscribed: the Model's, (0, 4) for none (contacts.inscribed_wall)."""
+    sphere_inscribed: the Model's, no rows for none (contacts.inscribed_wall)."""
 
     diameter: Any
     dt: Any
@@ -522,13 +521,6 @@ def body_model(model, body_start, friction: bool, arrays=None) -> BodyModel:
                      rolling=bool(model.features.rolling and friction))
 
 
-def inscribed_rows(model) -> np.ndarray:
-    """The Model's sphere_inscribed, or none (0, COLUMNS): every sphere is its own."""
-    if model.sphere_inscribed is None:
-        return np.zeros((0, COLUMNS))
-    return model.sphere_inscribed
-
-
 def contact_model(model, friction: bool, wall_motion, arrays=None) -> ContactModel:
     """The ContactModel of ``model``; ``friction``: the backend's feature;
     ``wall_motion``: control.Drive's; ``arrays``: where to take the Model's
@@ -544,7 +536,7 @@ def contact_model(model, friction: bool, wall_motion, arrays=None) -> ContactMod
         wall_hi=a("wall_hi"), wall_depth=a("wall_depth"), wall_material=a("wall_material"),
         wall_motion=wall_motion, rolling=bool(model.features.rolling and friction),
         pair_rolling=a("pair_rolling"), body_inv_radius=a("body_inv_radius"),
-        sphere_inscribed=inscribed_rows(model) if arrays is None else a("sphere_inscribed"))
+        sphere_inscribed=a("sphere_inscribed"))
 
 
 def step_model(model, friction: bool) -> StepModel:
@@ -563,7 +555,7 @@ def step_model(model, friction: bool) -> StepModel:
         wall_normal=model.wall_normal, wall_offset=model.wall_offset, wall_lo=model.wall_lo,
         wall_hi=model.wall_hi, wall_depth=model.wall_depth, wall_material=model.wall_material,
         rolling=bool(model.features.rolling and friction), pair_rolling=model.pair_rolling,
-        body_inv_radius=model.body_inv_radius, sphere_inscribed=inscribed_rows(model))
+        body_inv_radius=model.body_inv_radius, sphere_inscribed=model.sphere_inscribed)
 
 
 def scratch_of(backend) -> Scratch:

@@ -45,7 +45,7 @@ WALL_BITS = 63
 #: How far past its reach a wall is still marked, in units of the distance a sphere
 #: may move between rebuilds (SKIN/2 d): room for the rounding of the dot products.
 WALL_SLACK = 1.25
-#: How much deeper [d] than its own sphere a sphere's inscribed ball may touch a wall
+#: How much deeper [d] than its own sphere a sphere's inscribed torus may touch a wall
 #: (spheres/inscribed.py; contacts.inscribed_wall): above the dips of a surface set's
 #: envelope on a round body (at most h² / (2 (R − r)) for shell spacing h, 0.013 d on
 #: a ball 8 spheres across) and the facets of its mesh; a model with inscribed balls

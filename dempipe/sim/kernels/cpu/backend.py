@@ -36,7 +36,6 @@ from dempipe.sim.kernels.layout import (
     glue_model,
     glue_scratch,
     grid_table,
-    inscribed_rows,
     run_flags,
     scene_features,
     scratch_of,
@@ -65,7 +64,7 @@ class CpuBackend:
         self.features = scene_features(model, features)
         self.flags = run_flags(self.features, specialize)
         self.k = kernels(self.flags, model.contact_law, glue=model.n_bonds > 0,
-                         inscribed=inscribed_rows(model).shape[0] > 0)
+                         inscribed=model.sphere_inscribed.shape[0] > 0)
         #: The glue bonds as the kernels read them (layout.GlueModel).
         self.glue_model = glue_model(model)
         # every array, by name (layout.cpu_scratch: what memory_estimate counts and a
@@ -227,7 +226,7 @@ class CpuBackend:
                                    self.hist_partner.shape[1] if self.features.friction else 0,
                                    self.wall_s.shape[0], self.drive.wall_motion,
                                    self.sorted_body, self.drive.body_start,
-                                   int(state.step), inscribed_rows(m).shape[0] > 0) > 0):
+                                   int(state.step), m.sphere_inscribed.shape[0] > 0) > 0):
             self.grow_neighbours()
         self.sphere_overlap[:] = 0.0
         partner, spring = self.contacts(state)

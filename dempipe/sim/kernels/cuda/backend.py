@@ -49,7 +49,7 @@ from dempipe.sim.kernels.pairing import INSCRIBED_REACH, PAIR_COLS, WALL_SLACK
 from dempipe.sim.kernels.patches import BODY_PATCHES
 from dempipe.sim.kernels.layout import (
     CUDA_LAYOUT, FLAGS, GENERAL, ContactScratch, BodyScratch, GlueModel, GlueScratch,
-    body_model, inscribed_rows, layout_bytes, contact_model, fit_grid, glue_model, grid_table, run_flags,
+    body_model, layout_bytes, contact_model, fit_grid, glue_model, grid_table, run_flags,
     scene_features, static_extent)
 from dempipe.sim.kernels.neighbours import NEIGHBOURS, SKIN, cell_size
 # The device side, by stage (each module's docstring says what it holds); the kernels
@@ -209,7 +209,7 @@ def scratch_layout(model, friction=None) -> dict:
         "pair_damp": ((nm, nm, DAMP_TERMS), f8),
         "pair_mu": ((nm, nm), f8), "pair_rolling": ((nm, nm), f8),
         "body_inv_radius": ((nb,), f8),
-        "sphere_inscribed": (inscribed_rows(model).shape, f8),
+        "sphere_inscribed": (model.sphere_inscribed.shape, f8),
         "wall_normal": ((nw, 3), f8), "wall_offset": ((nw,), f8),
         "wall_lo": ((nw, 3), f8), "wall_hi": ((nw, 3), f8), "wall_depth": ((nw,), f8),
         "wall_material": ((nw,), i4), "gravity": ((3,), f8), "grid": ((6,), i8),
@@ -320,13 +320,12 @@ class CudaBackend:
         model_fields = ("sphere_body", "sphere_offset", "body_sphere_start", "body_mass",
                         "body_inv_mass", "body_inv_inertia", "body_material", "pair_k",
                         "pair_damp", "pair_mu", "pair_rolling", "body_inv_radius",
-                        "wall_normal", "wall_offset", "wall_lo",
+                        "sphere_inscribed", "wall_normal", "wall_offset", "wall_lo",
                         "wall_hi", "wall_depth", "wall_material", "gravity")
         for name in model_fields:
             shape, dt = layout[name]
             a = np.ascontiguousarray(getattr(model, name), dtype=dt).reshape(shape)
             d[name] = cuda.to_device(a)
-        d["sphere_inscribed"] = cuda.to_device(np.ascontiguousarray(inscribed_rows(model)))
         d["grid"] = cuda.to_device(self.grid)
         if self.glue:                   # the bonds (layout.GlueModel), as the CPU's
             for name, a in glue_model(model)._asdict().items():
@@ -497,7 +496,7 @@ class CudaBackend:
                                       d["body_inv_mass"], d["pidx"], d["ctl"])
         k_pair_mirror[blocks, THREADS](
             0.5 * m.diameter, WALL_SLACK * 0.5 * SKIN * m.diameter
-            + (INSCRIBED_REACH * m.diameter if inscribed_rows(m).shape[0] else 0.0),
+            + (INSCRIBED_REACH * m.diameter if m.sphere_inscribed.shape[0] else 0.0),
             d["nbr"], d["nbr_n"],
             d["sorted_idx"], d["sorted_x"], d["sorted_body"], d["body_inv_mass"],
             d["wall_normal"], d["wall_offset"], d["wall_lo"], d["wall_hi"], d["wall_depth"],
