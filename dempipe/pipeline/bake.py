@@ -338,11 +338,14 @@ def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, pro
                  f"in contact; it will be pushed out in the first steps")
 
         store.create()
-    interrupt.check()
-
-    sim = Simulator(model, device=dev, threads=threads)
-    state = model.initial_state()
-    point = store.restore(sim, state) if resuming else None
+    try:
+        # the work folder exists from here: a stop says what it holds and how to go on
+        interrupt.check()
+        sim = Simulator(model, device=dev, threads=threads)
+        state = model.initial_state()
+        point = store.restore(sim, state) if resuming else None
+    except interrupt.StopRequested as exc:
+        raise _interrupted(exc, scene_path, out, store, None, 0, None) from None
     n_frames = end + 1
 
     def after_frame(k, st):
