@@ -141,15 +141,10 @@ def inscribed_tori(centers, diameter: float, vertices, faces) -> np.ndarray:
 def _shrinking_ball(points, inward, tau) -> np.ndarray:
     """Per point p_i with inward unit normal m_i: the radius ρ of the largest ball
     tangent at p_i (centre p_i + ρ m_i) that holds no other point deeper than ``tau``
-    inside it: min over j of (|p_j − p_i|² − τ²) / (2 ((p_j − p_i)·m_i − τ)) for
-    (p_j − p_i)·m_i > τ."""
-    out = np.full(points.shape[0], np.inf)
-    chunk = max(1, 2_000_000 // max(1, points.shape[0]))     # ~50 MB of temporaries
-    for a in range(0, points.shape[0], chunk):
-        rel = points[None, :, :] - points[a:a + chunk, None, :]          # (c, N, 3)
-        t = np.einsum("cnj,cj->cn", rel, inward[a:a + chunk])
-        d2 = np.einsum("cnj,cnj->cn", rel, rel)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rad = np.where(t > tau, (d2 - tau * tau) / (2.0 * (t - tau)), np.inf)
-        out[a:a + chunk] = rad.min(axis=1)
+    inside it (surface.shrinking_ball)."""
+    from dempipe.spheres.surface import shrinking_ball
+
+    out = np.empty(points.shape[0])
+    shrinking_ball(np.ascontiguousarray(points, dtype=np.float64),
+                   np.ascontiguousarray(inward, dtype=np.float64), float(tau), out)
     return out

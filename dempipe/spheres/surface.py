@@ -295,6 +295,30 @@ def _nearest_within(points, centers, origin, cell, dims, start, items, out):
         out[p] = d if d <= cell else np.inf
 
 
+@numba.njit(parallel=True, cache=True)
+def shrinking_ball(points, inward, tau, out):
+    """Per point p_i with inward unit normal m_i: the radius ρ of the largest ball
+    tangent at p_i (centre p_i + ρ m_i) that holds no other point deeper than ``tau``
+    inside it, into out[i]: min over j of (|p_j − p_i|² − τ²) / (2 ((p_j − p_i)·m_i − τ))
+    for (p_j − p_i)·m_i > τ, inf where none is. All pairs (each point's minimum is its
+    own: the same for any thread count)."""
+    n = points.shape[0]
+    for i in numba.prange(n):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        mx, my, mz = inward[i, 0], inward[i, 1], inward[i, 2]
+        best = np.inf
+        for j in range(n):
+            rx = points[j, 0] - px
+            ry = points[j, 1] - py
+            rz = points[j, 2] - pz
+            t = rx * mx + ry * my + rz * mz
+            if t > tau:
+                rad = (rx * rx + ry * ry + rz * rz - tau * tau) / (2.0 * (t - tau))
+                if rad < best:
+                    best = rad
+        out[i] = best
+
+
 # --------------------------------------------------------------------------- helpers
 
 
