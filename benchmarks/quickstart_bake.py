@@ -11,7 +11,9 @@ the final largest speed and mean height (the two piles should settle alike); the
 the median ratio of wall times A/B (above 1: B bakes faster). A whole bake, not
 ab_trees.py's few steps: the quickstart's first steps are free fall and cost
 nearly nothing, and a change of dt auto shows only per bake (docs/performance.md).
-``--spheres surface`` bakes the same scene with surface sphere sets.
+``--spheres surface`` bakes the same scene with surface sphere sets; ``--scene
+examples/column_drop.toml`` another scene of the repository, the same way (its path
+taken in each tree).
 """
 
 import argparse
@@ -22,7 +24,7 @@ import sys
 import time
 
 
-def child(root: str, spheres: str | None) -> None:
+def child(root: str, spheres: str | None, name: str = "examples/quickstart.toml") -> None:
     sys.path[:0] = [root]
     import tempfile
     from pathlib import Path
@@ -33,11 +35,11 @@ def child(root: str, spheres: str | None) -> None:
     from dempipe.scene.load import load_scene
     from dempipe.sim.simulator import Simulator
 
-    scene = Path(root) / "examples" / "quickstart.toml"
+    scene = Path(root) / name
     if spheres:
         text = scene.read_text().replace("[simulation]\n",
                                          f'[simulation]\nspheres = "{spheres}"\n', 1)
-        scene = Path(tempfile.mkdtemp()) / "quickstart.toml"
+        scene = Path(tempfile.mkdtemp()) / Path(name).name
         scene.write_text(text)
     model = build_model(load_scene(scene))
     sim = Simulator(model)
@@ -63,15 +65,17 @@ def main() -> None:
     ap.add_argument("--pairs", type=int, default=2)
     ap.add_argument("--spheres", choices=("lattice", "surface"),
                     help="the scene's sphere sets (default: as the scene says)")
+    ap.add_argument("--scene", default="examples/quickstart.toml",
+                    help="a scene file, relative to each tree (default: the quickstart)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        return child(args.a, args.spheres)
+        return child(args.a, args.spheres, args.scene)
     ratios = []
     for k in range(args.pairs):
         walls = {}
         for root in ((args.a, args.b) if k % 2 == 0 else (args.b, args.a)):
-            r = subprocess.run([sys.executable, __file__, root, "--child"]
+            r = subprocess.run([sys.executable, __file__, root, "--child", "--scene", args.scene]
                                + (["--spheres", args.spheres] if args.spheres else []),
                                check=True, capture_output=True, text=True)
             res = json.loads(r.stdout.strip().splitlines()[-1])
