@@ -178,10 +178,9 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
                 "off_axis_share": off_axis_share(mesh.vertices, mesh.faces),
                 "hausdorff": None,
                 "bump": None,
-                # a surface set's spheres that meet walls through their inscribed torus
-                # or ring (spheres.inscribed: how round bodies roll), as a bake builds them
-                "inscribed": (None if mode != "surface" else _inscribed_count(
-                    sphere_set, mesh)),
+                # the spheres that meet walls through an inscribed ball or ring of the
+                # mesh (spheres.inscribed: how round bodies roll), as a bake builds them
+                "inscribed": _inscribed_count(sphere_set, mesh, mode),
                 "build_seconds": info.seconds,
                 "cache": info.cache,
                 "mesh_sha256": sphere_set.mesh_sha256,
@@ -235,13 +234,14 @@ def _fracture_rows(name, arg, mesh, d, n, seed, cache, output, as_json) -> dict:
     return result
 
 
-def _inscribed_count(sphere_set, mesh) -> int:
+def _inscribed_count(sphere_set, mesh, mode) -> int:
     import numpy as np
 
-    from dempipe.spheres.inscribed import inscribed_tori
+    from dempipe.spheres.inscribed import inscribed_tori, lattice_tori
 
-    rows = inscribed_tori(sphere_set.centers, sphere_set.diameter,
-                           mesh.vertices - sphere_set.com, mesh.faces)
+    tori = inscribed_tori if mode == "surface" else lattice_tori
+    rows = tori(sphere_set.centers, sphere_set.diameter, mesh.vertices - sphere_set.com,
+                mesh.faces)
     return int(np.count_nonzero(np.any(rows[:, 0:3] != 0.0, axis=1)))
 
 

@@ -597,8 +597,11 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
                            mesh_beyond_spheres_diameters=beyond,
                            mode="lattice" if lattice else "surface",
                            off_axis_share=off_axis))
-        if lattice and off_axis > ROUND_SHARE and not small and s.inside_faces is None:
-            round_shapes.append((s.name, off_axis))   # (a fracture piece keeps its lattice)
+        # (a fracture piece keeps its lattice; a lattice with its mesh's inscribed tori
+        # rolls on walls: spheres/inscribed.py lattice_tori)
+        if (lattice and off_axis > ROUND_SHARE and not small and s.inside_faces is None
+                and s.inscribed is None):
+            round_shapes.append((s.name, off_axis))
         if beyond > COARSE_DIAMETERS and not small:
             findings.append(Finding(
                 WARNING, "coarse-shape",
@@ -621,11 +624,13 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
             WARNING, "round-lattice",
             f"{src}: shape{'s' * (len(round_shapes) > 1)} {names}: that share of "
             f"{'their' if len(round_shapes) > 1 else 'its'} surface is curved or slanted "
-            f"to the lattice, whose spheres follow it in terraces: such a body rolls "
-            f"badly or not at all (a ball, a wheel, a piece on its side)",
-            'where rolling shows, give the shape spheres = "surface", or the scene '
-            'simulation.spheres = "auto" (surface sets for its round shapes only): more '
-            'spheres, a slower bake (docs/spheres.md, "Surface mode")'))
+            f"to the lattice, whose spheres follow it in terraces, too coarse for a fit of "
+            f"its curvature to give it its mesh's own contacts with the ground: such a "
+            f"body rolls badly or not at all (a ball, a wheel, a piece on its side)",
+            'where rolling shows, raise simulation.resolution (a lattice of about 8 '
+            'spheres across a round part rolls on walls), or give the shape spheres = '
+            '"surface", or the scene simulation.spheres = "auto" (surface sets for its '
+            'round shapes only): more spheres, a slower bake (docs/spheres.md, "Rolling")'))
 
     # 6. far from the origin: grid keys hold ±2^20 cells per axis (kernels/cpu/stages.py);
     # beyond half of that the bake still collides correctly but slowly

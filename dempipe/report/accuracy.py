@@ -409,7 +409,10 @@ def incline_run(material, resolution: int, mode: str, rule: DtRule, cache=None,
     b = ModelBuilder(d, gravity=(g * math.sin(theta), 0.0, -g * math.cos(theta)))
     s = b.add_shape(shape, mesh, ss)
     m = b.add_material(replace(material, name="incline", stiffness=None))
-    low = float(-np.asarray(ss.centers)[:, 2].min()) + 0.5 * d
+    # resting on the lower of its spheres and its mesh (a lattice's round parts meet the
+    # plane through the mesh's inscribed tori: spheres/inscribed.py)
+    low = max(float(-np.asarray(ss.centers)[:, 2].min()) + 0.5 * d,
+              float(ss.com[2] - np.asarray(mesh.vertices)[:, 2].min()))
     b.add_bodies(shape, s, m, [[0.0, 0.0, low + 1e-3 * d]])
     b.add_plane([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], m)
     fps = 400.0

@@ -158,7 +158,7 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
     t0 = time.perf_counter()
     hits = []
     layers = sim.contact_layers if o.contact_layers is None else o.contact_layers
-    b = ModelBuilder(d, gravity=sim.gravity, contact_layers=layers)
+    b = ModelBuilder(d, gravity=sim.gravity, contact_layers=layers, cache=cache)
     material_index = {}
     for name, spec in scene.materials.items():
         m = spec.to_material()

@@ -41,7 +41,7 @@ from dempipe.sim.model import (
     rotational_mass_factor,
     sleep_defaults,
 )
-from dempipe.spheres.inscribed import COLUMNS, inscribed_tori
+from dempipe.spheres.inscribed import COLUMNS, wall_tori
 from dempipe.spheres.sphere_set import surface_mask
 
 if TYPE_CHECKING:  # spheres imports numba; the model only needs the type
@@ -73,10 +73,12 @@ class ModelBuilder:
     All lengths in metres, in the simulation's world frame.
     contact_layers : keep for contacts only the spheres within this many lattice
         layers of each sphere set's surface (0: all); default CONTACT_LAYERS.
+    cache : a spheres.cache.SphereCache that keeps the shapes' inscribed tori
+        (spheres.inscribed.wall_tori) beside their sphere sets, or None.
     """
 
     def __init__(self, diameter: float, gravity=(0.0, 0.0, -9.81),
-                 contact_layers: int = CONTACT_LAYERS):
+                 contact_layers: int = CONTACT_LAYERS, cache=None):
         if not (diameter > 0 and math.isfinite(diameter)):
             raise SceneError(f"sphere diameter must be positive and finite, got {diameter!r}")
         if (isinstance(contact_layers, bool) or not isinstance(contact_layers, (int, np.integer))
@@ -84,6 +86,7 @@ class ModelBuilder:
             raise SceneError(f"contact_layers must be an integer >= 0 (0: every sphere), "
                              f"got {contact_layers!r}")
         self.contact_layers = int(contact_layers)
+        self.cache = cache
         self.diameter = float(diameter)
         self.gravity = np.asarray(gravity, dtype=np.float64)
         self._shapes: list[ShapeInstance] = []
@@ -122,10 +125,12 @@ class ModelBuilder:
         inside = None if inside_faces is None else frozen(
             np.flatnonzero(np.asarray(inside_faces, bool)), np.int32)
         centers = self._contact_centers(sphere_set)
-        inscribed = None
-        if "surface" in getattr(sphere_set, "notes", ()):
-            inscribed = inscribed_tori(centers, self.diameter, verts, mesh.faces)
-            inscribed = frozen(inscribed) if np.any(inscribed[:, :3] != 0.0) else None
+        inscribed = wall_tori(centers, self.diameter, verts, mesh.faces,
+                              surface="surface" in getattr(sphere_set, "notes", ()),
+                              cache=self.cache)
+        own = 0.5 * self.diameter
+        inscribed = frozen(inscribed) if (np.any(inscribed[:, :3] != 0.0)
+                                          or np.any(inscribed[:, 10] != own)) else None
         self._shapes.append(ShapeInstance(name, frozen(verts), frozen(mesh.faces, np.int32),
                                           frozen(com), sphere_set, centers, inside,
                                           inscribed))

@@ -1,4 +1,4 @@
-"""Inscribed balls and rings: how a surface set meets a wall as smoothly as its mesh.
+"""Inscribed balls and rings: how a sphere set meets a wall as smoothly as its mesh.
 
 A surface set's shell spheres sit at depth r = d/2 under the mesh, a spacing h apart
 (spheres/surface.py). Against a plane, the set's envelope dips between them: where the
@@ -6,23 +6,34 @@ body's lowest point falls between two centres, neither sphere reaches the plane 
 deep as the surface would, by up to κ ρ²/2 (κ the curvature of the offset surface,
 ρ ≤ h the distance to the nearest centre). A ball rolling across those dips rides
 over a polygon of corners of radius r: past √(g R) it hops from sphere to sphere and
-each landing loses what the restitution takes.
+each landing loses what the restitution takes. A lattice set's envelope is terraced,
+a few tenths of d deep, and its spheres stick out of the mesh as much: a lattice
+ball is a polyhedron that does not roll at all.
 
 So each shell sphere also carries its osculating torus inside the mesh: a circle of
 radius a about an axis, swept by a tube of radius b, touching the surface where the
 sphere does with the surface's two curvatures there (b = r + 1/κ2, a + b = r + 1/κ1,
 κ1 ≥ κ2 the principal curvatures of the offset surface, fitted to the sphere's shell
 neighbours), the tube held inside the shell (a shrinking-ball test) and to
-RHO_MAX_SHARE of the shape's smallest extent. On a ball it is the ball; on a
-cylinder's side the cross-section, or near a cap the ring about the axis through the
-sphere. A wall contact takes the torus's overlap at its point lowest towards the wall
-(kernels/contacts.py inscribed_wall), never more than INSCRIBED_REACH d beyond the
-sphere's own, which bounds what a torus fitted badly could add. Edge and corner
-spheres (a fit across an edge is no surface), interior and thin-part spheres and every
-lattice set keep their own sphere. docs/physics.md, "Round bodies on walls".
+RHO_MAX_SHARE of the shape's smallest extent (inscribed_tori). On a ball it is the
+ball; on a cylinder's side the cross-section, or near a cap the ring about the axis
+through the sphere. A wall contact takes the torus's overlap at its point lowest
+towards the wall (kernels/contacts.py inscribed_wall), never more than the row's reach
+beyond the sphere's own (REACH d), which keeps a torus far from the contact out of it.
+Edge and corner spheres (a fit across an edge is no surface), interior and thin-part
+spheres keep their own sphere.
+
+A lattice set takes the tori its mesh's shell would have at the same d, held inside
+the mesh itself, each given to the lattice sphere outermost where it was fitted, with
+a reach that spans the terraces; on a shape with tori, a lattice sphere that sticks
+out of the mesh meets walls as the ball of its depth (lattice_tori). So with the
+default sphere sets too a ball, a cylinder and a torus roll on walls at their closed
+forms. docs/physics.md, "Round bodies on walls".
 """
 
 from __future__ import annotations
+
+import hashlib
 
 import numpy as np
 
@@ -38,21 +49,72 @@ RHO_MAX_SHARE = 0.5
 FIT_RESIDUAL = 0.01
 FIT_TILT = 0.2
 #: The offset surface of a faceted mesh is faceted: a torus's tube may reach this
-#: far [d] past its neighbouring centres (a wall contact never takes more than
-#: pairing.INSCRIBED_REACH beyond the sphere's own).
+#: far [d] past its neighbouring centres (a wall contact never takes more than REACH
+#: beyond the sphere's own).
 SHRINK_SLACK = 0.05
+#: How much deeper [d] than its own sphere a shell sphere's torus may touch a wall
+#: (contacts.inscribed_wall): above the dips of a surface set's envelope on a round
+#: body (at most h² / (2 (R − r)) for shell spacing h, 0.013 d on a ball 8 spheres
+#: across) and the facets of its mesh. A lattice sphere's reach adds its shape's
+#: terraces (lattice_tori).
+REACH = 0.05
 
 
 #: Columns of a sphere's row (inscribed_tori): the vector from the sphere's centre to
 #: the torus's centre (3), its axis (3), the direction from its centre to the tube's
-#: centre under the sphere (3), the circle's radius a, the tube's radius b [m], unused.
+#: centre under the sphere (3), the circle's radius a, the tube's radius b, how much
+#: deeper than the sphere's own its wall contact may be [m].
 COLUMNS = 12
 #: A circle larger than this many times the shape's largest extent is a straight line
 #: to the contact: the sphere takes a ball instead.
 CIRCLE_MAX_SHARE = 4.0
 
 
-def inscribed_tori(centers, diameter: float, vertices, faces) -> np.ndarray:
+#: Tori computed in this process, by their inputs: a shape built into a model again (a
+#: wedge's variants, a bake resumed in the same process, a test's scenes) costs nothing.
+MEMO_SIZE = 32
+_MEMO: dict = {}
+#: The fit's version, in the disk cache's keys: a change to what the functions below
+#: compute changes it, and old entries are never read.
+TORI_VERSION = 1
+
+
+def wall_tori(centers, diameter: float, vertices, faces, *, surface: bool,
+              cache=None) -> np.ndarray:
+    """What each sphere of a set meets walls through: inscribed_tori for a surface set's
+    ``centers``, lattice_tori for a lattice's (body frame [m]); read-only, remembered
+    for the process by the bytes of every input (MEMO_SIZE sets) and, with ``cache`` (a
+    spheres.cache.SphereCache), on disk beside the sphere sets: a scene built again
+    (`dempipe check` after a bake) fits nothing and loads no numba."""
+    c = np.ascontiguousarray(np.asarray(centers, dtype=np.float64).reshape(-1, 3))
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.ascontiguousarray(faces, dtype=np.int64)
+    h = hashlib.sha256(f"inscribed tori {TORI_VERSION}".encode())
+    for a in (c, v, f):
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    h.update(np.asarray([diameter], dtype=np.float64).tobytes())
+    h.update(b"surface" if surface else b"lattice")
+    key = h.hexdigest()
+    rows = _MEMO.get(key)
+    if rows is None and cache is not None:
+        got = cache.get_arrays(key)
+        if got is not None and got.get("rows", np.zeros(0)).shape == (c.shape[0], COLUMNS):
+            rows = got["rows"].astype(np.float64)
+    if rows is None:
+        rows = (inscribed_tori if surface else lattice_tori)(c, diameter, v, f)
+        if cache is not None:
+            cache.put_arrays(key, {"rows": rows})
+    if key not in _MEMO:
+        rows.setflags(write=False)
+        if len(_MEMO) >= MEMO_SIZE:
+            _MEMO.pop(next(iter(_MEMO)))
+        _MEMO[key] = rows
+    return rows
+
+
+def inscribed_tori(centers, diameter: float, vertices, faces, *,
+                   curved_only: bool = False) -> np.ndarray:
     """(N, COLUMNS) per sphere of ``centers`` (body frame [m], the set's order): its
     osculating torus, the torus inside the mesh that touches the surface where the
     sphere does with the surface's two curvatures there: a circle of radius a about an
@@ -60,7 +122,9 @@ def inscribed_tori(centers, diameter: float, vertices, faces) -> np.ndarray:
     a cylinder's side spheres its cross-section (a = 0, b = R) or, near a cap, the
     ring of radius R − b through them; a flat face's a ball held clear of its edges.
     Where the sphere is its own (not on the shell, on an edge, a thin part), the row
-    is (0, ..., 0, b = d/2, 0). Body frame, [m]."""
+    is (0, ..., 0, b = d/2, REACH d). Body frame, [m]. ``curved_only``: flat parts
+    (their larger radius beyond CIRCLE_MAX_SHARE of the largest extent) get nothing
+    either (lattice_tori)."""
     # scipy and the numba mesh queries load here, when a surface set is built into a model
     from scipy.spatial import cKDTree
 
@@ -70,6 +134,7 @@ def inscribed_tori(centers, diameter: float, vertices, faces) -> np.ndarray:
     r = 0.5 * float(diameter)
     out = np.zeros((c.shape[0], COLUMNS))
     out[:, 10] = r
+    out[:, 11] = REACH * float(diameter)
     v = np.asarray(vertices, dtype=np.float64)
     if c.shape[0] < FIT_NEIGHBOURS or v.shape[0] == 0:
         return out
@@ -129,6 +194,8 @@ def inscribed_tori(centers, diameter: float, vertices, faces) -> np.ndarray:
     a = np.where(ring, r1 - b, 0.0)
     centre = -(np.where(ring, r1, b) - r)[:, None] * normal     # inward: the circle's centre
     grow = smooth & ((b > r * (1.0 + 1e-9)) | ring)
+    if curved_only:
+        grow &= np.isfinite(r1) & (r1 <= CIRCLE_MAX_SHARE * float(extent.max()))
     rows = shell[grow]
     out[rows, 0:3] = centre[grow]
     out[rows, 3:6] = np.where(ring[grow, None], np.cross(normal[grow], d1[grow]), 0.0)
@@ -148,3 +215,168 @@ def _shrinking_ball(points, inward, tau) -> np.ndarray:
     shrinking_ball(np.ascontiguousarray(points, dtype=np.float64),
                    np.ascontiguousarray(inward, dtype=np.float64), float(tau), out)
     return out
+
+
+#: Points round a ring's circle at which lattice_tori tests that its tube stays inside,
+#: and by how much [d] it may come nearer the surface there than at the sphere.
+RING_CHECKS = 32
+RING_SLACK = 0.02
+#: A lattice set takes tori only where at least this share of its mesh's surface is
+#: curved (a fit follows it): a coarse set's odd fit (one on a king's crown at 6 spheres
+#: across the pawn) would change how its body meets walls for nothing. Flat faces take
+#: none: where a lattice is flush with one it is already flat, and balls tangent at a
+#: shell's scattered points would press a face landing flat off centre.
+MIN_ROUND_SHARE = 0.1
+#: A lattice sphere less than this share of r short of depth r under the mesh is flush
+#: (an icosphere of 4 subdivisions comes 0.2 % short of its radius).
+OWN_SLACK = 0.02
+
+
+def lattice_tori(centers, diameter: float, vertices, faces) -> np.ndarray:
+    """(N, COLUMNS) per sphere of a lattice set's ``centers`` (body frame [m]): the mesh's
+    inscribed tori (inscribed_tori, fitted to the surface-following shell the mesh would
+    have at this d, spheres/surface.py), each given to the sphere that is outermost under
+    the surface where it was fitted, so that a lattice set meets a wall through its mesh's
+    curvature too: a ball rolls as a ball however coarse its lattice's terraces.
+
+    A lattice's envelope lies up to its terraces' depth G under the mesh, not REACH d, so
+    a sphere's torus may touch up to G + REACH d deeper than the sphere (column 11): G is
+    the largest distance from a point of the mesh where it is round to the envelope. A
+    torus is inside the mesh, so its overlap is never more than the mesh's own; a ring
+    whose tube leaves the mesh somewhere round its circle (fitted on a surface that is not
+    one of revolution about its axis: a knight's mane) is only its tube's ball at the
+    sphere, which the shrinking-ball test holds inside.
+
+    On a shape with tori, every other sphere whose centre is less than r deep (more than
+    OWN_SLACK r short) meets walls as the ball of its depth (a = 0, b its depth), so that
+    none sticks out of the mesh either (a cylinder's rim); the rest are their own
+    (inscribed_tori's rows for those). A shape with no round surface a fit can follow at
+    this d (the quickstart's pieces at 6 across) has no tori and is left as it is."""
+    from dempipe.spheres.sphere_set import repaired_mesh
+    from dempipe.spheres.surface import MeshQueries
+
+    c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+    d = float(diameter)
+    r = 0.5 * d
+    out = np.zeros((c.shape[0], COLUMNS))
+    out[:, 10] = r
+    out[:, 11] = REACH * d
+    mesh = repaired_mesh(np.asarray(vertices, dtype=np.float64), faces)
+    if c.shape[0] == 0 or len(mesh.faces) == 0:
+        return out
+    rows = _round_rows(c, d, mesh, out)
+    if rows.size == 0:
+        return out
+    # a lattice sphere whose centre is nearer the surface than r sticks out of the mesh
+    # (a cylinder's rim): against a wall it is the ball of its depth, never more than
+    # the mesh, or a body rolling on its tori would ride on what its lattice adds
+    own = np.ones(c.shape[0], dtype=bool)
+    own[rows] = False
+    depth, _ = MeshQueries(np.asarray(mesh.vertices, dtype=np.float64), mesh.faces,
+                           d).closest(c[own])
+    out[np.flatnonzero(own), 10] = np.where(depth < (1.0 - OWN_SLACK) * r,
+                                            np.maximum(depth, 0.0), r)
+    return out
+
+
+def _round_rows(c, d, mesh, out) -> np.ndarray:
+    """lattice_tori's round surfaces: writes the tori of the lattice spheres ``c`` that
+    are outermost under them into ``out``; returns those rows."""
+    from scipy.spatial import cKDTree
+
+    from dempipe.mesh.winding import inside_mask
+    from dempipe.spheres.surface import DEFAULT_SPACING, METRIC_SPACING, grid_samples, \
+        surface_centers
+
+    r = 0.5 * d
+    sc = surface_centers(mesh, d, DEFAULT_SPACING)
+    shell = sc.centers[:sc.shell]
+    t = inscribed_tori(shell, d, mesh.vertices, mesh.faces, curved_only=True)
+    grown = np.any(t[:, 0:3] != 0.0, axis=1)
+    if not grown.any():
+        return np.zeros(0, dtype=np.int64)
+    # the surface where it is round, each point's outermost sphere and its gap
+    pts, _ = grid_samples(mesh.vertices, mesh.faces, METRIC_SPACING * d)
+    _, fit = cKDTree(shell).query(pts)
+    if np.count_nonzero(grown[fit]) < MIN_ROUND_SHARE * pts.shape[0]:
+        return np.zeros(0, dtype=np.int64)
+    pts, fit = pts[grown[fit]], fit[grown[fit]]
+    gap, owner = cKDTree(c).query(pts)
+    gap -= r
+    # each owner takes the torus fitted nearest the point where it is closest to the mesh
+    order = np.lexsort((gap, owner))
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = owner[order[1:]] != owner[order[:-1]]
+    rows = owner[order[first]]
+    k = fit[order[first]]
+    # only the tori given to a sphere are held inside the mesh (a few of the shell's)
+    used, k = np.unique(k, return_inverse=True)
+    t = _inside_mesh(shell[used], t[used], mesh, d, inside_mask)
+    kept = np.any(t[k, 0:3] != 0.0, axis=1)
+    rows, k = rows[kept], k[kept]
+    out[rows, 0:3] = shell[used][k] + t[k, 0:3] - c[rows]
+    out[rows, 3:11] = t[k, 3:11]
+    out[rows, 11] = max(0.0, float(gap.max())) + REACH * d
+    return rows
+
+
+def _inside_mesh(shell, t, mesh, diameter, inside_mask) -> np.ndarray:
+    """``t`` (inscribed_tori's rows for ``shell``) held inside the mesh itself, each still
+    touching it where it was fitted. The shrinking-ball test holds a tube within
+    SHRINK_SLACK d of the shell only, so near a cap a cylinder's tube pokes a few
+    hundredths of d through it, which a lattice's reach would let through, and a body
+    would rock on those tori. So each tube's radius becomes at most its centre's
+    distance from the mesh (all round a ring's circle), its circle moved out by what it
+    lost (a ring's radius grows, a ball's centre moves towards the surface), so that it
+    touches where the sphere's fit did. A ring is kept where its tube then stays that far
+    inside all round its circle (within RING_SLACK d: a surface of revolution about its
+    axis), else it becomes its tube's ball at the sphere; a torus whose tube's centre is
+    outside the mesh is dropped."""
+    from dempipe.spheres.surface import MeshQueries
+
+    t = t.copy()
+    idx = np.flatnonzero(np.any(t[:, 0:3] != 0.0, axis=1))
+    if idx.size == 0:
+        return t
+    ring = t[idx, 9] > 0.0
+    normal = -t[idx, 0:3] / np.linalg.norm(t[idx, 0:3], axis=1)[:, None]
+    normal = np.where(ring[:, None], t[idx, 6:9], normal)         # outward at the sphere
+    axis = t[idx, 3:6]
+    side = np.cross(axis, normal)
+    phi = np.linspace(0.0, 2.0 * np.pi, RING_CHECKS, endpoint=False)
+    queries = MeshQueries(np.asarray(mesh.vertices, dtype=np.float64), mesh.faces,
+                          float(t[idx, 10].max()) + diameter)
+
+    def gaps(o, a):                     # each tube centre's depth under the surface
+        tube = o[:, None, :] + a[:, None, None] * (
+            np.cos(phi)[None, :, None] * normal[:, None, :]
+            + np.sin(phi)[None, :, None] * side[:, None, :])
+        # a ball's points are all its centre: one query
+        pick = np.where(ring[:, None], True, np.arange(RING_CHECKS)[None, :] == 0)
+        flat = tube[pick]
+        g, _ = queries.closest(flat)
+        out = np.empty(tube.shape[:2])
+        out[pick] = np.where(inside_mask(mesh, flat), g, -np.inf)
+        return np.where(ring[:, None], out, out[:, 0:1])
+
+    o = shell[idx] + t[idx, 0:3]
+    a = t[idx, 9]
+    b0 = t[idx, 10]
+    g = gaps(o, a)
+    b = np.minimum(b0, np.where(ring, g.min(axis=1), g[:, 0]))
+    lost = np.where(np.isfinite(b), b0 - b, 0.0)
+    a = np.where(ring, a + lost, 0.0)
+    o = np.where(ring[:, None], o, o + lost[:, None] * normal)
+    g = gaps(o, a)
+    whole = ring & (g.min(axis=1) >= b - RING_SLACK * diameter)
+    o = np.where((ring & ~whole)[:, None], o + a[:, None] * normal, o)
+    b = np.minimum(b, np.where(whole, g.min(axis=1), g[:, 0]))
+    t[idx, 0:3] = o - shell[idx]
+    t[idx, 3:6] = np.where(whole[:, None], axis, 0.0)
+    t[idx, 6:9] = np.where(whole[:, None], normal, 0.0)
+    t[idx, 9] = np.where(whole, a, 0.0)
+    t[idx, 10] = b
+    out = idx[~np.isfinite(b) | (b <= 0.0)]
+    t[out, 0:10] = 0.0
+    t[out, 10] = 0.5 * diameter
+    return t

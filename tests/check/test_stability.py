@@ -541,21 +541,23 @@ def test_a_shape_whose_mesh_reaches_past_its_spheres_is_flagged():
 
 
 def test_round_shapes_on_a_lattice_are_named_in_one_warning():
-    # A lattice follows a curved surface in terraces, so a lattice ball does not roll
-    # (docs/spheres.md, "Rolling"). The ball and the cylinder on lattices are named,
-    # with their off-axis shares; the box (faces along the lattice's axes) and the
-    # ball built as a surface set are not.
+    # A lattice follows a curved surface in terraces, so a lattice ball too coarse for
+    # its mesh's inscribed tori does not roll (docs/spheres.md, "Rolling"). The ball and
+    # the cylinder on lattices at 3 across are named, with their off-axis shares; the
+    # box (faces along the lattice's axes), the ball built as a surface set and the
+    # ball 7.5 across, whose lattice meets walls through its mesh's tori, are not.
     from dempipe.mesh.shapes import build_shape
     from dempipe.spheres.options import BuildOptions
     from dempipe.spheres.sphere_set import build_sphere_set
 
-    d = 0.04 / 6                        # 6 across the built-in ball, box, can's height
+    d = 0.04 / 3                        # 3 across the built-in ball, box, can's height
     b = ModelBuilder(d)
     wood = b.add_material(Material("wood", density=700))
-    shapes = (("ball", "sphere", "lattice"), ("can", "cylinder", "lattice"),
-              ("crate", "box", "lattice"), ("smooth", "sphere", "surface"))
-    for i, (name, builtin, mode) in enumerate(shapes):
-        mesh = build_shape(builtin)
+    shapes = (("ball", "sphere", "lattice", {}), ("can", "cylinder", "lattice", {}),
+              ("crate", "box", "lattice", {}), ("smooth", "sphere", "surface", {}),
+              ("boulder", "sphere", "lattice", {"diameter": 0.1}))
+    for i, (name, builtin, mode, params) in enumerate(shapes):
+        mesh = build_shape(builtin, **params)
         s = b.add_shape(name, mesh, build_sphere_set(mesh, d, name=name,
                                                      options=BuildOptions(mode=mode)))
         b.add_bodies(name, s, wood, [[0.1 * i, 0, 0.05]])
@@ -565,6 +567,7 @@ def test_round_shapes_on_a_lattice_are_named_in_one_warning():
     assert len(found) == 1 and found[0].level == "warning" and r.ok
     assert "'ball' (99%), 'can' (65%)" in found[0].message, found[0].message
     assert "'crate'" not in found[0].message and "'smooth'" not in found[0].message
+    assert "'boulder'" not in found[0].message
     assert 'spheres = "surface"' in found[0].fix
     rows = {s["name"]: s for s in r.shapes}
     assert rows["crate"]["off_axis_share"] == 0.0 and rows["smooth"]["mode"] == "surface"

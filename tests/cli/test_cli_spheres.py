@@ -218,11 +218,14 @@ def test_surface_sets_report_no_cell_errors(tmp_path):
     assert (lattice["mode"], surface["mode"]) == ("lattice", "surface")
     assert abs(lattice["volume_error_percent"]) < 40
     assert surface["volume_error_percent"] is None and surface["inertia_error_percent"] is None
-    # most of a ball's shell meets walls through its inscribed ball (spheres.inscribed)
-    assert lattice["inscribed"] is None and surface["inscribed"] > 0.5 * surface["count"]
+    # most of a ball's shell meets walls through its inscribed ball, and so do the
+    # lattice's outermost spheres, through the mesh's (spheres.inscribed)
+    assert surface["inscribed"] > 0.5 * surface["count"]
+    assert 0.2 * lattice["count"] < lattice["inscribed"] < lattice["count"]
     text = run("spheres", "sphere", "-r", "6", "--mode", "both", "--no-errors").stdout
     lat_line, surf_line = text.splitlines()
     assert f"{surface['inscribed']} meet walls through inscribed balls" in surf_line
+    assert f"{lattice['inscribed']} meet walls through inscribed balls" in lat_line
     assert "on the surface" in lat_line and "volume error" in lat_line
     assert "mass and inertia from the mesh" in surf_line and "volume error" not in surf_line
 

@@ -1,5 +1,6 @@
 """Inscribed balls: a surface set meets a wall through the largest ball its surface's
-curvature allows at each shell sphere (spheres/inscribed.py, contacts.inscribed_wall).
+curvature allows at each shell sphere, and a lattice set through its mesh's
+(spheres/inscribed.py, contacts.inscribed_wall).
 
 What must hold: the balls are the body's own surface where it is round (a ball's are
 the ball), stay inside the mesh where it is flat or has edges, and a body dropped on
@@ -17,7 +18,7 @@ from dempipe.mesh.shapes import build_shape
 from dempipe.scene.build import build_model
 from dempipe.scene.load import parse_scene
 from dempipe.sim.simulator import Simulator
-from dempipe.spheres.inscribed import SHRINK_SLACK, inscribed_tori
+from dempipe.spheres.inscribed import SHRINK_SLACK, inscribed_tori, lattice_tori
 from dempipe.spheres.options import BuildOptions
 from dempipe.spheres.sphere_set import build_sphere_set
 from bodies import body_energy
@@ -84,7 +85,7 @@ def test_balls_and_rings_stay_inside_flat_faces_and_edges(name, params):
     # mesh than 0.1 d: SHRINK_SLACK d (the slack the fit over a faceted offset surface
     # is given) and the bulge of a ball held off centres a spacing h apart between
     # them (measured 0.08 d on the cylinder, 8 across; a wall contact never takes more
-    # than INSCRIBED_REACH = 0.05 d beyond the sphere's own): points all round each
+    # than REACH = 0.05 d beyond the sphere's own): points all round each
     # torus against the mesh's bounds, and for the cylinder from its axis
     mesh, ss, d, ins = _balls(name, 8, **params)
     grown = np.flatnonzero(np.any(ins[:, 0:3] != 0.0, axis=1))
@@ -108,6 +109,57 @@ def test_edges_and_corners_keep_their_own_spheres():
     a = ins[grown, 0:3]
     n = -a / np.linalg.norm(a, axis=1)[:, None]
     assert np.abs(n).max(axis=1).min() > math.cos(math.radians(12.0))
+
+
+def _support(ins, centers, m):
+    """The farthest any row's torus reaches along the unit direction m (body frame [m]):
+    o·m + a |m across the axis| + b (a ball's rows have a = 0)."""
+    o = centers + ins[:, 0:3]
+    mt = ins[:, 3:6] @ m
+    across = np.sqrt(np.maximum(0.0, 1.0 - mt * mt))
+    return float(np.max(o @ m + ins[:, 9] * across + ins[:, 10]))
+
+
+@pytest.mark.parametrize("name, params, across, axis", [
+    ("sphere", dict(diameter=0.1), 8, None),
+    ("cylinder", dict(diameter=0.1, height=0.1), 8, 2),
+    ("cylinder", dict(diameter=0.1, height=0.05), 8, 2),
+    ("torus", dict(major_radius=0.035, minor_radius=0.015), 16, 2),
+], ids=["ball", "cylinder", "disc", "torus"])
+def test_a_lattice_meets_walls_as_its_mesh(name, params, across, axis):
+    # a lattice set's spheres stick out of its mesh (up to 0.41 d on these) and dip
+    # under it between them; what each meets a wall with (lattice_tori: the mesh's
+    # torus where the sphere is outermost, else the ball of its own depth) stays inside
+    # the mesh in every direction, and reaches it in every direction the body rolls
+    # (across its axis). Support functions over 400 directions against the mesh's:
+    # measured out of it at most -0.0002 d, short of it at most 0.006 d (ball, cylinder,
+    # disc) and 0.041 d (the torus's rim); asked 0.01 d (the facets) and 0.05 d (REACH)
+    mesh = build_shape(name, **params)
+    d = float((mesh.bounds[1] - mesh.bounds[0]).max()) / across
+    ss = build_sphere_set(mesh, d, name=f"lattice-{name}")
+    c = np.asarray(ss.centers)
+    v = np.asarray(mesh.vertices) - ss.com
+    ins = lattice_tori(c, d, v, mesh.faces)
+    assert np.count_nonzero(np.any(ins[:, 0:3] != 0.0, axis=1)) > 0.15 * len(c)
+    dirs = np.random.default_rng(1).normal(size=(400, 3))
+    dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+    assert max(np.max(c @ m) + 0.5 * d - np.max(v @ m) for m in dirs) > 0.25 * d
+    assert max(_support(ins, c, m) - np.max(v @ m) for m in dirs) < 0.01 * d
+    roll = dirs.copy()
+    if axis is not None:
+        roll[:, axis] = 0.0
+        roll /= np.linalg.norm(roll, axis=1)[:, None]
+    assert max(np.max(v @ m) - _support(ins, c, m) for m in roll) < 0.05 * d
+
+
+def test_a_lattice_with_no_round_surface_keeps_its_spheres():
+    # the quickstart's pawn at 6 spheres across its height: no fit follows a surface so
+    # coarse, and the set meets walls with its own spheres, bit for bit as before
+    mesh = build_shape("pawn", height=0.05)
+    d = 0.05 / 6
+    ss = build_sphere_set(mesh, d, name="lattice-pawn")
+    ins = lattice_tori(ss.centers, d, np.asarray(mesh.vertices) - ss.com, mesh.faces)
+    assert np.all(ins[:, 0:10] == 0.0) and np.all(ins[:, 10] == 0.5 * d)
 
 
 DROP = """

@@ -74,11 +74,11 @@ def compile_slot_store(jit) -> types.SimpleNamespace:
 
 
 def compile_pairing(jit, formulas) -> types.SimpleNamespace:
-    """pairing.py's bookkeeping (entry_range, wall_reach, owns, pair_count,
+    """pairing.py's bookkeeping (entry_range, inscribed_reach, wall_reach, owns, pair_count,
     pair_slots, pair_mirror, walls_to_front, wall_column, rows_to_pairs,
     pairs_to_rows), each compiled with ``jit``, calling ``formulas`` (the target's
     compile_formulas); they read no flags, so they need no variants."""
-    return compile_chain(pairing, ("entry_range", "wall_reach", "owns", "pair_count",
+    return compile_chain(pairing, ("entry_range", "inscribed_reach", "wall_reach", "owns", "pair_count",
                                     "pair_slots",
                                     "pair_mirror", "walls_to_front", "wall_column",
                                     "rows_to_pairs", "pairs_to_rows"), jit,
@@ -102,7 +102,7 @@ def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNam
                  sphere_wall_force=formulas.sphere_wall_force,
                  rolling_torque=formulas.rolling_torque,
                  anchor_local=formulas.anchor_local, anchor_surface=formulas.anchor_surface,
-                 quat_rotate=formulas.quat_rotate, INSCRIBED_REACH=contacts.INSCRIBED_REACH,
+                 quat_rotate=formulas.quat_rotate,
                  RING_TIE=contacts.RING_TIE, INSCRIBED=True)
     given.update(constants)
     c = compile_chain(contacts, ("wall_gap", "pair_ended", "inscribed_wall"), jit, given)

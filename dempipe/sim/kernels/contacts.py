@@ -70,7 +70,7 @@ rows a sphere.
 # The rebuild's bookkeeping (pair indices, walls in reach, histories into pair rows)
 # lives in kernels/pairing.py; its names are imported from here too, and read by the
 # passes below (compiled with this module's globals on CUDA).
-from dempipe.sim.kernels.pairing import INSCRIBED_REACH, RING_TIE, UNPAIRED, entry_range
+from dempipe.sim.kernels.pairing import RING_TIE, UNPAIRED, entry_range
 
 #: (reach / d)² within which a pair apart is tested for ``closing``: touching one
 #: step ago, so that its dashpot's last impulse lands (laws.linear.normal_force).
@@ -109,26 +109,27 @@ def wall_gap(w, xi, yi, zi, wall_normal, wall_offset, wall_lo, wall_hi, wall_mot
     return dist, inside
 
 
-def inscribed_wall(sphere_inscribed, body_q, i, bi, dist, radius, reach, nx, ny, nz,
+def inscribed_wall(sphere_inscribed, body_q, i, bi, dist, radius, nx, ny, nz,
                    ux, uy, uz, wx, wy, wz):
     """Sphere i (of body bi, at signed distance ``dist`` [m] from a wall of normal n,
     pointing into the free side) meets the wall through its inscribed torus
     (spheres/inscribed.py; a ball when its circle's radius is 0): row i of
     ``sphere_inscribed`` holds, body frame, the vector from the sphere's centre to the
     torus's centre, the circle's axis, the direction from that centre to the tube's
-    centre under the sphere [m, 1, 1], the circle's radius a and the tube's b [m],
-    turned by body_q[bi]. The tube's centre at the circle's point lowest towards the
+    centre under the sphere [m, 1, 1], the circle's radius a and the tube's b, and the
+    reach [m], turned by body_q[bi]. The tube's centre at the circle's point lowest towards the
     wall is the contact's centre: returns (overlap [m], that centre's distance from the
     wall [m], its offset from the sphere's centre (world) [m], its velocity u + w × that
     offset [m/s]), from u, the sphere centre's velocity relative to the wall, and w, its
     body's angular velocity.
 
-    The overlap is the tube's, b − its centre's distance, but at most ``reach`` [m]
-    more than the sphere's own, radius − dist: a round body's contact follows its
-    surface across the dips between its shell's spheres (a ball rolls as a ball, a
-    cylinder on its side along its bottom line), while a torus fitted badly (across
-    an edge) cannot push a body further out than that. Without inscribed tori (an
-    empty table: lattice sets) it is the sphere's own contact, bit for bit."""
+    The overlap is the tube's, b − its centre's distance, but at most the reach more
+    than the sphere's own, radius − dist: a round body's contact follows its surface
+    across the dips between its spheres (a surface set's, REACH d; a lattice's
+    terraces, deeper: spheres/inscribed.py lattice_tori), so a ball rolls as a ball and
+    a cylinder on its side along its bottom line, while a torus far from the contact
+    (on the body's other side) adds nothing. Without inscribed tori (an empty table:
+    lattice sets with no round surface) it is the sphere's own contact, bit for bit."""
     if sphere_inscribed.shape[0] == 0:          # every sphere is its own
         return radius - dist, dist, 0.0, 0.0, 0.0, ux, uy, uz
     ax = sphere_inscribed[i, 0]
@@ -159,7 +160,7 @@ def inscribed_wall(sphere_inscribed, body_q, i, bi, dist, radius, reach, nx, ny,
             az += s * pz
     da = dist + nx * ax + ny * ay + nz * az
     ov = rho - da
-    gate = radius + reach - dist
+    gate = radius + sphere_inscribed[i, 11] - dist
     if gate < ov:
         ov = gate
     return (ov, da, ax, ay, az, ux + (wy * az - wz * ay), uy + (wz * ax - wx * az),
@@ -409,7 +410,7 @@ def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
                 if INSCRIBED:  # noqa: F821 (the target's: a model with inscribed tori)
                     ov, da, ax, ay, az, uxi, uyi, uzi = inscribed_wall(
                         sphere_inscribed, body_q, sorted_idx[s], bi, dist, radius,
-                        INSCRIBED_REACH * diameter, nx, ny, nz, uxi, uyi, uzi, wxi, wyi, wzi)
+                        nx, ny, nz, uxi, uyi, uzi, wxi, wyi, wzi)
                 else:
                     ov = radius - dist
                     da = dist

@@ -45,17 +45,23 @@ WALL_BITS = 63
 #: How far past its reach a wall is still marked, in units of the distance a sphere
 #: may move between rebuilds (SKIN/2 d): room for the rounding of the dot products.
 WALL_SLACK = 1.25
-#: How much deeper [d] than its own sphere a sphere's inscribed torus may touch a wall
-#: (spheres/inscribed.py; contacts.inscribed_wall): above the dips of a surface set's
-#: envelope on a round body (at most h² / (2 (R − r)) for shell spacing h, 0.013 d on
-#: a ball 8 spheres across) and the facets of its mesh; a model with inscribed balls
-#: marks the walls this much further at each rebuild (wall_reach's margin).
-INSCRIBED_REACH = 0.05
 #: When a ring's axis is along a wall's normal, every point of the ring is as low:
 #: contacts.inscribed_wall then takes the point under the sphere, by adding this much
 #: of its direction [1] to the ring's lowest direction (a tie-break: elsewhere it moves
 #: the point by about 1e-6 rad and its height by 1e-12 of the ring's radius).
 RING_TIE = 1e-6
+
+
+def inscribed_reach(sphere_inscribed) -> float:
+    """How much deeper [m] than its own sphere any sphere's inscribed torus may touch
+    a wall (column 11 of the Model's sphere_inscribed, spheres/inscribed.py; 0 without
+    tori): a model with tori marks the walls this much further at each rebuild
+    (wall_reach's margin), so that no torus touches a wall its sphere has not marked."""
+    reach = 0.0
+    for i in range(sphere_inscribed.shape[0]):
+        if sphere_inscribed[i, 11] > reach:
+            reach = sphere_inscribed[i, 11]
+    return reach
 
 
 def wall_reach(s, radius, margin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,

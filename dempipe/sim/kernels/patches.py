@@ -207,7 +207,7 @@ def body_patches(b, k0, k1, work, listed, cm, cs, motion_now, body_sphere_start,
                 if INSCRIBED:  # noqa: F821 (as pair_forces)
                     ov, da, ax, ay, az, uxi, uyi, uzi = inscribed_wall(  # noqa: F821
                         sphere_inscribed, body_q, sorted_idx[s], b, dist, radius,
-                        INSCRIBED_REACH * diameter, nx, ny, nz, uxi, uyi, uzi,  # noqa: F821
+                        nx, ny, nz, uxi, uyi, uzi,
                         body_w[b, 0], body_w[b, 1], body_w[b, 2])
                 else:
                     ov = radius - dist

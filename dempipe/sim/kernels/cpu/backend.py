@@ -26,6 +26,7 @@ from dempipe.sim.kernels.cpu.stages import (
     kernels,
     stage_busy,
 )
+from dempipe.sim.kernels.cpu.device import inscribed_reach
 from dempipe.sim.kernels.cpu.spheres import stage_listed_from
 from dempipe.sim.kernels.layout import (
     ContactScratch,
@@ -226,7 +227,7 @@ class CpuBackend:
                                    self.hist_partner.shape[1] if self.features.friction else 0,
                                    self.wall_s.shape[0], self.drive.wall_motion,
                                    self.sorted_body, self.drive.body_start,
-                                   int(state.step), m.sphere_inscribed.shape[0] > 0) > 0):
+                                   int(state.step), inscribed_reach(m.sphere_inscribed)) > 0):
             self.grow_neighbours()
         self.sphere_overlap[:] = 0.0
         partner, spring = self.contacts(state)

@@ -29,7 +29,7 @@ from dempipe.sim.kernels.cpu.device import (
     static_body,
     wall_reach,
 )
-from dempipe.sim.kernels.pairing import INSCRIBED_REACH, WALL_SLACK
+from dempipe.sim.kernels.pairing import WALL_SLACK
 
 invalidate_stale_cache(__file__)
 
@@ -326,16 +326,14 @@ def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, 
 @numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_wall_reach(diameter, skin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
                      wall_depth, wall_mask, wall_start, cap, rows, wall_motion, sorted_body,
-                     body_start, step, inscribed):
+                     body_start, step, inscribed_reach):
     """At a rebuild: each slot's walls within reach until the next (contacts.wall_reach),
     for lists of reach (1 + skin) d, and its packed wall rows (contacts.py WALL_ROWS):
     wall_start[s] .. wall_start[s + 1] - 1, one per marked wall up to the ``cap``
     columns of a history row (none for a mask of -1: those search the row). A
     prefix sum, serial: a fixed order. Returns 0, or the rows needed when that is
     more than ``rows`` (the caller grows wall_s)."""
-    margin = WALL_SLACK * 0.5 * skin * diameter
-    if inscribed:
-        margin += INSCRIBED_REACH * diameter
+    margin = WALL_SLACK * 0.5 * skin * diameter + inscribed_reach
     n = sorted_x.shape[0]
     for s in prange(n):
         wall_reach(s, 0.5 * diameter, margin, sorted_x, wall_normal, wall_offset, wall_lo,

@@ -45,7 +45,7 @@ from dempipe.sim.laws.linear import DAMP_TERMS
 from dempipe.sim.state import CONTACT_SLOTS
 from dempipe.sim.backend import copy_matching
 from dempipe.sim.kernels.compile import compile_contacts, compile_formulas, compile_glue
-from dempipe.sim.kernels.pairing import INSCRIBED_REACH, PAIR_COLS, WALL_SLACK
+from dempipe.sim.kernels.pairing import PAIR_COLS, WALL_SLACK, inscribed_reach
 from dempipe.sim.kernels.patches import BODY_PATCHES
 from dempipe.sim.kernels.layout import (
     CUDA_LAYOUT, FLAGS, GENERAL, ContactScratch, BodyScratch, GlueModel, GlueScratch,
@@ -496,7 +496,7 @@ class CudaBackend:
                                       d["body_inv_mass"], d["pidx"], d["ctl"])
         k_pair_mirror[blocks, THREADS](
             0.5 * m.diameter, WALL_SLACK * 0.5 * SKIN * m.diameter
-            + (INSCRIBED_REACH * m.diameter if m.sphere_inscribed.shape[0] else 0.0),
+            + inscribed_reach(m.sphere_inscribed),
             d["nbr"], d["nbr_n"],
             d["sorted_idx"], d["sorted_x"], d["sorted_body"], d["body_inv_mass"],
             d["wall_normal"], d["wall_offset"], d["wall_lo"], d["wall_hi"], d["wall_depth"],
