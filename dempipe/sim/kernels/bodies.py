@@ -75,11 +75,13 @@ def body_update(b, k0, k1, s0, work, listed, bm, bs, step):
             rx = sphere_r[i, 0]
             ry = sphere_r[i, 1]
             rz = sphere_r[i, 2]
-            if FRICTION:           # torques about the spheres' centres (TORQUE_NOTE)
+            # torques about the spheres' centres (TORQUE_NOTE), and without friction
+            # those of the inscribed tori's contacts, whose force is off the centre
+            if FRICTION or INSCRIBED:  # noqa: F821
                 TX += (ry * fz - rz * fy) + sphere_t[i, 0]
                 TY += (rz * fx - rx * fz) + sphere_t[i, 1]
                 TZ += (rx * fy - ry * fx) + sphere_t[i, 2]
-                if rolling:
+                if FRICTION and rolling:
                     RX += sphere_tr[i, 0]
                     RY += sphere_tr[i, 1]
                     RZ += sphere_tr[i, 2]

@@ -705,10 +705,11 @@ def sphere_forces(k0, k1, work, listed, cm, cs):
         sphere_f[i, 0] = fx
         sphere_f[i, 1] = fy
         sphere_f[i, 2] = fz
-        if ROTATION and FRICTION:  # noqa: F821
+        if ROTATION and (FRICTION or INSCRIBED):  # noqa: F821 (a torus's arm: a × F)
             sphere_t[i, 0] = tx
             sphere_t[i, 1] = ty
             sphere_t[i, 2] = tz
+        if ROTATION and FRICTION:  # noqa: F821
             if rolling:
                 sphere_tr[i, 0] = qx
                 sphere_tr[i, 1] = qy

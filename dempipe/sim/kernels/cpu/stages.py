@@ -81,6 +81,8 @@ WALLS = True
 # Glue bonds (kernels/glue.py): not one of FLAGS but its own axis, as the law is
 # (kernels(flags, law, glue)): only a scene with bonds compiles their passes.
 GLUE = False
+# Inscribed tori (contacts.inscribed_wall): likewise, only a model with them.
+INSCRIBED = False
 
 
 

@@ -161,8 +161,10 @@ body_glue_sum = G.body_glue_sum
 def compile_body_stage(consts: dict):
     """kernels/bodies.py's body_update and kernels/prescribed.py's motion_row,
     driven_row as device functions with the feature flags ``consts`` (and GLUE: the
-    bonds' sum, kernels/glue.py, added to each body's; off unless given)."""
-    given = dict(dict(dict(GLUE=False), **consts), static_body=F.static_body,
+    bonds' sum, kernels/glue.py, added to each body's; off unless given; INSCRIBED:
+    the spheres' torques without friction, which CUDA's contact passes, holding the
+    inscribed tori always, write: compile.compile_contacts)."""
+    given = dict(dict(dict(GLUE=False, INSCRIBED=True), **consts), static_body=F.static_body,
                  body_step=F.body_step,
                  angular_velocity=F.angular_velocity, rest_steps=F.rest_steps,
                  rolling_scale=F.rolling_scale,
