@@ -37,6 +37,8 @@ import hashlib
 
 import numpy as np
 
+from dempipe.spheres.sphere_set import repaired_mesh
+
 #: Shell spheres: centres within this share of r of depth r under the mesh.
 SHELL_TOLERANCE = 0.02
 #: Neighbours (the sphere itself included) each shell sphere's quadric is fitted to.
@@ -252,7 +254,6 @@ def lattice_tori(centers, diameter: float, vertices, faces) -> np.ndarray:
     none sticks out of the mesh either (a cylinder's rim); the rest are their own
     (inscribed_tori's rows for those). A shape with no round surface a fit can follow at
     this d (the quickstart's pieces at 6 across) has no tori and is left as it is."""
-    from dempipe.spheres.sphere_set import repaired_mesh
     from dempipe.spheres.surface import MeshQueries
 
     c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
