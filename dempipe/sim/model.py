@@ -56,9 +56,10 @@ class ShapeInstance:
         contacts [m]: the full set's within ``contact_layers`` layers of its
         surface (spheres.surface_mask), in the set's order; all of them when
         contact_layers is 0. These become the Model's sphere_offset.
-    inscribed : (K, spheres.inscribed.COLUMNS) per contact sphere, its inscribed torus
-        (spheres.inscribed.inscribed_tori: a ball or a ring, body frame [m]); None where
-        every sphere is its own (a lattice set).
+    inscribed : (K, spheres.inscribed.COLUMNS) per contact sphere, what it meets walls
+        through (spheres.inscribed.wall_tori: a surface set's shell tori, or a lattice's
+        from its mesh; a ball or a ring, body frame [m], and its reach); None where
+        every sphere is its own (a lattice set with no curved part a fit follows).
     """
 
     name: str
@@ -141,7 +142,7 @@ class Model:
     Per sphere (S,): sphere_body int32; sphere_offset (S, 3) from the body's centre
       of mass, body frame [m]; sphere_inscribed (S, COLUMNS) each sphere's inscribed
       torus for wall contacts (ShapeInstance.inscribed, spheres.inscribed), or
-      (0, COLUMNS) when every sphere is its own (lattice sets).
+      (0, COLUMNS) when every sphere is its own (no shape has tori).
     Walls (planes and box walls) as bounded half-spaces (W,): wall_normal (W, 3)
       unit, pointing into the free side; wall_offset (W,) [m], n·x = offset on the
       surface; wall_lo, wall_hi (W, 3) box the sphere centre must be in [m];

@@ -713,9 +713,9 @@ def kernels(flags, law: str = "linear", glue: bool = False,
     and the contact ``law`` (laws.LAWS; the module's formulas are the linear law's,
     another law's are compiled and overlaid), with the glue passes when ``glue``
     (kernels/glue.py) and the wall contacts through inscribed tori when ``inscribed``
-    (contacts.inscribed_wall: a model with surface sets; without, the sphere's own
-    contact is compiled alone), created on first use; numba compiles each (or loads it from
-    its disk cache) at its first call."""
+    (contacts.inscribed_wall: a model with tori, of surface or lattice sets; without,
+    the sphere's own contact is compiled alone), created on first use; numba compiles
+    each (or loads it from its disk cache) at its first call."""
     flags = tuple(bool(f) for f in flags)
     key = flags if law == "linear" else (flags, law)
     if glue:
