@@ -25,10 +25,13 @@ spheres keep their own sphere.
 
 A lattice set takes the tori its mesh's shell would have at the same d, held inside
 the mesh itself, each given to the lattice sphere outermost where it was fitted, with
-a reach that spans the terraces; on a shape with tori, a lattice sphere that sticks
-out of the mesh meets walls as the ball of its depth (lattice_tori). So with the
-default sphere sets too a ball, a cylinder and a torus roll on walls at their closed
-forms. docs/physics.md, "Round bodies on walls".
+a reach that spans the terraces; on a solid of revolution each is swept about the
+body's axis instead where that ring stays inside (a cone's side); its sharp circular
+edges (rims: a cylinder's, a chess piece's base) are rings of tube 0 held by the
+lattice spheres nearest them; and a lattice sphere that sticks out of the mesh meets
+walls as a ball a little inside its depth (lattice_tori). So with the default sphere
+sets too a ball, a cylinder, a cone, a torus and a pawn on its side roll on walls at
+their closed forms. docs/physics.md, "Round bodies on walls".
 """
 
 from __future__ import annotations
@@ -78,7 +81,7 @@ MEMO_SIZE = 32
 _MEMO: dict = {}
 #: The fit's version, in the disk cache's keys: a change to what the functions below
 #: compute changes it, and old entries are never read.
-TORI_VERSION = 1
+TORI_VERSION = 2
 
 
 def wall_tori(centers, diameter: float, vertices, faces, *, surface: bool,
@@ -232,6 +235,11 @@ MIN_ROUND_SHARE = 0.1
 #: A lattice sphere less than this share of r short of depth r under the mesh is flush
 #: (an icosphere of 4 subdivisions comes 0.2 % short of its radius).
 OWN_SLACK = 0.02
+#: Such a sphere meets walls as the ball of its depth less this [d]: inside the tori
+#: and rims where the body is round, so that it takes none of their load as the line
+#: of contact passes it (tangent, each pass's dashpot took 4 % a second of a rolling
+#: frustum's speed); where no torus or rim is, the body rests this much deeper.
+OWN_INSET = 0.05
 
 
 def lattice_tori(centers, diameter: float, vertices, faces) -> np.ndarray:
@@ -249,11 +257,18 @@ def lattice_tori(centers, diameter: float, vertices, faces) -> np.ndarray:
     one of revolution about its axis: a knight's mane) is only its tube's ball at the
     sphere, which the shrinking-ball test holds inside.
 
+    On a solid of revolution (revolution_axis) a torus is swept about the body's axis
+    through the same tube wherever that ring stays inside the mesh: a cone's side, whose
+    own fit leans with the side and left only its tube's ball, over which the body
+    rolled from ball to ball. A shape with tori also gets its rims (rims, _rim_rows): a
+    cylinder or a pawn tipped onto the edge of its base rolls on the edge's circle.
+
     On a shape with tori, every other sphere whose centre is less than r deep (more than
-    OWN_SLACK r short) meets walls as the ball of its depth (a = 0, b its depth), so that
-    none sticks out of the mesh either (a cylinder's rim); the rest are their own
-    (inscribed_tori's rows for those). A shape with no round surface a fit can follow at
-    this d (the quickstart's pieces at 6 across) has no tori and is left as it is."""
+    OWN_SLACK r short) meets walls as the ball of its depth less OWN_INSET d (a = 0), so
+    that none sticks out of the mesh either (a cylinder's rim) nor takes load from the
+    tori; the rest are their own (inscribed_tori's rows for those). A shape with no
+    round surface a fit can follow at this d (the quickstart's pieces at 6 across) has
+    no tori nor rims and is left as it is."""
     from dempipe.spheres.surface import MeshQueries
 
     c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
@@ -268,15 +283,17 @@ def lattice_tori(centers, diameter: float, vertices, faces) -> np.ndarray:
     rows = _round_rows(c, d, mesh, out)
     if rows.size == 0:
         return out
+    rims = _rim_rows(c, d, mesh, out, rows)
     # a lattice sphere whose centre is nearer the surface than r sticks out of the mesh
     # (a cylinder's rim): against a wall it is the ball of its depth, never more than
     # the mesh, or a body rolling on its tori would ride on what its lattice adds
     own = np.ones(c.shape[0], dtype=bool)
     own[rows] = False
+    own[rims] = False
     depth, _ = MeshQueries(np.asarray(mesh.vertices, dtype=np.float64), mesh.faces,
                            d).closest(c[own])
     out[np.flatnonzero(own), 10] = np.where(depth < (1.0 - OWN_SLACK) * r,
-                                            np.maximum(depth, 0.0), r)
+                                            np.maximum(depth - OWN_INSET * d, 0.0), r)
     return out
 
 
@@ -313,12 +330,176 @@ def _round_rows(c, d, mesh, out) -> np.ndarray:
     # only the tori given to a sphere are held inside the mesh (a few of the shell's)
     used, k = np.unique(k, return_inverse=True)
     t = _inside_mesh(shell[used], t[used], mesh, d, inside_mask)
+    axis = revolution_axis(mesh)
+    if axis is not None:
+        # on a solid of revolution, the ring about its axis through the same tube
+        # wherever that ring is whole (a cone's side, which the fit's own ring, about
+        # the side's line, leaves: the body rolled over the tube's balls)
+        about = _inside_mesh(shell[used], _about_axis(shell[used], t, *axis), mesh, d,
+                             inside_mask)
+        swap = about[:, 9] > 0.0
+        t[swap] = about[swap]
     kept = np.any(t[k, 0:3] != 0.0, axis=1)
     rows, k = rows[kept], k[kept]
     out[rows, 0:3] = shell[used][k] + t[k, 0:3] - c[rows]
     out[rows, 3:11] = t[k, 3:11]
     out[rows, 11] = max(0.0, float(gap.max())) + REACH * d
     return rows
+
+
+#: A mesh edge whose faces turn by more than this [rad], outwards, is sharp: a chain
+#: of them round a circle is a rim (a cylinder's, a chess piece's base).
+RIM_ANGLE = np.radians(30.0)
+#: A chain is a rim where its vertices lie within this share of its radius of one
+#: circle, at least RIM_MIN_EDGES of them, with no gap round it wider than RIM_GAP
+#: [rad]: a whole polygonised circle (a box's edges, a notched crown are none).
+RIM_RESIDUAL = 0.01
+RIM_MIN_EDGES = 12
+RIM_GAP = np.radians(30.0)
+#: Points per d of rim at which rim rings find the lattice spheres that hold them.
+RIM_SAMPLES = 10
+
+
+def rims(mesh) -> list:
+    """The mesh's rims: chains of sharp convex edges (RIM_ANGLE) round a whole circle
+    (RIM_RESIDUAL, RIM_MIN_EDGES, RIM_GAP), each as (centre (3,), axis (3,), radius):
+    the circle inscribed in its polygon, so that it lies on the mesh (body frame [m])."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    sharp = (np.asarray(mesh.face_adjacency_angles) > RIM_ANGLE) & np.asarray(
+        mesh.face_adjacency_convex, dtype=bool)
+    edges = np.asarray(mesh.face_adjacency_edges)[sharp]
+    if edges.shape[0] < RIM_MIN_EDGES:
+        return []
+    verts = np.asarray(mesh.vertices, dtype=np.float64)
+    n = verts.shape[0]
+    graph = coo_matrix((np.ones(edges.shape[0]), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    found = []
+    for lab in np.unique(label[edges[:, 0]]):
+        chain = edges[label[edges[:, 0]] == lab]
+        if chain.shape[0] < RIM_MIN_EDGES:
+            continue
+        p = verts[np.unique(chain)]
+        centre = p.mean(axis=0)
+        _, _, vt = np.linalg.svd(p - centre)
+        axis, e1, e2 = vt[2], vt[0], vt[1]
+        u = (p - centre) @ e1
+        w = (p - centre) @ e2
+        # the circle through them: u² + w² + D u + E w + F = 0, least squares
+        sol = np.linalg.lstsq(np.column_stack([u, w, np.ones_like(u)]), -(u * u + w * w),
+                              rcond=None)[0]
+        cu, cw = -0.5 * sol[0], -0.5 * sol[1]
+        radius2 = cu * cu + cw * cw - sol[2]
+        if radius2 <= 0.0:
+            continue
+        radius = float(np.sqrt(radius2))
+        off = np.hypot(u - cu, w - cw) - radius
+        height = (p - centre) @ axis
+        if max(np.abs(off).max(), np.abs(height).max()) > RIM_RESIDUAL * radius:
+            continue
+        turn = np.sort(np.arctan2(w - cw, u - cu))
+        if np.diff(np.append(turn, turn[0] + 2.0 * np.pi)).max() > RIM_GAP:
+            continue
+        centre = centre + cu * e1 + cw * e2
+        mid = 0.5 * (verts[chain[:, 0]] + verts[chain[:, 1]]) - centre
+        inner = float(np.sqrt(np.min(np.sum(mid * mid, axis=1) - (mid @ axis) ** 2)))
+        found.append((centre, axis, inner))
+    return found
+
+
+def _rim_rows(c, d, mesh, out, taken) -> np.ndarray:
+    """lattice_tori's rims (rims): each rim's ring (a circle, tube 0) goes to the lattice
+    spheres nearest it round its circle that hold no torus (``taken``), with a reach of
+    their largest gap to it; written into ``out``, those rows returned. A body tipped
+    onto a rim (a piece on its side, a coin on its edge) rolls on its circle, not on
+    the lattice's corners there."""
+    from scipy.spatial import cKDTree
+
+    found = rims(mesh)
+    if not found:
+        return np.zeros(0, dtype=np.int64)
+    r = 0.5 * d
+    free = np.ones(c.shape[0], dtype=bool)
+    free[taken] = False
+    tree = cKDTree(c)
+    k = min(8, c.shape[0])
+    given = []
+    for centre, axis, radius in found:
+        m = max(RIM_MIN_EDGES, int(np.ceil(2.0 * np.pi * radius * RIM_SAMPLES / d)))
+        phi = np.linspace(0.0, 2.0 * np.pi, m, endpoint=False)
+        e1 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(axis, e1)
+        pts = centre + radius * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+        dist, near = tree.query(pts, k=k)
+        dist, near = dist.reshape(m, k), near.reshape(m, k)
+        pick = np.argmax(free[near], axis=1)        # the nearest free one
+        ok = free[near[np.arange(m), pick]]
+        if not ok.any():
+            continue
+        rows = near[np.arange(m), pick][ok]
+        gap = dist[np.arange(m), pick][ok] - r
+        reach = max(0.0, float(gap.max())) + REACH * d
+        rows = np.unique(rows)
+        rows = rows[np.any(c[rows] != centre, axis=1)]    # (a zero row is the sphere's own)
+        rel = c[rows] - centre
+        radial = rel - np.outer(rel @ axis, axis)
+        size = np.linalg.norm(radial, axis=1)
+        radial = np.where(size[:, None] > 1e-12 * d, radial / np.maximum(size, 1e-300)[:, None],
+                          e1)
+        out[rows, 0:3] = centre - c[rows]
+        out[rows, 3:6] = axis
+        out[rows, 6:9] = radial
+        out[rows, 9] = radius
+        out[rows, 10] = 0.0
+        out[rows, 11] = reach
+        free[rows] = False
+        given.append(rows)
+    return np.concatenate(given) if given else np.zeros(0, dtype=np.int64)
+
+
+#: Two principal moments of inertia within this share of the largest are equal: the
+#: third's axis may be one of revolution (revolution_axis).
+REVOLUTION_MOMENTS = 1e-4
+
+
+def revolution_axis(mesh):
+    """(point, unit axis) of the mesh's axis of symmetry if two of its principal
+    moments are equal and the third is not (a cylinder, a cone, a chess piece, a
+    ring: REVOLUTION_MOMENTS), else None (body frame [m]). Equal moments do not make a
+    solid of revolution (a square prism has them): callers keep only the rings about
+    it that stay inside the mesh all round (_inside_mesh)."""
+    moments, vectors = np.linalg.eigh(np.asarray(mesh.moment_inertia, dtype=np.float64))
+    tol = REVOLUTION_MOMENTS * float(np.abs(moments).max())
+    if moments[2] - moments[0] <= tol:
+        return None                              # a ball, a cube: every axis alike
+    if moments[1] - moments[0] <= tol:
+        return np.asarray(mesh.center_mass, dtype=np.float64), vectors[:, 2]
+    if moments[2] - moments[1] <= tol:
+        return np.asarray(mesh.center_mass, dtype=np.float64), vectors[:, 0]
+    return None
+
+
+def _about_axis(shell, t, point, axis) -> np.ndarray:
+    """``t`` (the rows of ``shell`` after _inside_mesh) with each torus's tube, where it
+    is under its sphere, swept about ``axis`` through ``point`` instead: a ring of
+    revolution touching the surface where the fit did, or a ball where the tube's
+    centre is on the axis."""
+    t = t.copy()
+    idx = np.flatnonzero(np.any(t[:, 0:3] != 0.0, axis=1))
+    tube = shell[idx] + t[idx, 0:3] + t[idx, 9, None] * t[idx, 6:9]
+    rel = tube - point
+    centre = point + np.outer(rel @ axis, axis)
+    radial = tube - centre
+    a = np.linalg.norm(radial, axis=1)
+    ring = a > 1e-6 * t[idx, 10]
+    t[idx, 0:3] = np.where(ring[:, None], centre, tube) - shell[idx]
+    t[idx, 3:6] = np.where(ring[:, None], axis, 0.0)
+    t[idx, 6:9] = np.where(ring[:, None], radial / np.where(ring, a, 1.0)[:, None], 0.0)
+    t[idx, 9] = np.where(ring, a, 0.0)
+    return t
 
 
 def _inside_mesh(shell, t, mesh, diameter, inside_mask) -> np.ndarray:

@@ -213,6 +213,33 @@ def inscribed_ball_model():
     return b.finalize(fps=1.0 / (8 * 5e-5), n_frames=3, dt=5e-5, sleep=None)
 
 
+def rim_model():
+    """A cylinder 0.1 m across and 0.05 m long, a lattice 8 spheres across, tipped 30°
+    onto its rim and set turning: it meets the plane z = 0 through its rim's ring
+    (spheres/inscribed.py rims, a tube of radius 0) and the rings of its side."""
+    from scipy.spatial.transform import Rotation
+
+    from dempipe.mesh.shapes import build_shape
+    from dempipe.sim.builder import ModelBuilder
+    from dempipe.sim.materials import Material
+    from dempipe.spheres.sphere_set import build_sphere_set
+
+    d = 0.0125
+    mesh = build_shape("cylinder", diameter=0.1, height=0.05)
+    ss = build_sphere_set(mesh, d, name="cuda-cylinder")
+    b = ModelBuilder(d, gravity=(0.0, 0.0, -9.81))
+    s = b.add_shape("cylinder", mesh, ss)
+    m = b.add_material(Material("wood", density=700.0, restitution=0.5, friction=0.9,
+                                stiffness=2e5))
+    rot = Rotation.from_euler("x", 30.0, degrees=True)
+    low = float(-rot.apply(np.asarray(mesh.vertices))[:, 2].min())
+    w, x, y, z = np.roll(rot.as_quat(), 1)
+    b.add_bodies("cylinder", s, m, [[0.0, 0.0, low - 1e-5]], [[w, x, y, z]],
+                 velocities=[[0.1, 0.0, 0.0]], angular_velocities=[[0.0, 2.0, 3.0]])
+    b.add_plane([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], m)
+    return b.finalize(fps=1.0 / (8 * 5e-5), n_frames=3, dt=5e-5, sleep=None)
+
+
 # ---------------------------------------------------------------------------
 # The simulator script (runs in a subprocess with NUMBA_ENABLE_CUDASIM=1)
 # ---------------------------------------------------------------------------
@@ -444,6 +471,17 @@ def _sim_main() -> dict:
         "rolled": float(i_cpu.x[-1, 0, 0] - i_cpu.x[0, 0, 0]),
     }
 
+    # a lattice cylinder on its rim: its wall contacts through the rim's ring
+    rim = rim_model()
+    r_cpu = Simulator(rim, device="cpu").advance(rim.initial_state())
+    r_cu = Simulator(rim, device="cuda").advance(rim.initial_state())
+    t = rim.sphere_inscribed
+    out["rims"] = {
+        "rims": int(np.count_nonzero((t[:, 9] > 0.0) & (t[:, 10] == 0.0))),
+        "identical": all(np.array_equal(getattr(r_cu, n), getattr(r_cpu, n))
+                         for n in ("x", "q", "v", "w")),
+    }
+
     # the whole Simulator path on device="cuda": a few steps per frame
     fast = contact_model(fps=1.0 / (4 * model.dt), n_frames=4)
     f_cpu = Simulator(fast, device="cpu")
@@ -526,6 +564,14 @@ def test_sim_inscribed_wall_contacts_are_bit_identical_to_cpu(sim):
     s = sim["inscribed"]
     assert s["balls"] > 50
     assert s["rolled"] > 0.0
+    assert s["identical"]
+
+
+def test_sim_rim_contacts_are_bit_identical_to_cpu(sim):
+    # a lattice cylinder tipped onto its rim: its contact goes through the rim's ring
+    # (a tube of radius 0, pairing.RIM_TIE) on both targets
+    s = sim["rims"]
+    assert s["rims"] > 10
     assert s["identical"]
 
 

@@ -103,7 +103,7 @@ def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNam
                  rolling_torque=formulas.rolling_torque,
                  anchor_local=formulas.anchor_local, anchor_surface=formulas.anchor_surface,
                  quat_rotate=formulas.quat_rotate,
-                 RING_TIE=contacts.RING_TIE, INSCRIBED=True)
+                 RING_TIE=contacts.RING_TIE, RIM_TIE=contacts.RIM_TIE, INSCRIBED=True)
     given.update(constants)
     c = compile_chain(contacts, ("wall_gap", "pair_ended", "inscribed_wall"), jit, given)
     given.update(wall_gap=c.wall_gap, pair_ended=c.pair_ended,

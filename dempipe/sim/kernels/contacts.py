@@ -70,7 +70,7 @@ rows a sphere.
 # The rebuild's bookkeeping (pair indices, walls in reach, histories into pair rows)
 # lives in kernels/pairing.py; its names are imported from here too, and read by the
 # passes below (compiled with this module's globals on CUDA).
-from dempipe.sim.kernels.pairing import RING_TIE, UNPAIRED, entry_range
+from dempipe.sim.kernels.pairing import RIM_TIE, RING_TIE, UNPAIRED, entry_range
 
 #: (reach / d)² within which a pair apart is tested for ``closing``: touching one
 #: step ago, so that its dashpot's last impulse lands (laws.linear.normal_force).
@@ -129,7 +129,10 @@ def inscribed_wall(sphere_inscribed, body_q, i, bi, dist, radius, nx, ny, nz,
     terraces, deeper: spheres/inscribed.py lattice_tori), so a ball rolls as a ball and
     a cylinder on its side along its bottom line, while a torus far from the contact
     (on the body's other side) adds nothing. Without inscribed tori (an empty table:
-    lattice sets with no round surface) it is the sphere's own contact, bit for bit."""
+    lattice sets with no round surface) it is the sphere's own contact, bit for bit.
+    A rim is a ring whose tube is 0 (spheres/inscribed.py rims): the spheres along it
+    each hold it, so where it lies flat on the wall each takes the point under itself
+    (pairing.RIM_TIE), and on edge they all take its lowest point."""
     if sphere_inscribed.shape[0] == 0:          # every sphere is its own
         return radius - dist, dist, 0.0, 0.0, 0.0, ux, uy, uz
     ax = sphere_inscribed[i, 0]
@@ -151,9 +154,10 @@ def inscribed_wall(sphere_inscribed, body_q, i, bi, dist, radius, nx, ny, nz,
             sx, sy, sz = quat_rotate(qw, qx, qy, qz, sphere_inscribed[i, 6],  # noqa: F821
                                      sphere_inscribed[i, 7], sphere_inscribed[i, 8])
             nt = nx * tx + ny * ty + nz * tz
-            px = nt * tx - nx + RING_TIE * sx
-            py = nt * ty - ny + RING_TIE * sy
-            pz = nt * tz - nz + RING_TIE * sz
+            tie = RING_TIE if rho > 0.0 else RIM_TIE
+            px = nt * tx - nx + tie * sx
+            py = nt * ty - ny + tie * sy
+            pz = nt * tz - nz + tie * sz
             s = ring / sqrt(px * px + py * py + pz * pz)  # noqa: F821
             ax += s * px
             ay += s * py

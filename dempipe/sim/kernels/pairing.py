@@ -50,6 +50,15 @@ WALL_SLACK = 1.25
 #: of its direction [1] to the ring's lowest direction (a tie-break: elsewhere it moves
 #: the point by about 1e-6 rad and its height by 1e-12 of the ring's radius).
 RING_TIE = 1e-6
+#: The same for a rim's ring (a tube of radius 0: spheres/inscribed.py rims), which many
+#: spheres round it hold: with RING_TIE a rim lying a hair off flat on a wall (a cap
+#: landing flat) moved every holder's point to its lowest one, and the rim's whole share
+#: of the face's force went to one side and tipped the body. This much [1] turns a
+#: holder's point from the lowest towards its own by about RIM_TIE sin ψ / sin(tilt)
+#: rad (ψ its angle round the rim from the lowest point): under its own while the rim
+#: is within RIM_TIE rad of flat; on a rim on edge (a piece on its side) 7e-4 rad at
+#: the nearest holder (ψ ≤ 4°), whose point is then 2.5e-7 of the rim's radius higher.
+RIM_TIE = 0.01
 
 
 def inscribed_reach(sphere_inscribed) -> float:

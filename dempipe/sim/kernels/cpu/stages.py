@@ -41,7 +41,7 @@ from dempipe.sim.kernels.cpu.spheres import body_moved  # noqa: F401
 from dempipe.sim.kernels.cpu.device import (  # noqa: F401
     angular_velocity, cell_coord, cell_hash, cell_key, quat_rotate, slot_place, slot_store,
     sphere_kinematics)
-from dempipe.sim.kernels.contacts import CLOSE_REACH2, RING_TIE  # noqa: F401
+from dempipe.sim.kernels.contacts import CLOSE_REACH2, RIM_TIE, RING_TIE  # noqa: F401
 from dempipe.sim.kernels.pairing import UNPAIRED  # noqa: F401
 from dempipe.sim.kernels.cpu.device import (  # noqa: F401
     HIST_BY_SLOT, LIST_ROWS, PAIR_ROWS, WALL_ROWS, anchor_local, anchor_state,
