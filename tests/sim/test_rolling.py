@@ -42,7 +42,7 @@ SCENE = """
 fps = 400
 duration = {duration}
 [simulation]
-sphere_diameter = {d}
+{size}
 gravity = [{gx}, 0.0, {gz}]
 dt = {dt}
 sleeping = false
@@ -71,9 +71,10 @@ ON_SIDE = "[0.7071067811865476, 0.7071067811865476, 0.0, 0.0]"   # +z axis onto 
 
 def bake(tmp_path, shape, z, *, mode=None, rotation="[1.0, 0.0, 0.0, 0.0]", mu=0.9,
          d=0.0125, e=0.8, theta=THETA, duration=DURATION, k=K, force=False):
-    text = SCENE.format(duration=duration, d=d, gx=G * math.sin(theta), gz=-G * math.cos(theta),
+    text = SCENE.format(duration=duration, gx=G * math.sin(theta), gz=-G * math.cos(theta),
                         dt=DT, spheres="" if mode is None else f'spheres = "{mode}"', e=e, mu=mu, k=k, shape=textwrap.dedent(shape), z=z,
-                        rotation=rotation)
+                        rotation=rotation,
+                        size="" if d is None else f"sphere_diameter = {d}")
     scene = parse_scene(text, tmp_path / "incline.toml")
     model = build_model(scene, force=force)
     frames = Simulator(model).advance(model.initial_state())
@@ -136,13 +137,15 @@ def test_pawn_on_its_side_rolls_on_its_base_rim_and_head(tmp_path):
     # The built-in pawn's base and head are both 0.46 of its height across, so on its
     # side it rests on its base's rims and its head's equator, on one line parallel to
     # its axis, and rolls straight down at g sin θ / (1 + I / (m R²)), R = 11.5 mm. At
-    # the defaults 16 spheres to its height: its head's ball is fitted (a torus), its
-    # base (a band 1.8 mm wide, under a sphere) is two sharp rims (inscribed.rims)
-    # whose rings carry it. Without the rims it rolled on the lattice's corners there
-    # and lost 70 % of its speed in 1 s on the flat; measured 0.8 % of the closed form
+    # the defaults, 12 spheres to its height: its head's ball is fitted (a torus), its
+    # base (a band 1.8 mm wide, under half a sphere) is two sharp rims (inscribed.rims)
+    # whose rings carry it. Measured within 0.4 % of the closed form (0.5 % at 8 to
+    # its height, 0.4 % at 16); without the rims 12 % slow at 16, and on the flat it
+    # lost 70 % of its speed in 1 s
     h, radius = 0.05, 0.0115
-    model, fr = bake(tmp_path, f'builtin = "pawn"\nheight = {h}', radius + 1e-4, d=h / 16,
+    model, fr = bake(tmp_path, f'builtin = "pawn"\nheight = {h}', radius + 1e-4, d=None,
                      k=K / 10, **ON_RIM)    # a 10 g body: a tenth of K keeps DT stable
+    assert model.diameter == pytest.approx(h / 12)
     ss = model.shapes[0].sphere_set
     i_over_m = ss.inertia[2, 2] / ss.volume          # about the pawn's axis, exact mesh
     expect = G * math.sin(THETA) / (1.0 + i_over_m / radius ** 2)
@@ -158,7 +161,6 @@ CONE = """
 fps = 50
 duration = {duration}
 [simulation]
-sphere_diameter = {d}
 dt = 1e-4
 sleeping = false
 [materials.hard]
@@ -190,10 +192,12 @@ def test_a_cone_on_its_side_rolls_in_a_circle_about_its_apex(tmp_path):
     # centre of mass circles the apex at constant speed and height (no rolling
     # resistance: the energy is kept). A chess pawn whose head is narrower than its
     # base rolls so; the built-in pawn's head is as wide as its base (straight, above).
-    # At 16 spheres across its base it rests on its two rims (inscribed.rims) and the
-    # rings of revolution of its side (inscribed.revolution_axis). Measured over 1 s:
-    # the radius within 0.33 %, the speed 0.5 % lower, the angle turned within 0.2 %;
-    # without the rims and rings the speed fell 18.5 % and the radius wandered 0.9 %
+    # At the defaults (12 spheres across its base) it rests on its two rims
+    # (inscribed.rims) and the rings of revolution of its side
+    # (inscribed.revolution_axis). Measured over 1 s: the radius within 0.19 %, the
+    # speed 0.36 % lower, the angle turned within 0.12 % (16 across: 0.33 %, 0.5 %,
+    # 0.2 %); without the rims and rings, at 16 across, the speed fell 18.5 % and the
+    # radius wandered 0.9 %
     import manifold3d
     import trimesh
     from scipy.spatial.transform import Rotation
@@ -216,10 +220,11 @@ def test_a_cone_on_its_side_rolls_in_a_circle_about_its_apex(tmp_path):
     v0 = np.cross(omega, com - apex_w)
     w, x, y, z = np.roll(rot.as_quat(), 1)
     fmt = lambda a: "[" + ", ".join(repr(float(c)) for c in a) + "]"   # noqa: E731
-    text = CONE.format(duration=1.0, d=h / 16, position=fmt(origin), rotation=fmt([w, x, y, z]),
+    text = CONE.format(duration=1.0, position=fmt(origin), rotation=fmt([w, x, y, z]),
                        velocity=fmt(v0), spin=fmt(omega))
     (tmp_path / "cone.toml").write_text(text)
     model = build_model(parse_scene(text, tmp_path / "cone.toml"))
+    assert model.diameter == pytest.approx(2.0 * r0 / 12)
     fr = Simulator(model).advance(model.initial_state())
     assert fr.x[0, 0] == pytest.approx(com, abs=1e-9)
     rho_c = math.hypot(*(com - apex_w)[:2])
