@@ -411,16 +411,20 @@ def rims(mesh) -> list:
 
 def _rim_rows(c, d, mesh, out, taken) -> np.ndarray:
     """lattice_tori's rims (rims): each rim's ring (a circle, tube 0) goes to the lattice
-    spheres nearest it round its circle that hold no torus (``taken``), with a reach of
-    their largest gap to it; written into ``out``, those rows returned. A body tipped
-    onto a rim (a piece on its side, a coin on its edge) rolls on its circle, not on
-    the lattice's corners there."""
+    spheres nearest it round its circle that hold no torus (``taken``) and are no
+    farther from it than the tori's terraces (their reach less REACH d: so the model's
+    largest reach, by which every sphere marks its walls, is the tori's), with a reach
+    of their largest gap to it; written into ``out``, those rows returned. The largest
+    rims choose first (two rims a band apart: the base's). A body tipped onto a rim (a
+    piece on its side, a coin on its edge) rolls on its circle, not on the lattice's
+    corners there."""
     from scipy.spatial import cKDTree
 
-    found = rims(mesh)
+    found = sorted(rims(mesh), key=lambda rim: -rim[2])
     if not found:
         return np.zeros(0, dtype=np.int64)
     r = 0.5 * d
+    limit = float(out[taken, 11].max()) - REACH * d
     free = np.ones(c.shape[0], dtype=bool)
     free[taken] = False
     tree = cKDTree(c)
@@ -435,8 +439,9 @@ def _rim_rows(c, d, mesh, out, taken) -> np.ndarray:
         pts = centre + radius * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
         dist, near = tree.query(pts, k=k)
         dist, near = dist.reshape(m, k), near.reshape(m, k)
-        pick = np.argmax(free[near], axis=1)        # the nearest free one
-        ok = free[near[np.arange(m), pick]]
+        usable = free[near] & (dist - r <= limit)
+        pick = np.argmax(usable, axis=1)            # the nearest free one near enough
+        ok = usable[np.arange(m), pick]
         if not ok.any():
             continue
         rows = near[np.arange(m), pick][ok]
