@@ -81,7 +81,7 @@ MEMO_SIZE = 32
 _MEMO: dict = {}
 #: The fit's version, in the disk cache's keys: a change to what the functions below
 #: compute changes it, and old entries are never read.
-TORI_VERSION = 2
+TORI_VERSION = 3
 
 
 def wall_tori(centers, diameter: float, vertices, faces, *, surface: bool,
@@ -376,14 +376,17 @@ def rims(mesh) -> list:
     n = verts.shape[0]
     graph = coo_matrix((np.ones(edges.shape[0]), (edges[:, 0], edges[:, 1])), shape=(n, n))
     _, label = connected_components(graph, directed=False)
+    # the chains, each its edges (a rock has thousands of short ones: one sort, no scan)
+    order = np.argsort(label[edges[:, 0]], kind="stable")
+    cut = np.flatnonzero(np.diff(label[edges[order, 0]])) + 1
     found = []
-    for lab in np.unique(label[edges[:, 0]]):
-        chain = edges[label[edges[:, 0]] == lab]
+    for part in np.split(order, cut):
+        chain = edges[part]
         if chain.shape[0] < RIM_MIN_EDGES:
             continue
         p = verts[np.unique(chain)]
         centre = p.mean(axis=0)
-        _, _, vt = np.linalg.svd(p - centre)
+        _, _, vt = np.linalg.svd(p - centre, full_matrices=False)
         axis, e1, e2 = vt[2], vt[0], vt[1]
         u = (p - centre) @ e1
         w = (p - centre) @ e2
