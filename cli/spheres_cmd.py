@@ -180,7 +180,8 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
                 "bump": None,
                 # the spheres that meet walls through an inscribed ball or ring of the
                 # mesh (spheres.inscribed: how round bodies roll), as a bake builds them
-                "inscribed": _inscribed_count(sphere_set, mesh, mode),
+                # and of those, the ones holding a rim (a sharp circular edge's ring)
+                **_inscribed_count(sphere_set, mesh, mode),
                 "build_seconds": info.seconds,
                 "cache": info.cache,
                 "mesh_sha256": sphere_set.mesh_sha256,
@@ -234,7 +235,7 @@ def _fracture_rows(name, arg, mesh, d, n, seed, cache, output, as_json) -> dict:
     return result
 
 
-def _inscribed_count(sphere_set, mesh, mode) -> int:
+def _inscribed_count(sphere_set, mesh, mode) -> dict:
     import numpy as np
 
     from dempipe.spheres.inscribed import inscribed_tori, lattice_tori
@@ -242,7 +243,10 @@ def _inscribed_count(sphere_set, mesh, mode) -> int:
     tori = inscribed_tori if mode == "surface" else lattice_tori
     rows = tori(sphere_set.centers, sphere_set.diameter, mesh.vertices - sphere_set.com,
                 mesh.faces)
-    return int(np.count_nonzero(np.any(rows[:, 0:3] != 0.0, axis=1)))
+    grown = np.any(rows[:, 0:3] != 0.0, axis=1)
+    # a rim's ring has a tube of 0 (spheres/inscribed.py rims)
+    return {"inscribed": int(np.count_nonzero(grown)),
+            "rims": int(np.count_nonzero(grown & (rows[:, 9] > 0.0) & (rows[:, 10] == 0.0)))}
 
 
 def _line(row) -> str:
@@ -254,7 +258,8 @@ def _line(row) -> str:
         line += (f"Hausdorff {row['hausdorff']:.3g} m ({row['hausdorff'] / d:.2f} d), "
                  f"bump {row['bump']:.3g} m ({row['bump'] / d:.3f} d), ")
     if row["inscribed"] is not None:
-        line += f"{row['inscribed']} meet walls through inscribed balls or rings, "
+        line += f"{row['inscribed']} meet walls through inscribed balls or rings"
+        line += f" ({row['rims']} on rims), " if row["rims"] else ", "
     if row["volume_error_percent"] is None and row["mode"] == "surface":
         line += "mass and inertia from the mesh (the spheres are its contact shell), "
     elif row["volume_error_percent"] is None:
@@ -265,8 +270,14 @@ def _line(row) -> str:
     from dempipe.spheres.fidelity import ROUND_SHARE
 
     if row["mode"] == "lattice" and row["off_axis_share"] > ROUND_SHARE:
-        line += (f"{row['off_axis_share']:.0%} of the surface off the lattice's axes (round: "
-                 f"terraced, it rolls badly; --mode surface rolls), ")
+        line += f"{row['off_axis_share']:.0%} of the surface off the lattice's axes (round: "
+        if row["inscribed"]:
+            # as `dempipe check`'s round-lattice, which names only shapes without tori
+            line += ("it rolls on walls through its mesh's balls and rings, and is "
+                     "terraced against other bodies; --mode surface rolls on them), ")
+        else:
+            line += ("terraced, it rolls badly; a finer resolution or --mode surface "
+                     "rolls), ")
     line += f"{row['build_seconds']:.2f} s, cache {row['cache']}"
     if row["output"]:
         line += f" -> {row['output']}"

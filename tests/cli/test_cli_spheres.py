@@ -240,3 +240,21 @@ def test_round_shapes_are_called_round_on_a_lattice():
     ball, box = run("spheres", "sphere", "box", "-r", "6", "--no-errors").stdout.splitlines()
     assert "99% of the surface off the lattice's axes" in ball and "--mode surface" in ball
     assert "off the lattice's axes" not in box
+    # with its mesh's balls the lattice ball rolls on walls (6 across: a fit follows
+    # it); at 3 across none does, and it is called terraced
+    assert "it rolls on walls through its mesh's balls and rings" in ball
+    coarse = run("spheres", "sphere", "-r", "3", "--no-errors").stdout
+    assert "terraced, it rolls badly; a finer resolution" in coarse
+
+
+def test_a_lattice_pawn_reports_the_spheres_on_its_rims():
+    # at 12 to its height the pawn's head is fitted, and its base's and collar's sharp
+    # circular edges are rims (spheres.inscribed.rims) held by lattice spheres; a ball
+    # has no rim
+    row = json.loads(run("spheres", "pawn", "-r", "12", "--no-errors", "--json").stdout)[0]
+    assert 0 < row["rims"] < row["inscribed"] < row["count"]
+    line = run("spheres", "pawn", "-r", "12", "--no-errors").stdout
+    assert f"{row['inscribed']} meet walls through inscribed balls or rings " \
+           f"({row['rims']} on rims)" in line
+    ball = json.loads(run("spheres", "sphere", "-r", "6", "--no-errors", "--json").stdout)[0]
+    assert ball["rims"] == 0
