@@ -858,7 +858,11 @@ def test_report_on_a_stage_and_on_its_settings_toml(tmp_path):
         other = next(r for r in table if r["reference"] != "1")
         assert 0 < float(other["error"]) < 1 and int(other["spheres"]) > 0
         md = (out / "report.md").read_text()
-        assert "**r2 dt×1 k×1**" in md                  # recommended: the coarser step
+        # both runs are within the tolerance: the one that ran faster is recommended.
+        # That is wall time, and these runs take 0.02-0.03 s: on a loaded machine either
+        # may be faster (the coarser step was not, once in CI), so the test reads which
+        best = min(table, key=lambda r: float(r["wall_s"]))["label"]
+        assert f"**{best}**" in md.split("## Recommendation")[1]
         assert ('stage = "tiny.usda"' in md) == (name == "tiny.usda"), name
 
 

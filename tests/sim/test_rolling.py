@@ -29,6 +29,7 @@ import pytest
 from dempipe.scene.build import build_model
 from dempipe.scene.load import parse_scene
 from dempipe.sim.simulator import Simulator
+from bodies import rotation_matrix
 
 G = 9.81
 THETA = math.radians(20.0)
@@ -151,7 +152,7 @@ def test_pawn_on_its_side_rolls_on_its_base_rim_and_head(tmp_path):
     expect = G * math.sin(THETA) / (1.0 + i_over_m / radius ** 2)
     assert acceleration(fr) == pytest.approx(expect, rel=0.03)
     # on its side throughout: its axis stays level, its centre at the rims' height
-    axis = np.array([_rotate(q, [0.0, 0.0, 1.0]) for q in fr.q[:, 0]])
+    axis = np.array([rotation_matrix(q)[:, 2] for q in fr.q[:, 0]])
     assert np.abs(axis[:, 2]).max() < 0.02
     assert np.abs(fr.x[:, 0, 2] - radius).max() < 0.1 * model.diameter
 
@@ -241,12 +242,6 @@ def test_a_cone_on_its_side_rolls_in_a_circle_about_its_apex(tmp_path):
     assert speed[-1] == pytest.approx(speed[5], rel=0.01)
     arc = np.trapz(speed, fr.times)
     assert abs(turned[-1] - turned[0]) == pytest.approx(arc / rho_c, rel=0.01)
-
-
-def _rotate(q, v):
-    w, x, y, z = q
-    u = np.array([x, y, z])
-    return np.asarray(v) + 2.0 * np.cross(u, np.cross(u, v) + w * np.asarray(v))
 
 
 def test_box_rests_flat_and_slides(tmp_path):
