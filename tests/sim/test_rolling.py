@@ -334,23 +334,26 @@ material = "wood"
 """
 
 
-@pytest.mark.slow
-def test_quickstart_pieces_settle_in_surface_mode(tmp_path):
-    # the quickstart's pieces, materials and contact settings, 4 of them dropped
-    # into a small tray, every sphere set in surface mode
+def _assert_settles(model):
+    """Bake ``model`` (the PILE): it settles, what is left moving under 0.1 % of the
+    energy the fall released, and every piece is in the tray, above its floor."""
     from dempipe.sim.simulator import kinetic_energy
 
-    scene = parse_scene(PILE, tmp_path / "pile.toml")
-    model = build_model(scene)
-    assert all("surface" in s.sphere_set.notes for s in model.shapes)
     fr = Simulator(model).advance(model.initial_state())
     ke = kinetic_energy(model, fr)
     drop = float(np.sum(model.body_mass[:model.n_bodies] * (fr.x[0, :, 2] - fr.x[-1, :, 2]))) * G
     assert drop > 0
-    # settled: what is left moving is under 0.1 % of the energy the fall released,
-    # and every piece is in the tray, above its floor
     assert ke[-1] < 1e-3 * drop
     assert np.all(np.abs(fr.x[-1, :, :2]) < 0.12) and np.all(fr.x[-1, :, 2] > 0.0)
+
+
+@pytest.mark.slow
+def test_quickstart_pieces_settle_in_surface_mode(tmp_path):
+    # the quickstart's pieces, materials and contact settings, 4 of them dropped
+    # into a small tray, every sphere set in surface mode
+    model = build_model(parse_scene(PILE, tmp_path / "pile.toml"))
+    assert all("surface" in s.sphere_set.notes for s in model.shapes)
+    _assert_settles(model)
 
 
 def test_quickstart_pieces_settle_at_the_defaults(tmp_path):
@@ -359,16 +362,9 @@ def test_quickstart_pieces_settle_at_the_defaults(tmp_path):
     # where they land on their sides). Measured: what is left moving is 2.3e-4 of the
     # energy the fall released at 1.25 s and 4e-11 at 1.5 s (before rims and rings
     # about the axis, 6.6e-4 at 1 s)
-    from dempipe.sim.simulator import kinetic_energy
-
     text = PILE.replace("duration = 1.0", "duration = 1.5").replace(
         "resolution = 6\n", "").replace('spheres = "surface"\n', "")
     model = build_model(parse_scene(text, tmp_path / "pile.toml"))
     t = model.sphere_inscribed
     assert np.count_nonzero((t[:, 9] > 0.0) & (t[:, 10] == 0.0)) > 100   # rim holders
-    fr = Simulator(model).advance(model.initial_state())
-    ke = kinetic_energy(model, fr)
-    drop = float(np.sum(model.body_mass[:model.n_bodies] * (fr.x[0, :, 2] - fr.x[-1, :, 2]))) * G
-    assert drop > 0
-    assert ke[-1] < 1e-3 * drop
-    assert np.all(np.abs(fr.x[-1, :, :2]) < 0.12) and np.all(fr.x[-1, :, 2] > 0.0)
+    _assert_settles(model)
