@@ -81,7 +81,7 @@ MEMO_SIZE = 32
 _MEMO: dict = {}
 #: The fit's version, in the disk cache's keys: a change to what the functions below
 #: compute changes it, and old entries are never read.
-TORI_VERSION = 3
+TORI_VERSION = 4
 
 
 def wall_tori(centers, diameter: float, vertices, faces, *, surface: bool,
@@ -417,10 +417,10 @@ def _rim_rows(c, d, mesh, out, taken) -> np.ndarray:
     spheres nearest it round its circle that hold no torus (``taken``) and are no
     farther from it than the tori's terraces (their reach less REACH d: so the model's
     largest reach, by which every sphere marks its walls, is the tori's), with a reach
-    of their largest gap to it; written into ``out``, those rows returned. The largest
-    rims choose first (two rims a band apart: the base's). A body tipped onto a rim (a
-    piece on its side, a coin on its edge) rolls on its circle, not on the lattice's
-    corners there."""
+    of their largest gap to it; written into ``out``, those rows returned. A sphere
+    holds only the rim nearest it, and the largest rims choose first. A body tipped
+    onto a rim (a piece on its side, a coin on its edge) rolls on its circle, not on
+    the lattice's corners there."""
     from scipy.spatial import cKDTree
 
     found = sorted(rims(mesh), key=lambda rim: -rim[2])
@@ -432,8 +432,13 @@ def _rim_rows(c, d, mesh, out, taken) -> np.ndarray:
     free[taken] = False
     tree = cKDTree(c)
     k = min(8, c.shape[0])
+    # of a band narrower than d (a chess piece's plinth) one layer of spheres lies
+    # along both edges: each holds the edge nearer it, not the one listed first (the
+    # pawn's upper edge, which it rests on when on its side, with its centres above
+    # the band's middle)
+    near_rim = np.stack([_circle_distance(c, *rim) for rim in found]).argmin(axis=0)
     given = []
-    for centre, axis, radius in found:
+    for i, (centre, axis, radius) in enumerate(found):
         m = max(RIM_MIN_EDGES, int(np.ceil(2.0 * np.pi * radius * RIM_SAMPLES / d)))
         phi = np.linspace(0.0, 2.0 * np.pi, m, endpoint=False)
         e1 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -442,7 +447,7 @@ def _rim_rows(c, d, mesh, out, taken) -> np.ndarray:
         pts = centre + radius * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
         dist, near = tree.query(pts, k=k)
         dist, near = dist.reshape(m, k), near.reshape(m, k)
-        usable = free[near] & (dist - r <= limit)
+        usable = free[near] & (dist - r <= limit) & (near_rim[near] == i)
         pick = np.argmax(usable, axis=1)            # the nearest free one near enough
         ok = usable[np.arange(m), pick]
         if not ok.any():
@@ -466,6 +471,15 @@ def _rim_rows(c, d, mesh, out, taken) -> np.ndarray:
         free[rows] = False
         given.append(rows)
     return np.concatenate(given) if given else np.zeros(0, dtype=np.int64)
+
+
+def _circle_distance(points, centre, axis, radius) -> np.ndarray:
+    """Distance [m] of each of ``points`` (N, 3) from the circle (centre, unit axis,
+    radius)."""
+    rel = points - centre
+    along = rel @ axis
+    across = np.linalg.norm(rel - np.outer(along, axis), axis=1)
+    return np.hypot(across - radius, along)
 
 
 #: Two principal moments of inertia within this share of the largest are equal: the

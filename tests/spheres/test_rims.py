@@ -55,3 +55,26 @@ def test_the_axis_of_revolution():
     # equal moments without revolution (a square prism): an axis, whose rings the
     # lattice keeps only where they stay inside the mesh (lattice_tori)
     assert revolution_axis(build_shape("box", size=[0.1, 0.1, 0.05])) is not None
+
+
+def test_a_band_narrower_than_a_sphere_is_held_by_the_edge_nearest_its_spheres():
+    # The pawn's plinth is a band under half a sphere tall at the default 12 to its
+    # height: one layer of lattice spheres (centres 2.08 mm up) lies along both of its
+    # edges. Each holds the edge nearest it, here the upper one: a pawn on its side
+    # rests on that edge and its head (tests/sim/test_rolling.py).
+    from dempipe.spheres.inscribed import lattice_tori
+    from dempipe.spheres.sphere_set import build_sphere_set, diameter_for_resolution
+
+    pawn = build_shape("pawn", height=0.05)
+    d = diameter_for_resolution(pawn, 12)
+    s = build_sphere_set(pawn, d)
+    t = lattice_tori(s.centers, d, np.asarray(pawn.vertices) - s.com, pawn.faces)
+    held = (t[:, 9] > 0.0) & (t[:, 10] == 0.0)
+    edge = (s.centers + t[:, 0:3] + s.com)[held, 2]
+    base = held.copy()
+    base[held] = edge < 0.01
+    top = max(c[2] for c, _, r in rims(pawn) if r > 0.01)
+    assert base.sum() >= 12                        # the circle all round, 22.5° apart
+    assert edge[edge < 0.01] == pytest.approx(top, abs=1e-9)
+    assert np.all(np.abs(s.centers[base, 2] + s.com[2] - top) < np.abs(s.centers[base, 2]
+                                                                      + s.com[2]))
