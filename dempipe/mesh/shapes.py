@@ -116,17 +116,18 @@ def _box(size: Sequence[float], center: Sequence[float]) -> manifold3d.Manifold:
     return manifold3d.Manifold.cube(tuple(size), True).translate(tuple(center))
 
 
-def _base(b: float) -> list:
+def _base(b: float, bead: float = 1.0) -> list:
     """Foot of a Staunton piece with base radius ``b`` (unit height): plinth and bead.
 
-    Runs from the axis at z = 0 out to the rim and up over a half-round bead, ending
-    at (0.70 b, 0.56 b) where each piece's stem begins.
+    Runs from the axis at z = 0 out to the rim and up over a half-round bead that
+    reaches ``bead`` x b from the axis, ending at (0.70 b, 0.56 b) where each piece's
+    stem begins.
     """
     return [
         (0.0, 0.0),
         (b, 0.0),
         (b, 0.16 * b),
-        *_arc(0.86 * b, 0.32 * b, 0.14 * b, -60.0, 90.0, 8),
+        *_arc((bead - 0.14) * b, 0.32 * b, 0.14 * b, -60.0, 90.0, 8),
         (0.70 * b, 0.56 * b),
     ]
 
@@ -138,18 +139,21 @@ _PIECE_HEIGHT = {
     "bishop": 0.072, "queen": 0.084, "king": 0.095,
 }  # fmt: skip
 _PIECE_BASE = {
-    "pawn": 0.46, "rook": 0.58, "knight": 0.55,
+    "pawn": 0.49, "rook": 0.58, "knight": 0.55,
     "bishop": 0.45, "queen": 0.44, "king": 0.42,
 }  # fmt: skip
 
 
 def _pawn_unit(b: float) -> manifold3d.Manifold:
-    # Stem tapering to a collar, then a ball head whose top is exactly z = 1.
+    # Stem tapering to a collar, then a ball head 0.36 of the height across whose top
+    # is exactly z = 1. The head is narrower than the base and the bead stays inside
+    # the plinth's rim, so a pawn on its side rests on that rim and its head and rolls
+    # in a circle, as a real one does.
     profile = [
-        *_base(b),
-        (0.125, 0.18), (0.10, 0.28), (0.085, 0.40), (0.08, 0.45),
-        (0.15, 0.47), (0.155, 0.50), (0.14, 0.52), (0.07, 0.54),
-        *_arc(0.0, 0.77, 0.23, -72.0, 90.0, 16),
+        *_base(b, bead=0.90),
+        (0.13, 0.19), (0.115, 0.28), (0.095, 0.40), (0.085, 0.50),
+        (0.155, 0.52), (0.16, 0.555), (0.145, 0.575), (0.07, 0.59),
+        *_arc(0.0, 0.82, 0.18, -70.0, 90.0, 16),
     ]  # fmt: skip
     return _revolve(profile)
 

@@ -520,7 +520,7 @@ def test_a_shape_whose_mesh_reaches_past_its_spheres_is_flagged():
     # thinner than the lattice can hold: its mesh reaches 1.26 d beyond its spheres
     # (10.5 mm, measured with 2,000 samples; the sampling can only underestimate), and
     # a rook resting on a floor looks sunk into it by up to that. The pawn's reach is
-    # 0.57 d, a box's tiled exactly (r (√3 - 1) at its corners) 0.37 d: no warning
+    # 0.68 d, a box's tiled exactly (r (√3 - 1) at its corners) 0.37 d: no warning
     from dempipe.mesh.shapes import build_shape
     from dempipe.spheres.sphere_set import build_sphere_set
 

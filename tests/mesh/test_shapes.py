@@ -83,9 +83,14 @@ def test_pawn_proportions():
     mesh = build_shape("pawn")
     h = mesh.bounds[1, 2]
     assert h == pytest.approx(0.05, rel=1e-6)
+    # a Staunton pawn: its base about half its height across, its head a ball about a
+    # third, so that on its side it rolls in a circle (tests/sim/test_rolling.py)
     foot = mesh.vertices[mesh.vertices[:, 2] < 1e-9]
     d = 2 * np.linalg.norm(foot[:, :2], axis=1).max()
-    assert 0.4 * h <= d <= 0.5 * h
+    assert 0.45 * h <= d <= 0.6 * h
+    head = mesh.vertices[mesh.vertices[:, 2] > 0.65 * h]
+    head_d = 2 * np.linalg.norm(head[:, :2], axis=1).max()
+    assert 0.33 * h <= head_d <= 0.4 * h and head_d < d - 0.1 * h
 
 
 def test_pieces_scale_like_staunton_set():

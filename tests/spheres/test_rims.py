@@ -26,8 +26,9 @@ def test_a_cylinder_has_two_rims_inscribed_in_its_polygons():
 
 def test_a_pawn_has_its_base_and_collar_rims_and_a_rook_no_crown():
     pawn = sorted(rims(build_shape("pawn", height=0.05)), key=lambda f: -f[2])
-    # the base's two edges (the bottom and the band's top), 11.5 mm, then the collar's
-    assert [round(r, 5) for _, _, r in pawn[:2]] == [0.01146, 0.01146]
+    # the base's two edges (the bottom and the band's top), on the circle of 12.21 mm
+    # inscribed in its 40-gon, then the collar's
+    assert [round(r, 5) for _, _, r in pawn[:2]] == [0.01221, 0.01221]
     assert all(r < 0.008 for _, _, r in pawn[2:])
     # the rook's crown is notched: its top edge is no whole circle
     rook = rims(build_shape("rook", height=0.056))
