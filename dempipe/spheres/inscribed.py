@@ -28,7 +28,8 @@ the mesh itself, each given to the lattice sphere outermost where it was fitted,
 a reach that spans the terraces; on a solid of revolution each is swept about the
 body's axis instead where that ring stays inside (a cone's side); its sharp circular
 edges (rims: a cylinder's, a chess piece's base) are rings of tube 0 held by the
-lattice spheres nearest them; and a lattice sphere that sticks out of the mesh meets
+lattice spheres nearest them (two closer than d, a chess piece's plinth, one band: a
+ring swept along its axis); and a lattice sphere that sticks out of the mesh meets
 walls as a ball a little inside its depth (lattice_tori). So with the default sphere
 sets too a ball, a cylinder, a cone, a torus and a pawn on its side roll on walls at
 their closed forms. docs/physics.md, "Round bodies on walls".
@@ -68,8 +69,10 @@ REACH = 0.05
 #: Columns of a sphere's row (inscribed_tori): the vector from the sphere's centre to
 #: the torus's centre (3), its axis (3), the direction from its centre to the tube's
 #: centre under the sphere (3), the circle's radius a, the tube's radius b, how much
-#: deeper than the sphere's own its wall contact may be [m].
-COLUMNS = 12
+#: deeper than the sphere's own its wall contact may be [m], and a band's height H
+#: [m]: a rim's ring (b = 0) swept H along its axis, a band between two rims closer
+#: than d (a chess piece's plinth), 0 elsewhere.
+COLUMNS = 13
 #: A circle larger than this many times the shape's largest extent is a straight line
 #: to the contact: the sphere takes a ball instead.
 CIRCLE_MAX_SHARE = 4.0
@@ -81,7 +84,7 @@ MEMO_SIZE = 32
 _MEMO: dict = {}
 #: The fit's version, in the disk cache's keys: a change to what the functions below
 #: compute changes it, and old entries are never read.
-TORI_VERSION = 4
+TORI_VERSION = 5
 
 
 def wall_tori(centers, diameter: float, vertices, faces, *, surface: bool,
@@ -417,13 +420,15 @@ def _rim_rows(c, d, mesh, out, taken) -> np.ndarray:
     spheres nearest it round its circle that hold no torus (``taken``) and are no
     farther from it than the tori's terraces (their reach less REACH d: so the model's
     largest reach, by which every sphere marks its walls, is the tori's), with a reach
-    of their largest gap to it; written into ``out``, those rows returned. A sphere
-    holds only the rim nearest it, and the largest rims choose first. A body tipped
-    onto a rim (a piece on its side, a coin on its edge) rolls on its circle, not on
-    the lattice's corners there."""
+    of their largest gap to it; written into ``out``, those rows returned. Two rims of
+    one circle closer than d along their axis (a chess piece's plinth, a coin's edge)
+    are one band (_bands), which the spheres along both hold: a piece on its side rests
+    on the upper edge, tipped onto its foot on the lower. The largest rims choose
+    first. A body tipped onto a rim (a piece on its side, a coin on its edge) rolls on
+    its circle, not on the lattice's corners there."""
     from scipy.spatial import cKDTree
 
-    found = sorted(rims(mesh), key=lambda rim: -rim[2])
+    found = _bands(sorted(rims(mesh), key=lambda rim: -rim[2]), d)
     if not found:
         return np.zeros(0, dtype=np.int64)
     r = 0.5 * d
@@ -432,28 +437,26 @@ def _rim_rows(c, d, mesh, out, taken) -> np.ndarray:
     free[taken] = False
     tree = cKDTree(c)
     k = min(8, c.shape[0])
-    # of a band narrower than d (a chess piece's plinth) one layer of spheres lies
-    # along both edges: each holds the edge nearer it, not the one listed first (the
-    # pawn's upper edge, which it rests on when on its side, with its centres above
-    # the band's middle)
-    near_rim = np.stack([_circle_distance(c, *rim) for rim in found]).argmin(axis=0)
     given = []
-    for i, (centre, axis, radius) in enumerate(found):
+    for centre, axis, radius, height in found:
         m = max(RIM_MIN_EDGES, int(np.ceil(2.0 * np.pi * radius * RIM_SAMPLES / d)))
         phi = np.linspace(0.0, 2.0 * np.pi, m, endpoint=False)
         e1 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(axis, e1)
-        pts = centre + radius * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+        ring = radius * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+        pts = centre + ring
+        if height > 0.0:
+            pts = np.concatenate([pts, pts + height * axis])
         dist, near = tree.query(pts, k=k)
-        dist, near = dist.reshape(m, k), near.reshape(m, k)
-        usable = free[near] & (dist - r <= limit) & (near_rim[near] == i)
+        dist, near = dist.reshape(len(pts), k), near.reshape(len(pts), k)
+        usable = free[near] & (dist - r <= limit)
         pick = np.argmax(usable, axis=1)            # the nearest free one near enough
-        ok = usable[np.arange(m), pick]
+        ok = usable[np.arange(len(pts)), pick]
         if not ok.any():
             continue
-        rows = near[np.arange(m), pick][ok]
-        gap = dist[np.arange(m), pick][ok] - r
+        rows = near[np.arange(len(pts)), pick][ok]
+        gap = dist[np.arange(len(pts)), pick][ok] - r
         reach = max(0.0, float(gap.max())) + REACH * d
         rows = np.unique(rows)
         rows = rows[np.any(c[rows] != centre, axis=1)]    # (a zero row is the sphere's own)
@@ -468,18 +471,35 @@ def _rim_rows(c, d, mesh, out, taken) -> np.ndarray:
         out[rows, 9] = radius
         out[rows, 10] = 0.0
         out[rows, 11] = reach
+        out[rows, 12] = height
         free[rows] = False
         given.append(rows)
     return np.concatenate(given) if given else np.zeros(0, dtype=np.int64)
 
 
-def _circle_distance(points, centre, axis, radius) -> np.ndarray:
-    """Distance [m] of each of ``points`` (N, 3) from the circle (centre, unit axis,
-    radius)."""
-    rel = points - centre
-    along = rel @ axis
-    across = np.linalg.norm(rel - np.outer(along, axis), axis=1)
-    return np.hypot(across - radius, along)
+def _bands(found, d) -> list:
+    """``found`` rims (centre, axis, radius) as (centre, axis, radius, height): two of
+    one circle (the same radius and axis line, RIM_RESIDUAL) less than d apart along
+    it are one band from the first, its axis turned towards the second, ``height``
+    their distance; any other rim is a band of height 0. Order kept."""
+    used = [False] * len(found)
+    out = []
+    for i, (ci, ai, ri) in enumerate(found):
+        if used[i]:
+            continue
+        height, axis = 0.0, ai
+        for j in range(i + 1, len(found)):
+            cj, aj, rj = found[j]
+            if used[j] or abs(rj - ri) > RIM_RESIDUAL * ri or abs(ai @ aj) < 1.0 - 1e-6:
+                continue
+            off = cj - ci
+            along = float(off @ ai)
+            if 0.0 < abs(along) < d and np.linalg.norm(off - along * ai) <= RIM_RESIDUAL * ri:
+                height, axis = abs(along), ai * np.sign(along)
+                used[j] = True
+                break
+        out.append((ci, axis, ri, height))
+    return out
 
 
 #: Two principal moments of inertia within this share of the largest are equal: the

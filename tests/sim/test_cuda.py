@@ -240,6 +240,33 @@ def rim_model():
     return b.finalize(fps=1.0 / (8 * 5e-5), n_frames=3, dt=5e-5, sleep=None)
 
 
+def band_model():
+    """The built-in pawn at 12 spheres to its height, tipped 30° onto its foot's edge and
+    set turning: it meets the plane z = 0 through its plinth's band (spheres/inscribed.py
+    _bands: a rim's ring swept along its axis) and the rings of its head."""
+    from scipy.spatial.transform import Rotation
+
+    from dempipe.mesh.shapes import build_shape
+    from dempipe.sim.builder import ModelBuilder
+    from dempipe.sim.materials import Material
+    from dempipe.spheres.sphere_set import build_sphere_set
+
+    d = 0.05 / 12
+    mesh = build_shape("pawn")
+    ss = build_sphere_set(mesh, d, name="cuda-pawn")
+    b = ModelBuilder(d, gravity=(0.0, 0.0, -9.81))
+    s = b.add_shape("pawn", mesh, ss)
+    m = b.add_material(Material("wood", density=700.0, restitution=0.5, friction=0.9,
+                                stiffness=2e4))
+    rot = Rotation.from_euler("x", 30.0, degrees=True)
+    low = float(-rot.apply(np.asarray(mesh.vertices))[:, 2].min())
+    w, x, y, z = np.roll(rot.as_quat(), 1)
+    b.add_bodies("pawn", s, m, [[0.0, 0.0, low - 1e-5]], [[w, x, y, z]],
+                 velocities=[[0.05, 0.0, 0.0]], angular_velocities=[[0.0, 2.0, 3.0]])
+    b.add_plane([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], m)
+    return b.finalize(fps=1.0 / (8 * 5e-5), n_frames=3, dt=5e-5, sleep=None)
+
+
 # ---------------------------------------------------------------------------
 # The simulator script (runs in a subprocess with NUMBA_ENABLE_CUDASIM=1)
 # ---------------------------------------------------------------------------
@@ -482,6 +509,16 @@ def _sim_main() -> dict:
                          for n in ("x", "q", "v", "w")),
     }
 
+    # a lattice pawn tipped onto its foot: its wall contacts through its plinth's band
+    band = band_model()
+    b_cpu = Simulator(band, device="cpu").advance(band.initial_state())
+    b_cu = Simulator(band, device="cuda").advance(band.initial_state())
+    out["bands"] = {
+        "bands": int(np.count_nonzero(band.sphere_inscribed[:, 12] > 0.0)),
+        "identical": all(np.array_equal(getattr(b_cu, n), getattr(b_cpu, n))
+                         for n in ("x", "q", "v", "w")),
+    }
+
     # the whole Simulator path on device="cuda": a few steps per frame
     fast = contact_model(fps=1.0 / (4 * model.dt), n_frames=4)
     f_cpu = Simulator(fast, device="cpu")
@@ -572,6 +609,14 @@ def test_sim_rim_contacts_are_bit_identical_to_cpu(sim):
     # (a tube of radius 0, pairing.RIM_TIE) on both targets
     s = sim["rims"]
     assert s["rims"] > 10
+    assert s["identical"]
+
+
+def test_sim_band_contacts_are_bit_identical_to_cpu(sim):
+    # a lattice pawn tipped onto its foot: its contact goes through its plinth's band
+    # (a rim swept along its axis, its lower edge) on both targets
+    s = sim["bands"]
+    assert s["bands"] > 10
     assert s["identical"]
 
 

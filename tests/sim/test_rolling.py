@@ -29,6 +29,7 @@ import pytest
 from dempipe.scene.build import build_model
 from dempipe.scene.load import parse_scene
 from dempipe.sim.simulator import Simulator
+from bodies import rotation_matrix
 
 G = 9.81
 THETA = math.radians(20.0)
@@ -211,11 +212,12 @@ def test_on_its_side_it_rolls_in_a_circle_about_its_apex(tmp_path, body):
     # frustum's base, 12 to the pawn's height): the frustum (radii 25 and 15 mm, 50 mm
     # long; apex 125 mm past its base) rests on its two rims (inscribed.rims) and the
     # rings of revolution of its side (inscribed.revolution_axis); the built-in pawn
-    # on its plinth's upper rim and its head's ball, its apex 2.98 heights past its
-    # foot, as a real pawn knocked over rolls. Measured over 1 s, the circle's centre
+    # on its plinth's upper edge (its band, inscribed._bands) and its head's ball, its
+    # apex on its axis 2.98 heights from its foot, beyond its head, as a real pawn
+    # knocked over rolls. Measured over 1 s, the circle's centre
     # off the apex / its radius / its roundness / the speed / the angle turned: the
-    # frustum 0.17 % / 0.00 % / 0.03 % / 0.36 % low / 0.00 %, the pawn 0.41 % /
-    # 0.42 % small / 0.02 % / 0.17 % low / 0.01 %. Without the rims and rings, the
+    # frustum 0.17 % / 0.00 % / 0.03 % / 0.36 % low / 0.00 %, the pawn 0.44 % /
+    # 0.40 % small / 0.02 % / 0.01 % / 0.03 %. Without the rims and rings, the
     # frustum at 16 across lost 18.5 % of its speed.
     from scipy.spatial.transform import Rotation
 
@@ -238,7 +240,9 @@ def test_on_its_side_it_rolls_in_a_circle_about_its_apex(tmp_path, body):
     text = CIRCLE.format(duration=1.0, k=k, shape=shape, position=fmt(origin),
                          rotation=fmt([w, x, y, z]), velocity=fmt(v0), spin=fmt(omega))
     model = build_model(parse_scene(text, tmp_path / "circle.toml"))
-    assert model.sphere_inscribed.shape[0] > 0           # it has tori and rims
+    assert model.diameter == pytest.approx(0.05 / 12)             # the defaults
+    t = model.sphere_inscribed
+    assert np.count_nonzero((t[:, 9] > 0.0) & (t[:, 10] == 0.0)) > 10   # rims held
     fr = Simulator(model).advance(model.initial_state())
     assert fr.x[0, 0] == pytest.approx(com, abs=1e-9)
     rho_c = math.hypot(*(com - apex_w)[:2])
@@ -256,14 +260,51 @@ def test_on_its_side_it_rolls_in_a_circle_about_its_apex(tmp_path, body):
     # turn); its centre and radius within 2 % of the apex and rho_c drawn from the
     # mesh's corners (the apex is where the line through the two supports meets the
     # ground: 0.01 d on either moves it 1.3 % along the pawn, whose base and head differ
-    # by 3.25 mm in radius); its height within 5 % of d; the speed within 1 %; the
-    # angle it turns round the centre is its arc over the radius (1 %)
+    # by 3.25 mm in radius; the head's vertex at its equator, not its ball's tangent,
+    # puts the predicted apex 1 % nearer); its height within 5 % of d; the speed
+    # within 1 %; the angle it turns round the centre (over 2 rad) is its arc over the
+    # radius (1 %)
     assert np.abs(np.hypot(*(p[late] - centre).T) / radius - 1.0).max() < 1e-3
     assert np.linalg.norm(centre - apex_w[:2]) < 0.02 * rho_c
     assert radius == pytest.approx(rho_c, rel=0.02)
     assert np.abs(fr.x[:, 0, 2] - com[2]).max() < 0.05 * model.diameter
     assert speed[-1] == pytest.approx(speed[5], rel=0.01)
+    assert abs(turned[-1] - turned[late][0]) > 2.0
     assert abs(turned[-1] - turned[late][0]) == pytest.approx(arc / radius, rel=0.01)
+
+
+@pytest.mark.parametrize("tilt, ends", [(20.0, "upright"), (35.0, "on its side")])
+def test_a_pawn_tipped_onto_its_foot_pivots_on_its_edge(tmp_path, tilt, ends):
+    # The built-in pawn at the defaults, tipped onto its foot's edge and let go: at 20°
+    # its centre of mass is over its foot (the edge tips at 31°) and it rocks back
+    # upright, at 35° it falls onto its side. Either way it pivots on its plinth's
+    # lower edge, which it meets through the plinth's band (inscribed._bands), and no
+    # point of its mesh goes below the ground by more than 0.05 d: the band's edges are
+    # the circles inscribed in the mesh's 40-gons (0.009 d inside their corners), its
+    # head's rings fitted within 0.012 d, its weight's overlap 1e-6 m. Measured: 0.013
+    # and 0.022 d; with the lower edge unheld, 0.46 and 0.39 d.
+    from scipy.spatial.transform import Rotation
+
+    from dempipe.mesh.shapes import build_shape
+
+    mesh = build_shape("pawn")
+    rot = Rotation.from_euler("x", tilt, degrees=True)
+    low = float(-rot.apply(mesh.vertices)[:, 2].min())
+    w, x, y, z = np.roll(rot.as_quat(), 1)
+    fmt = lambda a: "[" + ", ".join(repr(float(c)) for c in a) + "]"   # noqa: E731
+    text = CIRCLE.format(duration=0.6, k=8e4, shape='builtin = "pawn"',
+                         position=fmt([0.0, 0.0, low + 1e-5]), rotation=fmt([w, x, y, z]),
+                         velocity="[0.0, 0.0, 0.0]", spin="[0.0, 0.0, 0.0]")
+    model = build_model(parse_scene(text.replace("fps = 50", "fps = 400"),
+                                    tmp_path / "tip.toml"))
+    assert np.count_nonzero(model.sphere_inscribed[:, 12] > 0.0) >= 12   # the band
+    fr = Simulator(model).advance(model.initial_state())
+    verts = np.asarray(mesh.vertices) - mesh.center_mass
+    lowest = [float((verts @ rotation_matrix(q).T + x)[:, 2].min())
+              for q, x in zip(fr.q[:, 0], fr.x[:, 0])]
+    assert min(lowest) > -0.05 * model.diameter
+    axis = rotation_matrix(fr.q[-1, 0])[2, 2]               # cos of the axis's tilt
+    assert axis > math.cos(math.radians(3.0)) if ends == "upright" else abs(axis) < 0.2
 
 
 def test_box_rests_flat_and_slides(tmp_path):

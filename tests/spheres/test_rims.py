@@ -58,11 +58,12 @@ def test_the_axis_of_revolution():
     assert revolution_axis(build_shape("box", size=[0.1, 0.1, 0.05])) is not None
 
 
-def test_a_band_narrower_than_a_sphere_is_held_by_the_edge_nearest_its_spheres():
-    # The pawn's plinth is a band under half a sphere tall at the default 12 to its
-    # height: one layer of lattice spheres (centres 2.08 mm up) lies along both of its
-    # edges. Each holds the edge nearest it, here the upper one: a pawn on its side
-    # rests on that edge and its head (tests/sim/test_rolling.py).
+def test_two_rims_closer_than_a_sphere_are_one_band():
+    # The pawn's plinth is a band 1.96 mm tall, under half a sphere at the default 12
+    # to its height: one layer of lattice spheres lies along both of its edges. They
+    # hold it as one band, the lower rim swept up to the upper (column 12), whose lower
+    # edge meets a wall: the upper when the pawn lies on its side, the lower when it is
+    # tipped onto its foot (tests/sim/test_rolling.py).
     from dempipe.spheres.inscribed import lattice_tori
     from dempipe.spheres.sphere_set import build_sphere_set, diameter_for_resolution
 
@@ -70,12 +71,16 @@ def test_a_band_narrower_than_a_sphere_is_held_by_the_edge_nearest_its_spheres()
     d = diameter_for_resolution(pawn, 12)
     s = build_sphere_set(pawn, d)
     t = lattice_tori(s.centers, d, np.asarray(pawn.vertices) - s.com, pawn.faces)
-    held = (t[:, 9] > 0.0) & (t[:, 10] == 0.0)
-    edge = (s.centers + t[:, 0:3] + s.com)[held, 2]
-    base = held.copy()
-    base[held] = edge < 0.01
-    top = max(c[2] for c, _, r in rims(pawn) if r > 0.01)
-    assert base.sum() >= 12                        # the circle all round, 22.5° apart
-    assert edge[edge < 0.01] == pytest.approx(top, abs=1e-9)
-    assert np.all(np.abs(s.centers[base, 2] + s.com[2] - top) < np.abs(s.centers[base, 2]
-                                                                      + s.com[2]))
+    band = t[:, 12] > 0.0
+    edges = sorted(c[2] for c, _, r in rims(pawn) if r > 0.01)
+    assert band.sum() >= 12                        # the circle all round, 30° apart
+    assert np.all((t[band, 9] > 0.0) & (t[band, 10] == 0.0))
+    assert t[band, 12] == pytest.approx(edges[1] - edges[0], rel=1e-9)
+    assert (s.centers + t[:, 0:3] + s.com)[band, 2] == pytest.approx(edges[0], abs=1e-9)
+    assert t[band, 5] == pytest.approx(1.0)          # its axis up, towards the upper edge
+    # rims far apart stay two (a cylinder's)
+    cyl = build_shape("cylinder", diameter=0.1, height=0.05)
+    s = build_sphere_set(cyl, 0.1 / 16)
+    t = lattice_tori(s.centers, 0.1 / 16, np.asarray(cyl.vertices) - s.com, cyl.faces)
+    assert np.count_nonzero((t[:, 9] > 0.0) & (t[:, 10] == 0.0)) > 20
+    assert np.all(t[:, 12] == 0.0)

@@ -132,7 +132,8 @@ def inscribed_wall(sphere_inscribed, body_q, i, bi, dist, radius, nx, ny, nz,
     lattice sets with no round surface) it is the sphere's own contact, bit for bit.
     A rim is a ring whose tube is 0 (spheres/inscribed.py rims): the spheres along it
     each hold it, so where it lies flat on the wall each takes the point under itself
-    (pairing.RIM_TIE), and on edge they all take its lowest point."""
+    (pairing.RIM_TIE), and on edge they all take its lowest point. A band (column 12:
+    a rim swept H along its axis) takes the lowest point of its lower edge."""
     if sphere_inscribed.shape[0] == 0:          # every sphere is its own
         return radius - dist, dist, 0.0, 0.0, 0.0, ux, uy, uz
     ax = sphere_inscribed[i, 0]
@@ -162,6 +163,19 @@ def inscribed_wall(sphere_inscribed, body_q, i, bi, dist, radius, nx, ny, nz,
             ax += s * px
             ay += s * py
             az += s * pz
+            band = sphere_inscribed[i, 12]
+            if band > 0.0:
+                # a band's lower edge: its far one where the axis leans towards the
+                # wall, the near one where away; across the tie (the band flat on the
+                # wall, nt = 0) the point slides between them
+                h = 0.5 - 0.5 * nt / RIM_TIE
+                if h > 1.0:
+                    h = 1.0
+                elif h < 0.0:
+                    h = 0.0
+                ax += h * band * tx
+                ay += h * band * ty
+                az += h * band * tz
     da = dist + nx * ax + ny * ay + nz * az
     ov = rho - da
     gate = radius + sphere_inscribed[i, 11] - dist
