@@ -213,58 +213,46 @@ def inscribed_ball_model():
     return b.finalize(fps=1.0 / (8 * 5e-5), n_frames=3, dt=5e-5, sleep=None)
 
 
-def rim_model():
-    """A cylinder 0.1 m across and 0.05 m long, a lattice 8 spheres across, tipped 30°
-    onto its rim and set turning: it meets the plane z = 0 through its rim's ring
-    (spheres/inscribed.py rims, a tube of radius 0) and the rings of its side."""
+def _tipped_model(mesh, d, name, stiffness, speed):
+    """``mesh`` as a lattice of diameter ``d``, tipped 30° about x onto the plane z = 0
+    and set moving at ``speed`` along x and turning (wood of ``stiffness`` [N/m])."""
     from scipy.spatial.transform import Rotation
 
-    from dempipe.mesh.shapes import build_shape
     from dempipe.sim.builder import ModelBuilder
     from dempipe.sim.materials import Material
     from dempipe.spheres.sphere_set import build_sphere_set
 
-    d = 0.0125
-    mesh = build_shape("cylinder", diameter=0.1, height=0.05)
-    ss = build_sphere_set(mesh, d, name="cuda-cylinder")
+    ss = build_sphere_set(mesh, d, name=name)
     b = ModelBuilder(d, gravity=(0.0, 0.0, -9.81))
-    s = b.add_shape("cylinder", mesh, ss)
+    s = b.add_shape(name, mesh, ss)
     m = b.add_material(Material("wood", density=700.0, restitution=0.5, friction=0.9,
-                                stiffness=2e5))
+                                stiffness=stiffness))
     rot = Rotation.from_euler("x", 30.0, degrees=True)
     low = float(-rot.apply(np.asarray(mesh.vertices))[:, 2].min())
     w, x, y, z = np.roll(rot.as_quat(), 1)
-    b.add_bodies("cylinder", s, m, [[0.0, 0.0, low - 1e-5]], [[w, x, y, z]],
-                 velocities=[[0.1, 0.0, 0.0]], angular_velocities=[[0.0, 2.0, 3.0]])
+    b.add_bodies(name, s, m, [[0.0, 0.0, low - 1e-5]], [[w, x, y, z]],
+                 velocities=[[speed, 0.0, 0.0]], angular_velocities=[[0.0, 2.0, 3.0]])
     b.add_plane([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], m)
     return b.finalize(fps=1.0 / (8 * 5e-5), n_frames=3, dt=5e-5, sleep=None)
+
+
+def rim_model():
+    """A cylinder 0.1 m across and 0.05 m long, a lattice 8 spheres across, tipped 30°
+    onto its rim and set turning: it meets the plane z = 0 through its rim's ring
+    (spheres/inscribed.py rims, a tube of radius 0) and the rings of its side."""
+    from dempipe.mesh.shapes import build_shape
+
+    return _tipped_model(build_shape("cylinder", diameter=0.1, height=0.05), 0.0125,
+                         "cuda-cylinder", 2e5, 0.1)
 
 
 def band_model():
     """The built-in pawn at 12 spheres to its height, tipped 30° onto its foot's edge and
     set turning: it meets the plane z = 0 through its plinth's band (spheres/inscribed.py
     _bands: a rim's ring swept along its axis) and the rings of its head."""
-    from scipy.spatial.transform import Rotation
-
     from dempipe.mesh.shapes import build_shape
-    from dempipe.sim.builder import ModelBuilder
-    from dempipe.sim.materials import Material
-    from dempipe.spheres.sphere_set import build_sphere_set
 
-    d = 0.05 / 12
-    mesh = build_shape("pawn")
-    ss = build_sphere_set(mesh, d, name="cuda-pawn")
-    b = ModelBuilder(d, gravity=(0.0, 0.0, -9.81))
-    s = b.add_shape("pawn", mesh, ss)
-    m = b.add_material(Material("wood", density=700.0, restitution=0.5, friction=0.9,
-                                stiffness=2e4))
-    rot = Rotation.from_euler("x", 30.0, degrees=True)
-    low = float(-rot.apply(np.asarray(mesh.vertices))[:, 2].min())
-    w, x, y, z = np.roll(rot.as_quat(), 1)
-    b.add_bodies("pawn", s, m, [[0.0, 0.0, low - 1e-5]], [[w, x, y, z]],
-                 velocities=[[0.05, 0.0, 0.0]], angular_velocities=[[0.0, 2.0, 3.0]])
-    b.add_plane([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], m)
-    return b.finalize(fps=1.0 / (8 * 5e-5), n_frames=3, dt=5e-5, sleep=None)
+    return _tipped_model(build_shape("pawn"), 0.05 / 12, "cuda-pawn", 2e4, 0.05)
 
 
 # ---------------------------------------------------------------------------
