@@ -139,7 +139,7 @@ def test_torus_rolls_on_its_rim(tmp_path, mode, d):
 
 CIRCLE = """
 [output]
-fps = 50
+fps = {fps}
 duration = {duration}
 [simulation]
 dt = 1e-4
@@ -237,7 +237,7 @@ def test_on_its_side_it_rolls_in_a_circle_about_its_apex(tmp_path, body):
     # (components under 1e-12 are rounding: a scene refuses sizes under 1e-15)
     fmt = lambda a: "[" + ", ".join(repr(float(c) if abs(c) > 1e-12 else 0.0)  # noqa: E731
                                     for c in a) + "]"
-    text = CIRCLE.format(duration=1.0, k=k, shape=shape, position=fmt(origin),
+    text = CIRCLE.format(fps=50, duration=1.0, k=k, shape=shape, position=fmt(origin),
                          rotation=fmt([w, x, y, z]), velocity=fmt(v0), spin=fmt(omega))
     model = build_model(parse_scene(text, tmp_path / "circle.toml"))
     assert model.diameter == pytest.approx(0.05 / 12)             # the defaults
@@ -292,11 +292,10 @@ def test_a_pawn_tipped_onto_its_foot_pivots_on_its_edge(tmp_path, tilt, ends):
     low = float(-rot.apply(mesh.vertices)[:, 2].min())
     w, x, y, z = np.roll(rot.as_quat(), 1)
     fmt = lambda a: "[" + ", ".join(repr(float(c)) for c in a) + "]"   # noqa: E731
-    text = CIRCLE.format(duration=0.6, k=8e4, shape='builtin = "pawn"',
+    text = CIRCLE.format(fps=400, duration=0.6, k=8e4, shape='builtin = "pawn"',
                          position=fmt([0.0, 0.0, low + 1e-5]), rotation=fmt([w, x, y, z]),
                          velocity="[0.0, 0.0, 0.0]", spin="[0.0, 0.0, 0.0]")
-    model = build_model(parse_scene(text.replace("fps = 50", "fps = 400"),
-                                    tmp_path / "tip.toml"))
+    model = build_model(parse_scene(text, tmp_path / "tip.toml"))
     assert np.count_nonzero(model.sphere_inscribed[:, 12] > 0.0) >= 12   # the band
     fr = Simulator(model).advance(model.initial_state())
     verts = np.asarray(mesh.vertices) - mesh.center_mass

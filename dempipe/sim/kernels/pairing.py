@@ -58,6 +58,9 @@ RING_TIE = 1e-6
 #: rad (ψ its angle round the rim from the lowest point): under its own while the rim
 #: is within RIM_TIE rad of flat; on a rim on edge (a piece on its side) 7e-4 rad at
 #: the nearest holder (ψ ≤ 4°), whose point is then 2.5e-7 of the rim's radius higher.
+#: A band (two rims closer than d, one ring swept along its axis) takes its lower
+#: edge, and within RIM_TIE of lying flat on the wall slides its point between its
+#: edges (contacts.inscribed_wall), so the contact does not jump from edge to edge.
 RIM_TIE = 0.01
 
 
