@@ -50,8 +50,16 @@ from dempipe.spheres.options import DEFAULT_SPACING
 _PROJECT_ITERS = 8
 #: A candidate is on the offset when its depth is within this fraction of r of r.
 _DEPTH_TOL = 1e-3
+#: A medial centre is taken where it mends more of the envelope than it sticks out by
+#: at least this fraction of r (offset_points): at a 60° edge the two are equal at
+#: the edge itself, and a tie leaves the mesh unpoked.
+_MEDIAL_GAIN = 0.02
 #: Rays within asin(GRAZE) of a triangle's plane miss it (_ray_kernel): 0.57°.
 GRAZE = 0.01
+#: How far offset_points' samples lie off their triangle's edges, as a fraction of the
+#: way to its centroid: a point's normal is then its own face's, and inwards along it
+#: starts inside the body even at an edge sharper than 90° (the segment test needs it).
+EDGE_INSET = 1e-6
 #: Metric sample spacing on the mesh surface, as a fraction of d.
 METRIC_SPACING = 0.1
 
@@ -382,14 +390,16 @@ def nearest_distance(points, centers, reach):
     return out
 
 
-def grid_samples(vertices, faces, spacing):
+def grid_samples(vertices, faces, spacing, inset=0.0):
     """Points spread over every triangle about ``spacing`` apart, and each point's face
     normal (unit, the face's winding: outward for a repaired mesh).
 
     Per triangle: its corners, points along each edge at most ``spacing`` apart, and
     ceil(2 area / spacing^2) inside from the R2 low-discrepancy sequence (Roberts 2018)
     folded into the triangle, so slivers get points along their length and big faces
-    by their area. Deterministic; triangle order. Returns (points (P, 3), normals (P, 3)).
+    by their area. ``inset``: each point moved that fraction of the way towards its
+    triangle's centroid, off the edges (EDGE_INSET for offset_points). Deterministic;
+    triangle order. Returns (points (P, 3), normals (P, 3)).
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
@@ -428,6 +438,8 @@ def grid_samples(vertices, faces, spacing):
     bary.append(np.stack([1.0 - a - b, a, b], axis=1))
     owner = np.concatenate(owner)
     bary = np.concatenate(bary)
+    if inset:
+        bary = (1.0 - inset) * bary + inset / 3.0
     order = np.argsort(owner, kind="stable")
     owner, bary = owner[order], bary[order]
     pts = np.einsum("pk,pkj->pj", bary, tri[owner])
@@ -435,22 +447,29 @@ def grid_samples(vertices, faces, spacing):
 
 
 def offset_points(queries: MeshQueries, points, normals, radius):
-    """Candidate centres for ``points`` of the surface with outward ``normals``: on the
-    medial surface where the body is thinner than 2 ``radius`` along the normal (the
-    ray inwards meets the far side within d: the centre goes halfway), else on the
-    inward offset at distance ``radius``. Returns (centres (P, 3), kind (P,) int8:
-    1 offset, 2 medial, 0 dropped: the projection did not settle)."""
+    """Candidate centres for ``points`` of the surface with outward ``normals``.
+
+    Each point is first projected onto the inward offset at distance ``radius`` r
+    (kind 1 where it settles at depth r with the segment from the point to it inside
+    the body): the centres of the balls of diameter d inside the mesh, whose union is
+    the best envelope spheres of d can make without sticking out. Where the ray inwards
+    meets the far side within d (t < d), the body may be thinner than d, and a centre
+    at the chord's middle m (kind 2, medial) covers the point at the cost of sticking
+    out of the mesh by r - depth(m). It is taken only where that costs less than it
+    mends: where the point is further than r + (r - depth(m)) from every offset centre
+    (a plate thinner than d has none; a wedge under about 60° leaves its edge further
+    out than its medial spheres stick out). Near an acute edge of a thick part (a
+    frustum's base rim) the chord meets the next face, its middle lies near the edge
+    and would stick out by nearly r, while the edge's offset rounds it by less: the
+    point is left to the offset. Returns (centres (P, 3), kind (P,) int8: 1 offset,
+    2 medial, 0 neither: covered by the others)."""
     r = float(radius)
-    t = queries.ray(points - 1e-9 * r * normals, -normals, 2.0 * r)
-    thin = np.isfinite(t)
+    start = points - 1e-9 * r * normals
+    t = queries.ray(start, -normals, 2.0 * r)
     kind = np.zeros(len(points), dtype=np.int8)
-    c = np.array(points, dtype=np.float64, copy=True)
-    c[thin] = points[thin] - 0.5 * t[thin, None] * normals[thin]
-    kind[thin] = 2
     reach = 1.05 * r                  # a candidate is never deeper than r: c0 and each step
-    active = np.flatnonzero(~thin)
-    c[active] = points[active] - r * normals[active]
-    todo = active
+    c = points - r * normals
+    todo = np.arange(len(points))
     for _ in range(_PROJECT_ITERS):
         if not len(todo):
             break
@@ -461,9 +480,30 @@ def offset_points(queries: MeshQueries, points, normals, radius):
         moved = np.abs(new - c[todo]).max(axis=1) > 1e-12 * r
         c[todo] = new
         todo = todo[moved]
-    dist, _ = queries.closest(c[active], reach)
-    on = np.isfinite(dist) & (np.abs(dist - r) <= _DEPTH_TOL * r)
-    kind[active[on]] = 1
+    dist, _ = queries.closest(c, reach)
+    on = np.flatnonzero(np.isfinite(dist) & (np.abs(dist - r) <= _DEPTH_TOL * r))
+    # across a thin part the projection settles at depth r beyond its far side, or
+    # outside the point's own face: the segment from the point to its centre must run
+    # inwards and cross no face
+    on = on[np.einsum("ij,ij->i", c[on] - points[on], normals[on]) < 0.0]
+    if len(on):
+        seg = c[on] - start[on]
+        length = np.linalg.norm(seg, axis=1)
+        on, seg, length = on[length <= 4.0 * r], seg[length <= 4.0 * r], length[length <= 4.0 * r]
+    if len(on):                       # (a ray searches at most 2 reach = 4 r)
+        far = queries.ray(start[on], seg / np.maximum(length, 1e-300)[:, None],
+                          float(length.max()))
+        on = on[~(far < length)]
+    kind[on] = 1
+    thin = np.flatnonzero(np.isfinite(t) & (kind == 0))
+    if len(thin):
+        mid = points[thin] - 0.5 * t[thin, None] * normals[thin]
+        depth, _ = queries.closest(mid, reach)
+        poke = r - np.minimum(depth, r)
+        gap = nearest_distance(points[thin], c[on], 4.0 * r) - r
+        take = gap > poke + _MEDIAL_GAIN * r
+        c[thin[take]] = mid[take]
+        kind[thin[take]] = 2
     return c, kind
 
 
@@ -499,7 +539,7 @@ def surface_centers(mesh, diameter, spacing=DEFAULT_SPACING, inside=None,
     v = np.asarray(mesh.vertices, dtype=np.float64)
     f = np.asarray(mesh.faces, dtype=np.int64)
     queries = MeshQueries(v, f, reach=d)
-    pts, nrm = grid_samples(v, f, h / 3.0)
+    pts, nrm = grid_samples(v, f, h / 3.0, EDGE_INSET)
     cand, kind = offset_points(queries, pts, nrm, r)
     # features first: a candidate pulled further from its surface point than r sits on
     # the offset of a convex corner (sqrt(3) r for a cube's) or edge (sqrt(2) r) or of
@@ -569,12 +609,14 @@ def envelope_errors(mesh, centers, diameter, *, spacing=METRIC_SPACING) -> Envel
         near[miss] = point_set_distance(pts[miss], c)
     gap = np.maximum(near - r, 0.0)
     # the ideal envelope: balls on the offset (and medial) surface of these very samples
-    ideal, kind = offset_points(queries, pts, nrm, r)
+    ideal, kind = offset_points(queries, *grid_samples(v, f, spacing * d, EDGE_INSET), r)
     ideal = ideal[kind > 0]
     # thinned to 1/16 d: the ideal envelope's distance is then off by < (d/32)^2 / r
     ideal = ideal[_poisson_thin(np.ascontiguousarray(ideal), d / 16.0)]
-    best = nearest_distance(pts, ideal, d)
-    best = np.where(np.isfinite(best), best, r)
+    best = nearest_distance(pts, ideal, 2.0 * d)
+    miss = ~np.isfinite(best)
+    if miss.any():
+        best[miss] = point_set_distance(pts[miss], ideal) if len(ideal) else r
     ideal_gap = np.maximum(best - r, 0.0)
     # spheres -> mesh: how far each sphere reaches past the surface
     dist, _ = queries.closest(c)

@@ -196,13 +196,19 @@ def _frustum(tmp_path):
     return 'mesh = "frustum.stl"', mesh, 8e5
 
 
+def _surface_frustum(tmp_path):
+    shape, mesh, k = _frustum(tmp_path)
+    return shape + '\nspheres = "surface"', mesh, k
+
+
 def _pawn(tmp_path):
     from dempipe.mesh.shapes import build_shape
 
     return 'builtin = "pawn"', build_shape("pawn"), 8e4   # 8 g: a tenth of the K
 
 
-@pytest.mark.parametrize("body", [_frustum, _pawn], ids=["frustum", "pawn"])
+@pytest.mark.parametrize("body", [_frustum, _surface_frustum, _pawn],
+                         ids=["frustum", "surface frustum", "pawn"])
 def test_on_its_side_it_rolls_in_a_circle_about_its_apex(tmp_path, body):
     # A solid of revolution whose far end is narrower than its near one, on its side on
     # level ground and set rolling about its line of contact, rolls without slipping
@@ -214,11 +220,14 @@ def test_on_its_side_it_rolls_in_a_circle_about_its_apex(tmp_path, body):
     # rings of revolution of its side (inscribed.revolution_axis); the built-in pawn
     # on its plinth's upper edge (its band, inscribed._bands) and its head's ball, its
     # apex on its axis 2.98 heights from its foot, beyond its head, as a real pawn
-    # knocked over rolls. Measured over 1 s, the circle's centre
-    # off the apex / its radius / its roundness / the speed / the angle turned: the
-    # frustum 0.17 % / 0.00 % / 0.03 % / 0.36 % low / 0.00 %, the pawn 0.44 % /
+    # knocked over rolls. In surface mode the frustum rests on its shell, whose
+    # rounded rims keep the line of contact and so the apex. Measured over 1 s, the
+    # circle's centre off the apex / its radius / its roundness / the speed / the angle
+    # turned: the frustum 0.17 % / 0.00 % / 0.03 % / 0.36 % low / 0.00 %, the surface
+    # frustum 0.13 % / 0.08 % small / 0.01 % / 1.3 % low / 0.01 %, the pawn 0.44 % /
     # 0.40 % small / 0.02 % / 0.01 % / 0.03 %. Without the rims and rings, the
-    # frustum at 16 across lost 18.5 % of its speed.
+    # frustum at 16 across lost 18.5 % of its speed; the surface frustum, when
+    # spheres at its base rim stuck out of it by up to r, was launched off the ground.
     from scipy.spatial.transform import Rotation
 
     shape, mesh, k = body(tmp_path)
@@ -242,7 +251,8 @@ def test_on_its_side_it_rolls_in_a_circle_about_its_apex(tmp_path, body):
     model = build_model(parse_scene(text, tmp_path / "circle.toml"))
     assert model.diameter == pytest.approx(0.05 / 12)             # the defaults
     t = model.sphere_inscribed
-    assert np.count_nonzero((t[:, 9] > 0.0) & (t[:, 10] == 0.0)) > 10   # rims held
+    if "surface" not in shape:
+        assert np.count_nonzero((t[:, 9] > 0.0) & (t[:, 10] == 0.0)) > 10   # rims held
     fr = Simulator(model).advance(model.initial_state())
     assert fr.x[0, 0] == pytest.approx(com, abs=1e-9)
     rho_c = math.hypot(*(com - apex_w)[:2])
@@ -262,13 +272,14 @@ def test_on_its_side_it_rolls_in_a_circle_about_its_apex(tmp_path, body):
     # ground: 0.01 d on either moves it 1.3 % along the pawn, whose base and head differ
     # by 3.25 mm in radius; the head's vertex at its equator, not its ball's tangent,
     # puts the predicted apex 1 % nearer); its height within 5 % of d; the speed
-    # within 1 %; the angle it turns round the centre (over 2 rad) is its arc over the
-    # radius (1 %)
+    # within 1 % (3 % on a surface set: its bumps, up to 0.09 d at the default
+    # spacing, cost a rolling body energy at each); the angle it turns round the
+    # centre (over 2 rad) is its arc over the radius (1 %)
     assert np.abs(np.hypot(*(p[late] - centre).T) / radius - 1.0).max() < 1e-3
     assert np.linalg.norm(centre - apex_w[:2]) < 0.02 * rho_c
     assert radius == pytest.approx(rho_c, rel=0.02)
     assert np.abs(fr.x[:, 0, 2] - com[2]).max() < 0.05 * model.diameter
-    assert speed[-1] == pytest.approx(speed[5], rel=0.01)
+    assert speed[-1] == pytest.approx(speed[5], rel=0.03 if "surface" in shape else 0.01)
     assert abs(turned[-1] - turned[late][0]) > 2.0
     assert abs(turned[-1] - turned[late][0]) == pytest.approx(arc / radius, rel=0.01)
 
@@ -412,8 +423,14 @@ def _assert_settles(model):
 @pytest.mark.slow
 def test_quickstart_pieces_settle_in_surface_mode(tmp_path):
     # the quickstart's pieces, materials and contact settings, 4 of them dropped
-    # into a small tray, every sphere set in surface mode
-    model = build_model(parse_scene(PILE, tmp_path / "pile.toml"))
+    # into a small tray, every sphere set in surface mode, for 1.5 s: at 6 across the
+    # foot's plinth is a lip 0.2 d tall, too thin for a sphere to follow (one there
+    # would float the piece 0.36 d above the floor), so a rook stands on its shell's
+    # ring 1.02 d from its axis, not its foot's 1.74 d, and one landed upright rocks
+    # on it for a while. Measured, what is left moving: 8e-5 of the energy the fall
+    # released at 1.04 s, 1.9e-3 at 1.25 s (the rook rocking), 3.1e-4 at 1.46 s
+    model = build_model(parse_scene(PILE.replace("duration = 1.0", "duration = 1.5"),
+                                    tmp_path / "pile.toml"))
     assert all("surface" in s.sphere_set.notes for s in model.shapes)
     _assert_settles(model)
 
