@@ -56,9 +56,13 @@ _DEPTH_TOL = 1e-3
 _MEDIAL_GAIN = 0.02
 #: Rays within asin(GRAZE) of a triangle's plane miss it (_ray_kernel): 0.57°.
 GRAZE = 0.01
+#: The inside test's ray (MeshQueries.inside): off the axes, so that it does not run
+#: along the faces or through the shared edges of a mesh built on them.
+PARITY_RAY = np.array([0.0137, 0.0231, 1.0]) / math.sqrt(0.0137 ** 2 + 0.0231 ** 2 + 1.0)
 #: How far offset_points' samples lie off their triangle's edges, as a fraction of the
-#: way to its centroid: a point's normal is then its own face's, and inwards along it
-#: starts inside the body even at an edge sharper than 90° (the segment test needs it).
+#: way to its centroid: a point's normal is then its own face's, and the ray inwards
+#: along it that finds thin parts starts inside the body even at an edge sharper than
+#: 90°.
 EDGE_INSET = 1e-6
 #: Metric sample spacing on the mesh surface, as a fraction of d.
 METRIC_SPACING = 0.1
@@ -184,12 +188,41 @@ def _closest_kernel(points, tris, origin, cell, dims, start, items, reach, out_d
         out_q[p, 2] = qz
 
 
+@numba.njit(cache=True, inline="always")
+def _ray_hit(px, py, pz, dx, dy, dz, t, graze):
+    """Distance along (dx, dy, dz) (unit) from p to triangle t (3, 3), either side
+    (Moller-Trumbore); inf where it misses or runs along it (|cos| of its angle to the
+    triangle's normal below ``graze``)."""
+    e1x, e1y, e1z = t[1, 0] - t[0, 0], t[1, 1] - t[0, 1], t[1, 2] - t[0, 2]
+    e2x, e2y, e2z = t[2, 0] - t[0, 0], t[2, 1] - t[0, 1], t[2, 2] - t[0, 2]
+    hx = dy * e2z - dz * e2y
+    hy = dz * e2x - dx * e2z
+    hz = dx * e2y - dy * e2x
+    a = e1x * hx + e1y * hy + e1z * hz
+    nx = e1y * e2z - e1z * e2y
+    ny = e1z * e2x - e1x * e2z
+    nz = e1x * e2y - e1y * e2x
+    if abs(a) < 1e-300 or a * a < graze * graze * (nx * nx + ny * ny + nz * nz):
+        return np.inf
+    f = 1.0 / a
+    sx, sy, sz = px - t[0, 0], py - t[0, 1], pz - t[0, 2]
+    u = f * (sx * hx + sy * hy + sz * hz)
+    if u < 0.0 or u > 1.0:
+        return np.inf
+    qx = sy * e1z - sz * e1y
+    qy = sz * e1x - sx * e1z
+    qz = sx * e1y - sy * e1x
+    v = f * (dx * qx + dy * qy + dz * qz)
+    if v < 0.0 or u + v > 1.0:
+        return np.inf
+    return f * (e2x * qx + e2y * qy + e2z * qz)
+
+
 @numba.njit(parallel=True, cache=True)
 def _ray_kernel(points, dirs, tris, origin, cell, dims, start, items, length, out_t):
     """Distance along dirs (unit) from points to the nearest triangle hit beyond
-    1e-9 length, within ``length``; inf where none (Moller-Trumbore, both sides).
-    A triangle the ray runs along (|cos| of its angle to the triangle's normal below
-    GRAZE) is not hit: a ray from a point on an edge, inwards along one face's normal,
+    1e-9 length, within ``length``; inf where none (_ray_hit). A triangle the ray runs
+    along (GRAZE) is not hit: a ray from a point on an edge, inwards along one face's normal,
     runs in the plane of the other face where the edge is square, and rounding would
     otherwise hit that face at any distance, 0 included."""
     n = points.shape[0]
@@ -206,33 +239,44 @@ def _ray_kernel(points, dirs, tris, origin, cell, dims, start, items, length, ou
                 for i in range(i0, i1 + 1):
                     c = (k * dims[1] + j) * dims[0] + i
                     for e in range(start[c], start[c + 1]):
-                        t = tris[items[e]]
-                        e1x, e1y, e1z = t[1, 0] - t[0, 0], t[1, 1] - t[0, 1], t[1, 2] - t[0, 2]
-                        e2x, e2y, e2z = t[2, 0] - t[0, 0], t[2, 1] - t[0, 1], t[2, 2] - t[0, 2]
-                        hx = dy * e2z - dz * e2y
-                        hy = dz * e2x - dx * e2z
-                        hz = dx * e2y - dy * e2x
-                        a = e1x * hx + e1y * hy + e1z * hz
-                        nx = e1y * e2z - e1z * e2y
-                        ny = e1z * e2x - e1x * e2z
-                        nz = e1x * e2y - e1y * e2x
-                        if abs(a) < 1e-300 or a * a < GRAZE * GRAZE * (nx * nx + ny * ny + nz * nz):
-                            continue
-                        f = 1.0 / a
-                        sx, sy, sz = px - t[0, 0], py - t[0, 1], pz - t[0, 2]
-                        u = f * (sx * hx + sy * hy + sz * hz)
-                        if u < 0.0 or u > 1.0:
-                            continue
-                        qx = sy * e1z - sz * e1y
-                        qy = sz * e1x - sx * e1z
-                        qz = sx * e1y - sy * e1x
-                        v = f * (dx * qx + dy * qy + dz * qz)
-                        if v < 0.0 or u + v > 1.0:
-                            continue
-                        tt = f * (e2x * qx + e2y * qy + e2z * qz)
+                        tt = _ray_hit(px, py, pz, dx, dy, dz, tris[items[e]], GRAZE)
                         if tt > 1e-9 * length and tt < best:
                             best = tt
         out_t[p] = best if best <= length else np.inf
+
+
+@numba.njit(parallel=True, cache=True)
+def _parity_kernel(points, direction, tris, origin, cell, dims, start, items, out):
+    """out[p] = True where the ray from points[p] along ``direction`` (unit, dz > 0) to
+    the grid's top crosses the mesh an odd number of times: inside a closed mesh. Each
+    triangle is counted once, in the first cell of the ray's span that it is binned in."""
+    n = points.shape[0]
+    dx, dy, dz = direction[0], direction[1], direction[2]
+    top = origin[2] + dims[2] * cell
+    for p in numba.prange(n):
+        px, py, pz = points[p, 0], points[p, 1], points[p, 2]
+        length = max(0.0, (top - pz) / dz)
+        ex, ey, ez = px + length * dx, py + length * dy, pz + length * dz
+        i0, j0, k0, i1, j1, k1 = _cell_span(min(px, ex), min(py, ey), min(pz, ez),
+                                            max(px, ex), max(py, ey), max(pz, ez),
+                                            origin, cell, dims)
+        count = 0
+        for k in range(k0, k1 + 1):
+            for j in range(j0, j1 + 1):
+                for i in range(i0, i1 + 1):
+                    c = (k * dims[1] + j) * dims[0] + i
+                    for e in range(start[c], start[c + 1]):
+                        t = tris[items[e]]
+                        # the triangle's first cell in this span (its box's low corner)
+                        ti = max(i0, int(math.floor((min(t[0, 0], t[1, 0], t[2, 0]) - origin[0]) / cell)))
+                        tj = max(j0, int(math.floor((min(t[0, 1], t[1, 1], t[2, 1]) - origin[1]) / cell)))
+                        tk = max(k0, int(math.floor((min(t[0, 2], t[1, 2], t[2, 2]) - origin[2]) / cell)))
+                        if ti != i or tj != j or tk != k:
+                            continue
+                        tt = _ray_hit(px, py, pz, dx, dy, dz, t, 0.0)     # grazing counts
+                        if tt > 0.0 and tt <= length:
+                            count += 1
+        out[p] = count % 2 == 1
 
 
 @numba.njit(cache=True)
@@ -366,6 +410,17 @@ class MeshQueries:
                             reach, d, q)
         return d, q
 
+    def inside(self, points):
+        """(N,) bool: inside the (closed) mesh, by the parity of the crossings of a ray
+        along PARITY_RAY; points within rounding of the surface may go either way."""
+        pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        out = np.zeros(len(pts), dtype=np.bool_)
+        g = self.grid
+        if len(pts):
+            _parity_kernel(pts, PARITY_RAY, self.tris, g.origin, g.cell, g.dims, g.start,
+                           g.items, out)
+        return out
+
     def ray(self, points, dirs, length):
         """Distance along unit ``dirs`` to the first triangle within ``length`` (inf: none).
         ``length`` must not exceed 2 reach (the grid's padding)."""
@@ -450,9 +505,9 @@ def offset_points(queries: MeshQueries, points, normals, radius):
     """Candidate centres for ``points`` of the surface with outward ``normals``.
 
     Each point is first projected onto the inward offset at distance ``radius`` r
-    (kind 1 where it settles at depth r with the segment from the point to it inside
-    the body): the centres of the balls of diameter d inside the mesh, whose union is
-    the best envelope spheres of d can make without sticking out. Where the ray inwards
+    (kind 1 where it settles at depth r inside the body): the centres of the balls of
+    diameter d inside the mesh, whose union is the best envelope spheres of d can make
+    without sticking out. Where the ray inwards
     meets the far side within d (t < d), the body may be thinner than d, and a centre
     at the chord's middle m (kind 2, medial) covers the point at the cost of sticking
     out of the mesh by r - depth(m). It is taken only where that costs less than it
@@ -482,18 +537,8 @@ def offset_points(queries: MeshQueries, points, normals, radius):
         todo = todo[moved]
     dist, _ = queries.closest(c, reach)
     on = np.flatnonzero(np.isfinite(dist) & (np.abs(dist - r) <= _DEPTH_TOL * r))
-    # across a thin part the projection settles at depth r beyond its far side, or
-    # outside the point's own face: the segment from the point to its centre must run
-    # inwards and cross no face
-    on = on[np.einsum("ij,ij->i", c[on] - points[on], normals[on]) < 0.0]
-    if len(on):
-        seg = c[on] - start[on]
-        length = np.linalg.norm(seg, axis=1)
-        on, seg, length = on[length <= 4.0 * r], seg[length <= 4.0 * r], length[length <= 4.0 * r]
-    if len(on):                       # (a ray searches at most 2 reach = 4 r)
-        far = queries.ray(start[on], seg / np.maximum(length, 1e-300)[:, None],
-                          float(length.max()))
-        on = on[~(far < length)]
+    # across a thin part the projection settles at depth r beyond its far side
+    on = on[queries.inside(c[on])]
     kind[on] = 1
     thin = np.flatnonzero(np.isfinite(t) & (kind == 0))
     if len(thin):
