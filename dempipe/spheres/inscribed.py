@@ -84,7 +84,7 @@ MEMO_SIZE = 32
 _MEMO: dict = {}
 #: The fit's version, in the disk cache's keys: a change to what the functions below
 #: compute changes it, and old entries are never read.
-TORI_VERSION = 7
+TORI_VERSION = 8
 
 
 def wall_tori(centers, diameter: float, vertices, faces, *, surface: bool,

@@ -11,8 +11,9 @@ from dempipe.errors import ShapeError
 #: cache keys change; the lattice's do not): 2, thin-part rays no longer hit a face
 #: they run along; 3, a thin part's medial centre only where it sticks out by less
 #: than the offset leaves uncovered (not at the acute edges of thick parts); 4, an
-#: offset centre is inside by the parity of a ray's crossings.
-SURFACE_BUILDER = 4
+#: offset centre is inside by the parity of a ray's crossings; 5, by the winding
+#: number (overlapping parts, meshes with holes).
+SURFACE_BUILDER = 5
 
 #: Default spacing of the surface mode's shell centres, as a fraction of the diameter
 #: d. Chosen from the measured bump height (docs/spheres.md, "Surface mode"): at 0.3 d

@@ -10,13 +10,17 @@ where the surface is:
    (the level set sdf = -r), so every shell sphere touches the surface from inside and
    their outer envelope is the surface, rounded with radius r at convex edges (a ball of
    radius r cannot reach further into a sharp corner). Candidates: points of the mesh
-   surface on a barycentric grid of spacing h/2 per triangle, each moved by r along its
-   face's inward normal and then projected onto the level set (c <- q + r (c - q)/|c - q|,
-   q the closest point of the mesh; a few iterations), which also puts candidates near
-   concave edges onto the offset's rounded part.
-2. **Thin parts.** Where the body is thinner than d there is no level set -r; a
-   candidate whose projection does not reach depth r goes to the middle of the body
-   along its normal (one row of centres on the medial surface, as the lattice does).
+   surface spread over every triangle h/3 apart (grid_samples), each moved by r along
+   its face's inward normal and then projected onto the level set (c <- q + r (c - q)/
+   |c - q|, q the closest point of the mesh; a few iterations), which also puts
+   candidates near concave edges onto the offset's rounded part; kept where it settles
+   at depth r inside the body.
+2. **Thin parts.** Where the body is thinner than d there is no level set -r. A point
+   whose ray inwards meets the far side within d may take a centre in the middle of
+   that chord (one row on the medial surface, as the lattice's one row of cells),
+   which sticks out of the mesh: it does where that is less than the offset's balls
+   leave the point uncovered (a plate; an edge sharper than 60°), not at the milder
+   acute edges of thick parts (offset_points).
 3. **Even spacing.** Candidates are thinned greedily in a fixed order to a maximal
    Poisson-disk set of spacing h: no two centres closer than h, every candidate within
    h of a centre. On a flat face a point of the surface is then at most ~h from the
@@ -41,7 +45,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from dempipe.mesh.winding import inside_mask
+from dempipe.mesh.winding import inside_mask, winding_numbers
 from dempipe.spheres.fidelity import point_set_distance
 from dempipe.spheres.options import DEFAULT_SPACING
 
@@ -246,10 +250,13 @@ def _ray_kernel(points, dirs, tris, origin, cell, dims, start, items, length, ou
 
 
 @numba.njit(parallel=True, cache=True)
-def _parity_kernel(points, direction, tris, origin, cell, dims, start, items, out):
-    """out[p] = True where the ray from points[p] along ``direction`` (unit, dz > 0) to
-    the grid's top crosses the mesh an odd number of times: inside a closed mesh. Each
-    triangle is counted once, in the first cell of the ray's span that it is binned in."""
+def _crossing_kernel(points, direction, tris, origin, cell, dims, start, items, out):
+    """out[p] = the winding number of the mesh at points[p], counted along the ray from
+    it along ``direction`` (unit, dz > 0) to the grid's top: +1 for each face it leaves
+    through (the face's normal along the ray), -1 for each it enters through; grazing
+    faces count. Each triangle once, in the first cell of the ray's span that it is
+    binned in. Exact for a closed mesh, overlapping closed parts included, unless the
+    ray runs through an edge or a corner."""
     n = points.shape[0]
     dx, dy, dz = direction[0], direction[1], direction[2]
     top = origin[2] + dims[2] * cell
@@ -260,7 +267,7 @@ def _parity_kernel(points, direction, tris, origin, cell, dims, start, items, ou
         i0, j0, k0, i1, j1, k1 = _cell_span(min(px, ex), min(py, ey), min(pz, ez),
                                             max(px, ex), max(py, ey), max(pz, ez),
                                             origin, cell, dims)
-        count = 0
+        winding = 0
         for k in range(k0, k1 + 1):
             for j in range(j0, j1 + 1):
                 for i in range(i0, i1 + 1):
@@ -273,10 +280,14 @@ def _parity_kernel(points, direction, tris, origin, cell, dims, start, items, ou
                         tk = max(k0, int(math.floor((min(t[0, 2], t[1, 2], t[2, 2]) - origin[2]) / cell)))
                         if ti != i or tj != j or tk != k:
                             continue
-                        tt = _ray_hit(px, py, pz, dx, dy, dz, t, 0.0)     # grazing counts
+                        tt = _ray_hit(px, py, pz, dx, dy, dz, t, 0.0)
                         if tt > 0.0 and tt <= length:
-                            count += 1
-        out[p] = count % 2 == 1
+                            e1x, e1y, e1z = t[1, 0] - t[0, 0], t[1, 1] - t[0, 1], t[1, 2] - t[0, 2]
+                            e2x, e2y, e2z = t[2, 0] - t[0, 0], t[2, 1] - t[0, 1], t[2, 2] - t[0, 2]
+                            along = ((e1y * e2z - e1z * e2y) * dx + (e1z * e2x - e1x * e2z) * dy
+                                     + (e1x * e2y - e1y * e2x) * dz)
+                            winding += 1 if along > 0.0 else -1
+        out[p] = winding
 
 
 @numba.njit(cache=True)
@@ -396,6 +407,12 @@ class MeshQueries:
         self.reach = float(reach)
         self.grid = _Grid(self.tris.min(axis=1), self.tris.max(axis=1), self.reach,
                           2.0 * self.reach)
+        # closed: every directed edge once, and its reverse (a ray's crossings count)
+        f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+        e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        key = e[:, 0] * (len(v) + 1) + e[:, 1]
+        self.closed = bool(len(f)) and len(np.unique(key)) == len(key) and bool(
+            np.isin(e[:, 1] * (len(v) + 1) + e[:, 0], key).all())
 
     def closest(self, points, reach=None):
         """(distance (N,), closest point (N, 3)); distance inf beyond ``reach`` (at
@@ -411,15 +428,20 @@ class MeshQueries:
         return d, q
 
     def inside(self, points):
-        """(N,) bool: inside the (closed) mesh, by the parity of the crossings of a ray
-        along PARITY_RAY; points within rounding of the surface may go either way."""
+        """(N,) bool: inside the mesh, by its winding number's nonzero rule: counted
+        along a ray (PARITY_RAY) on a closed mesh, the generalized winding number
+        (mesh.winding, every triangle) on one with holes. Points within rounding of the
+        surface may go either way."""
         pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-        out = np.zeros(len(pts), dtype=np.bool_)
+        if not len(pts):
+            return np.zeros(0, dtype=np.bool_)
+        if not self.closed:
+            return np.abs(winding_numbers(pts, self.tris)) > 0.5
+        out = np.zeros(len(pts), dtype=np.int64)
         g = self.grid
-        if len(pts):
-            _parity_kernel(pts, PARITY_RAY, self.tris, g.origin, g.cell, g.dims, g.start,
-                           g.items, out)
-        return out
+        _crossing_kernel(pts, PARITY_RAY, self.tris, g.origin, g.cell, g.dims, g.start,
+                         g.items, out)
+        return out != 0
 
     def ray(self, points, dirs, length):
         """Distance along unit ``dirs`` to the first triangle within ``length`` (inf: none).
@@ -623,9 +645,10 @@ class EnvelopeError:
     hausdorff: the larger of (a) the largest distance from a point of the mesh surface
         to the nearest sphere and (b) the most a sphere sticks out of the mesh.
     bump: the largest distance from a point of the mesh surface to the nearest sphere
-        beyond that of the ideal envelope, the union of every ball of diameter d inside
-        the mesh (which rounds convex edges with radius d/2 and cannot be beaten by
-        spheres of that size): the dips between neighbouring spheres.
+        beyond that of the ideal envelope, offset_points' centres of a dense grid of
+        the surface, unthinned: every ball of diameter d inside the mesh (which rounds
+        convex edges with radius d/2 and cannot be beaten by spheres of that size) and
+        the medial balls of its thin parts: the dips between neighbouring spheres.
     rounding: the ideal envelope's own largest distance (convex edges, corners).
     samples: surface points measured (a barycentric grid of METRIC_SPACING d).
     """
@@ -653,7 +676,8 @@ def envelope_errors(mesh, centers, diameter, *, spacing=METRIC_SPACING) -> Envel
     if miss.any():
         near[miss] = point_set_distance(pts[miss], c)
     gap = np.maximum(near - r, 0.0)
-    # the ideal envelope: balls on the offset (and medial) surface of these very samples
+    # the ideal envelope: balls on the offset (and medial) surface of the same grid, its
+    # points off the edges as offset_points needs
     ideal, kind = offset_points(queries, *grid_samples(v, f, spacing * d, EDGE_INSET), r)
     ideal = ideal[kind > 0]
     # thinned to 1/16 d: the ideal envelope's distance is then off by < (d/32)^2 / r

@@ -226,8 +226,8 @@ def test_on_its_side_it_rolls_in_a_circle_about_its_apex(tmp_path, body):
     # turned: the frustum 0.17 % / 0.00 % / 0.03 % / 0.36 % low / 0.00 %, the surface
     # frustum 0.13 % / 0.08 % small / 0.01 % / 1.3 % low / 0.01 %, the pawn 0.44 % /
     # 0.40 % small / 0.02 % / 0.01 % / 0.03 %. Without the rims and rings, the
-    # frustum at 16 across lost 18.5 % of its speed; the surface frustum, when
-    # spheres at its base rim stuck out of it by up to r, was launched off the ground.
+    # frustum at 16 across lost 18.5 % of its speed; a surface set whose spheres stuck
+    # out at its base rim would start the frustum in the ground and launch it.
     from scipy.spatial.transform import Rotation
 
     shape, mesh, k = body(tmp_path)
@@ -374,7 +374,7 @@ def test_ball_and_cylinder_within_two_percent_at_sixteen_across(tmp_path, mode):
 PILE = """
 [output]
 fps = 24
-duration = 1.0
+duration = 1.5
 [simulation]
 resolution = 6
 stiffness_target_overlap = 0.09
@@ -429,8 +429,7 @@ def test_quickstart_pieces_settle_in_surface_mode(tmp_path):
     # ring 1.02 d from its axis, not its foot's 1.74 d, and one landed upright rocks
     # on it for a while. Measured, what is left moving: 8e-5 of the energy the fall
     # released at 1.04 s, 1.9e-3 at 1.25 s (the rook rocking), 3.1e-4 at 1.46 s
-    model = build_model(parse_scene(PILE.replace("duration = 1.0", "duration = 1.5"),
-                                    tmp_path / "pile.toml"))
+    model = build_model(parse_scene(PILE, tmp_path / "pile.toml"))
     assert all("surface" in s.sphere_set.notes for s in model.shapes)
     _assert_settles(model)
 
@@ -441,8 +440,8 @@ def test_quickstart_pieces_settle_at_the_defaults(tmp_path):
     # where they land on their sides). Measured: what is left moving is 2.3e-4 of the
     # energy the fall released at 1.25 s and 4e-11 at 1.5 s (before rims and rings
     # about the axis, 6.6e-4 at 1 s)
-    text = PILE.replace("duration = 1.0", "duration = 1.5").replace(
-        "resolution = 6\n", "").replace('spheres = "surface"\n', "")
+    assert "resolution = 6\n" in PILE and 'spheres = "surface"\n' in PILE
+    text = PILE.replace("resolution = 6\n", "").replace('spheres = "surface"\n', "")
     model = build_model(parse_scene(text, tmp_path / "pile.toml"))
     t = model.sphere_inscribed
     assert np.count_nonzero((t[:, 9] > 0.0) & (t[:, 10] == 0.0)) > 100   # rim holders
