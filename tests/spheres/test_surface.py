@@ -273,6 +273,21 @@ def test_an_acute_edge_takes_whichever_spheres_err_less(angle):
     assert e.hausdorff <= min(rounding, r) + SURFACE_BUMP * d
 
 
+@pytest.mark.parametrize("name", ["pawn", "bishop", "rook", "knight", "queen", "king"])
+def test_a_chess_piece_stands_on_its_foot_at_the_examples_resolution(name):
+    # At 6 spheres across the pawn's height (the examples'), a piece's plinth is a lip
+    # about 0.2 d tall: medial spheres on it would reach 0.31-0.38 d below the foot
+    # and stand the piece that far above the floor in every frame; the offset leaves
+    # the lip's edge about as far uncovered, and is taken (offset_points). The lowest
+    # sphere is on the foot's plane. (At 12 across the pawn's plinth, 0.48 d tall, is
+    # thin enough that its medial row errs less: 0.25 d below.)
+    mesh = build_shape(name)
+    d = 0.05 / 6
+    s = build_sphere_set(mesh, d, options=SURFACE)
+    lowest = float((s.centers[:, 2] + s.com[2]).min()) - 0.5 * d
+    assert lowest == pytest.approx(float(mesh.vertices[:, 2].min()), abs=1e-3 * d)
+
+
 # ------------------------------------------------------------------ envelope errors
 
 
