@@ -62,7 +62,7 @@ _MEDIAL_GAIN = 0.02
 GRAZE = 0.01
 #: The inside test's ray (MeshQueries.inside): off the axes, so that it does not run
 #: along the faces or through the shared edges of a mesh built on them.
-PARITY_RAY = np.array([0.0137, 0.0231, 1.0]) / math.sqrt(0.0137 ** 2 + 0.0231 ** 2 + 1.0)
+INSIDE_RAY = np.array([0.0137, 0.0231, 1.0]) / math.sqrt(0.0137 ** 2 + 0.0231 ** 2 + 1.0)
 #: How far offset_points' samples lie off their triangle's edges, as a fraction of the
 #: way to its centroid: a point's normal is then its own face's, and the ray inwards
 #: along it that finds thin parts starts inside the body even at an edge sharper than
@@ -226,9 +226,9 @@ def _ray_hit(px, py, pz, dx, dy, dz, t, graze):
 def _ray_kernel(points, dirs, tris, origin, cell, dims, start, items, length, out_t):
     """Distance along dirs (unit) from points to the nearest triangle hit beyond
     1e-9 length, within ``length``; inf where none (_ray_hit). A triangle the ray runs
-    along (GRAZE) is not hit: a ray from a point on an edge, inwards along one face's normal,
-    runs in the plane of the other face where the edge is square, and rounding would
-    otherwise hit that face at any distance, 0 included."""
+    along (GRAZE) is not hit: a ray from a point on an edge, inwards along one face's
+    normal, runs in the plane of the other face where the edge is square, and rounding
+    would otherwise hit that face at any distance, 0 included."""
     n = points.shape[0]
     for p in numba.prange(n):
         px, py, pz = points[p, 0], points[p, 1], points[p, 2]
@@ -429,7 +429,7 @@ class MeshQueries:
 
     def inside(self, points):
         """(N,) bool: inside the mesh, by its winding number's nonzero rule: counted
-        along a ray (PARITY_RAY) on a closed mesh, the generalized winding number
+        along a ray (INSIDE_RAY) on a closed mesh, the generalized winding number
         (mesh.winding, every triangle) on one with holes. Points within rounding of the
         surface may go either way."""
         pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
@@ -439,7 +439,7 @@ class MeshQueries:
             return np.abs(winding_numbers(pts, self.tris)) > 0.5
         out = np.zeros(len(pts), dtype=np.int64)
         g = self.grid
-        _crossing_kernel(pts, PARITY_RAY, self.tris, g.origin, g.cell, g.dims, g.start,
+        _crossing_kernel(pts, INSIDE_RAY, self.tris, g.origin, g.cell, g.dims, g.start,
                          g.items, out)
         return out != 0
 
