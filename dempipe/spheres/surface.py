@@ -596,7 +596,8 @@ def surface_centers(mesh, diameter, spacing=DEFAULT_SPACING, inside=None,
     """The surface-following centres of a repaired ``mesh`` (outward normals) for
     spheres of ``diameter`` d [m], shell spacing ``spacing`` d.
 
-    inside(points) -> bool mask: the inside test (spheres.inside_mask by default);
+    inside(points) -> bool mask: the inside test for thin parts' medial centres (the
+    shell's are inside by MeshQueries.inside);
     lattice: (M, 3) lattice cell centres inside the mesh (for the interior fill), or
     None to skip the interior.
     """
@@ -624,7 +625,7 @@ def surface_centers(mesh, diameter, spacing=DEFAULT_SPACING, inside=None,
         keep = _poisson_thin(both, h)
         medial_c = medial_c[keep[len(shell_c):]]
     if inside is not None:
-        shell_c = shell_c[inside(shell_c)] if len(shell_c) else shell_c
+        # (the shell's centres are inside already: offset_points keeps only those)
         medial_c = medial_c[inside(medial_c)] if len(medial_c) else medial_c
     interior = np.zeros((0, 3))
     if lattice is not None and len(lattice):
