@@ -75,6 +75,9 @@ def _list_shapes() -> None:
               default=None, help="Sphere-set mode: lattice (solid voxelization), surface "
                                  "(centres on the surface's inward offset, round bodies roll) "
                                  "or both, one line each. Default: the library's default mode.")
+@click.option("--spacing", type=click.FloatRange(0.05, 1.0), default=None,
+              help="Surface mode: the shell's spacing as a fraction of the diameter (the "
+                   "scene key surface_spacing). Default: the library's, 0.3.")
 @click.option("--fracture", type=click.IntRange(2, None), default=None, metavar="N",
               help="Cut each input into N Voronoi pieces and show them: per piece its "
                    "volume, sphere count and whether it is watertight (-o: the pieces "
@@ -84,7 +87,7 @@ def _list_shapes() -> None:
 @click.option("--errors/--no-errors", default=True, show_default=True,
               help="Measure the Hausdorff distance and bump height of the spheres' envelope.")
 def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_cache, list_shapes,
-            modes, fracture, seed, errors):
+            modes, spacing, fracture, seed, errors):
     """Approximate meshes or built-in shapes by spheres of one diameter.
 
     MESH_OR_SHAPE is a mesh file (OBJ, STL, PLY, OFF, GLB/GLTF) or the name of a
@@ -126,7 +129,7 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
                                    "(e.g. -o {name}_{mode}.npz)")
 
     from dempipe.spheres.cache import SphereCache
-    from dempipe.spheres.options import DEFAULT_MODE, BuildOptions
+    from dempipe.spheres.options import DEFAULT_MODE, DEFAULT_SPACING, BuildOptions
     from dempipe.spheres.sphere_set import (
         build_sphere_set_with_info, diameter_for_resolution, mesh_for_errors, surface_mask)
     from dempipe.usd.sphere_set import save_sphere_set
@@ -155,11 +158,14 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
             continue
         for mode in mode_list:
             sphere_set, info = build_sphere_set_with_info(mesh, d, name=name, cache=cache,
-                                                          options=BuildOptions(mode=mode))
+                                                          options=BuildOptions(
+                                                              mode=mode, spacing=spacing
+                                                              or DEFAULT_SPACING))
             row = {
                 "name": name,
                 "input": arg,
                 "mode": mode,
+                "spacing": (spacing or DEFAULT_SPACING) if mode == "surface" else None,
                 "count": sphere_set.count,
                 "surface_count": int(surface_mask(sphere_set.centers, sphere_set.diameter, 1).sum()),
                 "diameter": sphere_set.diameter,

@@ -26,7 +26,7 @@ from dempipe.sim import laws
 from dempipe.sim.builder import ModelBuilder
 from dempipe.sim.model import Model, quat_to_matrix
 from dempipe.spheres.fidelity import auto_mode
-from dempipe.spheres.options import DEFAULT_MODE, BuildOptions
+from dempipe.spheres.options import DEFAULT_MODE, DEFAULT_SPACING, BuildOptions
 from dempipe.spheres.pieces import build_pieces
 from dempipe.spheres.sphere_set import (
     build_sphere_set_with_info,
@@ -112,7 +112,9 @@ def sphere_options(scene, shape: str | None = None, overrides: Overrides | None 
     """The sphere builder's options for a shape of the scene (None: a mesh collider):
     the override's mode, else the shape's ``spheres``, else the scene's, else
     spheres.DEFAULT_MODE. "auto" becomes ``mesh``'s own (fidelity.auto_mode), and
-    the lattice for a fractured shape, whose pieces share one."""
+    the lattice for a fractured shape, whose pieces share one. The surface spacing
+    likewise: the shape's ``surface_spacing``, else the scene's, else
+    spheres.DEFAULT_SPACING (a lattice ignores it)."""
     mode = overrides.spheres if overrides is not None else None
     if mode is None and shape is not None:
         mode = scene.shapes[shape].spheres
@@ -121,7 +123,10 @@ def sphere_options(scene, shape: str | None = None, overrides: Overrides | None 
     if mode == "auto":
         fractured = shape is not None and scene.shapes[shape].fracture is not None
         mode = "lattice" if fractured else auto_mode(mesh.vertices, mesh.faces)
-    return BuildOptions(mode=mode)
+    spacing = scene.shapes[shape].surface_spacing if shape is not None else None
+    if spacing is None:
+        spacing = getattr(scene.simulation, "surface_spacing", None) or DEFAULT_SPACING
+    return BuildOptions(mode=mode, spacing=spacing)
 
 
 def build_model(scene, *, cache=None, overrides: Overrides | None = None,

@@ -110,6 +110,10 @@ class SimulationSettings:
     """Sphere-set mode of every shape that names none: "lattice", "surface" or "auto"
     (each shape's own: spheres.fidelity.auto_mode; docs/spheres.md); None: the
     library's default (spheres.DEFAULT_MODE)."""
+    surface_spacing: float | None = None
+    """Spacing of a surface set's shell spheres as a fraction of the diameter [1], in
+    [0.05, 1], for every shape that names none; None: spheres.DEFAULT_SPACING. Wider
+    is cheaper and bumpier between bodies (docs/spheres.md, "Spacing")."""
     contact_law: str = laws.DEFAULT
     """Contact force law (laws.LAWS): "linear" (the paper's spring-dashpot) or "hertz"
     (Hertz-Mindlin with Tsuji's damping); docs/physics.md."""
@@ -182,6 +186,9 @@ class ShapeSpec:
     computed from the mesh (UsdPhysics MassAPI); None: the mesh's."""
     spheres: str | None = None
     """This shape's sphere-set mode, "lattice", "surface" or "auto"; None: the scene's."""
+    surface_spacing: float | None = None
+    """This shape's surface-set spacing as a fraction of the diameter [1]; None: the
+    scene's."""
     fracture: Any = None
     """A ``dempipe.mesh.fracture.FractureSpec``: every body of this shape is its
     pieces, placed with the body's pose; None: whole."""

@@ -13,14 +13,20 @@ from dempipe.scene.data import (
 )
 from dempipe.scene.keys import SceneKeys
 from dempipe.sim.laws import LAWS
-from dempipe.spheres.options import SCENE_MODES
+from dempipe.spheres.options import SCENE_MODES, SPACING_RANGE
 
 #: The keys of [output] and of [simulation] (and its [simulation.sleep]).
 _OUTPUT_KEYS = ("fps", "duration", "up_axis", "meters_per_unit", "start_frame")
 _SIM_KEYS = ("sphere_diameter", "resolution", "gravity", "dt", "device", "seed",
              "stiffness_target_overlap", "dt_safety", "sleeping", "sleep", "contact_layers",
-             "spheres", "contact_law")
+             "spheres", "surface_spacing", "contact_law")
 _SLEEP_KEYS = ("linear_speed", "angular_speed", "time")
+
+
+def surface_spacing(ctx: SceneKeys, v: Any, key: str) -> float:
+    """A surface set's spacing, a fraction of the sphere diameter in [SPACING_RANGE]."""
+    lo, hi = SPACING_RANGE
+    return ctx.number(v, key, lo=lo, hi=hi, unit="a fraction of the sphere diameter")
 
 
 #: |output.start_frame| at most (a billion frames: 1.3 years at 24 fps).
@@ -106,6 +112,9 @@ def parse_simulation(ctx: SceneKeys, d: Any, up_axis: str) -> SimulationSettings
             kw["contact_layers"] = n
     if "spheres" in d:
         kw["spheres"] = ctx.string(d["spheres"], "simulation.spheres", SCENE_MODES)
+    if "surface_spacing" in d:
+        kw["surface_spacing"] = surface_spacing(ctx, d["surface_spacing"],
+                                                "simulation.surface_spacing")
     if "contact_law" in d:
         kw["contact_law"] = ctx.string(d["contact_law"], "simulation.contact_law", tuple(LAWS))
     if "sleep" in d:

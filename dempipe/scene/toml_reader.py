@@ -26,7 +26,7 @@ from dempipe.scene.data import (
     ShapeSpec,
 )
 from dempipe.scene.keys import SceneKeys, describe_value, known_names, suggestion
-from dempipe.scene.settings import parse_output, parse_simulation
+from dempipe.scene.settings import parse_output, parse_simulation, surface_spacing
 from dempipe.sim.motion import Key, Motion
 from dempipe.spheres.options import SCENE_MODES
 
@@ -188,6 +188,10 @@ def _parse_shapes(ctx: SceneKeys, d: Any, registry) -> dict[str, ShapeSpec]:
         if "spheres" in s:
             mode = ctx.string(s["spheres"], f"{key}.spheres", SCENE_MODES)
             s = {k: v for k, v in s.items() if k != "spheres"}
+        spacing = None
+        if "surface_spacing" in s:
+            spacing = surface_spacing(ctx, s["surface_spacing"], f"{key}.surface_spacing")
+            s = {k: v for k, v in s.items() if k != "surface_spacing"}
         fracture = None
         if "fracture" in s:
             if mode == "surface":
@@ -210,7 +214,8 @@ def _parse_shapes(ctx: SceneKeys, d: Any, registry) -> dict[str, ShapeSpec]:
                 scale = ctx.number(s["scale"], f"{key}.scale", lo=0.0, lo_open=True)
             path = ctx.mesh_file(s["mesh"], f"{key}.mesh")
             out[name] = ShapeSpec(name=name, builtin=None, params={}, mesh_path=path, scale=scale,
-                                  spheres=mode, fracture=fracture)
+                                  spheres=mode, surface_spacing=spacing,
+                                  fracture=fracture)
         else:
             builtin = ctx.string(s["builtin"], f"{key}.builtin")
             params = {k: v for k, v in s.items() if k != "builtin"}
@@ -220,7 +225,8 @@ def _parse_shapes(ctx: SceneKeys, d: Any, registry) -> dict[str, ShapeSpec]:
                                 "set the built-in shape's size parameters instead")
             params = _check_builtin(ctx, key, builtin, params, registry)
             out[name] = ShapeSpec(name=name, builtin=builtin, params=params, mesh_path=None,
-                                  scale=1.0, spheres=mode, fracture=fracture)
+                                  scale=1.0, spheres=mode, surface_spacing=spacing,
+                                  fracture=fracture)
     return out
 
 

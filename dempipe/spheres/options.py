@@ -20,6 +20,9 @@ SURFACE_BUILDER = 5
 #: the envelope of a flat face or a round one dips at most ~0.03 d between neighbours.
 #: Here rather than in spheres.surface, so that `dempipe check` does not import numba.
 DEFAULT_SPACING = 0.3
+#: The spacings a surface set may have, as fractions of d: below 0.05 a set grows past
+#: hundreds of spheres per d² of surface; above 1 its envelope has gaps.
+SPACING_RANGE = (0.05, 1.0)
 #: The sphere-set modes: "lattice" (solid voxelization, Harada et al.) and "surface"
 #: (centres on the inward offset of the surface, so round bodies roll).
 MODES = ("lattice", "surface")
@@ -54,9 +57,10 @@ class BuildOptions:
         if self.mode not in MODES:
             raise ShapeError(f"sphere mode must be one of {', '.join(MODES)}, got {self.mode!r}")
         h = self.spacing
-        if isinstance(h, bool) or not isinstance(h, (int, float)) or not 0.05 <= float(h) <= 1.0:
+        lo, hi = SPACING_RANGE
+        if isinstance(h, bool) or not isinstance(h, (int, float)) or not lo <= float(h) <= hi:
             raise ShapeError(f"surface spacing must be a fraction of the diameter in "
-                             f"[0.05, 1], got {h!r}")
+                             f"[{lo:g}, {hi:g}], got {h!r}")
 
     def key_text(self) -> str:
         items = asdict(self)

@@ -95,6 +95,14 @@ def test_cli_shows_both_modes_with_their_errors(tmp_path, monkeypatch):
     assert "(surface)" in text[1] and "cache hit" in text[1]
     bad = CliRunner().invoke(app, args + ["-o", str(tmp_path / "x.npz")])
     assert bad.exit_code != 0 and "{mode}" in bad.output
+    # --spacing: a wider shell, fewer spheres and a higher bump; the lattice ignores it
+    wide = CliRunner().invoke(app, args + ["--spacing", "0.5", "--json"], catch_exceptions=False)
+    rows_w = {r["mode"]: r for r in json.loads(wide.stdout)}
+    assert rows_w["surface"]["spacing"] == 0.5 and sur["spacing"] == DEFAULT_SPACING
+    assert rows_w["surface"]["count"] < sur["count"] and rows_w["surface"]["bump"] > sur["bump"]
+    assert rows_w["lattice"]["count"] == lat["count"] and rows_w["lattice"]["spacing"] is None
+    bad = CliRunner().invoke(app, args + ["--spacing", "2"])
+    assert bad.exit_code == 2 and "--spacing" in bad.output
 
 
 # ------------------------------------------------------------------ surface sets
@@ -372,6 +380,35 @@ def test_scene_key_per_scene_and_per_shape(tmp_path):
     assert "surface" in notes["brick"] and "surface" not in notes["ball"]
 
 
+def test_surface_spacing_per_scene_and_per_shape(tmp_path):
+    # the scene's surface_spacing reaches every surface set, a shape's own wins; the
+    # sets are those the library builds with that spacing (wider: fewer spheres,
+    # every centre at least the spacing from the next), and a lattice ignores it
+    sc = parse_scene(SCENE.format(sim='spheres = "surface"\nsurface_spacing = 0.5',
+                                  shape="surface_spacing = 0.35"), tmp_path / "s.toml")
+    assert sphere_options(sc, "ball").spacing == 0.35
+    assert sphere_options(sc, "brick").spacing == 0.5
+    cache = SphereCache(tmp_path / "cache")
+    model = build_model(sc, cache=cache)
+    sets = {s.name: s.sphere_set for s in model.shapes}
+    for name, spacing in (("ball", 0.35), ("brick", 0.5)):
+        mesh = build_shape("sphere" if name == "ball" else "box")
+        want = build_sphere_set(mesh, 0.004, cache=cache,
+                                options=BuildOptions(mode="surface", spacing=spacing))
+        np.testing.assert_array_equal(sets[name].centers, want.centers)
+        default = build_sphere_set(mesh, 0.004, cache=cache,
+                                   options=BuildOptions(mode="surface"))
+        assert len(want.centers) < 0.8 * len(default.centers)
+    # (the interior's lattice cells are d apart and deeper than d: r from the shell)
+    c = sets["brick"].centers
+    gaps = np.linalg.norm(c[:, None] - c[None], axis=2) + np.eye(len(c))
+    assert gaps.min() >= 0.5 * 0.004 * (1 - 1e-9)
+    sc = parse_scene(SCENE.format(sim="surface_spacing = 0.5", shape=""), tmp_path / "s.toml")
+    lattice = {s.name: s.sphere_set for s in build_model(sc, cache=cache).shapes}["brick"]
+    plain = build_sphere_set(build_shape("box"), 0.004, cache=cache)
+    np.testing.assert_array_equal(lattice.centers, plain.centers)
+
+
 def test_auto_gives_round_shapes_surface_sets_and_boxes_lattices(tmp_path):
     # spheres = "auto": the ball (99 % of its area off the lattice's axes) gets a
     # surface set and rolls, the brick (0 %) keeps its lattice; a shape's own key wins.
@@ -398,13 +435,16 @@ def test_auto_keeps_the_lattice_of_a_fractured_shape(tmp_path):
     ('spheres = "round"', "", "simulation.spheres"),
     ("spheres = 1", "", "simulation.spheres"),
     ("", 'spheres = "voxels"', "shapes.ball.spheres"),
+    ("surface_spacing = 0.01", "", "simulation.surface_spacing"),
+    ("", "surface_spacing = 2", "shapes.ball.surface_spacing"),
+    ('surface_spacing = "wide"', "", "simulation.surface_spacing"),
 ])
 def test_scene_key_errors(tmp_path, sim, shape, where):
     with pytest.raises(SceneError) as exc:
         parse_scene(SCENE.format(sim=sim, shape=shape), tmp_path / "s.toml")
     msg = str(exc.value)
     assert where in msg and "s.toml" in msg
-    assert "surface" in msg or "lattice" in msg
+    assert "surface" in msg or "lattice" in msg or "fraction of the sphere diameter" in msg
 
 
 # ------------------------------------------------------------------ report sweep
