@@ -11,7 +11,8 @@ the final largest speed and mean height (the two piles should settle alike); the
 the median ratio of wall times A/B (above 1: B bakes faster). A whole bake, not
 ab_trees.py's few steps: the quickstart's first steps are free fall and cost
 nearly nothing, and a change of dt auto shows only per bake (docs/performance.md).
-``--spheres surface`` bakes the same scene with surface sphere sets; ``--scene
+``--spheres surface`` bakes the same scene with surface sphere sets (``--spacing``: at
+that surface_spacing); ``--scene
 examples/column_drop.toml`` another scene of the repository, the same way (its path
 taken in each tree).
 """
@@ -24,7 +25,8 @@ import sys
 import time
 
 
-def child(root: str, spheres: str | None, name: str = "examples/quickstart.toml") -> None:
+def child(root: str, spheres: str | None, name: str = "examples/quickstart.toml",
+          spacing: float | None = None) -> None:
     sys.path[:0] = [root]
     import tempfile
     from pathlib import Path
@@ -36,9 +38,10 @@ def child(root: str, spheres: str | None, name: str = "examples/quickstart.toml"
     from dempipe.sim.simulator import Simulator
 
     scene = Path(root) / name
-    if spheres:
-        text = scene.read_text().replace("[simulation]\n",
-                                         f'[simulation]\nspheres = "{spheres}"\n', 1)
+    if spheres or spacing:
+        keys = (f'spheres = "{spheres}"\n' if spheres else "") + (
+            f"surface_spacing = {spacing}\n" if spacing else "")
+        text = scene.read_text().replace("[simulation]\n", f"[simulation]\n{keys}", 1)
         scene = Path(tempfile.mkdtemp()) / Path(name).name
         scene.write_text(text)
     model = build_model(load_scene(scene))
@@ -65,18 +68,21 @@ def main() -> None:
     ap.add_argument("--pairs", type=int, default=2)
     ap.add_argument("--spheres", choices=("lattice", "surface"),
                     help="the scene's sphere sets (default: as the scene says)")
+    ap.add_argument("--spacing", type=float, default=None,
+                    help="the scene's surface_spacing (surface sets' shell spacing, in d)")
     ap.add_argument("--scene", default="examples/quickstart.toml",
                     help="a scene file, relative to each tree (default: the quickstart)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        return child(args.a, args.spheres, args.scene)
+        return child(args.a, args.spheres, args.scene, args.spacing)
     ratios = []
     for k in range(args.pairs):
         walls = {}
         for root in ((args.a, args.b) if k % 2 == 0 else (args.b, args.a)):
             r = subprocess.run([sys.executable, __file__, root, "--child", "--scene", args.scene]
-                               + (["--spheres", args.spheres] if args.spheres else []),
+                               + (["--spheres", args.spheres] if args.spheres else [])
+                               + (["--spacing", str(args.spacing)] if args.spacing else []),
                                check=True, capture_output=True, text=True)
             res = json.loads(r.stdout.strip().splitlines()[-1])
             walls[root] = res["wall"]

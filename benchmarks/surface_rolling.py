@@ -13,7 +13,9 @@ its acceleration fitted to x(t) from 0.03 to 0.5 s (by when it rolls at about
 for the cylinder), the spheres of the set and of the lattice of the same diameter,
 and the largest rise of the body's centre above where it started (resting on the
 plane): a rise larger than the envelope's bumps means the body left the plane.
-The first row of each shape is the lattice (spacing "-"). Accuracy only: no timing.
+The first row of each shape is the lattice (spacing "-"). ``--floor body`` rolls it on a
+static slab of spheres built in the same mode and spacing instead of the plane: its
+spheres against the slab's, as bodies roll on each other. Accuracy only: no timing.
 """
 
 from __future__ import annotations
@@ -32,6 +34,9 @@ def main() -> None:
     parser.add_argument("--resolutions", type=int, nargs="+", default=[8, 16])
     parser.add_argument("--spacings", type=float, nargs="+", default=[0.2, 0.3, 0.5])
     parser.add_argument("--restitutions", type=float, nargs="+", default=[0.5, 0.9])
+    parser.add_argument("--floor", choices=["plane", "body"], default="plane",
+                        help="roll on a wall (plane) or on a static slab of spheres of the "
+                             "same mode and spacing (body)")
     parser.add_argument("--threads", type=int, default=None)
     args = parser.parse_args()
     if args.threads:
@@ -57,7 +62,7 @@ def main() -> None:
                     material = Material("wood", density=700, restitution=e, friction=0.9,
                                         rolling_friction=0.0)
                     run = acc.incline_run(material, res, mode, acc.DtRule(), shape=shape,
-                                          spacing=spacing)
+                                          spacing=spacing, floor=args.floor)
                     z = run.frames.x[:, 0, 2][run.frames.times >= acc.INCLINE_FIT_FROM]
                     if mode == "lattice":
                         lattice = run.spheres

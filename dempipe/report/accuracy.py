@@ -376,8 +376,14 @@ def incline_rolling_error(material, resolution: int, mode: str, rule: DtRule,
     return abs(run.accel / run.closed - 1.0)
 
 
+#: The slab a body rolls on with ``floor="body"`` (incline_run): long, wide and thick
+#: enough [m] for the INCLINE_SECONDS of rolling from x = 0 (0.3 m at 5/7 g sin θ).
+INCLINE_SLAB = (0.5, 0.16, 0.04)
+
+
 def incline_run(material, resolution: int, mode: str, rule: DtRule, cache=None,
-                shape: str = "ball", spacing: float | None = None) -> types.SimpleNamespace:
+                shape: str = "ball", spacing: float | None = None,
+                floor: str = "plane") -> types.SimpleNamespace:
     """The incline case of :func:`incline_rolling_error`, run: a namespace of ``accel``
     (fitted from INCLINE_FIT_FROM to INCLINE_SECONDS) and ``closed`` [m/s²], ``frames``,
     ``spheres`` (the set's count) and ``rest_z`` (the centre's height at release [m]).
@@ -388,6 +394,11 @@ def incline_run(material, resolution: int, mode: str, rule: DtRule, cache=None,
     (μ ≥ (κ tan θ + μ_r) / (1 + κ)), else sliding, g (sin θ − μ cos θ). The material's
     density, restitution and friction with automatic stiffness for the body's mass (a
     scene's own stiffness is for its bodies), dt by ``rule``.
+
+    ``floor``: "plane", a wall (what the body's inscribed balls and rings meet), or
+    "body", a static box of INCLINE_SLAB whose top face is the plane z = 0, made of
+    spheres in the same mode and spacing: spheres against spheres, as a body rolls on
+    another.
     """
     from dataclasses import replace
 
@@ -413,8 +424,21 @@ def incline_run(material, resolution: int, mode: str, rule: DtRule, cache=None,
     # plane through the mesh's inscribed tori: spheres/inscribed.py)
     low = max(float(-np.asarray(ss.centers)[:, 2].min()) + 0.5 * d,
               float(ss.com[2] - np.asarray(mesh.vertices)[:, 2].min()))
-    b.add_bodies(shape, s, m, [[0.0, 0.0, low + 1e-3 * d]])
-    b.add_plane([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], m)
+    top = 0.0
+    if floor == "body":
+        slab = trimesh.creation.box(extents=INCLINE_SLAB)
+        slab.apply_translation([0.5 * INCLINE_SLAB[0] - 0.1, 0.0, -0.5 * INCLINE_SLAB[2]])
+        slab_set = build_sphere_set(slab, d, name="incline-slab", cache=cache,
+                                    options=options)
+        # the slab's spheres reach up to r over its top face (a lattice's rows may end
+        # short of it): the body is released onto them
+        top = float((np.asarray(slab_set.centers) + slab_set.com)[:, 2].max()) + 0.5 * d
+        b.add_static_mesh("slab", slab, slab_set, m)
+    elif floor == "plane":
+        b.add_plane([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], m)
+    else:
+        raise ValueError(f"floor must be 'plane' or 'body', got {floor!r}")
+    b.add_bodies(shape, s, m, [[0.0, 0.0, top + low + 1e-3 * d]])
     fps = 400.0
     model = b.finalize(fps=fps, n_frames=int(INCLINE_SECONDS * fps) + 1, sleep=None,
                        **rule.finalize_args(fps))
@@ -429,7 +453,7 @@ def incline_run(material, resolution: int, mode: str, rule: DtRule, cache=None,
     else:
         closed = g * (math.sin(theta) - mu * math.cos(theta))
     return types.SimpleNamespace(accel=a, closed=closed, frames=fr, spheres=len(ss.centers),
-                                 rest_z=low)
+                                 rest_z=top + low)
 
 
 def spin_drift(shape, dt: float, seconds: float = 0.2) -> tuple[float, float]:
