@@ -11,6 +11,7 @@ import click
 from dempipe_cli.params import Number
 
 from dempipe.errors import ShapeError
+from dempipe.spheres.options import DEFAULT_SPACING, SPACING_RANGE
 
 
 def _resolve_input(arg: str, scale: float):
@@ -75,9 +76,10 @@ def _list_shapes() -> None:
               default=None, help="Sphere-set mode: lattice (solid voxelization), surface "
                                  "(centres on the surface's inward offset, round bodies roll) "
                                  "or both, one line each. Default: the library's default mode.")
-@click.option("--spacing", type=click.FloatRange(0.05, 1.0), default=None,
+@click.option("--spacing", type=click.FloatRange(*SPACING_RANGE), default=DEFAULT_SPACING,
+              show_default=True,
               help="Surface mode: the shell's spacing as a fraction of the diameter (the "
-                   "scene key surface_spacing). Default: the library's, 0.3.")
+                   "scene key surface_spacing).")
 @click.option("--fracture", type=click.IntRange(2, None), default=None, metavar="N",
               help="Cut each input into N Voronoi pieces and show them: per piece its "
                    "volume, sphere count and whether it is watertight (-o: the pieces "
@@ -129,7 +131,7 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
                                    "(e.g. -o {name}_{mode}.npz)")
 
     from dempipe.spheres.cache import SphereCache
-    from dempipe.spheres.options import DEFAULT_MODE, DEFAULT_SPACING, BuildOptions
+    from dempipe.spheres.options import DEFAULT_MODE, BuildOptions
     from dempipe.spheres.sphere_set import (
         build_sphere_set_with_info, diameter_for_resolution, mesh_for_errors, surface_mask)
     from dempipe.usd.sphere_set import save_sphere_set
@@ -159,13 +161,12 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
         for mode in mode_list:
             sphere_set, info = build_sphere_set_with_info(mesh, d, name=name, cache=cache,
                                                           options=BuildOptions(
-                                                              mode=mode, spacing=spacing
-                                                              or DEFAULT_SPACING))
+                                                              mode=mode, spacing=spacing))
             row = {
                 "name": name,
                 "input": arg,
                 "mode": mode,
-                "spacing": (spacing or DEFAULT_SPACING) if mode == "surface" else None,
+                "spacing": spacing if mode == "surface" else None,
                 "count": sphere_set.count,
                 "surface_count": int(surface_mask(sphere_set.centers, sphere_set.diameter, 1).sum()),
                 "diameter": sphere_set.diameter,

@@ -20,8 +20,9 @@ SURFACE_BUILDER = 5
 #: the envelope of a flat face or a round one dips at most ~0.03 d between neighbours.
 #: Here rather than in spheres.surface, so that `dempipe check` does not import numba.
 DEFAULT_SPACING = 0.3
-#: The spacings a surface set may have, as fractions of d: below 0.05 a set grows past
-#: hundreds of spheres per d² of surface; above 1 its envelope has gaps.
+#: The spacings a surface set may have, as fractions of d (BuildOptions, the scene key
+#: surface_spacing, `dempipe spheres --spacing`): below 0.05 a set has hundreds of
+#: spheres per d² of surface; 1 is the lattice's pitch.
 SPACING_RANGE = (0.05, 1.0)
 #: The sphere-set modes: "lattice" (solid voxelization, Harada et al.) and "surface"
 #: (centres on the inward offset of the surface, so round bodies roll).
