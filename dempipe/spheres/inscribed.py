@@ -243,6 +243,11 @@ OWN_SLACK = 0.02
 #: of contact passes it (tangent, each pass's dashpot took 4 % a second of a rolling
 #: frustum's speed); where no torus or rim is, the body rests this much deeper.
 OWN_INSET = 0.05
+#: The spacing [d] of the shell lattice_tori fits a lattice's tori to: dense enough that
+#: a fit of FIT_NEIGHBOURS spans a smooth patch of a piece 6 spheres across. Its own
+#: constant, not the surface mode's default: a lattice's cache key ignores the surface
+#: options, so what it holds must not follow them.
+LATTICE_FIT_SPACING = 0.3
 
 
 def lattice_tori(centers, diameter: float, vertices, faces) -> np.ndarray:
@@ -306,11 +311,10 @@ def _round_rows(c, d, mesh, out) -> np.ndarray:
     from scipy.spatial import cKDTree
 
     from dempipe.mesh.winding import inside_mask
-    from dempipe.spheres.surface import DEFAULT_SPACING, METRIC_SPACING, grid_samples, \
-        surface_centers
+    from dempipe.spheres.surface import METRIC_SPACING, grid_samples, surface_centers
 
     r = 0.5 * d
-    sc = surface_centers(mesh, d, DEFAULT_SPACING)
+    sc = surface_centers(mesh, d, LATTICE_FIT_SPACING)
     shell = sc.centers[:sc.shell]
     t = inscribed_tori(shell, d, mesh.vertices, mesh.faces, curved_only=True)
     grown = np.any(t[:, 0:3] != 0.0, axis=1)
