@@ -53,3 +53,27 @@ def copy_matching(backend, arrays: dict) -> None:
         target = getattr(backend, name, None)
         if isinstance(target, np.ndarray) and target.shape == a.shape:
             target[...] = a
+
+
+def nothing_moves(model, sleeping: bool, drive, body_rest, step: int) -> bool:
+    """Whether steps from a State at step ``step`` with rest counts ``body_rest`` change
+    nothing, so that a backend may skip them outright (counted in steps_skipped).
+
+    They do when sleeping is on (``sleeping``, the kernels' flag, and
+    model.sleep_steps > 0), every dynamic body that has started (drive.body_start) is
+    asleep, every kinematic one holds still (rest count ≥ 0), nothing is prescribed
+    (drive.motion_now empty: no carried body, no moving wall) and no glue bond could
+    load. A sleeper moves only when something moving touches it, and nothing is left
+    to: the kernels would step once, find no body awake, and skip the rest, with the
+    same State bit for bit; skipped here, the step's rebuild of every sphere's list (the
+    CPU) or its launches (CUDA) are saved too. The caller splits its steps at the
+    emitters' start steps first (control.split_at): a body that starts is awake."""
+    sleep_steps = int(model.sleep_steps)
+    if (not sleeping or sleep_steps <= 0 or model.n_bonds > 0 or body_rest is None
+            or drive.motion_now.shape[0] > 0):
+        return False
+    n = int(model.n_bodies)
+    rest = np.asarray(body_rest)[:n]
+    kinematic = np.asarray(model.body_inv_mass)[:n] == 0.0
+    still = np.where(kinematic, rest >= 0, rest >= sleep_steps)
+    return bool(np.all(still | (np.asarray(drive.body_start)[:n] > step)))

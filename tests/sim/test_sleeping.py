@@ -137,11 +137,74 @@ def test_skipping_what_sleeps_changes_nothing(ball_height, slab):
     assert fast.span_ctl[0] > 0
     b = model.initial_state()
     be = Simulator(model).backend
+    be.skip_idle = False        # (each call steps, also once all sleep: below)
     for _ in range(n):
         be.step(b, 1)
     assert a.asleep(model.sleep_steps)[: model.n_bodies].all()
     assert a.step == b.step == n
     assert_same_state(a, b)
+
+
+@pytest.mark.parametrize("starts_asleep", [False, True])
+def test_a_call_with_everything_asleep_is_skipped_and_changes_nothing(starts_asleep):
+    # A call that begins with every body asleep and nothing moving changes nothing
+    # (sim.backend.nothing_moves): the backend skips it outright, counted as skipped,
+    # where run_steps would rebuild every sphere's list for one step first. Frame by
+    # frame against the kernels finding it (skip_idle off): the same State bit for bit,
+    # rest counts and contact histories included; and every step of the frames after
+    # the pile sleeps is skipped. Starting asleep, the pile never steps at all.
+    model = pile(sleep=(None, None, 0.2), n_frames=25)
+    skip, find = Simulator(model).backend, Simulator(model).backend
+    find.skip_idle = False
+    a, b = model.initial_state(), model.initial_state()
+    if starts_asleep:
+        for st in (a, b):
+            st.ensure_rest(model.body_mass.shape[0])
+            st.body_rest[: model.n_bodies] = model.sleep_steps
+    from dempipe.sim.backend import nothing_moves
+    idle_frames = 0
+    for frame in range(24):
+        idle = nothing_moves(model, True, skip.drive, a.body_rest, int(a.step))
+        before = skip.steps_skipped
+        skip.step(a, model.steps_per_frame)
+        find.step(b, model.steps_per_frame)
+        assert_same_state(a, b, frame)
+        if idle:
+            idle_frames += 1
+            assert skip.steps_skipped - before == model.steps_per_frame
+    assert a.asleep(model.sleep_steps)[: model.n_bodies].all()
+    assert idle_frames >= (24 if starts_asleep else 4)
+    assert skip.steps_skipped > find.steps_skipped
+    assert a.step == b.step == 24 * model.steps_per_frame
+
+
+def test_nothing_moves_only_when_nothing_can():
+    # a body awake, a moving collider, glue, sleeping off or compiled out: never idle
+    from dempipe.sim.backend import nothing_moves
+    model = pile(sleep=(None, None, 0.2), n_frames=3)
+    be = Simulator(model).backend
+    st = model.initial_state()
+    st.ensure_rest(model.body_mass.shape[0])
+    st.body_rest[: model.n_bodies] = model.sleep_steps
+    assert nothing_moves(model, True, be.drive, st.body_rest, 0)
+    assert not nothing_moves(model, False, be.drive, st.body_rest, 0)
+    st.body_rest[3] = model.sleep_steps - 1
+    assert not nothing_moves(model, True, be.drive, st.body_rest, 0)
+    off = pile(sleep=None, n_frames=3)
+    assert not nothing_moves(off, True, be.drive, st.body_rest, 0)
+    # a kinematic platform that will lift the boxes asleep on it
+    b = ModelBuilder(D)
+    ss, mesh = box_set(2, 2, 2, D)
+    ps, pmesh = box_set(8, 8, 1, D)
+    m = b.add_material(Material("wood", density=700, restitution=0.3, friction=0.5))
+    lift = Motion(keys=(Key(0.0, (0.0, 0.0, 0.0)), Key(0.4, (0.0, 0.0, 0.0)),
+                        Key(0.6, (0.0, 0.0, 0.02))))
+    b.add_bodies("platform", b.add_shape("platform", pmesh, ps), m, [[0.0, 0.0, 0.0]],
+                 kinematic=True, motion=lift)
+    b.add_bodies("boxes", b.add_shape("box", mesh, ss), m, [[0.0, 0.0, 0.0151]])
+    lifted = b.finalize(fps=24, n_frames=3, sleep=(None, None, 0.1))
+    rest = np.full(lifted.body_mass.shape[0], lifted.sleep_steps, dtype=np.int32)
+    assert not nothing_moves(lifted, True, Simulator(lifted).backend.drive, rest, 0)
 
 
 def test_contact_passes_over_the_active_slots_change_nothing_frame_by_frame():

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from dempipe.sim.control import drive, split_at
-from dempipe.sim.backend import copy_matching
+from dempipe.sim.backend import copy_matching, nothing_moves
 from dempipe.sim.kernels.cpu.broadphase import (
     BROADPHASE_SPHERES, body_bounds, stage_near_others)
 from dempipe.sim.kernels.cpu.grid import (
@@ -81,6 +81,9 @@ class CpuBackend:
         body_bounds(model.sphere_offset, model.body_sphere_start, self.body_reach,
                     self.body_box)
         self.offset_t[:] = model.sphere_offset.T
+        #: Whether a call with every body asleep and nothing moving skips its steps
+        #: outright (backend.nothing_moves); False: the kernels find it (the same State).
+        self.skip_idle = True
         #: Share of quiet bodies from which the contact passes skip the quiet slots
         #: (stage_active); above 1, never (the same State: benchmarks/sleeping_pile.py).
         self.quiet_share = QUIET_SHARE
@@ -114,10 +117,18 @@ class CpuBackend:
         """Advance ``state`` in place by ``n_steps`` steps (and its step count and time).
         ``control`` (dempipe.sim.control.Control): the controlled bodies' poses, put into
         the State before the first step (whose rebuild places their spheres)."""
+        prescribed = control is not None and not control.empty
         if control is not None:
             control.apply(state)
         # an emitter's start step begins a call (whose first step rebuilds the lists)
         for n in split_at(int(state.step), int(n_steps), self._starts):
+            if self.skip_idle and not prescribed and nothing_moves(
+                    self.model, self.features.sleeping, self.drive, state.body_rest,
+                    int(state.step)):
+                state.step += n
+                state.time = state.step * self.model.dt
+                self.steps_skipped += n
+                continue
             self._advance(state, n)
 
     def _advance(self, state, n_steps: int) -> None:

@@ -43,7 +43,7 @@ from dempipe.sim.control import drive, split_at
 from dempipe.errors import DeviceError
 from dempipe.sim.laws.linear import DAMP_TERMS
 from dempipe.sim.state import CONTACT_SLOTS
-from dempipe.sim.backend import copy_matching
+from dempipe.sim.backend import copy_matching, nothing_moves
 from dempipe.sim.kernels.compile import compile_contacts, compile_formulas, compile_glue
 from dempipe.sim.kernels.pairing import PAIR_COLS, WALL_SLACK, inscribed_reach
 from dempipe.sim.kernels.patches import BODY_PATCHES
@@ -345,6 +345,9 @@ class CudaBackend:
         self.rebuilds = 0                # neighbour-list rebuilds done (all calls)
         self.redos = 0                   # relaunches after a list overflow
         self.steps_skipped = 0           # steps that were no-ops: every body asleep
+        #: Whether a call with every body asleep and nothing moving skips its steps
+        #: outright (backend.nothing_moves); False: the kernels find it (the same State).
+        self.skip_idle = True
 
     # -- state residency -------------------------------------------------------
     def upload(self, state) -> None:
@@ -667,12 +670,21 @@ class CudaBackend:
         the remaining steps launched again from there. Nothing is copied aside.
         """
         self._ensure_resident(state)
-        if control is not None and not control.empty:
+        prescribed = control is not None and not control.empty
+        if prescribed:
             control.apply(state)
             for name in ("body_x", "body_q"):
                 self.d[name].copy_to_device(np.ascontiguousarray(getattr(state, name)))
         # an emitter's start step begins a call (whose first step rebuilds the lists)
         for n in split_at(int(state.step), int(n_steps), self._starts):
+            # (the host's rest counts are the resident State's: download after each call)
+            if self.skip_idle and not prescribed and nothing_moves(
+                    self.model, self.features.sleeping, self.drive, state.body_rest,
+                    int(state.step)):
+                state.step += n
+                state.time = state.step * self.model.dt
+                self.steps_skipped += n
+                continue
             self._advance(state, n)
 
     def _advance(self, state, n_steps: int) -> None:
