@@ -111,8 +111,10 @@ def sphere_options(scene, shape: str | None = None, overrides: Overrides | None 
                    mesh=None):
     """The sphere builder's options for a shape of the scene (None: a mesh collider):
     the override's mode, else the shape's ``spheres``, else the scene's, else
-    spheres.DEFAULT_MODE. "auto" becomes ``mesh``'s own (fidelity.auto_mode), and
-    the lattice for a fractured shape, whose pieces share one. The surface spacing
+    spheres.DEFAULT_MODE. "auto" becomes ``mesh``'s own (fidelity.auto_mode). A
+    fractured shape's pieces share one lattice: it keeps the lattice whatever the scene
+    or an override asks (the shape's own "surface" is refused when the scene is read).
+    The surface spacing
     likewise: the shape's ``surface_spacing``, else the scene's, else
     spheres.DEFAULT_SPACING (a lattice ignores it)."""
     mode = overrides.spheres if overrides is not None else None
@@ -120,9 +122,10 @@ def sphere_options(scene, shape: str | None = None, overrides: Overrides | None 
         mode = scene.shapes[shape].spheres
     if mode is None:
         mode = getattr(scene.simulation, "spheres", None) or DEFAULT_MODE
-    if mode == "auto":
-        fractured = shape is not None and scene.shapes[shape].fracture is not None
-        mode = "lattice" if fractured else auto_mode(mesh.vertices, mesh.faces)
+    if shape is not None and scene.shapes[shape].fracture is not None:
+        mode = "lattice"
+    elif mode == "auto":
+        mode = auto_mode(mesh.vertices, mesh.faces)
     spacing = scene.shapes[shape].surface_spacing if shape is not None else None
     if spacing is None:
         spacing = getattr(scene.simulation, "surface_spacing", None) or DEFAULT_SPACING
@@ -176,9 +179,13 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
     pieces = {}     # fractured shape -> [(piece shape name, com, volume)]
     for n in names:
         if scene.shapes[n].fracture is not None:
-            fractured, info = build_pieces(meshes[n], d, scene.shapes[n].fracture, name=n,
-                                           cache=cache,
-                                           options=sphere_options(scene, n, o, meshes[n]))
+            try:
+                fractured, info = build_pieces(meshes[n], d, scene.shapes[n].fracture,
+                                               name=n, cache=cache,
+                                               options=sphere_options(scene, n, o, meshes[n]))
+            except ShapeError as e:         # (MeshError too) the key that asked for it
+                why = str(e).removeprefix(f"{n}: ")
+                raise SceneError(f"{src}: shapes.{n}.fracture: {why}") from None
             hits.append((n, info.cache, info.seconds,
                          sum(ps.count for ps in fractured.sphere_sets)))
             pieces[n] = []

@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
@@ -52,6 +53,23 @@ def test_bad_fracture_keys_are_one_line_naming_the_key(tmp_path, fracture, key):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and key in lines[0], r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_a_mesh_that_cannot_be_cut_is_one_line_naming_the_key(tmp_path):
+    # a box with its top face missing: manifold3d cannot cut it; the error names the
+    # scene's key that asked for the cut, as the keys above do, and how to fix it
+    import trimesh
+    box = trimesh.creation.box((0.1, 0.1, 0.1))
+    box.update_faces(np.abs(box.face_normals[:, 2] - 1.0) > 1e-9)
+    box.export(tmp_path / "open.obj")
+    scene = SCENE.replace('builtin = "cylinder"\ndiameter = 0.1\nheight = 0.3',
+                          'mesh = "open.obj"')
+    (tmp_path / "s.toml").write_text(scene.format(fracture="fracture = { pieces = 4 }"))
+    r = dempipe(tmp_path, "bake", "s.toml", "-o", "out.usdc")
+    assert r.returncode == 2, r.stderr
+    err = [ln for ln in r.stderr.strip().splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and "s.toml: shapes.column.fracture:" in err[0], r.stderr
+    assert "repair the mesh" in err[0] and "Traceback" not in r.stderr
 
 
 def test_spheres_fracture_prints_each_piece_and_writes_them(tmp_path):

@@ -423,12 +423,18 @@ def test_auto_gives_round_shapes_surface_sets_and_boxes_lattices(tmp_path):
     assert "surface" in {s.name: s.sphere_set.notes for s in build_model(sc).shapes}["ball"]
 
 
-def test_auto_keeps_the_lattice_of_a_fractured_shape(tmp_path):
-    # a fractured shape's pieces share one lattice: "auto" gives them that, where
-    # "surface" is refused (test_scene_key_errors)
-    text = SCENE.format(sim='spheres = "auto"', shape="fracture = { pieces = 3 }")
+@pytest.mark.parametrize("sim", ['spheres = "auto"', 'spheres = "surface"'])
+def test_a_fractured_shape_keeps_its_lattice(tmp_path, sim):
+    # a fractured shape's pieces share one lattice: the scene's "auto" or "surface"
+    # (or an override's, as `dempipe report --spheres` gives) leaves it that, where the
+    # shape's own "surface" is refused (tests/cli/test_cli_fracture.py); the shape
+    # beside it takes the scene's
+    text = SCENE.format(sim=sim, shape="fracture = { pieces = 3 }")
     sc = parse_scene(text, tmp_path / "s.toml")
     assert sphere_options(sc, "ball").mode == "lattice"
+    assert sphere_options(sc, "ball", Overrides(spheres="surface")).mode == "lattice"
+    if "surface" in sim:
+        assert sphere_options(sc, "brick").mode == "surface"
 
 
 @pytest.mark.parametrize("sim, shape, where", [
