@@ -248,6 +248,11 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
     fps = out.fps
     duration = out.duration if o.duration is None else o.duration
     n_frames = int(round(duration * fps)) + 1
+    if n_frames < 2:        # frame 0 alone: a file with nothing animated
+        key = "output.duration" if o.duration is None else "duration (the override)"
+        raise SceneError(f"{src}: {key}: {duration:g} s is less than half a frame at {fps} "
+                         f"fps, so the bake would write frame 0 alone (give at least "
+                         f"{1.0 / fps:.4g} s, one frame)")
     dt = o.dt if o.dt is not None else sim.dt
     target = sim.stiffness_target_overlap or 0.02
     law_name = o.contact_law or sim.contact_law

@@ -61,6 +61,7 @@ def cli(*args, cache, env_extra=None, timeout=600):
     (dict(resolution=1000000), "simulation.resolution"),
     (dict(fps=100000000), "output.fps"),
     (dict(duration=1e9), "output.duration"),
+    (dict(duration=0.01), "output.duration"),       # under half a frame: frame 0 alone
     (dict(vz=-1e300), "velocity"),
     (dict(g=-1e30), "simulation.gravity"),
     (dict(overlap=1e-9), "simulation.stiffness_target_overlap"),
