@@ -140,6 +140,8 @@ def bake(scene, output, device, layout, frames, threads, report_path, cache_dir,
     def warn(msg):
         click.echo(f"warning: {msg}", err=True)
 
+    if resolution is not None and sphere_diameter is not None:
+        raise click.UsageError("give --resolution or --sphere-diameter, not both")
     if report_path:
         from pathlib import Path
 

@@ -136,8 +136,9 @@ def main(argv=None):
         exc.show()
         sys.exit(exc.exit_code)
     except DempipeError as exc:
-        if debug:
-            raise
+        if debug:                   # the traceback, and the same exit code as without
+            import traceback
+            traceback.print_exception(exc)
         click.echo(f"error: {exc}", err=True)
         sys.exit(exc.exit_code)
     except KeyboardInterrupt:

@@ -11,7 +11,7 @@ import click
 from dempipe_cli.params import Number
 
 from dempipe.errors import ShapeError
-from dempipe.spheres.options import DEFAULT_SPACING, SPACING_RANGE
+from dempipe.spheres.options import DEFAULT_MODE, DEFAULT_SPACING, SPACING_RANGE
 
 
 def _resolve_input(arg: str, scale: float):
@@ -113,6 +113,10 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
         raise click.UsageError("give exactly one of --diameter and --resolution")
     if no_cache and cache_dir is not None:
         raise click.UsageError("--cache-dir and --no-cache exclude each other")
+    given = click.get_current_context().get_parameter_source("spacing")
+    if given == click.core.ParameterSource.COMMANDLINE and (modes or DEFAULT_MODE) == "lattice":
+        raise click.UsageError("--spacing is the surface mode's: add --mode surface (or "
+                               "--mode both)")
     if not (math.isfinite(scale) and scale > 0):
         raise click.BadParameter(f"must be a positive number, got {scale}", param_hint="--scale")
     if output is not None:
@@ -131,7 +135,7 @@ def spheres(inputs, diameter, resolution, scale, output, as_json, cache_dir, no_
                                    "(e.g. -o {name}_{mode}.npz)")
 
     from dempipe.spheres.cache import SphereCache
-    from dempipe.spheres.options import DEFAULT_MODE, BuildOptions
+    from dempipe.spheres.options import BuildOptions
     from dempipe.spheres.sphere_set import (
         build_sphere_set_with_info, diameter_for_resolution, mesh_for_errors, surface_mask)
     from dempipe.usd.sphere_set import save_sphere_set

@@ -216,10 +216,20 @@ def test_report_into_a_missing_folder_is_written_there(tmp_path):
 def test_debug_after_the_subcommand_shows_the_traceback(tmp_path):
     missing = tmp_path / "missing.toml"
     for args in (("check", missing, "--debug"), ("--debug", "check", missing)):
-        code, _, err = cli(*args, cache=tmp_path)
-        assert code != 0 and "Traceback" in err and "file not found" in err, err
+        code, _, err = cli(*args, cache=tmp_path)       # the exit code as without it
+        assert code == 2 and "Traceback" in err and "file not found" in err, err
+        assert err.strip().splitlines()[-1].startswith("error: ")
     code, _, err = cli("check", missing, cache=tmp_path)
     assert code == 2 and "Traceback" not in err and err.count("\n") == 1, err
+
+
+def test_resolution_and_sphere_diameter_flags_together_name_the_flags(tmp_path):
+    scene = tmp_path / "s.toml"
+    scene.write_text(scene_text())
+    code, _, err = cli("bake", scene, "-o", tmp_path / "o.usdc", "--resolution", "5",
+                       "--sphere-diameter", "0.01", cache=tmp_path)
+    assert code == 2 and "--resolution or --sphere-diameter" in err, err
+    assert "Traceback" not in err and not (tmp_path / "o.usdc").exists()
 
 
 def test_check_json_on_bad_input_is_json(tmp_path):

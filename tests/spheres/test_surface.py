@@ -103,6 +103,9 @@ def test_cli_shows_both_modes_with_their_errors(tmp_path, monkeypatch):
     assert rows_w["lattice"]["count"] == lat["count"] and rows_w["lattice"]["spacing"] is None
     bad = CliRunner().invoke(app, args + ["--spacing", "2"])
     assert bad.exit_code == 2 and "--spacing" in bad.output
+    # given to a lattice alone (the default mode), it would change nothing: refused
+    alone = CliRunner().invoke(app, ["spheres", "sphere", "--resolution", "6", "--spacing", "0.5"])
+    assert alone.exit_code == 2 and "--mode surface" in alone.output
 
 
 # ------------------------------------------------------------------ surface sets
