@@ -949,3 +949,56 @@ def test_kinematic_body_follows_its_animation_and_pushes(tmp_path):
         assert np.allclose(fr.x[f, k], authored, atol=1e-9), (f, fr.x[f, k], authored)
     # the box is pushed ahead: it ends beyond where it started by the ram's reach
     assert fr.x[-1, b, 0] > 0.1 + 0.05 - 0.01
+
+
+def quad(st, path, half, rotate_z=0.0, at=(0.0, 0.0, 0.0)):
+    """A flat quad of side 2 ``half`` with CollisionAPI: a DCC's ground "plane"."""
+    m = UsdGeom.Mesh.Define(st, path)
+    h = half
+    m.CreatePointsAttr([Gf.Vec3f(-h, -h, 0), Gf.Vec3f(h, -h, 0), Gf.Vec3f(h, h, 0),
+                        Gf.Vec3f(-h, h, 0)])
+    m.CreateFaceVertexCountsAttr([4])
+    m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    m.AddTranslateOp().Set(Gf.Vec3d(*at))
+    m.AddRotateZOp().Set(rotate_z)
+    UsdPhysics.CollisionAPI.Apply(m.GetPrim())
+    return m
+
+
+def test_a_flat_ground_mesh_is_a_plane_a_ball_rests_on(tmp_path):
+    # A DCC's ground plane is a quad with no thickness: it encloses no volume to fill
+    # with spheres. Level and ten times wider than the largest body, it is taken as an
+    # infinite plane at its height (as a flat Cube is), said in a note; a ball dropped
+    # on it comes to rest with its centre one radius above it: within 2 % of d (the
+    # contact's overlap under the ball's weight at the auto stiffness, ~0.1 % of d, and
+    # the ball's mesh facets). Smaller than that, it is refused, naming the rule.
+    st = new_stage(tmp_path / "quad.usda", end=24)
+    quad(st, "/World/Ground", 1.0, rotate_z=30.0, at=(0.0, 0.0, 0.25))
+    ball = UsdGeom.Sphere.Define(st, "/World/Ball")
+    ball.CreateRadiusAttr(0.05)
+    ball.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 0.32))
+    body(ball.GetPrim())
+    st.GetRootLayer().Save()
+    scene = load_usd_scene(tmp_path / "quad.usda")
+    (plane,) = scene.colliders
+    assert plane.normal == pytest.approx((0.0, 0.0, 1.0), abs=1e-12)
+    assert plane.point[2] == pytest.approx(0.25, abs=1e-6)
+    assert any("/World/Ground" in n and "ground plane" in n for n in scene.usd.warnings)
+    from dempipe.scene.build import build_model
+    from dempipe.sim.simulator import Simulator
+    model = build_model(scene, cache=SphereCache(tmp_path / "cache"))
+    frames = Simulator(model).advance(model.initial_state())
+    rest = frames.x[-1, 0, 2] - 0.25
+    assert abs(rest - 0.05) < 0.02 * model.diameter, (rest, model.diameter)
+    assert abs(frames.v[-1, 0, 2]) < 0.01                   # at rest by 1 s
+    # a quad three times the ball's width is no ground: refused in one line
+    st = new_stage(tmp_path / "small.usda")
+    quad(st, "/World/Tray", 0.15)
+    ball = UsdGeom.Sphere.Define(st, "/World/Ball")
+    ball.CreateRadiusAttr(0.05)
+    ball.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 0.1))
+    body(ball.GetPrim())
+    st.GetRootLayer().Save()
+    with pytest.raises(SceneError, match=r"/World/Tray: a flat collision mesh .* give it a "
+                                         r"thickness"):
+        load_usd_scene(tmp_path / "small.usda")
