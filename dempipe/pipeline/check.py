@@ -1,6 +1,7 @@
 """analyze_scene(): a scene file's stability report without simulating. What `dempipe
 check` runs: the scene is read and its Model built as the bake builds it, then
-:func:`dempipe.check.stability.analyze` predicts what would go wrong."""
+:func:`dempipe.check.stability.analyze` predicts what would go wrong, and what only
+the scene's keys can name (an open mesh) is added."""
 
 from __future__ import annotations
 
@@ -45,10 +46,11 @@ def analyze_scene(path, cache=None) -> StabilityReport:
         if isinstance(user_dt, str):
             raise
         model = build_model(scene, cache=cache, overrides=Overrides(dt="auto"))
-        return _with_usd_findings(
-            analyze(model, dt=float(user_dt), dt_setting=user_dt, refused=str(exc),
-                    scene=str(path), full_model=full_sphere_model(scene, model, cache=cache)),
-            scene)
+        report = analyze(model, dt=float(user_dt), dt_setting=user_dt, refused=str(exc),
+                         scene=str(path),
+                         full_model=full_sphere_model(scene, model, cache=cache))
+        report.findings.extend(scene_findings(model, scene, Path(path).name))
+        return _with_usd_findings(report, scene)
     report = analyze(model, dt_setting=user_dt, scene=str(path),
                      full_model=full_sphere_model(scene, model, cache=cache))
     try:    # what bake refuses before simulating: steps and frames beyond reason
@@ -62,7 +64,14 @@ def analyze_scene(path, cache=None) -> StabilityReport:
                   sinking_finding(model, Path(path).name)):
         if found is not None:
             report.findings.append(found)
+    report.findings.extend(scene_findings(model, scene, Path(path).name))
     return _with_usd_findings(report, scene)
+
+
+def scene_findings(model, scene, src: str) -> list:
+    """What only the scene's keys can name, whatever the time step: open meshes
+    (open_mesh_findings)."""
+    return open_mesh_findings(model, scene, src)
 
 
 def spin_finding(model, src: str, dt_setting) -> Finding | None:
@@ -124,3 +133,56 @@ def sinking_finding(model, src: str) -> Finding | None:
         f"patch however many spheres touch); the bake's overlap guard would stop it",
         f"keep densities within 100x of each other, or give {names[mj]} an explicit, "
         f"higher stiffness")
+
+
+# ------------------------------------------------------------------ scene keys
+
+
+def _shape_key(scene, name: str) -> str:
+    """Where a shape's mesh is given: its TOML key, or for a stage its body prim."""
+    if scene.usd is None:
+        spec = scene.shapes[name]
+        return f"shapes.{name}.mesh" if spec.mesh_path is not None else f"shapes.{name}"
+    for g, group in enumerate(scene.bodies):
+        if group.shape == name and g < len(scene.usd.bodies):
+            return scene.usd.bodies[g].prim
+    return f"shape {name!r}"
+
+
+def _collider_key(scene, kind: str, k: int, field: str = "") -> str:
+    """The k-th collider of type ``kind`` (a scene.data class name: "MeshCollider",
+    "PlaneCollider"), the Model's k-th of that kind, by its TOML key (``field``
+    appended) and name, or for a stage by its name."""
+    i, c = [(i, c) for i, c in enumerate(scene.colliders) if type(c).__name__ == kind][k]
+    if scene.usd is not None:
+        return f"collider {c.name!r}"
+    return f"colliders[{i}]{'.' + field if field else ''} ({c.name!r})"
+
+
+# ------------------------------------------------------------- scene findings
+
+
+def open_mesh_findings(model, scene, src: str) -> list:
+    """A warning per shape and mesh collider whose mesh is not watertight (its
+    sphere set's note "not_watertight"): the spheres fill it by winding number, a
+    guess where it is open, and a body's mass properties come from its spheres
+    instead of the exact mesh. Fracture pieces are always closed."""
+    found = []
+    for s in model.shapes:
+        if s.name in scene.shapes and "not_watertight" in s.sphere_set.notes:
+            found.append(Finding(
+                WARNING, "open-mesh",
+                f"{src}: {_shape_key(scene, s.name)}: mesh is not watertight: its spheres "
+                f"fill it by winding number, and its mass, centre of mass and inertia come "
+                f"from the spheres",
+                "close the mesh's holes (a watertight mesh gives its exact mass properties)"))
+    for k, m in enumerate(model.static_meshes):
+        if "not_watertight" in m.notes:
+            found.append(Finding(
+                WARNING, "open-mesh",
+                f"{src}: {_collider_key(scene, 'MeshCollider', k, 'mesh')}: mesh is not "
+                f"watertight: its spheres fill it by winding number, a guess where it is "
+                f"open",
+                "close the mesh's holes (a watertight mesh gives its exact inside)"))
+    return found
+

@@ -378,7 +378,7 @@ class ModelBuilder:
             st_x.append(np.asarray(ss.com, dtype=np.float64))
             st_mat.append(m)
             static_meshes.append(StaticMesh(name, frozen(mesh.vertices), frozen(mesh.faces,
-                                            np.int32), n_dyn + k))
+                                            np.int32), n_dyn + k, tuple(ss.notes)))
         n_static = len(static_meshes)
         kin = (np.concatenate([np.full(g["p"].shape[0], g["kinematic"]) for g in groups])
                if groups else np.zeros(0, bool))

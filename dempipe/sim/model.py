@@ -90,12 +90,17 @@ class BoxCollider:
 
 @dataclass(frozen=True)
 class StaticMesh:
-    """A static mesh collider, in world coordinates [m], voxelized into static spheres."""
+    """A static mesh collider, in world coordinates [m], voxelized into static spheres.
+
+    notes : its sphere set's notes (SphereSet.notes: "not_watertight", ...), which
+        `dempipe check` reports; the set itself is not kept.
+    """
 
     name: str
     vertices: np.ndarray
     faces: np.ndarray
     body: int  # its pseudo-body index
+    notes: tuple = ()
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,161 @@
+"""`dempipe check` names by their scene keys what only the scene can name: a mesh
+that is not watertight (a body's shape or a mesh collider). It is a counted warning
+finding with a fix, in the text and in the JSON. Real scene files and real OBJ
+meshes written by trimesh."""
+
+import json
+
+import pytest
+import trimesh
+from click.testing import CliRunner
+
+from dempipe.pipeline.check import analyze_scene
+from dempipe.spheres.cache import SphereCache
+
+HEAD = """
+[output]
+fps = 24
+duration = 0.5
+
+[simulation]
+resolution = 6
+"""
+
+PLANE = """
+[[colliders]]
+type = "plane"
+point = [0.0, 0.0, 0.0]
+normal = [0.0, 0.0, 1.0]
+"""
+
+
+def write_box(path, closed: bool):
+    """A 4 cm box as an OBJ file; ``closed`` False leaves out its top face."""
+    box = trimesh.creation.box(extents=(0.04, 0.04, 0.04))
+    if not closed:
+        box = trimesh.Trimesh(box.vertices, box.faces[box.face_normals[:, 2] < 0.5],
+                              process=False)
+    assert box.is_watertight == closed
+    box.export(path)
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return SphereCache(tmp_path_factory.mktemp("cache"))
+
+
+@pytest.fixture(autouse=True)
+def _meshes(tmp_path):
+    write_box(tmp_path / "open.obj", closed=False)
+    write_box(tmp_path / "closed.obj", closed=True)
+
+
+def scene(tmp_path, text: str):
+    path = tmp_path / "scene.toml"
+    path.write_text(HEAD + text)
+    return path
+
+
+def check_json(path, cache):
+    """`dempipe check --json` on ``path``, parsed (the CLI's own command)."""
+    from dempipe_cli.main import app
+
+    r = CliRunner().invoke(app, ["check", "--json", "--cache-dir", str(cache.root),
+                                 str(path)])
+    assert r.exit_code == 0, r.output
+    return json.loads(r.output)
+
+
+def coded(report, code):
+    return [f for f in report.findings if f.code == code]
+
+
+def assert_counted(report, found):
+    """``found`` is among the report's warnings, counted in its text's header."""
+    assert found.level == "warning" and found in report.warnings
+    text = report.format()
+    n = len(report.warnings)
+    assert f"0 errors, {n} warning{'s' * (n != 1)})" in text.splitlines()[0]
+    assert f"warning: {found.message}" in text and f"  fix: {found.fix}" in text
+
+
+def test_open_body_mesh_is_a_warning_naming_its_key(tmp_path, cache):
+    path = scene(tmp_path, """
+[shapes.b]
+mesh = "open.obj"
+
+[[bodies]]
+name = "crates"
+shape = "b"
+position = [0.0, 0.0, 0.05]
+""" + PLANE)
+    report = analyze_scene(path, cache=cache)
+    (found,) = coded(report, "open-mesh")
+    assert found.message.startswith("scene.toml: shapes.b.mesh: mesh is not watertight")
+    assert "mass" in found.message
+    assert found.fix.startswith("close the mesh's holes")
+    assert_counted(report, found)
+    assert report.ok
+    as_json = check_json(path, cache)
+    assert dict(level="warning", code="open-mesh", message=found.message,
+                fix=found.fix) in as_json["findings"]
+
+
+def test_open_collider_mesh_is_a_warning_naming_its_key(tmp_path, cache):
+    path = scene(tmp_path, """
+[shapes.b]
+mesh = "closed.obj"
+
+[[bodies]]
+name = "crates"
+shape = "b"
+position = [0.0, 0.0, 0.2]
+""" + PLANE + """
+[[colliders]]
+type = "mesh"
+name = "bin"
+mesh = "open.obj"
+position = [0.5, 0.0, 0.03]
+""")
+    report = analyze_scene(path, cache=cache)
+    (found,) = coded(report, "open-mesh")
+    assert found.message.startswith(
+        "scene.toml: colliders[1].mesh ('bin'): mesh is not watertight")
+    assert found.fix.startswith("close the mesh's holes")
+    assert_counted(report, found)
+    assert found.message in [f["message"] for f in check_json(path, cache)["findings"]]
+
+
+def test_a_normal_scene_gets_no_open_mesh_warning(tmp_path, cache):
+    path = scene(tmp_path, """
+[shapes.b]
+mesh = "closed.obj"
+
+[shapes.box]
+builtin = "box"
+
+[[bodies]]
+name = "crates"
+shape = "b"
+position = [0.0, 0.0, 0.05]
+
+[[bodies]]
+name = "boxes"
+shape = "box"
+layout = "grid"
+origin = [0.2, 0.0, 0.05]
+dims = [2, 1, 2]
+spacing = 0.1
+start_time = 0.1
+""" + PLANE + """
+[[colliders]]
+type = "mesh"
+name = "block"
+mesh = "closed.obj"
+position = [0.5, 0.0, 0.02]
+""")
+    report = analyze_scene(path, cache=cache)
+    codes = {f.code for f in report.findings}
+    assert "open-mesh" not in codes, report.format()
+    codes = {f["code"] for f in check_json(path, cache)["findings"]}
+    assert "open-mesh" not in codes
