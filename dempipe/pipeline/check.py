@@ -1,14 +1,17 @@
 """analyze_scene(): a scene file's stability report without simulating. What `dempipe
 check` runs: the scene is read and its Model built as the bake builds it, then
 :func:`dempipe.check.stability.analyze` predicts what would go wrong, and what only
-the scene's keys can name (an open mesh) is added."""
+the scene's keys can name (an open mesh, a body behind a plane) is added."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from dempipe.check.emission import emission_overlap
+from dempipe.check.planes import behind_planes, plane_walls
 from dempipe.check.prescribed import missing_surface_speed
 from dempipe.check.sinking import sinking
 from dempipe.check.stability import OVERLAP_ERROR
@@ -70,8 +73,8 @@ def analyze_scene(path, cache=None) -> StabilityReport:
 
 def scene_findings(model, scene, src: str) -> list:
     """What only the scene's keys can name, whatever the time step: open meshes
-    (open_mesh_findings)."""
-    return open_mesh_findings(model, scene, src)
+    (open_mesh_findings) and bodies wholly behind a plane (behind_plane_findings)."""
+    return open_mesh_findings(model, scene, src) + behind_plane_findings(model, scene, src)
 
 
 def spin_finding(model, src: str, dt_setting) -> Finding | None:
@@ -149,6 +152,13 @@ def _shape_key(scene, name: str) -> str:
     return f"shape {name!r}"
 
 
+def _group_key(scene, g: int) -> str:
+    """A body group by its TOML key and name, or for a stage its prim."""
+    if scene.usd is not None and g < len(scene.usd.bodies):
+        return scene.usd.bodies[g].prim
+    return f"bodies[{g}] ({scene.bodies[g].name!r})"
+
+
 def _collider_key(scene, kind: str, k: int, field: str = "") -> str:
     """The k-th collider of type ``kind`` (a scene.data class name: "MeshCollider",
     "PlaneCollider"), the Model's k-th of that kind, by its TOML key (``field``
@@ -186,3 +196,31 @@ def open_mesh_findings(model, scene, src: str) -> list:
                 "close the mesh's holes (a watertight mesh gives its exact inside)"))
     return found
 
+
+def behind_plane_findings(model, scene, src: str) -> list:
+    """A warning per body group and plane collider for the group's bodies that
+    start wholly behind the plane, beyond its depth (check.planes): the plane never
+    touches them, so they fall or fly on through it."""
+    found = []
+    for k, bodies in behind_planes(model):
+        nrm = np.asarray(model.plane_normal[k])
+        depth = float(model.wall_depth[plane_walls(model)[k]])
+        groups = np.asarray(model.body_group)[bodies]
+        for g in np.unique(groups):
+            count = int(np.count_nonzero(groups == g))
+            total = int(np.count_nonzero(np.asarray(model.body_group) == g))
+            who = ("its body" if total == 1 else
+                   f"all {total} of its bodies" if count == total else
+                   f"{count} of its {total} bodies")
+            verb = "starts" if count == 1 else "start"
+            plane = _collider_key(scene, "PlaneCollider", k)
+            found.append(Finding(
+                WARNING, "behind-plane",
+                f"{src}: {_group_key(scene, int(g))}: {who} {verb} wholly behind {plane}, "
+                f"more than {depth:.3g} m (the depth a plane pushes spheres out from) "
+                f"behind its surface, where the plane never touches "
+                f"{'it' if count == 1 else 'them'}",
+                f"move {'it' if count == 1 else 'them'} to the side the plane's normal "
+                f"[{', '.join(f'{v + 0.0:.3g}' for v in nrm)}] points to, or flip the plane's "
+                f"normal"))
+    return found

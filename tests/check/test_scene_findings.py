@@ -1,7 +1,8 @@
 """`dempipe check` names by their scene keys what only the scene can name: a mesh
-that is not watertight (a body's shape or a mesh collider). It is a counted warning
-finding with a fix, in the text and in the JSON. Real scene files and real OBJ
-meshes written by trimesh."""
+that is not watertight (a body's shape or a mesh collider) and bodies that start
+wholly behind a plane. Each is a counted warning finding with a fix, in the text
+and in the JSON; the bake's pre-flight warns of bodies behind a plane too. Real
+scene files and real OBJ meshes written by trimesh."""
 
 import json
 
@@ -126,7 +127,109 @@ position = [0.5, 0.0, 0.03]
     assert found.message in [f["message"] for f in check_json(path, cache)["findings"]]
 
 
-def test_a_normal_scene_gets_no_open_mesh_warning(tmp_path, cache):
+def test_body_behind_the_ground_plane_is_a_warning_naming_group_and_plane(tmp_path, cache):
+    path = scene(tmp_path, """
+[shapes.box]
+builtin = "box"
+
+[[bodies]]
+name = "boxes"
+shape = "box"
+position = [0.0, 0.0, -1.0]
+""" + PLANE)
+    report = analyze_scene(path, cache=cache)
+    (found,) = coded(report, "behind-plane")
+    assert found.message.startswith(
+        "scene.toml: bodies[0] ('boxes'): its body starts wholly behind colliders[0] "
+        "('plane0')")
+    assert "flip the plane's normal" in found.fix and "[0, 0, 1]" in found.fix
+    assert report.overlap == 0.0            # the frame-0 overlap check sees nothing
+    assert_counted(report, found)
+    as_json = check_json(path, cache)
+    assert dict(level="warning", code="behind-plane", message=found.message,
+                fix=found.fix) in as_json["findings"]
+
+
+def test_behind_plane_counts_the_bodies_of_a_group_and_emitted_bodies(tmp_path, cache):
+    # a grid of two, one above the floor and one under it; a body emitted at 0.2 s
+    # under it; a box partly through it is the frame-0 overlap check's, not this one's
+    path = scene(tmp_path, """
+[shapes.box]
+builtin = "box"
+
+[[bodies]]
+name = "pair"
+shape = "box"
+layout = "grid"
+origin = [0.0, 0.0, -0.5]
+dims = [1, 1, 2]
+spacing = [0.1, 0.1, 0.6]
+
+[[bodies]]
+name = "late"
+shape = "box"
+position = [0.5, 0.0, -0.3]
+start_time = 0.2
+
+[[bodies]]
+name = "sunk"
+shape = "box"
+position = [1.0, 0.0, 0.0]
+""" + PLANE)
+    report = analyze_scene(path, cache=cache)
+    found = coded(report, "behind-plane")
+    assert [f.message.split(":")[1].strip() for f in found] == [
+        "bodies[0] ('pair')", "bodies[1] ('late')"]
+    assert "1 of its 2 bodies starts wholly behind colliders[0]" in found[0].message
+    assert "its body starts wholly behind" in found[1].message
+    assert coded(report, "frame0-overlap")
+
+
+def test_a_plane_that_moves_is_taken_where_it_is_when_the_body_starts(tmp_path, cache):
+    # the floor rises at 1 m/s; a box emitted 10 cm above where it started, at 0.4 s,
+    # starts 30 cm under it; the same box emitted at once does not
+    rising = PLANE + "\n[colliders.motion]\nvelocity = [0.0, 0.0, 1.0]\n"
+    body = """
+[shapes.box]
+builtin = "box"
+
+[[bodies]]
+name = "late"
+shape = "box"
+position = [0.0, 0.0, 0.1]
+start_time = {t}
+"""
+    report = analyze_scene(scene(tmp_path, body.format(t=0.4) + rising), cache=cache)
+    (found,) = coded(report, "behind-plane")
+    assert "bodies[0] ('late')" in found.message
+    report = analyze_scene(scene(tmp_path, body.format(t=0.0) + rising), cache=cache)
+    assert not coded(report, "behind-plane")
+
+
+def test_bake_preflight_warns_of_a_body_behind_a_plane(tmp_path, cache):
+    from dempipe.pipeline.bake import bake
+
+    class Stop(Exception):
+        pass
+
+    def warn(msg):              # stop at the pre-flight's warning: nothing to simulate
+        if "wholly behind" in msg:
+            raise Stop(msg)
+
+    path = scene(tmp_path, """
+[shapes.box]
+builtin = "box"
+
+[[bodies]]
+name = "boxes"
+shape = "box"
+position = [0.0, 0.0, -1.0]
+""" + PLANE)
+    with pytest.raises(Stop, match=r"bodies\[0\] \('boxes'\).*colliders\[0\] \('plane0'\)"):
+        bake(path, tmp_path / "o.usdc", device="cpu", cache=cache, warn=warn)
+
+
+def test_a_normal_scene_gets_neither_warning(tmp_path, cache):
     path = scene(tmp_path, """
 [shapes.b]
 mesh = "closed.obj"
@@ -156,6 +259,6 @@ position = [0.5, 0.0, 0.02]
 """)
     report = analyze_scene(path, cache=cache)
     codes = {f.code for f in report.findings}
-    assert "open-mesh" not in codes, report.format()
+    assert not codes & {"open-mesh", "behind-plane"}, report.format()
     codes = {f["code"] for f in check_json(path, cache)["findings"]}
-    assert "open-mesh" not in codes
+    assert not codes & {"open-mesh", "behind-plane"}
