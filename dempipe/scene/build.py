@@ -194,7 +194,8 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
                 shape_index[pn] = b.add_shape(pn, piece.trimesh(), ps, inside_faces=piece.inside)
                 pieces[n].append((pn, ps.com, ps.volume))
             continue
-        ss, info = build_sphere_set_with_info(meshes[n], d, name=n, cache=cache,
+        ss, info = build_sphere_set_with_info(meshes[n], d, name=f"{src}: shapes.{n}",
+                                              cache=cache,
                                               options=sphere_options(scene, n, o, meshes[n]))
         hits.append((n, info.cache, info.seconds, ss.count))
         if scene.shapes[n].center_of_mass is not None:
@@ -238,7 +239,8 @@ def build_model(scene, *, cache=None, overrides: Overrides | None = None,
             check_lattice(mesh, d, f"{src}: colliders.{c.name}",
                           "Fix: scale the collider down or use a plane or box collider",
                           f"collider '{c.name}'")
-            ss, info = build_sphere_set_with_info(mesh, d, name=c.name, cache=cache,
+            ss, info = build_sphere_set_with_info(mesh, d, name=f"{src}: colliders.{c.name}",
+                                                  cache=cache,
                                                   options=sphere_options(scene, None, o, mesh))
             hits.append((c.name, info.cache, info.seconds, ss.count))
             b.add_static_mesh(c.name, mesh, ss, mi, motion=c.motion,

@@ -90,10 +90,21 @@ name = "crates"
 shape = "b"
 position = [0.0, 0.0, 0.05]
 """ + PLANE)
-    report = analyze_scene(path, cache=cache)
+    import warnings
+
+    with warnings.catch_warnings(record=True) as raised:
+        warnings.simplefilter("always")
+        report = analyze_scene(path, cache=cache)
+    # said once, as the finding, not again by the sphere builder
+    assert not [w for w in raised if "watertight" in str(w.message)]
     (found,) = coded(report, "open-mesh")
     assert found.message.startswith("scene.toml: shapes.b.mesh: mesh is not watertight")
     assert "mass" in found.message
+    # a bake's model build warns it, naming the file and the shape
+    from dempipe.scene.build import build_model
+    from dempipe.scene.load import load_scene
+    with pytest.warns(UserWarning, match=r"scene.toml: shapes.b: mesh is not watertight"):
+        build_model(load_scene(path), cache=cache)
     assert found.fix.startswith("close the mesh's holes")
     assert_counted(report, found)
     assert report.ok
