@@ -69,7 +69,7 @@ def main():
     for _ in range(args.repeat):
         for skip in (False, True):
             runs[skip].append(bake(model, skip))
-    base, fast = runs[False][0], runs[True][0]
+    base = runs[False][0]
     same = all(np.array_equal(a[0], base[0]) and np.array_equal(a[1], base[1])
                for a in runs[False] + runs[True])
     first = int(np.argmax(base[3])) if base[3].any() else len(base[3])
