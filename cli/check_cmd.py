@@ -14,13 +14,19 @@ import sys
 
 import click
 
+from dempipe_cli.params import Number
+
 
 @click.command("check")
 @click.argument("scene", type=click.Path(dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 @click.option("--cache-dir", type=click.Path(file_okay=False), default=None,
               help="Sphere-set cache folder (default: $DEMPIPE_CACHE_DIR or the user cache).")
-def check(scene, as_json, cache_dir):
+@click.option("--resolution", type=click.IntRange(min=1), default=None,
+              help="Spheres across the smallest shape (overrides the scene's, as in bake).")
+@click.option("--sphere-diameter", type=Number(lo=0, lo_open=True), default=None,
+              metavar="M", help="Sphere diameter in metres (instead of --resolution).")
+def check(scene, as_json, cache_dir, resolution, sphere_diameter):
     """Check SCENE (a .toml scene file or a UsdPhysics stage): time step against the
     critical step, speeds against the sphere size, frame-0 overlaps, mass ratios, tiny
     shapes."""
@@ -29,9 +35,13 @@ def check(scene, as_json, cache_dir):
 
     from dempipe.errors import DempipeError
 
+    if resolution is not None and sphere_diameter is not None:
+        raise click.UsageError("give --resolution or --sphere-diameter, not both")
+    simulation = {k: v for k, v in (("resolution", resolution),
+                                    ("sphere_diameter", sphere_diameter)) if v is not None}
     try:
         cache = SphereCache(cache_dir, strict=True) if cache_dir else None
-        report = analyze_scene(scene, cache=cache)
+        report = analyze_scene(scene, cache=cache, simulation=simulation)
     except DempipeError as exc:
         if not as_json:
             raise

@@ -13,7 +13,6 @@ the target, and keeps the last checkpoint for ``resume``.
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -26,7 +25,7 @@ from dempipe.errors import DempipeError, ExportError, SceneError, StabilityError
 from dempipe.interrupt import StopRequested, signal_name
 from dempipe.pipeline.checkpoint import atomic_write
 from dempipe.pipeline.lock import WorkLock, work_dir
-from dempipe.scene.keys import MAX_MAGNITUDE
+from dempipe.scene.settings import with_simulation
 from dempipe.sim.cores import check_threads
 from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP
 from dempipe.spheres.cache import SphereCache
@@ -507,37 +506,6 @@ def _interrupted(failure, scene_path, out, store, target, written, report):
     exc.exit_code = (128 + int(signum)) if isinstance(failure, StopRequested) else 130
     exc.result = BakeResult(target, report, partial=True) if target is not None else None
     return exc
-
-
-def with_simulation(scene, simulation: dict | None):
-    """``scene`` with ``simulation``'s keys replacing its SimulationSettings'; a
-    resolution clears a sphere_diameter and the other way round."""
-    from dataclasses import fields, replace
-
-    if not simulation:
-        return scene
-    known = {f.name for f in fields(scene.simulation)}
-    for k in simulation:
-        if k not in known:
-            raise SceneError(f"unknown simulation setting {k!r} "
-                             f"(known: {', '.join(sorted(known))})")
-    changes = dict(simulation)
-    for k, v in changes.items():    # what the command line or a caller gives, as a scene's
-        if isinstance(v, (int, float)) and not isinstance(v, bool) and not (
-                math.isfinite(v) and abs(v) <= MAX_MAGNITUDE):
-            raise SceneError(f"simulation.{k}: {v!r} is not a finite number of at most "
-                             f"{MAX_MAGNITUDE:g}")
-    for k in ("resolution", "sphere_diameter"):
-        if changes.get(k) is not None and not changes[k] > 0:
-            raise SceneError(f"simulation.{k}: {changes[k]!r} must be greater than 0")
-    if changes.get("resolution") is not None and changes.get("sphere_diameter") is not None:
-        raise SceneError("simulation: give resolution or sphere_diameter, not both "
-                         f"(got {changes['resolution']!r} and {changes['sphere_diameter']!r})")
-    if changes.get("resolution") is not None:
-        changes.setdefault("sphere_diameter", None)
-    if changes.get("sphere_diameter") is not None:
-        changes.setdefault("resolution", None)
-    return replace(scene, simulation=replace(scene.simulation, **changes))
 
 
 class BakeInterrupted(DempipeError):

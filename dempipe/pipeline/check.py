@@ -28,13 +28,16 @@ from dempipe.check.stability import (
 from dempipe.errors import StabilityError
 from dempipe.scene.build import Overrides, build_model, full_sphere_model
 from dempipe.scene.load import load_scene
+from dempipe.scene.settings import with_simulation
 from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP
 from dempipe.spheres.cache import SphereCache
 
 
-def analyze_scene(path, cache=None) -> StabilityReport:
+def analyze_scene(path, cache=None, simulation: dict | None = None) -> StabilityReport:
     """Load ``path``, build its Model (sphere sets through ``cache``; None: the default
-    SphereCache, as bake uses) and analyze it.
+    SphereCache, as bake uses) and analyze it. ``simulation``: settings that replace
+    the scene's, as bake takes them (scene.settings.with_simulation: a resolution, a
+    sphere diameter), so that what is checked is what will be baked.
 
     A user dt that finalize refuses does not stop the check: the model is rebuilt
     with dt = "auto" (the sphere sets come from the cache) and the refusal becomes
@@ -46,11 +49,11 @@ def analyze_scene(path, cache=None) -> StabilityReport:
     # naming the key and the fix, not a second line
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=r".*mesh is not watertight")
-        return _analyze_scene(path, cache)
+        return _analyze_scene(path, cache, simulation)
 
 
-def _analyze_scene(path, cache) -> StabilityReport:
-    scene = load_scene(path)
+def _analyze_scene(path, cache, simulation) -> StabilityReport:
+    scene = with_simulation(load_scene(path), simulation)
     cache = cache if cache is not None else SphereCache()
     user_dt = scene.simulation.dt
     try:

@@ -3,6 +3,7 @@ of a USD stage alike."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from dempipe.scene.data import (
@@ -11,7 +12,8 @@ from dempipe.scene.data import (
     SimulationSettings,
     SleepSettings,
 )
-from dempipe.scene.keys import SceneKeys
+from dempipe.errors import SceneError
+from dempipe.scene.keys import MAX_MAGNITUDE, SceneKeys
 from dempipe.sim.laws import LAWS
 from dempipe.spheres.options import SCENE_MODES, SPACING_RANGE
 
@@ -159,3 +161,35 @@ def _toml_value(v) -> str:
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
     return repr(float(v)) if isinstance(v, float) else str(int(v))
 
+
+def with_simulation(scene, simulation: dict | None):
+    """``scene`` with ``simulation``'s keys replacing its SimulationSettings' (what a
+    command line or a caller gives: `dempipe bake` and `dempipe check`
+    --resolution, dempipe.bake's ``simulation``); a resolution clears a
+    sphere_diameter and the other way round."""
+    from dataclasses import fields, replace
+
+    if not simulation:
+        return scene
+    known = {f.name for f in fields(scene.simulation)}
+    for k in simulation:
+        if k not in known:
+            raise SceneError(f"unknown simulation setting {k!r} "
+                             f"(known: {', '.join(sorted(known))})")
+    changes = dict(simulation)
+    for k, v in changes.items():    # what the command line or a caller gives, as a scene's
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and not (
+                math.isfinite(v) and abs(v) <= MAX_MAGNITUDE):
+            raise SceneError(f"simulation.{k}: {v!r} is not a finite number of at most "
+                             f"{MAX_MAGNITUDE:g}")
+    for k in ("resolution", "sphere_diameter"):
+        if changes.get(k) is not None and not changes[k] > 0:
+            raise SceneError(f"simulation.{k}: {changes[k]!r} must be greater than 0")
+    if changes.get("resolution") is not None and changes.get("sphere_diameter") is not None:
+        raise SceneError("simulation: give resolution or sphere_diameter, not both "
+                         f"(got {changes['resolution']!r} and {changes['sphere_diameter']!r})")
+    if changes.get("resolution") is not None:
+        changes.setdefault("sphere_diameter", None)
+    if changes.get("sphere_diameter") is not None:
+        changes.setdefault("resolution", None)
+    return replace(scene, simulation=replace(scene.simulation, **changes))

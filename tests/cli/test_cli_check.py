@@ -105,6 +105,24 @@ def test_json_parses(tmp_path):
     assert result.exit_code == 0 and json.loads(result.output)["ok"] is True
 
 
+def test_resolution_and_sphere_diameter_check_what_bake_would_bake(tmp_path):
+    # the flags bake takes replace the scene's setting here too: the JSON's diameter
+    # is the one given, and the resolution's gives more spheres than the scene's
+    scene = tmp_path / "unstable.toml"
+    scene.write_text(UNSTABLE.replace("dt = 0.005", "dt = \"auto\""))
+    base = json.loads(run("check", str(scene), "--json", "--cache-dir",
+                          str(tmp_path / "c")).output)
+    assert base["diameter"] == pytest.approx(0.01)
+    given = json.loads(run("check", str(scene), "--json", "--cache-dir", str(tmp_path / "c"),
+                           "--sphere-diameter", "0.005").output)
+    assert given["diameter"] == pytest.approx(0.005) and given["spheres"] > base["spheres"]
+    res = json.loads(run("check", str(scene), "--json", "--cache-dir", str(tmp_path / "c"),
+                         "--resolution", "6").output)
+    assert res["diameter"] == pytest.approx(0.005)       # 6 across the 3 cm crate
+    both = run("check", str(scene), "--resolution", "6", "--sphere-diameter", "0.005")
+    assert both.exit_code == 2 and "--resolution or --sphere-diameter" in both.output
+
+
 def test_scene_error_is_one_line_exit_2(tmp_path):
     scene = tmp_path / "bad.toml"
     scene.write_text(UNSTABLE.replace("density = 700.0", "density = -1.0"))
