@@ -380,8 +380,11 @@ def tunnelling(model: Model, step: float, closing: float, setting: str,
     """The tunnelling finding (or None): the fastest closing pair's travel per step.
 
     Beyond TUNNEL_ERROR of a diameter per step contacts can be skipped entirely
-    (bake refuses without --force); beyond TUNNEL_WARN they start deep.
+    (bake refuses without --force); beyond TUNNEL_WARN they start deep. None where no
+    contact is possible (Model.contact_possible: the bake's travel guard skips it too).
     """
+    if not model.contact_possible:
+        return None
     d = model.diameter
     travel = closing * step / d
     if travel <= TUNNEL_WARN:

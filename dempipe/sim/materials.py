@@ -229,6 +229,23 @@ def patch_scale(diameter: float, extents) -> float:
     return min(max(d, min(ext) / PATCH_RESOLUTION), PATCH_MAX_DIAMETERS * d)
 
 
+#: dt "auto" of a scene in which no contact is possible [s] (contact_possible).
+FREE_FLIGHT_DT = 1.0 / 240.0
+
+
+def contact_possible(omega_max: float) -> bool:
+    """Whether any contact can happen in a scene whose stiffest contact frequency
+    ModelBuilder.finalize found to be ``omega_max`` [rad/s] (``Model.omega_max``).
+
+    finalize finds no contact (ω_max = 0) where no body the physics moves can touch
+    anything: one body and no colliders (no plane, box or static mesh), or kinematic
+    bodies only (their motion is given). dt "auto" steps such a scene at
+    FREE_FLIGHT_DT whatever its speeds, and there is nothing in it to pass through:
+    the travel guards (Simulator, check.stability.tunnelling) leave it alone.
+    """
+    return omega_max > 0.0 and not math.isnan(omega_max)
+
+
 def auto_dt(omega_max: float, fps: float, steps_per_contact: float = STEPS_PER_CONTACT,
             zeta_max: float = 0.0, dt_max: float = math.inf) -> tuple[float, int]:
     """dt from the stiffest mode, rounded down so each frame is whole steps.
@@ -246,10 +263,9 @@ def auto_dt(omega_max: float, fps: float, steps_per_contact: float = STEPS_PER_C
     if omega_max == math.inf:
         raise StabilityError(_STIFF_REFUSAL.format(what="infinitely stiff (the speeds or "
                                                    "gravity overflow)"))
-    if not (omega_max > 0.0 and math.isfinite(omega_max)):
-        # No contact can happen (no colliders, one body): one step per 1/240 s
-        # resolves free flight and tumbling well.
-        dt_target = 1.0 / 240.0
+    if not contact_possible(omega_max):
+        # one step per 1/240 s resolves free flight and tumbling well
+        dt_target = FREE_FLIGHT_DT
     else:
         tc = math.pi / (omega_max * math.sqrt(max(1.0 - zeta_max**2, 0.5)))
         dt_target = tc / steps_per_contact
@@ -272,7 +288,7 @@ _STIFF_REFUSAL = ("simulation.dt: the auto step finds the contacts {what}: check
 
 def check_dt(dt: float, omega_max: float, zeta_min: float, where: str, law=_law) -> None:
     """Refuse a user dt above the critical step of the stiffest contact (``law``'s)."""
-    if omega_max <= 0.0:
+    if not contact_possible(omega_max):
         return
     limit = law.critical_step(omega_max, zeta_min)
     if dt >= limit:

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from dempipe.sim import laws
+from dempipe.sim.materials import contact_possible
 from dempipe.sim.state import State
 
 if TYPE_CHECKING:  # spheres imports numba; the model only needs the type
@@ -294,6 +295,12 @@ class Model:
     @property
     def n_walls(self) -> int:
         return int(self.wall_normal.shape[0])
+
+    @property
+    def contact_possible(self) -> bool:
+        """Whether any contact can happen (materials.contact_possible): False where dt
+        "auto" is the free-flight step and the travel guards do not apply."""
+        return contact_possible(self.omega_max)
 
     @property
     def contact_time(self) -> float:

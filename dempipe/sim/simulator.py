@@ -401,7 +401,8 @@ class Simulator:
 
     def _check(self, state, overlap: float, k: int, v=None, w=None) -> str | None:
         """Guards: non-finite state, overlap beyond half a diameter, energy growing
-        without a source, a body fast enough to skip contacts."""
+        without a source, a body fast enough to skip contacts (where a contact is
+        possible at all: Model.contact_possible)."""
         m = self.model
         nb = m.n_bodies
         x = state.body_x[:nb]
@@ -430,6 +431,10 @@ class Simulator:
                     f"source; body {self._body_name(b)} is the fastest. The explicit "
                     f"integration is unstable: dt = {m.dt:.3g} s is too long for the contact "
                     f"stiffness (use dt = \"auto\", a smaller dt, or softer materials)")
+        if not m.contact_possible:
+            # nothing to pass through, and dt "auto" is the free-flight step whatever
+            # the speed: a long fall must not stop here
+            return None
         speed = np.linalg.norm(v, axis=1) + np.linalg.norm(w, axis=1) * m.body_radius[:nb]
         b = int(np.argmax(speed))
         travel = float(speed[b]) * m.dt / m.diameter

@@ -122,3 +122,79 @@ def test_bake_refuses_tunnelling_and_names_the_fix(tmp_path):
     msg = str(res.exception) + res.output
     assert "diameter per step" in msg and "stiffness" in msg and "--force" in msg
     assert not out.exists()
+
+
+@pytest.mark.parametrize("partner", [None, "kinematic", "emitted"])
+def test_travel_guard_only_where_a_contact_is_possible(partner):
+    # A ball at 200 m/s with a forced dt that moves it 8 diameters per step. Alone,
+    # nothing can touch it (dt "auto" would be the free-flight step): the guard and
+    # the check's closing-pair finding leave it alone and it flies the whole run. A
+    # kinematic body or a body emitted later far off makes a contact possible: both
+    # stop it, as the plane of test_unforeseen_speed_stops_the_bake does.
+    from dempipe.check.stability import analyze
+    from dempipe.sim.motion import Motion
+
+    b = ModelBuilder(D)
+    ss, mesh = ball_set(D)
+    s = b.add_shape("ball", mesh, ss)
+    m = b.add_material(Material("m", density=1000, restitution=0.5, friction=0.0))
+    b.add_bodies("ball", s, m, [[0.0, 0.0, 20.0]], velocities=[[0.0, 0.0, -200.0]])
+    if partner == "kinematic":
+        b.add_bodies("post", s, m, [[5.0, 0.0, 0.0]], kinematic=True,
+                     motion=Motion(velocity=(0.0, 0.0, 0.0)))
+    elif partner == "emitted":
+        b.add_bodies("late", s, m, [[5.0, 0.0, 0.0]], start_time=0.2)
+    model = b.finalize(fps=24, n_frames=10, dt=1.0 / 2400, force=True)
+    assert model.contact_possible == (partner is not None)
+    tunnel = [f for f in analyze(model).findings if f.code == "tunnelling"]
+    if partner is None:
+        frames = Simulator(model).advance(model.initial_state())
+        assert frames.n_frames == model.n_frames and not tunnel
+        # free flight: the velocity is exact under symplectic Euler
+        assert frames.v[-1, 0, 2] == pytest.approx(-200.0 - 9.81 * frames.times[-1], rel=1e-9)
+    else:
+        assert tunnel and tunnel[0].level == "error"
+        with pytest.raises(BakeFailure, match=r"ball\[0\].*per step"):
+            Simulator(model).advance(model.initial_state())
+
+
+FREE_FALL = """
+[output]
+fps = 24
+duration = 2.0
+[simulation]
+resolution = 4
+[shapes.box]
+builtin = "box"
+[[bodies]]
+name = "b"
+shape = "box"
+layout = "single"
+position = [0.0, 0.0, 0.1]
+"""
+
+
+def test_a_long_free_fall_with_nothing_to_hit_bakes_whole(tmp_path):
+    # One box and no colliders: dt "auto" is the free-flight step (1/240 s) whatever the
+    # speed, and there is nothing to pass through. The check says so (no closing-pair
+    # finding) and the bake agrees: 2 s of fall, to 19.6 m/s (8 diameters per step),
+    # with no refusal, no warning and no guard tripping.
+    import dempipe
+    from dempipe.pipeline.check import analyze_scene
+    from dempipe.spheres.cache import SphereCache
+
+    scene = tmp_path / "fall.toml"
+    scene.write_text(FREE_FALL)
+    cache = SphereCache(tmp_path / "c")
+    report = analyze_scene(scene, cache=cache)
+    assert report.ok and report.dt == pytest.approx(1.0 / 240.0)
+    assert not report.pairs and not report.findings, report.format()
+    said = []
+    result = dempipe.bake(scene, tmp_path / "fall.usdc", device="cpu", cache=cache,
+                          warn=said.append, checkpoints=False)
+    assert not result.partial and result.path.exists()
+    assert not [w for w in said if "per step" in w], said
+    model = dempipe.build_model(dempipe.load_scene(scene), cache=cache)
+    frames = Simulator(model).advance(model.initial_state())
+    assert frames.n_frames == 49 and frames.times[-1] == pytest.approx(2.0)
+    assert frames.v[-1, 0, 2] == pytest.approx(-9.81 * 2.0, rel=1e-9)
