@@ -31,6 +31,7 @@ import numpy as np
 
 from dempipe.check.sizes import memory_estimate
 from dempipe.sim import glue, laws
+from dempipe.sim.materials import dt_fix
 from dempipe.sim.model import Model, rotational_mass_factor
 from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP, frame0_overlap
 from dempipe.spheres.fidelity import ROUND_SHARE, mesh_beyond_spheres, off_axis_share
@@ -519,8 +520,7 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
                 f"{crit:.3g} s of "
                 + f"the stiffest contact (ω = {omega_max:.4g} rad/s)"
                 + "; bake refuses it",
-                f"use dt = \"auto\" ({model.dt:.3g} s here, {model.steps_per_frame} steps per "
-                f"frame), a dt below {crit / 2:.3g} s, or softer materials"))
+                dt_fix(crit, model.dt, model.steps_per_frame)))
         else:
             findings.append(Finding(ERROR, "dt-refused", refused,
                                     f"use dt = \"auto\" ({model.dt:.3g} s here)"))

@@ -522,16 +522,24 @@ class ModelBuilder:
             # a launched or spinning body's fastest point (|v| + |w| r) crosses at most
             # AUTO_TRAVEL of a diameter per step, in free flight too (the travel guard)
             dt_max = min(dt_max, mat.AUTO_TRAVEL * d / float(launch.max()))
+
+        def auto_step():
+            return mat.auto_dt(omega_max, fps, steps_per_contact, law.duration_zeta(zeta_max),
+                               dt_max)
+
         if isinstance(dt, str):
             if dt != "auto":
                 raise SceneError(f"{where}: expected \"auto\" or seconds, got {dt!r}")
-            dt_v, spf = mat.auto_dt(omega_max, fps, steps_per_contact,
-                                    law.duration_zeta(zeta_max), dt_max)
+            dt_v, spf = auto_step()
         else:
             if not (dt > 0 and math.isfinite(dt)):
                 raise SceneError(f"{where}: dt must be positive seconds, got {dt!r}")
             if not force:
-                mat.check_dt(float(dt), omega_max, zeta_min, where, law)
+                try:        # the refusal advises the auto step, as `dempipe check` does
+                    auto = auto_step()
+                except StabilityError:
+                    auto = None
+                mat.check_dt(float(dt), omega_max, zeta_min, where, law, auto)
             spf = max(1, round((1.0 / fps) / dt))
             dt_v = 1.0 / fps / spf
             if abs(dt_v - dt) > 1e-9 * dt and abs(dt_v - dt) / dt > 0.01:

@@ -286,14 +286,45 @@ _STIFF_REFUSAL = ("simulation.dt: the auto step finds the contacts {what}: check
                   "second, about 9.81 m/s² and 0.01-0.1)")
 
 
-def check_dt(dt: float, omega_max: float, zeta_min: float, where: str, law=_law) -> None:
-    """Refuse a user dt above the critical step of the stiffest contact (``law``'s)."""
+#: The share of the critical step a user dt is advised to stay below: a body pressed
+#: by n partners at once adds their stiffnesses (ω grows as √n), so half the single
+#: contact's critical step stays stable on up to three (docs/stability.md).
+SAFE_SHARE = 0.5
+
+
+def advised_dt(limit: float, auto: float) -> float:
+    """The dt [s] a refusal of a user dt advises staying below: SAFE_SHARE of the
+    critical step ``limit`` [s], or the automatic step ``auto`` [s] where that is
+    longer and still below ``limit`` (a heavily damped contact's auto step can be),
+    so the advice never asks for a shorter step than dt "auto" takes. The one figure
+    materials.check_dt (the bake) and check.stability (the check) name."""
+    safe = SAFE_SHARE * limit
+    return auto if safe < auto < limit else safe
+
+
+def dt_fix(limit: float, auto: float, steps_per_frame: int) -> str:
+    """The fix for a user dt at or above the critical step ``limit`` [s], given the
+    automatic step ``auto`` [s] and its ``steps_per_frame``: the text the bake's
+    refusal and the check's finding share."""
+    return (f"use dt = \"auto\" ({auto:.3g} s here, {steps_per_frame} steps per frame), a "
+            f"dt below {advised_dt(limit, auto):.3g} s, or softer materials")
+
+
+def check_dt(dt: float, omega_max: float, zeta_min: float, where: str, law=_law,
+             auto: tuple[float, int] | None = None) -> None:
+    """Refuse a user dt above the critical step of the stiffest contact (``law``'s).
+
+    auto : (dt [s], steps per frame) of dt "auto" for the same scene, for the advice
+    (dt_fix); None where dt "auto" is refused itself (the advice is then SAFE_SHARE of
+    the critical step).
+    """
     if not contact_possible(omega_max):
         return
     limit = law.critical_step(omega_max, zeta_min)
     if dt >= limit:
+        fix = (dt_fix(limit, *auto) if auto is not None else
+               f"use a dt below {advised_dt(limit, 0.0):.3g} s, or softer materials")
         raise StabilityError(
             f"{where}: dt = {dt:.3g} s is above the critical step {limit:.3g} s of the "
-            f"stiffest contact (ω = {omega_max:.4g} rad/s); use dt = \"auto\", a dt below "
-            f"{limit / law.STEPS_PER_CONTACT * math.pi / 2:.3g} s, or softer materials"
+            f"stiffest contact (ω = {omega_max:.4g} rad/s); {fix}"
         )

@@ -7,6 +7,7 @@ the table. Models are tiny lattices (tests/bodies.py) so the suite stays fast.
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -603,3 +604,76 @@ def test_contact_table_columns_line_up_for_long_material_names():
     col = lines[head].index("k [N/m]")
     for row in rows:
         assert row[col - 1] == " " and row[col] != " ", (lines[head], row)
+
+
+def _advised(text):
+    """The "a dt below X s" of a refusal's fix [s]."""
+    found = re.search(r"a dt below ([0-9.e+-]+) s", text)
+    assert found, text
+    return float(found.group(1))
+
+
+@pytest.mark.parametrize("law", ["linear", "hertz"])
+@pytest.mark.parametrize("e", [0.0, 0.3, 0.9])
+def test_refused_dt_advice_is_one_figure_between_auto_and_critical(law, e):
+    # The bake's refusal (finalize → materials.check_dt) and the check's finding name
+    # the same dt to stay below: at least the automatic step (advice never asks for a
+    # shorter step than "auto" takes) and below the critical step. At e = 0 the
+    # linear law's auto step is past half the critical step: the advice is the auto step.
+    b = ball_on_plane(e=e)
+    auto = b.finalize(fps=100, n_frames=2, contact_law=law)
+    crit = st.analyze(auto).critical_dt
+    with pytest.raises(StabilityError) as info:
+        b.finalize(fps=100, n_frames=2, dt=2.0 * crit, contact_law=law)
+    said = str(info.value)
+    r = st.analyze(auto, dt=2.0 * crit, dt_setting=2.0 * crit, refused=said)
+    f = [f for f in r.findings if f.code == "dt-above-critical"][0]
+    advised = mat.advised_dt(crit, auto.dt)
+    assert _advised(said) == _advised(f.fix) == float(f"{advised:.3g}")
+    assert auto.dt <= advised < crit
+    assert f"({auto.dt:.3g} s here" in said and f"({auto.dt:.3g} s here" in f.fix
+
+
+BOX_ON_PLANE = """
+[output]
+fps = 24
+duration = 2.0
+[simulation]
+resolution = 4
+dt = {dt}
+[shapes.box]
+builtin = "box"
+[[bodies]]
+name = "b"
+shape = "box"
+layout = "single"
+position = [0.0, 0.0, 0.1]
+[[colliders]]
+type = "plane"
+"""
+
+
+def test_bake_and_check_advise_the_same_dt_for_a_box_on_a_plane(tmp_path):
+    # dt = 0.1 s over a plane: `dempipe bake` refuses and `dempipe check` reports it,
+    # with one advised dt, half the critical step here (above the auto step)
+    import dempipe
+    from dempipe.scene.build import Overrides, build_model
+    from dempipe.scene.load import load_scene
+    from dempipe.spheres.cache import SphereCache
+
+    cache = SphereCache(tmp_path / "cache")
+    path = tmp_path / "box.toml"
+    path.write_text(BOX_ON_PLANE.format(dt="0.1"))
+    r = analyze_scene(path, cache=cache)
+    f = [f for f in r.findings if f.code == "dt-above-critical"][0]
+    with pytest.raises(StabilityError) as info:
+        dempipe.bake(path, tmp_path / "box.usdc", device="cpu", cache=cache)
+    advised = _advised(str(info.value))
+    assert advised == _advised(f.fix)
+    auto = build_model(load_scene(path), cache=cache, overrides=Overrides(dt="auto"))
+    assert auto.dt <= advised < r.critical_dt
+    assert advised == float(f"{r.critical_dt * mat.SAFE_SHARE:.3g}")
+    # a dt just below the advice passes both
+    path.write_text(BOX_ON_PLANE.format(dt=f"{1.0 / 24 / math.ceil(1 / 24 / advised):.9g}"))
+    assert not [f for f in analyze_scene(path, cache=cache).findings if f.level == "error"]
+    build_model(load_scene(path), cache=cache)
