@@ -177,9 +177,9 @@ class StabilityReport:
             f"spheres), {self.static_bodies} static mesh colliders ({self.static_spheres:,} "
             f"spheres); diameter {self.diameter * 1e3:.3g} mm")
         lines.append(
-            f"  memory       ≈ {_mib(mem['total'])} (model {_mib(mem['model'])}, CPU scratch "
-            f"{_mib(mem['cpu_scratch'])}, state {_mib(mem['state'])}, frames "
-            f"{_mib(mem['frames'])})")
+            f"  memory       ≈ {_size(mem['total'])} (model {_size(mem['model'])}, CPU scratch "
+            f"{_size(mem['cpu_scratch'])}, state {_size(mem['state'])}, frames "
+            f"{_size(mem['frames'])})")
         spf = f"{self.steps_per_frame:,} steps per frame" if self.steps_per_frame else \
             "refused"
         lines.append(
@@ -236,8 +236,12 @@ class StabilityReport:
         return "\n".join(lines)
 
 
-def _mib(n: int) -> str:
-    return f"{n / 2**20:.1f} MiB" if n >= 2**20 else f"{n / 1024:.1f} KiB"
+def _size(n: int) -> str:
+    """``n`` bytes in the largest binary unit that keeps a number at least 1 (KiB to PiB)."""
+    for unit, shift in (("PiB", 50), ("TiB", 40), ("GiB", 30), ("MiB", 20)):
+        if n >= 2**shift:
+            return f"{n / 2**shift:.1f} {unit}"
+    return f"{n / 1024:.1f} KiB"
 
 
 def _s(x: float) -> str:

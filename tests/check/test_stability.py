@@ -677,3 +677,11 @@ def test_bake_and_check_advise_the_same_dt_for_a_box_on_a_plane(tmp_path):
     path.write_text(BOX_ON_PLANE.format(dt=f"{1.0 / 24 / math.ceil(1 / 24 / advised):.9g}"))
     assert not [f for f in analyze_scene(path, cache=cache).findings if f.level == "error"]
     build_model(load_scene(path), cache=cache)
+
+
+def test_memory_is_shown_in_a_unit_that_fits():
+    # a duration of 1e12 s once printed "≈ 2746582031.3 MiB"
+    from dempipe.check.stability import _size
+    assert _size(512) == "0.5 KiB" and _size(3 * 2**20) == "3.0 MiB"
+    assert _size(5 * 2**30) == "5.0 GiB" and _size(2.6 * 2**40) == "2.6 TiB"
+    assert _size(2**55) == "32.0 PiB"
