@@ -36,6 +36,7 @@ BENCHMARKS = {
     "sleeping": (["--duration", "2"], []),
     "glue_cost": (["--duration", "1"], []),
     "sleeping_pile": (["--spheres", "25000", "--steps", "300"], []),
+    "asleep_frames": (["--repeat", "1"], []),
     "restitution_vs_dt": ([], []),
     "steps_per_contact": (["--quick", "--steps", "10"], []),
     "vs_bullet": (["--n", "256", "--duration", "1"], ["--n", "256,1024,4096"]),
