@@ -174,3 +174,68 @@ def quat_matrix(q) -> np.ndarray:
     first: an authored quatf (MassAPI principalAxes) need not be exactly unit."""
     q = np.asarray(q, float)
     return quat_to_matrix(q / np.linalg.norm(q))
+
+
+#: A collision Cube or Mesh is taken as an infinite ground plane (its top face) when
+#: it is flat (thickness at most this fraction of its shorter side: a DCC's ground
+#: "plane", a quad of no thickness, is) ...
+PLANE_FLATNESS = 0.1
+#: ... its top face is perpendicular to gravity to within this cosine ...
+PLANE_ALIGNMENT = 0.9999
+#: ... and it is at least this many times wider than the largest body.
+PLANE_WIDTH_BODIES = 10.0
+
+
+def stage_up(gravity, up_axis: str) -> np.ndarray:
+    """A stage's up, unit: against ``gravity``, or along ``up_axis`` ("Y" or "Z")
+    without gravity."""
+    g = float(np.linalg.norm(gravity))
+    return -np.asarray(gravity, dtype=np.float64) / g if g > 0 else np.eye(3)[
+        1 if up_axis == "Y" else 2]
+
+
+def cube_ground_top(W, size, mpu, up, biggest):
+    """(the centre of its top face [m], its width [m]) of a collision Cube of edge
+    ``size`` [stage units] and row-vector world matrix ``W`` that is a ground plane:
+    one face perpendicular to ``up`` (PLANE_ALIGNMENT), its thickness at most
+    PLANE_FLATNESS of its shorter side, and at least PLANE_WIDTH_BODIES times as wide as
+    ``biggest`` [m], the largest body; None otherwise."""
+    axes = W[:3, :3] * size                          # rows: the cube's edges, world
+    lengths = np.linalg.norm(axes, axis=1) * mpu
+    cos = np.abs(axes @ up) / (np.linalg.norm(axes, axis=1) + 1e-300)
+    k = int(np.argmax(cos))
+    if cos[k] < PLANE_ALIGNMENT:
+        return None
+    wide = np.delete(lengths, k)
+    if not (lengths[k] <= PLANE_FLATNESS * wide.min()
+            and wide.min() >= PLANE_WIDTH_BODIES * biggest):
+        return None
+    return W[3, :3] * mpu + up * 0.5 * lengths[k], float(wide.min())
+
+
+def mesh_ground_top(v, up, biggest, where):
+    """(its highest point [m], its width [m]) of a collision Mesh whose vertices ``v``
+    (world [m]) make a ground plane by a Cube's rules (cube_ground_top), measured along
+    ``up`` and across it along the points' own axes (a rotated quad counts its width):
+    a DCC's ground plane, a quad with no thickness, is one. None otherwise; a mesh of
+    no thickness along ``up`` that is too small raises SceneError naming ``where`` and
+    the rule: it encloses no volume to fill with spheres either."""
+    h = v @ up
+    thick = float(h.max() - h.min())
+    across = v - np.outer(h, up)
+    across = across - across.mean(axis=0)
+    _, _, vt = np.linalg.svd(across, full_matrices=False)
+    span = np.ptp(across @ vt[:2].T, axis=0)
+    wide = float(span.min())
+    if wide <= 0.0 or thick > PLANE_FLATNESS * wide:
+        return None
+    if wide < PLANE_WIDTH_BODIES * biggest:
+        if thick <= 1e-9 * wide:
+            raise SceneError(
+                f"{where}: a flat collision mesh ({float(span.max()):.3g} x {wide:.3g} m) "
+                f"encloses no volume to fill with spheres; dempipe takes one as a ground "
+                f"plane only when it is level and at least {PLANE_WIDTH_BODIES:g} times as "
+                f"wide as the largest body ({biggest:.3g} m): make it wider, or give it a "
+                f"thickness")
+        return None
+    return v[int(np.argmax(h))], wide

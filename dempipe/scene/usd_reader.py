@@ -55,11 +55,14 @@ from dempipe.scene.usd_stage import (
 )
 from dempipe.scene.usd_geometry import (
     MAX_COORDINATE,
+    cube_ground_top,
     gprim_mesh,
     matrix_array,
     quat_matrix,
     matrix_to_quat,
+    mesh_ground_top,
     polar,
+    stage_up,
 )
 from dempipe.sim.motion import Key, Motion
 
@@ -68,14 +71,6 @@ __all__ = ["UsdBody", "UsdShot", "load_usd_scene", "load_usd_settings"]
 #: Density of a body whose shapes have none (no MassAPI, no material density) [kg/m³]:
 #: water, as PhysX and Newton default.
 DEFAULT_DENSITY = 1000.0
-#: A collision Cube or Mesh is taken as an infinite ground plane (its top face) when
-#: it is flat (thickness at most this fraction of its shorter side: a DCC's ground
-#: "plane", a quad of no thickness, is) ...
-PLANE_FLATNESS = 0.1
-#: ... its top face is perpendicular to gravity to within this cosine ...
-PLANE_ALIGNMENT = 0.9999
-#: ... and it is at least this many times wider than the largest body.
-PLANE_WIDTH_BODIES = 10.0
 #: Duration baked when the stage has no time range [s].
 DEFAULT_DURATION = 4.0
 
@@ -687,10 +682,9 @@ class _Reader:
             self.ignored.append(f"collision shapes of an unread type ({prim.GetTypeName()}): "
                                 f"{prim.GetPath()}")
             return
-        if prim.GetTypeName() == "Cube" and self.cube_as_plane(prim, W, mat, name):
-            return
         v = (np.c_[mesh.vertices, np.ones(len(mesh.vertices))] @ W)[:, :3] * self.mpu
-        if prim.GetTypeName() == "Mesh" and self.mesh_as_plane(prim, v, mat, name):
+        if prim.GetTypeName() in ("Cube", "Mesh") and self.as_ground_plane(prim, W, v, mat,
+                                                                           name):
             return
         faces = np.asarray(mesh.faces)
         if np.linalg.det(W[:3, :3]) < 0:
@@ -709,70 +703,26 @@ class _Reader:
         self.colliders.append(PlaneCollider(point=tuple(point), normal=tuple(n),
                                             material=mat, name=name))
 
-    def _up(self) -> np.ndarray:
-        """The stage's up: against gravity, or its up axis without gravity."""
-        g = np.linalg.norm(self.gravity)
-        return -self.gravity / g if g > 0 else np.eye(3)[1 if self.up_axis == "Y" else 2]
-
-    def _biggest_body(self) -> float:
-        """The largest extent of any body's shape read so far [m]."""
-        return max((float(np.max(s.mesh.extents)) for s in self.shapes.values()),
-                   default=0.0)
-
-    def mesh_as_plane(self, prim, v, mat, name) -> bool:
-        """A collision Mesh that is level, flat and wide (the PLANE_* rules of a Cube: a
-        DCC's ground plane, a quad of no thickness) becomes a plane at its top; ``v``: its
-        vertices, world [m]. One flat along ``up`` that is too small is refused here,
-        naming the rules: it encloses no volume to fill with spheres."""
-        up = self._up()
-        h = v @ up
-        thick = float(h.max() - h.min())
-        across = v - np.outer(h, up)
-        across = across - across.mean(axis=0)
-        # its extents across up, along the flat cloud's own axes (a rotated quad too)
-        _, sv, vt = np.linalg.svd(across, full_matrices=False)
-        span = np.ptp(across @ vt[:2].T, axis=0)
-        wide = float(span.min())
-        if wide <= 0.0 or thick > PLANE_FLATNESS * wide:
-            return False
-        biggest = self._biggest_body()
-        if wide < PLANE_WIDTH_BODIES * biggest:
-            if thick <= 1e-9 * max(wide, 1e-300):
-                raise SceneError(
-                    f"{self.where(prim)}: a flat collision mesh ({float(span.max()):.3g} x "
-                    f"{wide:.3g} m) encloses no volume to fill with spheres; dempipe takes "
-                    f"one as a ground plane only when it is level and at least "
-                    f"{PLANE_WIDTH_BODIES:g} times as wide as the largest body "
-                    f"({biggest:.3g} m): make it wider, or give it a thickness")
-            return False
-        top = v[int(np.argmax(h))]
-        self.add_plane(top, up, mat, name)
-        self.notes.append(f"{self.where(prim)}: a flat mesh {wide:.3g} m wide taken as an "
-                          "infinite ground plane at its top")
-        return True
-
-    def cube_as_plane(self, prim, W, mat, name) -> bool:
-        """A huge flat cube facing up becomes a plane at its top face (PLANE_* rules)."""
+    def as_ground_plane(self, prim, W, v, mat, name) -> bool:
+        """A collision Cube or Mesh that is a ground plane (usd_geometry.cube_ground_top,
+        mesh_ground_top: huge, flat and level, as a DCC's ground quad is) becomes an
+        infinite plane at its top, said in a note; ``v``: its vertices, world [m]."""
         from pxr import UsdGeom
 
-        size = float(UsdGeom.Cube(prim).GetSizeAttr().Get())
-        axes = W[:3, :3] * size                          # rows: the cube's edges, world
-        lengths = np.linalg.norm(axes, axis=1) * self.mpu
-        up = self._up()
-        cos = np.abs(axes @ up) / (np.linalg.norm(axes, axis=1) + 1e-300)
-        k = int(np.argmax(cos))
-        if cos[k] < PLANE_ALIGNMENT:
+        up = stage_up(self.gravity, self.up_axis)
+        biggest = max((float(np.max(s.mesh.extents)) for s in self.shapes.values()),
+                      default=0.0)
+        kind = prim.GetTypeName()
+        if kind == "Cube":
+            size = float(UsdGeom.Cube(prim).GetSizeAttr().Get())
+            got = cube_ground_top(W, size, self.mpu, up, biggest)
+        else:
+            got = mesh_ground_top(v, up, biggest, self.where(prim))
+        if got is None:
             return False
-        wide = np.delete(lengths, k)
-        biggest = self._biggest_body()
-        if not (lengths[k] <= PLANE_FLATNESS * wide.min()
-                and wide.min() >= PLANE_WIDTH_BODIES * biggest):
-            return False
-        centre = W[3, :3] * self.mpu
-        top = centre + up * 0.5 * lengths[k]
-        self.add_plane(top, up, mat, name)
-        self.notes.append(f"{self.where(prim)}: a flat cube {wide.min():.3g} m wide taken as "
-                          "an infinite ground plane at its top face")
+        self.add_plane(got[0], up, mat, name)
+        self.notes.append(f"{self.where(prim)}: a flat {kind.lower()} {got[1]:.3g} m wide "
+                          "taken as an infinite ground plane at its top")
         return True
 
 
