@@ -77,3 +77,18 @@ def nothing_moves(model, sleeping: bool, drive, body_rest, step: int) -> bool:
     kinematic = np.asarray(model.body_inv_mass)[:n] == 0.0
     still = np.where(kinematic, rest >= 0, rest >= sleep_steps)
     return bool(np.all(still | (np.asarray(drive.body_start)[:n] > step)))
+
+
+def skip_idle_call(backend, state, n_steps: int, prescribed: bool) -> bool:
+    """Skip ``n_steps`` steps of ``state`` when nothing_moves says they change nothing
+    (and ``backend.skip_idle``, and no Control prescribed poses this call): the State's
+    step and time advance, counted in ``backend.steps_skipped``. Whether it did.
+    Both backends ask it before each call's piece of steps."""
+    if not backend.skip_idle or prescribed or not nothing_moves(
+            backend.model, backend.features.sleeping, backend.drive, state.body_rest,
+            int(state.step)):
+        return False
+    state.step += n_steps
+    state.time = state.step * backend.model.dt
+    backend.steps_skipped += n_steps
+    return True

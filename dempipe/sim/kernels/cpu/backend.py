@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from dempipe.sim.control import drive, split_at
-from dempipe.sim.backend import copy_matching, nothing_moves
+from dempipe.sim.backend import copy_matching, skip_idle_call
 from dempipe.sim.kernels.cpu.broadphase import (
     BROADPHASE_SPHERES, body_bounds, stage_near_others)
 from dempipe.sim.kernels.cpu.grid import (
@@ -122,12 +122,7 @@ class CpuBackend:
             control.apply(state)
         # an emitter's start step begins a call (whose first step rebuilds the lists)
         for n in split_at(int(state.step), int(n_steps), self._starts):
-            if self.skip_idle and not prescribed and nothing_moves(
-                    self.model, self.features.sleeping, self.drive, state.body_rest,
-                    int(state.step)):
-                state.step += n
-                state.time = state.step * self.model.dt
-                self.steps_skipped += n
+            if skip_idle_call(self, state, n, prescribed):
                 continue
             self._advance(state, n)
 

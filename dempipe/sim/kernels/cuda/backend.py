@@ -43,7 +43,7 @@ from dempipe.sim.control import drive, split_at
 from dempipe.errors import DeviceError
 from dempipe.sim.laws.linear import DAMP_TERMS
 from dempipe.sim.state import CONTACT_SLOTS
-from dempipe.sim.backend import copy_matching, nothing_moves
+from dempipe.sim.backend import copy_matching, skip_idle_call
 from dempipe.sim.kernels.compile import compile_contacts, compile_formulas, compile_glue
 from dempipe.sim.kernels.pairing import PAIR_COLS, WALL_SLACK, inscribed_reach
 from dempipe.sim.kernels.patches import BODY_PATCHES
@@ -678,12 +678,7 @@ class CudaBackend:
         # an emitter's start step begins a call (whose first step rebuilds the lists)
         for n in split_at(int(state.step), int(n_steps), self._starts):
             # (the host's rest counts are the resident State's: download after each call)
-            if self.skip_idle and not prescribed and nothing_moves(
-                    self.model, self.features.sleeping, self.drive, state.body_rest,
-                    int(state.step)):
-                state.step += n
-                state.time = state.step * self.model.dt
-                self.steps_skipped += n
+            if skip_idle_call(self, state, n, prescribed):
                 continue
             self._advance(state, n)
 
