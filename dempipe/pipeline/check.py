@@ -5,6 +5,8 @@ the scene's keys can name (an open mesh, a body behind a plane) is added."""
 
 from __future__ import annotations
 
+import warnings
+
 from dataclasses import replace
 from pathlib import Path
 
@@ -43,8 +45,6 @@ def analyze_scene(path, cache=None, simulation: dict | None = None) -> Stability
     with dt = "auto" (the sphere sets come from the cache) and the refusal becomes
     an error finding. Scene and mesh errors propagate (DempipeError).
     """
-    import warnings
-
     # the sphere builder's warning of an open mesh: a finding here (open_mesh_findings),
     # naming the key and the fix, not a second line
     with warnings.catch_warnings():
