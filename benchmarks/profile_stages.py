@@ -41,7 +41,6 @@ sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 from cpu_bench import dense_pile  # noqa: E402
 
 from dempipe.sim.kernels.cpu import stages as cpu  # noqa: E402
-from dempipe.sim.kernels.cpu.device import inscribed_reach  # noqa: E402
 from dempipe.sim.kernels.layout import BodyScratch, body_model, glue_scratch  # noqa: E402
 from dempipe.sim.kernels.neighbours import SKIN, cell_size  # noqa: E402
 from dempipe.sim.simulator import Simulator  # noqa: E402
@@ -145,8 +144,8 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                              m.wall_depth, b.wall_mask, b.wall_start,
                                              hp.shape[1] if fr else 0, b.wall_s.shape[0],
                                              b.drive.wall_motion, b.sorted_body,
-                                             b.drive.body_start, s,
-                                             inscribed_reach(m.sphere_inscribed))),
+                                             b.drive.body_start, s, b.sorted_idx,
+                                             m.sphere_inscribed)),
             find_busy,
             lambda: fr and rows_to_pairs(s),
         )

@@ -41,7 +41,7 @@ from dempipe.sim.model import (
     rotational_mass_factor,
     sleep_defaults,
 )
-from dempipe.spheres.inscribed import COLUMNS, wall_tori
+from dempipe.spheres.inscribed import COLUMNS, COVERED, all_own, wall_tori
 from dempipe.spheres.sphere_set import surface_mask
 
 if TYPE_CHECKING:  # spheres imports numba; the model only needs the type
@@ -128,9 +128,8 @@ class ModelBuilder:
         inscribed = wall_tori(centers, self.diameter, verts, mesh.faces,
                               surface="surface" in getattr(sphere_set, "notes", ()),
                               cache=self.cache)
-        own = 0.5 * self.diameter
-        inscribed = frozen(inscribed) if (np.any(inscribed[:, :3] != 0.0)
-                                          or np.any(inscribed[:, 10] != own)) else None
+        inscribed = frozen(inscribed) if (not all_own(inscribed, self.diameter)
+                                          or np.any(inscribed[:, COVERED] != 0.0)) else None
         self._shapes.append(ShapeInstance(name, frozen(verts), frozen(mesh.faces, np.int32),
                                           frozen(com), sphere_set, centers, inside,
                                           inscribed))

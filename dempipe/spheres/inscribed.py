@@ -69,10 +69,21 @@ REACH = 0.05
 #: Columns of a sphere's row (inscribed_tori): the vector from the sphere's centre to
 #: the torus's centre (3), its axis (3), the direction from its centre to the tube's
 #: centre under the sphere (3), the circle's radius a, the tube's radius b, how much
-#: deeper than the sphere's own its wall contact may be [m], and a band's height H
-#: [m]: a rim's ring (b = 0) swept H along its axis, a band between two rims closer
-#: than d (a chess piece's plinth), 0 elsewhere.
-COLUMNS = 13
+#: deeper than the sphere's own its wall contact may be [m], a band's height H [m]: a
+#: rim's ring (b = 0) swept H along its axis, a band between two rims closer than d (a
+#: chess piece's plinth), 0 elsewhere; and 1 where the sphere meets no wall, its
+#: neighbours reaching every wall first (wall_cover), 0 elsewhere.
+COLUMNS = 14
+#: The column that leaves a sphere out of wall contacts (wall_cover).
+COVERED = 13
+def all_own(rows, diameter: float) -> bool:
+    """Whether every row of ``rows`` (COLUMNS) is its sphere's own ball, radius d/2 at
+    its centre: no torus, nothing a wall contact needs the table for (the contact
+    kernels are compiled without contacts.inscribed_wall); column COVERED may still
+    leave spheres out of walls."""
+    return not (np.any(rows[:, 0:3] != 0.0) or np.any(rows[:, 10] != 0.5 * diameter))
+
+
 #: A circle larger than this many times the shape's largest extent is a straight line
 #: to the contact: the sphere takes a ball instead.
 CIRCLE_MAX_SHARE = 4.0
@@ -84,13 +95,14 @@ MEMO_SIZE = 32
 _MEMO: dict = {}
 #: The fit's version, in the disk cache's keys: a change to what the functions below
 #: compute changes it, and old entries are never read.
-TORI_VERSION = 8
+TORI_VERSION = 9
 
 
 def wall_tori(centers, diameter: float, vertices, faces, *, surface: bool,
               cache=None) -> np.ndarray:
     """What each sphere of a set meets walls through: inscribed_tori for a surface set's
-    ``centers``, lattice_tori for a lattice's (body frame [m]); read-only, remembered
+    ``centers``, with the spheres its neighbours cover left out (wall_cover), lattice_tori
+    for a lattice's (body frame [m]); read-only, remembered
     for the process by the bytes of every input (MEMO_SIZE sets) and, with ``cache`` (a
     spheres.cache.SphereCache), on disk beside the sphere sets: a scene built again
     (`dempipe check` after a bake) fits nothing and loads no numba."""
@@ -111,6 +123,8 @@ def wall_tori(centers, diameter: float, vertices, faces, *, surface: bool,
             rows = got["rows"].astype(np.float64)
     if rows is None:
         rows = (inscribed_tori if surface else lattice_tori)(c, diameter, v, f)
+        if surface:
+            rows[:, COVERED] = wall_cover(c, rows, diameter)
         if cache is not None:
             cache.put_arrays(key, {"rows": rows})
     if key not in _MEMO:
@@ -210,6 +224,104 @@ def inscribed_tori(centers, diameter: float, vertices, faces, *,
     out[rows, 6:9] = np.where(ring[grow, None], normal[grow], 0.0)
     out[rows, 9] = a[grow]
     out[rows, 10] = b[grow]
+    return out
+
+
+#: wall_cover: the spacing [d] of the spheres it tries to keep; a sphere is left out
+#: where those within twice that reach every wall within WALL_TOLERANCE [d] of as deep
+#: as it does, in each of WALL_DIRECTIONS directions over the sphere and the rings of
+#: directions WALL_CONE round its normal.
+WALL_SPACING = 0.6
+WALL_TOLERANCE = 0.002
+WALL_DIRECTIONS = 256
+#: Tilts [rad] of the rings of directions round each sphere's normal wall_cover tests.
+WALL_CONE = np.radians([2.0, 4.0, 6.0, 9.0, 13.0, 18.0, 25.0])
+
+
+def wall_cover(centers, rows, diameter: float) -> np.ndarray:
+    """(N,) 1.0 for each sphere of a surface set (``centers`` body frame [m], ``rows``
+    their inscribed_tori) that never meets a wall first, 0.0 for the rest.
+
+    A shell 0.3 d apart is as fine as rolling between bodies needs, but a wall sees
+    only its envelope, which sparser spheres and their tori follow as well where the
+    surface is flat or gently curved: a face standing on the floor would otherwise
+    test every sphere under it at every step. Each sphere reaches a wall lying in
+    direction u as far as its contact does (contacts.inscribed_wall): its torus's
+    support t·u + a |u × axis| + b, at most its own sphere's c·u + r plus its reach.
+    Spheres are kept greedily, in the set's order, WALL_SPACING d apart; a sphere not
+    kept is left out where a kept one within 2 WALL_SPACING d reaches within
+    WALL_TOLERANCE d of as far in every direction tested: WALL_DIRECTIONS about the
+    sphere, and where its reach peaks, its surface normal and WALL_CONE rings round it.
+    So the envelope walls meet moves by at most about that, and a finite wall (a box's
+    face) still finds a sphere at least every 2 WALL_SPACING d, finer than a lattice's
+    d. Where neighbours fall short the spheres stay: the corners of a polygonised edge
+    (a rim, which a fit gives no torus), a small ball's tori past their reach."""
+    from scipy.spatial import cKDTree
+
+    c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+    d = float(diameter)
+    n = c.shape[0]
+    out = np.zeros(n)
+    if n < 2:
+        return out
+    tree = cKDTree(c)
+    kept = np.zeros(n, dtype=bool)
+    near = np.zeros(n, dtype=bool)
+    for i in range(n):
+        if not near[i]:
+            kept[i] = True
+            near[tree.query_ball_point(c[i], WALL_SPACING * d)] = True
+    pairs = tree.query_pairs(2.0 * WALL_SPACING * d, output_type="ndarray")
+    pairs = np.concatenate([pairs, pairs[:, ::-1]])
+    # a sphere that is its own ball peaks away from its neighbours (a polygon's corner)
+    mean = np.zeros((n, 3))
+    np.add.at(mean, pairs[:, 0], c[pairs[:, 1]])
+    away = c - mean / np.maximum(np.bincount(pairs[:, 0], minlength=n), 1)[:, None]
+    pairs = pairs[kept[pairs[:, 1]] & ~kept[pairs[:, 0]]]
+    if pairs.shape[0] == 0:
+        return out
+    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    first = np.flatnonzero(np.r_[True, pairs[1:, 0] != pairs[:-1, 0]])
+    who = pairs[first, 0]
+    # the directions: a spiral over the sphere, then each candidate's own normal (from
+    # its tube's centre under it, or away from its neighbours where its row is its own
+    # ball) and rings round it
+    k = np.arange(WALL_DIRECTIONS) + 0.5
+    z = 1.0 - 2.0 * k / WALL_DIRECTIONS
+    turn = np.pi * (1.0 + np.sqrt(5.0)) * k
+    spiral = np.column_stack([np.sqrt(1.0 - z * z) * np.cos(turn),
+                              np.sqrt(1.0 - z * z) * np.sin(turn), z])
+    normal = -(rows[who, 0:3] + rows[who, 9, None] * rows[who, 6:9])
+    normal = np.where(np.any(normal != 0.0, axis=1)[:, None], normal, away[who])
+    size = np.linalg.norm(normal, axis=1)
+    normal = np.where(size[:, None] > 0.0, normal / np.where(size > 0.0, size, 1.0)[:, None],
+                      [[0.0, 0.0, 1.0]])
+    pick = np.where(np.abs(normal[:, 0:1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    e1 = np.cross(normal, pick)
+    e1 /= np.linalg.norm(e1, axis=1)[:, None]
+    e2 = np.cross(normal, e1)
+    local = [normal]
+    for tilt in WALL_CONE:
+        for phi in np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False):
+            local.append(np.cos(tilt) * normal + np.sin(tilt) * (
+                np.cos(phi) * e1 + np.sin(phi) * e2))
+    local = np.stack(local, axis=1)                     # (candidates, L, 3)
+    group = np.repeat(np.arange(who.size), np.diff(np.r_[first, pairs.shape[0]]))
+
+    def reach(i, u):                                    # rows i along directions u (.., 3)
+        au = np.einsum("...j,...kj->...k", rows[i, 3:6], u)
+        return np.minimum(
+            np.einsum("...j,...kj->...k", c[i] + rows[i, 0:3], u)
+            + rows[i, 9, None] * np.sqrt(np.clip(1.0 - au * au, 0.0, None))
+            + rows[i, 10, None],
+            np.einsum("...j,...kj->...k", c[i], u) + 0.5 * d + rows[i, 11, None])
+
+    ok = np.ones(who.size, dtype=bool)
+    for u, own in ((spiral[None], False), (local, True)):
+        dirs = u[group] if own else u
+        best = np.maximum.reduceat(reach(pairs[:, 1], dirs), first, axis=0)
+        ok &= np.all(best >= reach(who, u if own else u) - WALL_TOLERANCE * d, axis=1)
+    out[who[ok]] = 1.0
     return out
 
 

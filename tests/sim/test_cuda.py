@@ -36,6 +36,7 @@ import pytest
 from cudasim import cuda_env, simulator_results
 
 from dempipe.sim.kernels.layout import grid_table
+from dempipe.spheres.inscribed import COVERED
 
 # the simulator runs every thread of a launch in Python: minutes, so not in the fast tier
 pytestmark = pytest.mark.slow
@@ -213,16 +214,18 @@ def inscribed_ball_model():
     return b.finalize(fps=1.0 / (8 * 5e-5), n_frames=3, dt=5e-5, sleep=None)
 
 
-def _tipped_model(mesh, d, name, stiffness, speed):
-    """``mesh`` as a lattice of diameter ``d``, tipped 30° about x onto the plane z = 0
-    and set moving at ``speed`` along x and turning (wood of ``stiffness`` [N/m])."""
+def _tipped_model(mesh, d, name, stiffness, speed, mode="lattice"):
+    """``mesh`` as a sphere set of diameter ``d`` (``mode``), tipped 30° about x onto the
+    plane z = 0 and set moving at ``speed`` along x and turning (wood of ``stiffness``
+    [N/m])."""
     from scipy.spatial.transform import Rotation
 
     from dempipe.sim.builder import ModelBuilder
     from dempipe.sim.materials import Material
+    from dempipe.spheres.options import BuildOptions
     from dempipe.spheres.sphere_set import build_sphere_set
 
-    ss = build_sphere_set(mesh, d, name=name)
+    ss = build_sphere_set(mesh, d, name=name, options=BuildOptions(mode=mode))
     b = ModelBuilder(d, gravity=(0.0, 0.0, -9.81))
     s = b.add_shape(name, mesh, ss)
     m = b.add_material(Material("wood", density=700.0, restitution=0.5, friction=0.9,
@@ -253,6 +256,16 @@ def band_model():
     from dempipe.mesh.shapes import build_shape
 
     return _tipped_model(build_shape("pawn"), 0.05 / 12, "cuda-pawn", 2e4, 0.05)
+
+
+def covered_box_model():
+    """A cube 0.1 m across, a surface set 8 spheres across, tipped 30° onto an edge and
+    set turning: most spheres of its flat faces meet no wall, their neighbours covering
+    them (spheres/inscribed.py wall_cover)."""
+    from dempipe.mesh.shapes import build_shape
+
+    return _tipped_model(build_shape("box", size=(0.1, 0.1, 0.1)), 0.0125, "cuda-box",
+                         2e5, 0.1, mode="surface")
 
 
 # ---------------------------------------------------------------------------
@@ -507,6 +520,17 @@ def _sim_main() -> dict:
                          for n in ("x", "q", "v", "w")),
     }
 
+    # a surface box tipped onto an edge: the spheres its neighbours cover meet no wall
+    box = covered_box_model()
+    c_cpu = Simulator(box, device="cpu").advance(box.initial_state())
+    c_cu = Simulator(box, device="cuda").advance(box.initial_state())
+    out["covered"] = {
+        "covered": int(np.count_nonzero(box.sphere_inscribed[:, COVERED])),
+        "spheres": int(box.sphere_inscribed.shape[0]),
+        "identical": all(np.array_equal(getattr(c_cu, n), getattr(c_cpu, n))
+                         for n in ("x", "q", "v", "w")),
+    }
+
     # the whole Simulator path on device="cuda": a few steps per frame
     fast = contact_model(fps=1.0 / (4 * model.dt), n_frames=4)
     f_cpu = Simulator(fast, device="cpu")
@@ -589,6 +613,14 @@ def test_sim_inscribed_wall_contacts_are_bit_identical_to_cpu(sim):
     s = sim["inscribed"]
     assert s["balls"] > 50
     assert s["rolled"] > 0.0
+    assert s["identical"]
+
+
+def test_sim_covered_spheres_are_left_out_alike_on_both_targets(sim):
+    # a surface box tipped onto its edge: the spheres of its faces that their neighbours
+    # cover meet no wall, on both targets (pairing.wall_reach)
+    s = sim["covered"]
+    assert s["covered"] > s["spheres"] // 3
     assert s["identical"]
 
 

@@ -74,13 +74,12 @@ def compile_slot_store(jit) -> types.SimpleNamespace:
 
 
 def compile_pairing(jit, formulas) -> types.SimpleNamespace:
-    """pairing.py's bookkeeping (entry_range, inscribed_reach, wall_reach, owns, pair_count,
+    """pairing.py's bookkeeping (entry_range, wall_reach, owns, pair_count,
     pair_slots, pair_mirror, walls_to_front, wall_column, rows_to_pairs,
     pairs_to_rows), each compiled with ``jit``, calling ``formulas`` (the target's
     compile_formulas); they read no flags, so they need no variants."""
-    return compile_chain(pairing, ("entry_range", "inscribed_reach", "wall_reach", "owns", "pair_count",
-                                    "pair_slots",
-                                    "pair_mirror", "walls_to_front", "wall_column",
+    return compile_chain(pairing, ("entry_range", "wall_reach", "owns", "pair_count",
+                                    "pair_slots", "pair_mirror", "walls_to_front", "wall_column",
                                     "rows_to_pairs", "pairs_to_rows"), jit,
                          dict(history_recall=formulas.history_recall,
                               static_body=formulas.static_body))

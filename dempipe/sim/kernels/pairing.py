@@ -14,6 +14,8 @@ Plain functions, compiled with each target's formulas by compile.compile_pairing
 they read no feature flag, so they need no variants.
 """
 
+from dempipe.spheres.inscribed import COVERED
+
 #: ``pidx`` of a list entry whose partner's list does not hold it back. Cannot
 #: happen (lists are symmetric: the same distance, cells and keys from either
 #: side), but a pair that was found from one side only is at the lists' reach,
@@ -64,22 +66,17 @@ RING_TIE = 1e-6
 RIM_TIE = 0.01
 
 
-def inscribed_reach(sphere_inscribed) -> float:
-    """How much deeper [m] than its own sphere any sphere's inscribed torus may touch
-    a wall (column 11 of the Model's sphere_inscribed, spheres/inscribed.py; 0 without
-    tori): a model with tori marks the walls this much further at each rebuild
-    (wall_reach's margin), so that no torus touches a wall its sphere has not marked."""
-    reach = 0.0
-    for i in range(sphere_inscribed.shape[0]):
-        if sphere_inscribed[i, 11] > reach:
-            reach = sphere_inscribed[i, 11]
-    return reach
+def wall_reach(s, i, radius, margin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
+               wall_depth, wall_motion, sphere_inscribed, wall_mask):
+    """At a rebuild: wall_mask[s] gets bit w for each wall w that slot s (sphere i) may
+    touch before the next rebuild (-1: every wall, when there are more than WALL_BITS;
+    0 for a sphere its neighbours cover, row i of ``sphere_inscribed`` saying so in
+    column COVERED: spheres/inscribed.py wall_cover).
 
-
-def wall_reach(s, radius, margin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
-               wall_depth, wall_motion, wall_mask):
-    """At a rebuild: wall_mask[s] gets bit w for each wall w that slot s may touch
-    before the next rebuild (-1: every wall, when there are more than WALL_BITS).
+    A sphere whose row is a torus (spheres/inscribed.py: offset from the sphere or a
+    ring) may touch a wall up to its reach (column 11) deeper than its own sphere
+    (contacts.inscribed_wall), so it marks walls that much further; a row that is a
+    ball at the sphere's centre, of radius at most r, reaches no deeper than the sphere.
 
     A sphere moves less than SKIN/2 d between rebuilds, so a wall farther than
     that (``margin`` [m], with slack) beyond the contact test of sphere_forces
@@ -87,6 +84,13 @@ def wall_reach(s, radius, margin, sorted_x, wall_normal, wall_offset, wall_lo, w
     spheres are far from every wall: their step skips the walls altogether.
     A moving wall (wall_motion ≥ 0) may come to any sphere: always marked."""
     n_walls = wall_normal.shape[0]
+    if sphere_inscribed.shape[0] > 0:
+        if sphere_inscribed[i, COVERED] != 0.0:
+            wall_mask[s] = 0
+            return
+        if (sphere_inscribed[i, 0] != 0.0 or sphere_inscribed[i, 1] != 0.0
+                or sphere_inscribed[i, 2] != 0.0 or sphere_inscribed[i, 9] != 0.0):
+            margin += sphere_inscribed[i, 11]
     if n_walls > WALL_BITS:
         wall_mask[s] = -1
         return

@@ -7,10 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from dempipe.sim.control import drive, split_at
 from dempipe.sim.backend import copy_matching, skip_idle_call
+from dempipe.sim.control import drive, split_at
 from dempipe.sim.kernels.cpu.broadphase import (
-    BROADPHASE_SPHERES, body_bounds, stage_near_others)
+    BROADPHASE_SPHERES,
+    body_bounds,
+    stage_near_others,
+)
 from dempipe.sim.kernels.cpu.grid import (
     stage_grid_gather,
     stage_grid_sort,
@@ -19,6 +22,7 @@ from dempipe.sim.kernels.cpu.grid import (
     stage_rows_to_pairs,
     stage_wall_reach,
 )
+from dempipe.sim.kernels.cpu.spheres import stage_listed_from
 from dempipe.sim.kernels.cpu.stages import (
     KEEP_MOVE,
     KEEP_SLOTS_SHARE,
@@ -26,8 +30,6 @@ from dempipe.sim.kernels.cpu.stages import (
     kernels,
     stage_busy,
 )
-from dempipe.sim.kernels.cpu.device import inscribed_reach
-from dempipe.sim.kernels.cpu.spheres import stage_listed_from
 from dempipe.sim.kernels.layout import (
     ContactScratch,
     StepState,
@@ -45,6 +47,7 @@ from dempipe.sim.kernels.layout import (
 )
 from dempipe.sim.kernels.neighbours import SKIN, cell_size, skin_range
 from dempipe.sim.kernels.pairing import LIST_COLS, PAIR_COLS
+from dempipe.spheres.inscribed import all_own
 
 
 class CpuBackend:
@@ -65,7 +68,7 @@ class CpuBackend:
         self.features = scene_features(model, features)
         self.flags = run_flags(self.features, specialize)
         self.k = kernels(self.flags, model.contact_law, glue=model.n_bonds > 0,
-                         inscribed=model.sphere_inscribed.shape[0] > 0)
+                         inscribed=not all_own(model.sphere_inscribed, model.diameter))
         #: The glue bonds as the kernels read them (layout.GlueModel).
         self.glue_model = glue_model(model)
         # every array, by name (layout.cpu_scratch: what memory_estimate counts and a
@@ -233,7 +236,7 @@ class CpuBackend:
                                    self.hist_partner.shape[1] if self.features.friction else 0,
                                    self.wall_s.shape[0], self.drive.wall_motion,
                                    self.sorted_body, self.drive.body_start,
-                                   int(state.step), inscribed_reach(m.sphere_inscribed)) > 0):
+                                   int(state.step), self.sorted_idx, m.sphere_inscribed) > 0):
             self.grow_neighbours()
         self.sphere_overlap[:] = 0.0
         partner, spring = self.contacts(state)

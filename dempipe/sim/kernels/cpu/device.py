@@ -48,7 +48,6 @@ sqrt = np.sqrt
 P = compile_pairing(numba.njit(inline="always", cache=False), F)
 entry_range = P.entry_range
 wall_reach = P.wall_reach
-inscribed_reach = P.inscribed_reach
 owns = P.owns
 pair_count = P.pair_count
 pair_slots = P.pair_slots

@@ -326,18 +326,19 @@ def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, 
 @numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_wall_reach(diameter, skin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
                      wall_depth, wall_mask, wall_start, cap, rows, wall_motion, sorted_body,
-                     body_start, step, inscribed_reach):
+                     body_start, step, sorted_idx, sphere_inscribed):
     """At a rebuild: each slot's walls within reach until the next (contacts.wall_reach),
     for lists of reach (1 + skin) d, and its packed wall rows (contacts.py WALL_ROWS):
     wall_start[s] .. wall_start[s + 1] - 1, one per marked wall up to the ``cap``
     columns of a history row (none for a mask of -1: those search the row). A
     prefix sum, serial: a fixed order. Returns 0, or the rows needed when that is
     more than ``rows`` (the caller grows wall_s)."""
-    margin = WALL_SLACK * 0.5 * skin * diameter + inscribed_reach
+    margin = WALL_SLACK * 0.5 * skin * diameter
     n = sorted_x.shape[0]
     for s in prange(n):
-        wall_reach(s, 0.5 * diameter, margin, sorted_x, wall_normal, wall_offset, wall_lo,
-                   wall_hi, wall_depth, wall_motion, wall_mask)
+        wall_reach(s, sorted_idx[s], 0.5 * diameter, margin, sorted_x, wall_normal,
+                   wall_offset, wall_lo, wall_hi, wall_depth, wall_motion, sphere_inscribed,
+                   wall_mask)
         if body_start[sorted_body[s]] > step:
             wall_mask[s] = 0                # not emitted yet: no wall either
     wall_start[0] = 0

@@ -25,7 +25,7 @@ from dempipe.sim.kernels.layout import (
 from dempipe.sim.kernels.contacts import CONTACT_CHUNK
 from dempipe.sim.kernels.neighbours import SKIN_GROW_BELOW, SKIN_SHRINK_ABOVE
 from dempipe.sim.kernels.cpu.broadphase import stage_near_others
-from dempipe.sim.kernels.cpu.device import adapt_skin, inscribed_reach, shrink_skin, static_body
+from dempipe.sim.kernels.cpu.device import adapt_skin, shrink_skin, static_body
 from dempipe.sim.kernels.cpu.spheres import (
     listed_end, sphere_state, stage_body_velocities, stage_driven, stage_listed_from,
     stage_motion, stage_note_built, stage_spheres, stage_spheres_busy, stage_spheres_sorted)
@@ -433,7 +433,6 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
     since = skin_ctl[1]
     inv_cell = 1.0 / ((1.0 + skin) * diameter)     # neighbours.cell_size, at this skin
     half_skin = 0.5 * skin * diameter
-    torus_reach = inscribed_reach(sphere_inscribed)
     rebuild = True
     moved = False
     computed = 0
@@ -573,7 +572,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
                                                 hist_partner.shape[1] if FRICTION and friction
                                                 else 0, wall_s.shape[0], drive.wall_motion,
                                                 sorted_body, body_start, step,
-                                                torus_reach) > 0):
+                                                sorted_idx, sphere_inscribed) > 0):
                 if keep and FRICTION and friction:  # the State's histories current
                     stage_history_to_spheres(sorted_idx, hist_partner, hist_spring,
                                              contact_partner, contact_spring)

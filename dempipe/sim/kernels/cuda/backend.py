@@ -45,7 +45,7 @@ from dempipe.sim.laws.linear import DAMP_TERMS
 from dempipe.sim.state import CONTACT_SLOTS
 from dempipe.sim.backend import copy_matching, skip_idle_call
 from dempipe.sim.kernels.compile import compile_contacts, compile_formulas, compile_glue
-from dempipe.sim.kernels.pairing import PAIR_COLS, WALL_SLACK, inscribed_reach
+from dempipe.sim.kernels.pairing import PAIR_COLS, WALL_SLACK
 from dempipe.sim.kernels.patches import BODY_PATCHES
 from dempipe.sim.kernels.layout import (
     CUDA_LAYOUT, FLAGS, GENERAL, ContactScratch, BodyScratch, GlueModel, GlueScratch,
@@ -498,12 +498,12 @@ class CudaBackend:
         k_pair_slots[blocks, THREADS](d["nbr"], d["nbr_n"], d["sorted_idx"], d["sorted_body"],
                                       d["body_inv_mass"], d["pidx"], d["ctl"])
         k_pair_mirror[blocks, THREADS](
-            0.5 * m.diameter, WALL_SLACK * 0.5 * SKIN * m.diameter
-            + inscribed_reach(m.sphere_inscribed),
+            0.5 * m.diameter, WALL_SLACK * 0.5 * SKIN * m.diameter,
             d["nbr"], d["nbr_n"],
             d["sorted_idx"], d["sorted_x"], d["sorted_body"], d["body_inv_mass"],
             d["wall_normal"], d["wall_offset"], d["wall_lo"], d["wall_hi"], d["wall_depth"],
-            d["wall_motion"], d["body_start"], d["wall_mask"], d["pidx"], d["ctl"])
+            d["wall_motion"], d["body_start"], d["sphere_inscribed"], d["wall_mask"],
+            d["pidx"], d["ctl"])
         k_load_pairs[blocks, THREADS](
             bool(self.features.friction), d["nbr"], d["nbr_n"], d["pidx"], d["sorted_idx"],
             d["sorted_body"], d["body_inv_mass"], d["wall_mask"],

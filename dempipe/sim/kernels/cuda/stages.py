@@ -70,15 +70,15 @@ def k_pair_slots(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx, ctl):
 @cuda.jit
 def k_pair_mirror(radius, margin, nbr, nbr_n, sorted_idx, sorted_x, sorted_body,
                   body_inv_mass, wall_normal, wall_offset, wall_lo, wall_hi, wall_depth,
-                  wall_motion, body_start, wall_mask, pidx, ctl):
+                  wall_motion, body_start, sphere_inscribed, wall_mask, pidx, ctl):
     """Rebuild, after k_pair_slots: the entries the partner owns
     (contacts.pair_mirror) and the walls in reach (contacts.wall_reach)."""
     s = cuda.grid(1)
     if s >= sorted_idx.shape[0] or not rebuilding(ctl) or ctl[CTL_OVER] != 0:
         return
     pair_mirror(s, nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pidx)
-    wall_reach(s, radius, margin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
-               wall_depth, wall_motion, wall_mask)
+    wall_reach(s, sorted_idx[s], radius, margin, sorted_x, wall_normal, wall_offset,
+               wall_lo, wall_hi, wall_depth, wall_motion, sphere_inscribed, wall_mask)
     if body_start[sorted_body[s]] > ctl[CTL_STEP]:
         wall_mask[s] = 0                    # not emitted yet: no wall either
 
