@@ -102,7 +102,7 @@ def _exit_if_stopped(exc: BaseException, debug: bool) -> None:
     if debug:
         import traceback
         traceback.print_exception(exc)
-    click.echo(f"stopped by {interrupt.signal_name(stop.signum)}", err=True)
+    click.echo(f"error: stopped by {interrupt.signal_name(stop.signum)}", err=True)
     sys.exit(stop.exit_code)
 
 
@@ -125,12 +125,12 @@ def main(argv=None):
         app.main(args=args, prog_name="dempipe", standalone_mode=False)
         interrupt.check()           # a stop swallowed by a library: still a stop
     except interrupt.StopRequested as exc:
-        click.echo(f"stopped by {interrupt.signal_name(exc.signum)}", err=True)
+        click.echo(f"error: stopped by {interrupt.signal_name(exc.signum)}", err=True)
         sys.exit(exc.exit_code)
     except click.exceptions.Abort:
         stop = interrupt.requested()
-        click.echo("Aborted." if stop is None else f"stopped by {interrupt.signal_name(stop)}",
-                   err=True)
+        click.echo("Aborted." if stop is None
+                   else f"error: stopped by {interrupt.signal_name(stop)}", err=True)
         sys.exit(130 if stop is None else 128 + stop)
     except click.ClickException as exc:
         exc.show()

@@ -276,7 +276,7 @@ def test_stop_swallowed_by_a_library_is_still_a_stop(reference, tmp_path):
                            capture_output=True, text=True, env=env(cache), timeout=300)
         if how == "cli":
             assert p.returncode == 128 + signal.SIGINT, (p.returncode, p.stderr)
-            assert "stopped by SIGINT" in p.stderr, p.stderr
+            assert "error: stopped by SIGINT" in p.stderr, p.stderr
             assert "internal error" not in p.stderr and "Traceback" not in p.stderr
         else:       # a Python caller gets the stop, its cause kept
             assert p.returncode == 3, (p.returncode, p.stderr)
