@@ -261,7 +261,7 @@ def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, pro
     from dempipe.pipeline.checkpoint import (CHECKPOINT_SECONDS, BakeStore, model_fingerprint,
                                              read_meta)
     from dempipe.pipeline.check import (behind_plane_findings, emission_finding,
-                                        sinking_finding, spin_finding)
+                                        sinking_finding, spin_finding, steps_finding)
     from dempipe.scene.build import build_model, initial_overlap_all_spheres
     from dempipe.scene.load import load_scene
     from dempipe.sim.simulator import BakeFailure, Simulator, resolve_device
@@ -300,6 +300,7 @@ def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, pro
                             "auto" if isinstance(scene.simulation.dt, str) else "given", src),
                  soft_contact(model, closing, src),
                  spin_finding(model, src, scene.simulation.dt),
+                 steps_finding(model, src, scene.simulation.dt),
                  emission_finding(model, src),     # emitted bodies: known before they start
                  sinking_finding(model, src),
                  *behind_plane_findings(model, scene, src)):

@@ -76,6 +76,7 @@ def _analyze_scene(path, cache, simulation) -> StabilityReport:
         message, _, fix = text.partition(". Fix: ")
         report.findings.append(Finding(ERROR, "run-size", message, fix))
     for found in (emission_finding(model, Path(path).name),
+                  steps_finding(model, Path(path).name, user_dt),
                   spin_finding(model, Path(path).name, user_dt),
                   sinking_finding(model, Path(path).name)):
         if found is not None:
@@ -105,6 +106,41 @@ def spin_finding(model, src: str, dt_setting) -> Finding | None:
                    f"{found.message} (kinematic body {model.body_name(b)}'s surface moves at "
                    f"{extra + float(model.surface_speed):.3g} m/s)",
                    f"lower its motion's speed, or {found.fix}")
+
+
+#: Steps per frame above which check and bake warn (long-bake): about a hundred times
+#: the examples' (the quickstart's 695, chess's 308 at 24 fps), far under the
+#: refusal at check.sizes.MAX_STEPS_PER_FRAME.
+STEPS_WARN = 50_000
+
+
+def steps_finding(model, src: str, dt_setting) -> Finding | None:
+    """A warning when the step is so short that the bake runs far longer than meant
+    though nothing is refused: more than STEPS_WARN steps per frame, most often a body
+    launched far faster than meant (500 m/s for 5 m/s), whose impact the automatic
+    stiffness holds to the target overlap with a stiffer spring, hence a shorter step."""
+    spf = int(model.steps_per_frame)
+    if spf <= STEPS_WARN:
+        return None
+    fastest, _, impact = expected_speeds(model)
+    message = (f"{src}: dt = {model.dt:.3g} s is {spf:,} steps per frame, "
+               f"{spf * max(model.n_frames - 1, 1):.3g} steps in all (the examples take "
+               f"300-700 a frame)")
+    if isinstance(dt_setting, str):
+        return Finding(WARNING, "long-bake",
+                       message + f": the automatic stiffness holds the fastest impact it "
+                       f"allows for, {_speed(impact)} m/s (the fastest body at "
+                       f"{_speed(fastest)} m/s), to the target overlap, and the faster the "
+                       f"impact, the stiffer the spring and the shorter the step",
+                       "check the bodies' velocity and simulation.gravity; for a body meant "
+                       "to be this fast, give its material an explicit, softer stiffness or "
+                       "raise simulation.stiffness_target_overlap")
+    return Finding(WARNING, "long-bake", message + " (simulation.dt as given)",
+                   'use simulation.dt = "auto", or a larger dt')
+
+
+def _speed(v: float) -> str:
+    return f"{v:.3g}" if v < 100.0 else f"{v:.0f}"
 
 
 def emission_finding(model, src: str) -> Finding | None:

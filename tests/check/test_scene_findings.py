@@ -5,6 +5,7 @@ and in the JSON; the bake's pre-flight warns of bodies behind a plane too. Real
 scene files and real OBJ meshes written by trimesh."""
 
 import json
+import re
 
 import pytest
 import trimesh
@@ -273,3 +274,43 @@ position = [0.5, 0.0, 0.02]
     assert not codes & {"open-mesh", "behind-plane"}, report.format()
     codes = {f["code"] for f in check_json(path, cache)["findings"]}
     assert not codes & {"open-mesh", "behind-plane"}
+
+
+LAUNCH = HEAD + PLANE + """
+[shapes.ball]
+builtin = "sphere"
+diameter = 0.05
+
+[[bodies]]
+name = "shot"
+shape = "ball"
+position = [0.0, 0.0, 0.5]
+velocity = [0.0, 0.0, -{speed}]
+"""
+
+
+def test_a_body_launched_far_too_fast_is_a_long_bake_warning(tmp_path):
+    # 500 m/s where 5 was meant: nothing is refused, but the automatic stiffness holds
+    # that impact to the target overlap and the step shrinks with the speed (dt ∝ 1/v):
+    # a warning naming the speed and the keys, in check and in the bake's pre-flight
+    from dempipe.pipeline.bake import bake
+    from dempipe.pipeline.check import STEPS_WARN
+
+    cache = SphereCache(tmp_path / "cache")
+    p = tmp_path / "launch.toml"
+    p.write_text(LAUNCH.format(speed=5.0))
+    calm = analyze_scene(p, cache=cache)
+    assert calm.steps_per_frame < STEPS_WARN
+    assert "long-bake" not in {f.code for f in calm.findings}
+    p.write_text(LAUNCH.format(speed=500.0))
+    report = analyze_scene(p, cache=cache)
+    assert report.steps_per_frame > STEPS_WARN
+    found = [f for f in report.findings if f.code == "long-bake"]
+    assert len(found) == 1 and found[0].level == "warning"
+    assert re.search(r"fastest body at 50\d m/s", found[0].message), found[0].message
+    assert f"{report.steps_per_frame:,} steps per frame" in found[0].message
+    assert "velocity" in found[0].fix and "stiffness" in found[0].fix
+    assert report.ok                    # a warning: the bake is allowed
+    said = []
+    bake(p, tmp_path / "o.usda", device="cpu", cache=cache, frames="0:0", warn=said.append)
+    assert any("steps per frame" in w and "fastest body" in w for w in said), said
