@@ -108,9 +108,9 @@ def spin_finding(model, src: str, dt_setting) -> Finding | None:
                    f"lower its motion's speed, or {found.fix}")
 
 
-#: Steps per frame above which check and bake warn (long-bake): about a hundred times
-#: the examples' (the quickstart's 695, chess's 308 at 24 fps), far under the
-#: refusal at check.sizes.MAX_STEPS_PER_FRAME.
+#: Steps per frame above which check and bake warn (long-bake): about 30 times the
+#: most any example takes (130-1,750 at 24 fps: the conveyor's 131, the USD shot's
+#: 1,748), far under the refusal at check.sizes.MAX_STEPS_PER_FRAME.
 STEPS_WARN = 50_000
 
 
@@ -125,7 +125,7 @@ def steps_finding(model, src: str, dt_setting) -> Finding | None:
     fastest, _, impact = expected_speeds(model)
     message = (f"{src}: dt = {model.dt:.3g} s is {spf:,} steps per frame, "
                f"{spf * max(model.n_frames - 1, 1):.3g} steps in all (the examples take "
-               f"300-700 a frame)")
+               f"130-1,750 a frame)")
     if isinstance(dt_setting, str):
         return Finding(WARNING, "long-bake",
                        message + f": the automatic stiffness holds the fastest impact it "
