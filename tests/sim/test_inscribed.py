@@ -115,19 +115,19 @@ def _wall_reach(c, ins, d, u):
     ("cylinder", 8, 0.5), ("cylinder", 16, 0.5), ("pawn", 16, 0.35), ("torus", 16, 0.35)])
 def test_spheres_left_out_of_walls_leave_the_envelope_walls_meet(name, across, share):
     # a plane in any of 4,000 random directions (not those wall_cover tested) is reached
-    # as deep by the spheres kept as by all of them, within 5 WALL_TOLERANCE = 0.01 d:
-    # wall_cover tests finitely many directions, and a torus's reach peaks between them
-    # by up to 0.0083 d (measured: the torus at 16 across; 0-0.0041 d elsewhere),
-    # under the 0.013 d dips of a bare surface envelope (a ball 8 across) that the tori
-    # are there to remove
+    # as deep by the spheres kept as by all of them, within 3 WALL_TOLERANCE = 0.006 d:
+    # wall_cover tests finitely many directions, and a sphere's reach peaks between
+    # them by up to 0.004 d (measured: the torus at 16 across, a cylinder at 4; 0-0.003
+    # d elsewhere), under the 0.013 d dips of a bare surface envelope (a ball 8 across)
+    # that the tori are there to remove
     mesh, ss, d, ins = _balls(name, across)
     c = np.asarray(ss.centers)
-    covered = wall_cover(c, ins, d) > 0.0
+    covered = wall_cover(c, ins, d, np.asarray(mesh.vertices) - ss.com, mesh.faces) > 0.0
     u = np.random.default_rng(7).normal(size=(4000, 3))
     u /= np.linalg.norm(u, axis=1)[:, None]
     reach = _wall_reach(c, ins, d, u)
-    assert (reach.max(axis=0) - reach[~covered].max(axis=0)).max() <= 5 * WALL_TOLERANCE * d
-    # most of a flat or gently curved shell is left out (measured: 0.44-0.69)
+    assert (reach.max(axis=0) - reach[~covered].max(axis=0)).max() <= 3 * WALL_TOLERANCE * d
+    # most of a flat or gently curved shell is left out (measured: 0.42-0.69)
     assert covered.mean() >= share
     # and a wall of any extent still finds a kept sphere within 2 WALL_SPACING d
     from scipy.spatial import cKDTree
