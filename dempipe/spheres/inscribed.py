@@ -95,7 +95,7 @@ MEMO_SIZE = 32
 _MEMO: dict = {}
 #: The fit's version, in the disk cache's keys: a change to what the functions below
 #: compute changes it, and old entries are never read.
-TORI_VERSION = 9
+TORI_VERSION = 10
 
 
 def wall_tori(centers, diameter: float, vertices, faces, *, surface: bool,
@@ -230,7 +230,7 @@ def inscribed_tori(centers, diameter: float, vertices, faces, *,
 #: wall_cover: the spacing [d] of the spheres it tries to keep; a sphere is left out
 #: where those within twice that reach every wall within WALL_TOLERANCE [d] of as deep
 #: as it does, in each of WALL_DIRECTIONS directions over the sphere and the rings of
-#: directions WALL_CONE round its normal.
+#: directions WALL_CONE round the direction of its closest point of the mesh.
 WALL_SPACING = 0.6
 WALL_TOLERANCE = 0.002
 WALL_DIRECTIONS = 256
