@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from dempipe.mesh.shapes import build_shape
 from dempipe.scene.build import build_model
@@ -130,7 +131,6 @@ def test_spheres_left_out_of_walls_leave_the_envelope_walls_meet(name, across, s
     # most of a flat or gently curved shell is left out (measured: 0.42-0.69)
     assert covered.mean() >= share
     # and a wall of any extent still finds a kept sphere within 2 WALL_SPACING d
-    from scipy.spatial import cKDTree
     gap, _ = cKDTree(c[~covered]).query(c[covered])
     assert gap.max() <= 2.0 * WALL_SPACING * d
 
