@@ -281,12 +281,15 @@ def shape_rotational_factors(model: Model) -> np.ndarray:
 def expected_speeds(model: Model) -> tuple[float, float, float]:
     """(fastest body, fastest closing pair, finalize's impact speed) [m/s].
 
-    Replicates ModelBuilder.finalize: each body falls freely from its height to the
-    lowest floor (the lowest body's bottom, ground-like planes, box floors, static
-    meshes) on top of its launch speed |v| + |w| r. The impact speed of auto
-    stiffness adds the fastest launch of a partner and is at least √(2 g d).
-    The closing speed is the fastest body against a wall, or against the fastest
-    launched partner when there are two or more bodies.
+    The closing and impact speeds replicate ModelBuilder.finalize: each body falls
+    freely from its height to the lowest floor (the lowest body's bottom, ground-like
+    planes, box floors, static meshes) on top of its launch speed |v| + |w| r. The
+    impact speed of auto stiffness adds the fastest launch of a partner and is at least
+    √(2 g d). The closing speed is the fastest body against a wall, or against the
+    fastest launched partner when there are two or more bodies.
+
+    The fastest body is the fastest any body gets (``falling_speeds``): at the floor
+    under it, or, with nothing under it, by the end of the shot.
     """
     n = model.n_bodies
     d = model.diameter
@@ -311,12 +314,67 @@ def expected_speeds(model: Model) -> tuple[float, float, float]:
     floor = min(floors)
     fall = np.sqrt(2.0 * g * np.maximum(heights - floor, 0.0))
     launch = np.linalg.norm(v0, axis=1) + np.linalg.norm(w0, axis=1) * radius
-    fastest = float((fall + launch).max())
-    impact = fastest + float(launch.max())
-    closing = impact if n > 1 else fastest
+    landing = float((fall + launch).max())
+    impact = landing + float(launch.max())
+    closing = impact if n > 1 else landing
     impact = max(impact, math.sqrt(2.0 * g * d) if g > 0 else 0.01)
+    fastest = float(falling_speeds(model).max())
     # a moving surface meets a body head on: the speeds add (ModelBuilder.finalize)
     return fastest, closing + model.surface_speed, impact + model.surface_speed
+
+
+def falling_speeds(model: Model) -> np.ndarray:
+    """(n,) the fastest each dynamic body gets [m/s] if nothing but gravity acts on it,
+    its spin's surface speed |w| r included: sqrt(|v|² + 2 g h) at the floor under its
+    centre, its bottom h above it (energy: the same for any launch direction; r the
+    body's radius), and at most |v| +
+    g t, t its time in the shot (from its start_time to the last frame). With nothing
+    under it (no ground-like plane below; no box floor, static mesh or kinematic body
+    under its centre) it falls for the whole shot, at |v| + g t by the end. A body
+    carried by another is where that one is: an upper bound for a pile, not a guess
+    at its bounces. Kinematic bodies: 0 (their motion is given)."""
+    n = model.n_bodies
+    out = np.zeros(n)
+    if n == 0:
+        return out
+    g = float(np.linalg.norm(model.gravity))
+    up = -np.asarray(model.gravity) / g if g > 0 else np.array([0.0, 0.0, 1.0])
+    moves = (np.ones(n, bool) if model.body_kinematic is None
+             else ~np.asarray(model.body_kinematic))
+    x0 = np.asarray(model.initial_x[:n])
+    spin = np.linalg.norm(np.asarray(model.initial_w[:n]), axis=1) * np.asarray(
+        model.body_radius)
+    v = np.linalg.norm(np.asarray(model.initial_v[:n]), axis=1)
+    start = (np.zeros(n) if model.body_start_time is None
+             else np.asarray(model.body_start_time, dtype=np.float64))
+    t = np.maximum((model.n_frames - 1) / model.fps - start, 0.0)
+    height = x0 @ up
+    floor = np.full(n, -np.inf)             # the highest floor under each body
+    for p, nrm in zip(model.plane_point, model.plane_normal):
+        lean = float(np.asarray(nrm) @ up)
+        if lean > 0.5:                      # ground-like: under every body above it
+            gap = (x0 - np.asarray(p)) @ np.asarray(nrm)
+            floor = np.where(gap > 0.0, np.maximum(floor, height - gap / lean), floor)
+    flat = x0 - height[:, None] * up        # the centres' horizontal parts
+    spans = [(np.asarray(b.lo), np.asarray(b.hi)) for b in model.boxes]
+    spans += [(np.asarray(m.vertices).min(axis=0), np.asarray(m.vertices).max(axis=0))
+              for m in model.static_meshes]
+    if model.body_kinematic is not None:
+        for b in np.flatnonzero(np.asarray(model.body_kinematic)):
+            r = float(model.body_radius[b])
+            spans.append((x0[b] - r, x0[b] + r))
+    for lo, hi in spans:
+        lo_flat = lo - (lo @ up) * up
+        hi_flat = hi - (hi @ up) * up
+        under = np.all((flat >= np.minimum(lo_flat, hi_flat) - 1e-12)
+                       & (flat <= np.maximum(lo_flat, hi_flat) + 1e-12), axis=1)
+        base = min(float(lo @ up), float(hi @ up))
+        floor = np.where(under & (base < height), np.maximum(floor, base), floor)
+    by_end = v + g * t
+    drop = np.maximum(height - np.asarray(model.body_radius) - floor, 0.0)
+    at_floor = np.sqrt(v * v + 2.0 * g * drop)
+    out = np.where(np.isfinite(floor), np.minimum(at_floor, by_end), by_end) + spin
+    return np.where(moves, out, 0.0)
 
 
 def pair_stability(model: Model, factors: np.ndarray | None = None,

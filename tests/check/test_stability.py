@@ -59,6 +59,43 @@ def mixed_cluster(n=14, seed=0, spread=0.033):
     return b
 
 
+def test_the_fastest_body_is_its_speed_at_the_floor_under_it_or_at_the_shot_end():
+    # Energy and free fall, exactly: a ball whose bottom is h above the floor under it
+    # lands at sqrt(v² + 2 g h) whatever its launch direction, and one with nothing
+    # under it falls for the whole shot, |v| + g t by its end (t = (n_frames - 1) / fps).
+    # The check's line says this figure; the closing and impact speeds stay finalize's.
+    # Tolerance: rounding only (1e-9 relative).
+
+    def fastest(z, *, v=(0.0, 0.0, 0.0), frames=73, collider=None):
+        b = ModelBuilder(D)
+        ss, mesh = ball_set(D)
+        s = b.add_shape("ball", mesh, ss)
+        m = b.add_material(Material("m", density=1000.0, restitution=0.5, friction=0.5))
+        b.add_bodies("ball", s, m, [[0.0, 0.0, z]], velocities=[v])
+        if collider == "plane":
+            b.add_plane([0, 0, 0], [0, 0, 1], m)
+        elif collider == "box under":
+            b.add_box([-0.1, -0.1, 0.0], [0.1, 0.1, 0.3], material=m)
+        elif collider == "box beside":
+            b.add_box([0.2, 0.2, 0.0], [0.4, 0.4, 0.3], material=m)
+        model = b.finalize(fps=24, n_frames=frames)
+        speeds = st.expected_speeds(model)
+        assert speeds[0] == pytest.approx(float(st.falling_speeds(model).max()), rel=1e-12)
+        return speeds[0], model.body_radius[0]
+
+    top = 1.0
+    for where in ("plane", "box under"):
+        got, radius = fastest(top, collider=where)
+        assert got == pytest.approx(math.sqrt(2 * G * (top - radius)), rel=1e-9), where
+        got, radius = fastest(top, v=(3.0, 0.0, 0.0), collider=where)   # thrown sideways
+        assert got == pytest.approx(math.sqrt(9.0 + 2 * G * (top - radius)), rel=1e-9)
+    # nothing under it: a shot of 3 s, and the box beside it holds nothing
+    for where in (None, "box beside"):
+        assert fastest(top, collider=where)[0] == pytest.approx(G * 3.0, rel=1e-9), where
+    # a shot too short to reach the floor: g t, not the landing speed
+    assert fastest(top, frames=3, collider="plane")[0] == pytest.approx(G * 2 / 24, rel=1e-9)
+
+
 # --------------------------------------------------------------------------- the report
 
 
