@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from dempipe.check.stability import OVERLAP_ERROR, shape_rotational_factors
+from dempipe.check.stability import OVERLAP_ERROR
 
 
 def sinking(model, closing: float) -> tuple[float, int, int, int]:
@@ -26,8 +26,7 @@ def sinking(model, closing: float) -> tuple[float, int, int, int]:
     if n == 0 or closing <= 0.0:
         return 0.0, -1, -1, -1
     d = float(model.diameter)
-    factors = shape_rotational_factors(model)
-    mass = np.asarray(model.body_mass[:n]) / (1.0 + factors[np.asarray(model.body_shape)])
+    mass = np.asarray(model.body_corner_mass)    # m / (1 + f), as auto stiffness takes it
     moving = np.ones(n, bool)
     if model.body_kinematic is not None:
         moving &= ~np.asarray(model.body_kinematic[:n], bool)

@@ -31,6 +31,7 @@ import numpy as np
 
 from dempipe.check.sizes import memory_estimate
 from dempipe.sim import glue, laws
+from dempipe.sim import materials as mat
 from dempipe.sim.materials import dt_fix
 from dempipe.sim.model import Model, rotational_mass_factor
 from dempipe.sim.overlap import REFUSE_OVERLAP, WARN_OVERLAP, frame0_overlap
@@ -268,16 +269,6 @@ def _json_ready(x):
 # --------------------------------------------------------------------------- figures
 
 
-def shape_rotational_factors(model: Model) -> np.ndarray:
-    """Per shape, model.rotational_mass_factor of its sphere set (as finalize computes)."""
-    out = []
-    for s in model.shapes:
-        ss = s.sphere_set
-        out.append(rotational_mass_factor(np.asarray(ss.centers),
-                                          np.asarray(ss.inertia) / ss.volume))
-    return np.array(out, dtype=np.float64)
-
-
 def expected_speeds(model: Model) -> tuple[float, float, float]:
     """(fastest body, fastest closing pair, finalize's impact speed) [m/s].
 
@@ -377,36 +368,20 @@ def falling_speeds(model: Model) -> np.ndarray:
     return np.where(moves, out, 0.0)
 
 
-def pair_stability(model: Model, factors: np.ndarray | None = None,
-                   dt: float | None = None) -> tuple[list, float, float]:
-    """Per material pair figures, and (ω_max, ζ_min) exactly as finalize derives them."""
-    factors = shape_rotational_factors(model) if factors is None else factors
+def pair_stability(model: Model, dt: float | None = None) -> tuple[list, float, float]:
+    """Per material pair figures, and (ω_max, ζ_min) as finalize derives them: the
+    same effective masses (materials.contact_masses, from the Model's corner masses)
+    and laws.stiffest."""
     dt = model.dt if dt is None else dt
     n = model.n_bodies
-    mass = np.asarray(model.body_mass[:n])
-    rot = factors[np.asarray(model.body_shape)] if n else np.zeros(0)
-    dyn_mat = np.asarray(model.body_material[:n])
+    moves = (np.ones(n, bool) if model.body_kinematic is None
+             else ~np.asarray(model.body_kinematic))
     wall_mats = set(np.asarray(model.wall_material).tolist()) | set(
         np.asarray(model.body_material[n:]).tolist())
-    dyn_present = sorted(set(dyn_mat.tolist()))
-    has_contacts = n > 1 or model.n_walls > 0 or model.n_static > 0
     names = [m.name for m in model.materials]
-    pairs = {}
-    if has_contacts:
-        for mi in dyn_present:
-            sel = dyn_mat == mi
-            m_tr = float(mass[sel].min())
-            m_rot = float((mass[sel] / (1.0 + rot[sel])).min())
-            partners = [("body-body", mj) for mj in dyn_present] if n > 1 else []
-            partners += [("body-wall", mj) for mj in sorted(wall_mats)]
-            for kind, mj in partners:
-                half = 0.5 if kind == "body-body" else 1.0
-                key = (kind,) + ((min(mi, mj), max(mi, mj)) if kind == "body-body" else (mi, mj))
-                prev = pairs.get(key)
-                mt, mr = m_tr * half, m_rot * half
-                if prev is not None:
-                    mt, mr = min(mt, prev[0]), min(mr, prev[1])
-                pairs[key] = (mt, mr)
+    pairs = mat.contact_masses(np.asarray(model.body_material[:n]),
+                               np.asarray(model.body_mass[:n]), model.body_corner_mass,
+                               moves, wall_mats)
     law = laws.law(model.contact_law)
     out = []
     contacts = []
@@ -483,8 +458,7 @@ def soft_contact(model: Model, closing: float, src: str) -> Finding | None:
         return None
     d = model.diameter
     # the corner-contact effective mass m / (1 + f), as auto stiffness assumes
-    factors = shape_rotational_factors(model)
-    mass = np.asarray(model.body_mass[:n]) / (1.0 + factors[np.asarray(model.body_shape)])
+    mass = np.asarray(model.body_corner_mass)
     dyn_mat = np.asarray(model.body_material[:n])
     partners = set(np.asarray(model.wall_material).tolist()) | set(
         np.asarray(model.body_material[n:]).tolist())
@@ -535,15 +509,13 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
     """
     d = model.diameter
     n = model.n_bodies
-    factors = shape_rotational_factors(model)
     step = float(model.dt if dt is None else dt)
-    pairs, omega_max, zeta_min = pair_stability(model, factors, step)
+    pairs, omega_max, zeta_min = pair_stability(model, step)
     glue_info = {}
     if model.n_bonds:
         corner = np.full(model.body_mass.shape[0], np.inf)
         moves = ~np.asarray(model.body_static)[:n]
-        corner[:n][moves] = (np.asarray(model.body_mass[:n])[moves]
-                             / (1.0 + factors[np.asarray(model.body_shape)][moves]))
+        corner[:n][moves] = np.asarray(model.body_corner_mass)[moves]
         zeta = np.array([model.materials[model.body_material[a]].glue_damping
                          for a in model.bonds.bond_body[:, 0]])
         K = model.bonds.bond_k * np.diff(model.bonds.bond_start)
@@ -649,7 +621,7 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
     # 5. shapes too small for their spheres, or too coarse, or round on a lattice
     shapes = []
     round_shapes = []
-    for si, s in enumerate(model.shapes):
+    for s in model.shapes:
         c = np.asarray(s.sphere_set.centers)
         extent = float((c.max(axis=0) - c.min(axis=0)).max() + d) / d
         count = int(c.shape[0])
@@ -658,7 +630,9 @@ def analyze(model: Model, *, dt: float | None = None, dt_setting: str | float | 
         lattice = "surface" not in s.sphere_set.notes
         off_axis = off_axis_share(s.vertices, s.faces)
         shapes.append(dict(name=s.name, spheres=count, extent_diameters=extent,
-                           rotational_mass_factor=float(factors[si]), small=small,
+                           rotational_mass_factor=rotational_mass_factor(
+                               c, np.asarray(s.sphere_set.inertia) / s.sphere_set.volume),
+                           small=small,
                            mesh_beyond_spheres_diameters=beyond,
                            mode="lattice" if lattice else "surface",
                            off_axis_share=off_axis))

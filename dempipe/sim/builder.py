@@ -482,23 +482,10 @@ class ModelBuilder:
 
         # stiffest mode: ω = √(k / m_eff) over every body, translation and rotation
         # (effective mass m / (1 + m (r×n)ᵀ I⁻¹ (r×n))), halved for body-body contacts
-        contacts = []       # (k, m_eff, ζ) of each kind of contact (laws.stiffest)
         wall_mats = {w[5] for w in self._walls} | {s[3] for s in self._static}
         present = set(np.unique(dyn_mat).tolist()) | wall_mats
-        has_contacts = n_dyn > 1 or bool(self._walls) or bool(self._static)
-        if has_contacts:
-            for gi, gdict in enumerate(groups):
-                if gdict["p"].shape[0] == 0 or gdict["kinematic"]:
-                    continue
-                mi = gdict["material"]
-                in_group = body_group == gi
-                m_eff = float((mass[in_group] / (1.0 + body_rot[in_group])).min())
-                partners = present if n_dyn > 1 else wall_mats
-                dyn_present = set(np.unique(dyn_mat).tolist())
-                for mj in partners:
-                    k = table.k[mi, mj]
-                    half = 0.5 if (n_dyn > 1 and mj in dyn_present) else 1.0
-                    contacts.append((k, m_eff * half, table.zeta[mi, mj]))
+        contacts = [(table.k[a, b], m_rot, table.zeta[a, b]) for (_, a, b), (_, m_rot)
+                    in mat.contact_masses(dyn_mat, mass, m_corner, ~kin, wall_mats).items()]
         omega_max, zeta_min, zeta_max = laws.stiffest(contacts, law_name, v_imp)
         body_glue = (np.concatenate([g["glue"] for g in groups]) if groups
                      else np.zeros(0, np.int64))
@@ -584,7 +571,7 @@ class ModelBuilder:
             body_sphere_start=frozen(start, np.int32), body_shape=frozen(body_shape, np.int32),
             body_group=frozen(body_group, np.int32), body_group_index=frozen(body_gidx, np.int32),
             body_labels=tuple(lab for g in groups for lab in g["labels"]),
-            body_radius=frozen(body_radius),
+            body_radius=frozen(body_radius), body_corner_mass=frozen(m_corner),
             sphere_body=frozen(sphere_body, np.int32), sphere_offset=frozen(sphere_offset),
             sphere_inscribed=frozen(sphere_inscribed),
             wall_normal=frozen(wall_arr(0, (0, 3)).reshape(-1, 3)),

@@ -208,6 +208,46 @@ PATCH_RESOLUTION = 4.0
 PATCH_MAX_DIAMETERS = 5.0
 
 
+def contact_masses(body_material, body_mass, corner_mass, moves, wall_materials) -> dict:
+    """{(kind, mi, mj): (m_translational, m_rotational)} [kg]: the lightest effective
+    mass of each kind of contact, the one derivation of the stiffest contact that
+    ModelBuilder.finalize (its dt and critical step) and check.stability (its table)
+    share. ``body_material``, ``body_mass``, ``corner_mass`` (m / (1 + f), the corner
+    contact's rotational mode: ModelBuilder.finalize): per dynamic body; ``moves``:
+    (n,) bool, False for a kinematic body, whose motion is given (it is a partner, its
+    material present, never a mass); ``wall_materials``: the walls' and static meshes'.
+
+    For each material mi of a moving body: against every body material mj when there
+    are two bodies or more ("body-body", keyed (min, max) and taking the lighter side:
+    two equal bodies meet as one of half the mass) and against each wall material
+    ("body-wall", the body's whole mass). Empty where nothing can touch."""
+    mat = np.asarray(body_material)
+    n = mat.shape[0]
+    moves = np.asarray(moves, dtype=bool)
+    walls = sorted(set(int(w) for w in wall_materials))
+    pairs: dict = {}
+    if not (n > 1 or walls):
+        return pairs
+    present = sorted(set(mat.tolist()))
+    mass = np.asarray(body_mass, dtype=np.float64)
+    corner = np.asarray(corner_mass, dtype=np.float64)
+    for mi in sorted(set(mat[moves].tolist())):
+        sel = moves & (mat == mi)
+        m_tr = float(mass[sel].min())
+        m_rot = float(corner[sel].min())
+        partners = [("body-body", mj) for mj in present] if n > 1 else []
+        partners += [("body-wall", mj) for mj in walls]
+        for kind, mj in partners:
+            half = 0.5 if kind == "body-body" else 1.0
+            key = (kind,) + ((min(mi, mj), max(mi, mj)) if kind == "body-body" else (mi, mj))
+            mt, mr = m_tr * half, m_rot * half
+            prev = pairs.get(key)
+            if prev is not None:
+                mt, mr = min(mt, prev[0]), min(mr, prev[1])
+            pairs[key] = (mt, mr)
+    return pairs
+
+
 def patch_scale(diameter: float, extents) -> float:
     """The length ℓ [m] the overlap target (stiffness_target_overlap) is a fraction
     of: L / PATCH_RESOLUTION within [d, PATCH_MAX_DIAMETERS d], L the longest extent

@@ -143,6 +143,10 @@ class Model:
       body_material (B,) int32; body_sphere_start (B+1,) int32, spheres of body b
         are body_sphere_start[b]:body_sphere_start[b+1].
     Per dynamic body (n_bodies,): body_shape, body_group, body_group_index;
+      body_corner_mass [kg], m / (1 + f), f = rotational_mass_factor (its given
+      inertia where one was given): the least effective mass a contact at one of its
+      spheres sees, which auto stiffness and the stiffest contact
+      (materials.contact_masses) take and `dempipe check` restates;
       body_labels, each body's name after its group's (its index, or for a fracture
       piece "3_piece_07"; empty: indices).
     Per sphere (S,): sphere_body int32; sphere_offset (S, 3) from the body's centre
@@ -179,6 +183,7 @@ class Model:
     body_group: np.ndarray
     body_group_index: np.ndarray
     body_radius: np.ndarray
+    body_corner_mass: np.ndarray
     sphere_body: np.ndarray
     sphere_offset: np.ndarray
     sphere_inscribed: np.ndarray

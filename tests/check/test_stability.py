@@ -114,17 +114,19 @@ def test_report_restates_finalize_exactly():
         mat.check_dt(single * (1 + 1e-9), model.omega_max, r.zeta_min, "x")
     assert r.critical_dt == single
     # auto stiffness: finalize's k from the heaviest corner-contact mass and r.impact_speed
-    f = st.shape_rotational_factors(model)
+    f = np.array([rotational_mass_factor(s.sphere_set.centers,
+                                         s.sphere_set.inertia / s.sphere_set.volume)
+                  for s in model.shapes])
     n = model.n_bodies
     m_corner = model.body_mass[:n] / (1 + f[model.body_shape])
+    assert np.array_equal(model.body_corner_mass, m_corner)
     for name, k in model.stiffness_auto:
         mi = [m.name for m in model.materials].index(name)
         sel = model.body_material[:n] == mi
         assert k == pytest.approx(mat.auto_stiffness(float(m_corner[sel].max()), r.impact_speed,
                                                      G, D, 0.03), rel=1e-12)
-    # the per-shape factor is model.rotational_mass_factor of the sphere set
-    ss = model.shapes[1].sphere_set
-    assert f[1] == rotational_mass_factor(ss.centers, ss.inertia / ss.volume)
+    # the per-shape factor in the report is model.rotational_mass_factor of the set
+    assert [s["rotational_mass_factor"] for s in r.shapes] == f.tolist()
     # every pair: rotational effective mass never above translational; dt/crit consistent
     for p in r.pairs:
         assert p.mass_rotational <= p.mass_translational
@@ -138,6 +140,47 @@ def test_report_restates_finalize_exactly():
     assert r.ok and r.steps_per_frame == model.steps_per_frame
     d = json.loads(r.to_json())
     assert d["ok"] is True and len(d["pairs"]) == len(r.pairs)
+
+
+def test_report_takes_the_bakes_masses_with_kinematic_bodies_and_given_inertia():
+    # The critical step check reports is the one the bake refuses at, for every kind
+    # of body: a kinematic paddle (its motion given: a partner, never a mass) far
+    # lighter than the bodies it pushes, and a body whose inertia is given (a
+    # UsdPhysics MassAPI's), smaller than its shape's, so its corner contact is
+    # lighter. Exact: both read materials.contact_masses over the same numbers.
+    from dempipe.sim.motion import Key, Motion
+
+    b = ModelBuilder(D)
+    ss, mesh = box_set(2, 2, 2, D)
+    ps, pmesh = box_set(8, 8, 1, D)
+    wood = b.add_material(Material("wood", density=700, restitution=0.3, friction=0.5))
+    foam = b.add_material(Material("foam", density=5, restitution=0.3, friction=0.5))
+    sweep = Motion(keys=(Key(0.0, (0.0, 0.0, 0.0)), Key(1.0, (0.05, 0.0, 0.0))))
+    b.add_bodies("paddle", b.add_shape("paddle", pmesh, ps), foam, [[0.0, 0.0, 0.0]],
+                 kinematic=True, motion=sweep)
+    box = b.add_shape("box", mesh, ss)
+    b.add_bodies("boxes", box, wood, [[0.0, 0.0, 0.03], [0.05, 0.0, 0.03]])
+    m_box = 700 * ss.volume
+    b.add_bodies("thin", box, wood, [[0.1, 0.0, 0.03]], masses=[m_box],
+                 inertias=[np.diag([1.0, 1.0, 1.0]) * 1e-3 * m_box * D * D])
+    b.add_plane([0, 0, -0.02], [0, 0, 1], wood)
+    model = b.finalize(fps=24, n_frames=3)
+    r = st.analyze(model)
+    assert r.omega_max == model.omega_max
+    assert r.critical_dt == st.critical_step(model.omega_max, r.zeta_min)
+    # the given inertia's body is the stiffest mode: its corner mass is the least
+    n = model.n_bodies
+    moving = ~np.asarray(model.body_kinematic)
+    lightest = np.argmin(np.where(moving, model.body_corner_mass, np.inf))
+    assert model.group_names[model.body_group[lightest]] == "thin"
+    assert model.body_corner_mass[lightest] < 0.5 * model.body_corner_mass[n - 2]
+    # and the paddle's own (light) mass is in no pair: each pair's masses are the
+    # moving bodies', half a box's at the least (two boxes meeting)
+    m_paddle = float(model.body_mass[0])
+    assert m_paddle < 0.1 * m_box
+    assert min(p.mass_translational for p in r.pairs) == pytest.approx(0.5 * m_box,
+                                                                       rel=1e-12)
+    assert {p.materials for p in r.pairs} >= {("wood", "foam"), ("wood", "wood")}
 
 
 def test_memory_estimate_matches_cpu_backend():
