@@ -1,7 +1,8 @@
 """analyze_scene(): a scene file's stability report without simulating. What `dempipe
 check` runs: the scene is read and its Model built as the bake builds it, then
 :func:`dempipe.check.stability.analyze` predicts what would go wrong, and what only
-the scene's keys can name (an open mesh, a body behind a plane) is added."""
+the scene's keys can name (an open mesh, a body behind a plane or a box's wall) is
+added."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from dempipe.check.emission import emission_overlap
-from dempipe.check.planes import behind_planes, plane_walls
+from dempipe.check.walls import behind_boxes, behind_planes, plane_walls, wall_name
 from dempipe.check.prescribed import missing_surface_speed
 from dempipe.check.sinking import sinking
 from dempipe.check.stability import OVERLAP_ERROR
@@ -87,8 +88,10 @@ def _analyze_scene(path, cache, simulation) -> StabilityReport:
 
 def scene_findings(model, scene, src: str) -> list:
     """What only the scene's keys can name, whatever the time step: open meshes
-    (open_mesh_findings) and bodies wholly behind a plane (behind_plane_findings)."""
-    return open_mesh_findings(model, scene, src) + behind_plane_findings(model, scene, src)
+    (open_mesh_findings) and bodies wholly behind a plane (behind_plane_findings) or
+    a box's wall (behind_box_findings)."""
+    return (open_mesh_findings(model, scene, src) + behind_plane_findings(model, scene, src)
+            + behind_box_findings(model, scene, src))
 
 
 def spin_finding(model, src: str, dt_setting) -> Finding | None:
@@ -248,7 +251,7 @@ def open_mesh_findings(model, scene, src: str) -> list:
 
 def behind_plane_findings(model, scene, src: str) -> list:
     """A warning per body group and plane collider for the group's bodies that
-    start wholly behind the plane, beyond its depth (check.planes): the plane never
+    start wholly behind the plane, beyond its depth (check.walls): the plane never
     touches them, so they fall or fly on through it."""
     found = []
     for k, bodies in behind_planes(model):
@@ -257,11 +260,7 @@ def behind_plane_findings(model, scene, src: str) -> list:
         groups = np.asarray(model.body_group)[bodies]
         for g in np.unique(groups):
             count = int(np.count_nonzero(groups == g))
-            total = int(np.count_nonzero(np.asarray(model.body_group) == g))
-            who = ("its body" if total == 1 else
-                   f"all {total} of its bodies" if count == total else
-                   f"{count} of its {total} bodies")
-            verb = "starts" if count == 1 else "start"
+            who, verb = _who(model, int(g), count)
             plane = _collider_key(scene, "PlaneCollider", k)
             found.append(Finding(
                 WARNING, "behind-plane",
@@ -273,3 +272,53 @@ def behind_plane_findings(model, scene, src: str) -> list:
                 f"[{', '.join(f'{v + 0.0:.3g}' for v in nrm)}] points to, or flip the plane's "
                 f"normal"))
     return found
+
+
+def behind_box_findings(model, scene, src: str) -> list:
+    """A warning per body group and box collider for the group's bodies that start
+    outside the box, wholly behind one of its walls within the wall's extent and
+    beyond its depth, the box's thickness (check.walls): that wall never touches
+    them (a body under a tray's floor falls on past it). A body that starts inside
+    another box is not named. The walls of one box are one finding, naming them; a
+    body counts once however many it is behind."""
+    found = []
+    hits = behind_boxes(model)
+    group = np.asarray(model.body_group)
+    for k in sorted({k for k, _, _ in hits}):
+        box = model.boxes[k]
+        of_box = [(w, bodies) for kk, w, bodies in hits if kk == k]
+        bodies = np.unique(np.concatenate([b for _, b in of_box]))
+        for g in np.unique(group[bodies]):
+            mine = bodies[group[bodies] == g]
+            walls = [wall_name(model, w) for w, b in of_box if np.isin(b, mine).any()]
+            count = len(mine)
+            who, verb = _who(model, int(g), count)
+            it = "it" if count == 1 else "them"
+            depth = float(model.wall_depth[of_box[0][0]])
+            names = walls[0] if len(walls) == 1 else (", ".join(walls[:-1]) + " and "
+                                                      + walls[-1])
+            fix = (f"move {it} inside the box, between its min "
+                   f"[{', '.join(f'{v + 0.0:.3g}' for v in box.lo)}] and max "
+                   f"[{', '.join(f'{v + 0.0:.3g}' for v in box.hi)}]")
+            if box.open_top:
+                fix += (", or above its open top so that "
+                        f"{'it falls' if count == 1 else 'they fall'} in")
+            found.append(Finding(
+                WARNING, "behind-box-wall",
+                f"{src}: {_group_key(scene, int(g))}: {who} {verb} outside "
+                f"{_collider_key(scene, 'BoxCollider', k)}, wholly behind its {names}, "
+                f"more than {depth:.3g} m (the box's wall thickness, the depth a wall "
+                f"pushes spheres out from) behind the wall's surface, where that wall "
+                f"never touches {it}",
+                fix))
+    return found
+
+
+def _who(model, g: int, count: int) -> tuple[str, str]:
+    """How many of group g's bodies a finding is about, in words, and the verb's
+    form: ("its body", "starts"), ("all 4 of its bodies", "start"), ..."""
+    total = int(np.count_nonzero(np.asarray(model.body_group) == g))
+    who = ("its body" if total == 1 else
+           f"all {total} of its bodies" if count == total else
+           f"{count} of its {total} bodies")
+    return who, "starts" if count == 1 else "start"
