@@ -92,13 +92,21 @@ def behind_boxes(model) -> list[tuple[int, int, np.ndarray]]:
     beside the first is behind the first's wall facing it; it is held where it is
     meant to be, and left out: bodies that start inside any box, no sphere deeper
     than a wall's depth behind any of its walls (above an open top included), are
-    never named.
+    never named. Nor is a body farther behind a wall than the box is deep along the
+    wall's normal (its inner size on that axis, past the wall's depth): a body on the
+    ground under a shelf, or a pile beside a tray, is placed there, where a body just
+    under a floor or just outside a wall is most often one meant to be inside (an
+    origin or an up axis mistaken).
     """
     per_box = box_walls(model)
     if not per_box:
         return []
     walls = np.concatenate(per_box)
-    behind, front = _sides(model, walls)
+    # each wall's box's inner size along the wall's normal [m]
+    spans = np.array([float((np.asarray(box.hi) - np.asarray(box.lo))[
+        int(np.argmax(np.abs(model.wall_normal[w])))])
+        for box, ws in zip(model.boxes, per_box) for w in ws])
+    behind, front = _sides(model, walls, spans)
     if behind.shape[1] == 0:
         return []
     row = {int(w): i for i, w in enumerate(walls)}
@@ -110,12 +118,13 @@ def behind_boxes(model) -> list[tuple[int, int, np.ndarray]]:
             if (behind[row[int(w)]] & ~held).any()]
 
 
-def _sides(model, walls) -> tuple[np.ndarray, np.ndarray]:
+def _sides(model, walls, spans=None) -> tuple[np.ndarray, np.ndarray]:
     """(behind, front), each (len(walls), n_bodies) bool: whether a dynamic body
-    starts wholly behind wall walls[i] (behind_walls), and whether none of its
-    contact spheres is farther behind the wall's surface than its depth, whatever
-    the wall's box (in front of it or within its reach). Kinematic bodies are False
-    in both."""
+    starts wholly behind wall walls[i] (behind_walls; with ``spans``, (len(walls),)
+    [m], no sphere more than spans[i] farther behind it than its depth), and whether
+    none of its contact spheres is farther behind the wall's surface than its depth,
+    whatever the wall's box (in front of it or within its reach). Kinematic bodies
+    are False in both."""
     n = model.n_bodies
     walls = np.asarray(walls, dtype=np.int64)
     behind = np.zeros((len(walls), n), dtype=bool)
@@ -150,6 +159,8 @@ def _sides(model, walls) -> tuple[np.ndarray, np.ndarray]:
                   & (L <= np.asarray(model.wall_hi[w])).all(axis=1))
         # a sphere touches the wall while inside its box and dist > -depth (wall_gap)
         deep = dist <= -float(model.wall_depth[w])
-        behind[i] = has & (np.bincount(bs, weights=~(inside & deep), minlength=n) == 0)
+        near = True if spans is None else dist >= -float(model.wall_depth[w]) - spans[i]
+        behind[i] = has & (np.bincount(bs, weights=~(inside & deep & near),
+                                       minlength=n) == 0)
         front[i] = has & (np.bincount(bs, weights=deep, minlength=n) == 0)
     return behind, front

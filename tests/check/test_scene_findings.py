@@ -212,7 +212,7 @@ shape = "box"
 position = [0.0, 0.0, 0.1]
 start_time = {t}
 """
-    report = analyze_scene(scene(tmp_path, body.format(t=0.4) + rising), cache=cache)
+    report = analyze_scene(scene(tmp_path, body.format(t=0.25) + rising), cache=cache)
     (found,) = coded(report, "behind-plane")
     assert "bodies[0] ('late')" in found.message
     report = analyze_scene(scene(tmp_path, body.format(t=0.0) + rising), cache=cache)
@@ -284,7 +284,9 @@ position = [0.1, -0.1, -0.1]
 def test_bodies_inside_above_or_beside_a_box_are_not_behind_its_walls(tmp_path, cache):
     # inside; above the open top; beside a corner, outside every wall's extent; under
     # the floor but partly beside the tray (spheres outside the floor's extent are
-    # never tested against it); and one wholly under the floor, which alone is named
+    # never tested against it); one wholly under the floor, which alone is named; and
+    # two placed far from it, farther behind a wall than the tray is deep: on the
+    # ground 1 m below, and 1.2 m out from its +x wall
     path = scene(tmp_path, BOXES + """
 [[bodies]]
 name = "inside"
@@ -310,6 +312,16 @@ position = [0.3, 0.0, -0.1]
 name = "under"
 shape = "box"
 position = [0.0, 0.0, -0.1]
+
+[[bodies]]
+name = "ground"
+shape = "box"
+position = [0.1, 0.0, -1.0]
+
+[[bodies]]
+name = "away"
+shape = "box"
+position = [1.5, 0.0, 0.1]
 """ + TRAY)
     report = analyze_scene(path, cache=cache)
     found = coded(report, "behind-box-wall")
@@ -400,7 +412,7 @@ max = [1.1, 0.3, 0.3]
 
 def test_a_box_that_moves_is_taken_where_it_is_when_the_body_starts(tmp_path, cache):
     # the tray rises at 1 m/s; a box emitted 10 cm above where its floor started, at
-    # 0.4 s, starts 30 cm under the floor; the same box emitted at once is in the tray
+    # 0.25 s, starts 15 cm under the floor; the same box emitted at once is in the tray
     rising = TRAY + "\n[colliders.motion]\nvelocity = [0.0, 0.0, 1.0]\n"
     body = BOXES + """
 [[bodies]]
@@ -409,7 +421,7 @@ shape = "box"
 position = [0.0, 0.0, 0.1]
 start_time = {t}
 """
-    report = analyze_scene(scene(tmp_path, body.format(t=0.4) + rising), cache=cache)
+    report = analyze_scene(scene(tmp_path, body.format(t=0.25) + rising), cache=cache)
     (found,) = coded(report, "behind-box-wall")
     assert "bodies[0] ('late')" in found.message and "its floor" in found.message
     report = analyze_scene(scene(tmp_path, body.format(t=0.0) + rising), cache=cache)
