@@ -188,7 +188,7 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
         bm = body_model(m, b.drive.body_start, fr)
         bs = BodyScratch(b.sphere_f, b.sphere_t, b.sphere_tr, b.sphere_r, state.body_x,
                          state.body_q, state.body_P, state.body_L, rest, b.body_wake,
-                         b.body_still, glue_scratch(state, b).body_glue)
+                         b.body_still, glue_scratch(state, b).body_glue, b.sphere_engaged)
         after = (
             lambda: k.stage_patches(cm, cs, b.drive.motion_now, m.body_sphere_start, b.slot_of,
                                     b.busy, busy[0], b.busy_from),

@@ -19,9 +19,11 @@ def body_update(b, k0, k1, s0, work, listed, bm, bs, step):
     The sums run over the body's spheres in index order: when ``listed`` (the CPU)
     only those at the slots work[k0 .. k1-1] (stage_busy's, in slot order, which is
     the body's sphere order from its first slot s0: stage_grid_sort), the others'
-    forces and torques being zero until the next rebuild; else every one (``work``,
-    s0 unread; CUDA). The same sums bit for bit: a sum that starts at +0.0, as each
-    of them does, is left as it is by adding +0.0.
+    forces and torques being zero until the next rebuild, and of those only the
+    spheres that touched anything at this step's contact passes (sphere_engaged:
+    contacts.engaged; the others' sums are +0.0); else every one (``work``, s0 and
+    sphere_engaged unread; CUDA). The same sums bit for bit: a sum that starts at
+    +0.0, as each of them does, is left as it is by adding +0.0.
 
     Returns awake + 2 woke + 4 quiet + 8 calmed: awake (1) when the body will
     integrate at the next step; quiet (4) when it is asleep and slept through
@@ -37,7 +39,7 @@ def body_update(b, k0, k1, s0, work, listed, bm, bs, step):
     (dt, gravity, body_sphere_start, body_mass, body_inv_mass, body_inv_inertia, sleep_steps,
      v_sleep, w_sleep, body_start, rolling) = bm
     (sphere_f, sphere_t, sphere_tr, sphere_r, body_x, body_q, body_P, body_L, body_rest,
-     body_wake, body_still, body_glue) = bs
+     body_wake, body_still, body_glue, sphere_engaged) = bs
     if static_body(body_inv_mass[b]):
         return 1 if body_rest[b] < 0 else 0
     if body_start[b] > step:
@@ -65,6 +67,8 @@ def body_update(b, k0, k1, s0, work, listed, bm, bs, step):
     i0 = body_sphere_start[b]
     for j in range(k1 - k0 if listed else body_sphere_start[b + 1] - i0):
         i = i0 + work[k0 + j] - s0 if listed else i0 + j
+        if listed and sphere_engaged[i] == 0:
+            continue                # touched nothing at this step's passes: +0.0 each
         fx = sphere_f[i, 0]
         fy = sphere_f[i, 1]
         fz = sphere_f[i, 2]

@@ -104,9 +104,10 @@ def compile_contacts(jit, formulas, pairing, constants: dict) -> types.SimpleNam
                  quat_rotate=formulas.quat_rotate,
                  RING_TIE=contacts.RING_TIE, RIM_TIE=contacts.RIM_TIE, INSCRIBED=True)
     given.update(constants)
-    c = compile_chain(contacts, ("wall_gap", "pair_ended", "inscribed_wall"), jit, given)
+    c = compile_chain(contacts, ("wall_gap", "pair_ended", "inscribed_wall", "engaged"), jit,
+                      given)
     given.update(wall_gap=c.wall_gap, pair_ended=c.pair_ended,
-                 inscribed_wall=c.inscribed_wall)
+                 inscribed_wall=c.inscribed_wall, engaged=c.engaged)
     pt = compile_chain(patches, patches.KERNEL, jit, given)
     given.update(vars(pt))
     return compile_chain(contacts, ("pair_forces", "sphere_forces"), jit, given)

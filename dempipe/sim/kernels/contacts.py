@@ -205,6 +205,25 @@ def pair_ended(dist2, d2, diameter, rx, ry, rz, dvx, dvy, dvz, dt, vc):
     return closing(diameter - dist, dvr / dist, dt)  # noqa: F821 (the law's)
 
 
+def engaged(s, i, slot_touch, sphere_engaged):
+    """Whether the contact passes visit slot s (sphere i) of their work this step (the
+    CPU, LIST_ROWS): it touches something (slot_touch: body_patches' tests, pairs and
+    walls), or touched anything at its last visit (sphere_engaged: its force, its
+    pairs' and walls' stretches are to be cleared).
+
+    Any other slot's visit would write what it holds already: pass 1 finds each pair
+    and wall apart and has no stretch to forget (none was kept: it touched nothing at
+    its last visit), and writes zero wall forces that pass 2 reads only where pass 1
+    visited too; pass 2 writes the zero force it wrote at its last visit (or
+    stage_busy at the rebuild). So the State is the same bit for bit, and a piece
+    standing on a floor costs what its spheres on the floor cost, not every sphere a
+    wall is in reach of (a chess piece's foot ring 0.02 d above the floor:
+    docs/performance.md, "Surface sphere sets"). The first step of each ``step`` call
+    visits every slot of its work (run_steps: the State may be another than the last
+    call's, whose stretches the scratch knows nothing of)."""
+    return slot_touch[s] != 0 or sphere_engaged[i] != 0
+
+
 def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
     """Stage 4, first pass, for the sorted slots work[k0 .. k1-1] when ``listed`` (the
     CPU: a block of its parallel loop over the slots with work), else slots k0 ..
@@ -245,7 +264,7 @@ def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
     (nbr, nbr_n, pidx, pair_start, pair_e, wall_start, wall_s, _list_start, list_e,
      sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest, body_wake, wall_mask,
      hist_partner, hist_spring, pair_f, wall_f, _sphere_f, _sphere_t, _sphere_tr,
-     _sphere_overlap, body_patch, body_q) = cs
+     _sphere_overlap, body_patch, body_q, slot_touch, sphere_engaged) = cs
     d2 = diameter * diameter
     radius = 0.5 * diameter
     n_walls = wall_normal.shape[0]
@@ -261,6 +280,10 @@ def pair_forces(k0, k1, work, listed, cm, cs, motion_now, parity):
         n_wall_on = -1                      # walls the row remembers (-1: count them)
         h = s if HIST_BY_SLOT else sorted_idx[s]  # noqa: F821 (the target's: compile_contacts)
         asleep_i = SLEEPING and sleep_steps > 0 and body_rest[bi] >= sleep_steps  # noqa: F821
+        if LIST_ROWS and not engaged(s, sorted_idx[s], slot_touch,  # noqa: F821
+                                     sphere_engaged) and not (
+                asleep_i and wall_mask[s] != 0 and motion_now.shape[0] > 0):
+            continue                        # (a sleeper a moving wall may wake: visited)
         xi = sorted_x[s, 0]
         yi = sorted_x[s, 1]
         zi = sorted_x[s, 2]
@@ -602,12 +625,16 @@ def sphere_forces(k0, k1, work, listed, cm, cs):
     (nbr, nbr_n, pidx, _pair_start, _pair_e, _wall_start, _wall_s, list_start, list_e,
      sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest, _body_wake, wall_mask,
      _hist_partner, _hist_spring, pair_f, wall_f, sphere_f, sphere_t, sphere_tr,
-     sphere_overlap, _body_patch, _body_q) = cs
+     sphere_overlap, _body_patch, _body_q, slot_touch, sphere_engaged) = cs
     d2 = diameter * diameter
     for k in range(k0, k1):
         s = work[k] if listed else k
         i = sorted_idx[s]
         bi = sorted_body[s]
+        if LIST_ROWS:  # noqa: F821
+            if not engaged(s, i, slot_touch, sphere_engaged):  # noqa: F821
+                continue
+            sphere_engaged[i] = slot_touch[s]
         if static_body(body_inv_mass[bi]) or (SLEEPING and sleep_steps > 0  # noqa: F821
                                               and body_rest[bi] >= sleep_steps):
             # static, or asleep: feels nothing (but is found by its moving neighbours)

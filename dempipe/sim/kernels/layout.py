@@ -158,6 +158,9 @@ def cpu_scratch(model, friction: bool) -> dict:
         # found in blocks of CONTACT_CHUNK (each block's count in chunk_n)
         "chunk_n": ((n_chunks,), i8),
         "busy": ((ns,), i4), "active": ((ns,), i4),
+        # whether each slot touches anything this step, each sphere at its last visit
+        # (contacts.engaged: the passes leave out the others)
+        "slot_touch": ((ns,), np.int8), "sphere_engaged": ((ns,), np.int8),
         "span_ctl": ((3,), i8),
         # a rebuild that keeps the slots: which lists it searches again (stage_slot_marks)
         "slot_mark": ((ns,), np.int8),
@@ -384,6 +387,8 @@ class Scratch(NamedTuple):
     state_rows: Any
     busy_from: Any
     active_from: Any
+    slot_touch: Any
+    sphere_engaged: Any
 
 
 class ContactModel(NamedTuple):
@@ -436,7 +441,11 @@ class ContactScratch(NamedTuple):
     reach, the contact histories (hist_partner, hist_spring) and what the passes
     write: pair_f, wall_f, sphere_f [N], sphere_t [N m], sphere_overlap [m]; and the
     contact patches' sums per body (body_patch: patches.py); the bodies'
-    orientations body_q (w, x, y, z), which turn the inscribed balls."""
+    orientations body_q (w, x, y, z), which turn the inscribed balls; and (the CPU,
+    LIST_ROWS) whether each slot touches anything this step (slot_touch, by
+    patches.body_patches) and each sphere touched anything at its last visit
+    (sphere_engaged), with which the passes leave out the slots they would write
+    nothing new for (contacts.engaged; CUDA passes stand-ins, unread)."""
 
     nbr: Any
     nbr_n: Any
@@ -465,6 +474,8 @@ class ContactScratch(NamedTuple):
     sphere_overlap: Any
     body_patch: Any
     body_q: Any
+    slot_touch: Any
+    sphere_engaged: Any
 
 
 class BodyModel(NamedTuple):
@@ -494,7 +505,9 @@ class BodyScratch(NamedTuple):
     body), the State's x, q, P, L and rest counts, the wake flags and body_still
     (the backend's), and each body's glue force and torque about its centre of
     mass (body_glue (B, 6) [N], [N m]: kernels/glue.py; read only by a kernel
-    compiled with GLUE, a stand-in otherwise)."""
+    compiled with GLUE, a stand-in otherwise); and (the CPU) whether each sphere
+    touched anything at this step's contact passes (sphere_engaged, contacts.engaged:
+    the others' forces are zero; CUDA passes a stand-in, unread)."""
 
     sphere_f: Any
     sphere_t: Any
@@ -508,6 +521,7 @@ class BodyScratch(NamedTuple):
     body_wake: Any
     body_still: Any
     body_glue: Any
+    sphere_engaged: Any
 
 
 def body_model(model, body_start, friction: bool, arrays=None) -> BodyModel:

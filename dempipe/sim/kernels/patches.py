@@ -96,7 +96,8 @@ def body_patches(b, k0, k1, work, listed, cm, cs, motion_now, body_sphere_start,
     side, so their passes over the same slots read the mark instead of the partner's
     position. An entry the sleeping rule skips keeps its old mark: its slot is
     asleep, sphere_forces does not walk a sleeping slot's list, and pair_forces
-    applies the same rule before it reads the mark."""
+    applies the same rule before it reads the mark. And each slot's slot_touch[s] is
+    1 when any of its pairs or walls is so counted, else 0 (contacts.engaged)."""
     diameter = cm.diameter
     dt = cm.dt
     onset_speed = cm.onset_speed
@@ -122,6 +123,7 @@ def body_patches(b, k0, k1, work, listed, cm, cs, motion_now, body_sphere_start,
     body_w = cs.body_w
     sphere_inscribed = cm.sphere_inscribed
     sorted_idx = cs.sorted_idx
+    slot_touch = cs.slot_touch
     if static_body(body_inv_mass[b]):  # noqa: F821
         return
     row = body_patch[b]
@@ -147,6 +149,7 @@ def body_patches(b, k0, k1, work, listed, cm, cs, motion_now, body_sphere_start,
         last = -1                           # a run of entries of one partner: one add
         r1 = 0.0
         r2 = 0.0
+        touch = 0
         e0, e1 = entry_range(LIST_ROWS, list_start, nbr_n, s)  # noqa: F821
         for e in range(e0, e1):
             t = list_e[e, 0] if LIST_ROWS else nbr[s, e]  # noqa: F821
@@ -174,6 +177,7 @@ def body_patches(b, k0, k1, work, listed, cm, cs, motion_now, body_sphere_start,
                 continue
             if LIST_ROWS:  # noqa: F821
                 list_e[e, 2] = 1            # touching, or in the step after (LIST_COLS)
+            touch = 1
             if bj != last:
                 if last >= 0:
                     patch_add(row, slots, last, r1, r2)  # noqa: F821
@@ -219,6 +223,9 @@ def body_patches(b, k0, k1, work, listed, cm, cs, motion_now, body_sphere_start,
                         continue
                     ov += away * dt                 # the overlap of the step before
                 patch_add(row, slots, n_bodies + w, ov, ov * ov)  # noqa: F821
+                touch = 1
+        if LIST_ROWS:  # noqa: F821
+            slot_touch[s] = touch
 
 
 def patch_share(body_patch, b, code):

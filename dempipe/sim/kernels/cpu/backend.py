@@ -250,6 +250,7 @@ class CpuBackend:
         # the copied histories, and a copy of the wake flags: a probe wakes nothing
         cm, cs = self.contact_args(state, hist_partner=partner, hist_spring=spring,
                                    body_wake=self.body_wake.copy())
+        self.sphere_engaged[:] = 1              # every busy slot (contacts.engaged)
         n_busy = stage_busy(self.nbr_n, self.wall_mask, self.sorted_idx, self.sorted_body,
                             m.body_inv_mass, self.chunk_n, self.busy, self.sphere_f,
                             self.sphere_t, self.sphere_tr)

@@ -412,7 +412,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
      grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_e, pair_f, list_start, list_e,
      wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_tr, sphere_overlap,
      body_patch, skin_ctl, chunk_n, busy, active, span_ctl, slot_mark, state_rows, busy_from,
-     active_from) = scratch
+     active_from, slot_touch, sphere_engaged) = scratch
     # what the contact passes take (layout.ContactModel, ContactScratch): the same arrays
     cm = ContactModel(diameter, dt, onset_speed, body_inv_mass, body_material, pair_k,
                       pair_damp, pair_mu, kt_ratio, ks_ratio, friction, sleep_steps,
@@ -422,13 +422,15 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
     cs = ContactScratch(nbr, nbr_n, pidx, pair_start, pair_e, wall_start, wall_s, list_start,
                         list_e, sorted_idx, sorted_x, sorted_v, sorted_body, body_w, body_rest,
                         body_wake, wall_mask, hist_partner, hist_spring, pair_f, wall_f,
-                        sphere_f, sphere_t, sphere_tr, sphere_overlap, body_patch, body_q)
+                        sphere_f, sphere_t, sphere_tr, sphere_overlap, body_patch, body_q,
+                        slot_touch, sphere_engaged)
     bm = BodyModel(dt, gravity, body_sphere_start, body_mass, body_inv_mass, body_inv_inertia,
                    sleep_steps, v_sleep, w_sleep, drive.body_start, rolling)
     bs = BodyScratch(sphere_f, sphere_t, sphere_tr, sphere_r, body_x, body_q, body_P, body_L,
-                     body_rest, body_wake, body_still, gs.body_glue)
+                     body_rest, body_wake, body_still, gs.body_glue, sphere_engaged)
     if n_steps <= 0:
         return 0, 0  # nothing sorted yet: the unsort below would scramble the State's rows
+    sphere_engaged[:] = 1   # the first step visits every slot (contacts.engaged)
     skin = skin_ctl[0]
     since = skin_ctl[1]
     inv_cell = 1.0 / ((1.0 + skin) * diameter)     # neighbours.cell_size, at this skin
@@ -663,7 +665,8 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
 _STAGES = (stage_body_velocities, motion_row, driven_row, stage_motion, stage_driven,
            sphere_state, stage_spheres,
            stage_spheres_sorted, stage_spheres_busy,
-           contacts.wall_gap, contacts.pair_ended, contacts.inscribed_wall, patches.patch_add, patches.body_patches,
+           contacts.wall_gap, contacts.pair_ended, contacts.inscribed_wall, contacts.engaged,
+           patches.patch_add, patches.body_patches,
            patches.patch_share, patches.pair_share, stage_patches,
            contacts.pair_forces, contacts.sphere_forces, stage_contacts, stage_sums,
            glue.bond_forces, glue.bond_contacts, glue.body_glue_sum, stage_glue,
@@ -684,6 +687,7 @@ _JITS = {
     "wall_gap": numba.njit(inline="always", cache=True),
     "pair_ended": numba.njit(inline="always", cache=True),
     "inscribed_wall": numba.njit(inline="always", cache=True),
+    "engaged": numba.njit(inline="always", cache=True),
     "patch_add": numba.njit(inline="always", cache=True),
     "body_patches": numba.njit(error_model="numpy", cache=True),
     "patch_share": numba.njit(inline="always", cache=True),

@@ -533,7 +533,8 @@ class CudaBackend:
             hist_spring=d["contact_spring"] if spring is None else spring,
             pair_f=d["pair_f"], wall_f=d["wall_f"], sphere_f=d["sphere_f"],
             sphere_t=d["sphere_t"], sphere_tr=d["sphere_tr"],
-            sphere_overlap=d["sphere_overlap"], body_patch=d["body_patch"], body_q=d["body_q"])
+            sphere_overlap=d["sphere_overlap"], body_patch=d["body_patch"], body_q=d["body_q"],
+            slot_touch=d["nbr_n"], sphere_engaged=d["nbr_n"])
         self.k.k_body_patches[_blocks(d["body_patch"].shape[0], THREADS), THREADS](
             cm, cs, d["motion_now"], d["body_sphere_start"], d["slot_of"], d["ctl"])
         self.k.k_pair_forces[_blocks(m.n_spheres, CONTACT_THREADS), CONTACT_THREADS](
@@ -566,7 +567,8 @@ class CudaBackend:
             body_glue = d["body_glue"]
         else:
             body_glue = d["wall_f"]     # GLUE off: a stand-in, unread
-        bs = BodyScratch(*(d[n] for n in BodyScratch._fields[:-1]), body_glue=body_glue)
+        bs = BodyScratch(*(d[n] for n in BodyScratch._fields[:-2]), body_glue=body_glue,
+                         sphere_engaged=d["nbr_n"])
         self.k.k_bodies[_blocks(m.n_bodies, THREADS), THREADS](
             m.n_bodies, body_model(m, d["body_start"], self.features.friction, arrays=d), bs,
             d["ctl"])
