@@ -316,22 +316,21 @@ def expected_speeds(model: Model) -> tuple[float, float, float]:
 
 def falling_speeds(model: Model) -> np.ndarray:
     """(n,) the fastest each dynamic body gets [m/s] if nothing but gravity acts on it,
-    its spin's surface speed |w| r included: sqrt(|v|² + 2 g h) at the floor under its
-    centre, its bottom h above it (energy: the same for any launch direction; r the
-    body's radius), and at most |v| +
-    g t, t its time in the shot (from its start_time to the last frame). With nothing
-    under it (no ground-like plane below; no box floor, static mesh or kinematic body
-    under its centre) it falls for the whole shot, at |v| + g t by the end. A body
-    carried by another is where that one is: an upper bound for a pile, not a guess
-    at its bounces. Kinematic bodies: 0 (their motion is given)."""
+    its spin's surface speed |w| r included (r the body's radius): sqrt(|v|² + 2 g h)
+    at the floor under its centre, its bottom h above it (energy: the same for any
+    launch direction), and at most |v| + g t, t its time in the shot (from its
+    start_time to the last frame). With nothing under it (no ground-like plane below;
+    no box floor, static mesh or kinematic body under its centre) it falls for the
+    whole shot, at |v| + g t by the end. A body carried by another is where that one
+    is: an upper bound for a pile, not a guess at its bounces. Kinematic bodies: 0
+    (their motion is given)."""
     n = model.n_bodies
     out = np.zeros(n)
     if n == 0:
         return out
     g = float(np.linalg.norm(model.gravity))
     up = -np.asarray(model.gravity) / g if g > 0 else np.array([0.0, 0.0, 1.0])
-    moves = (np.ones(n, bool) if model.body_kinematic is None
-             else ~np.asarray(model.body_kinematic))
+    moves = ~model.body_static[:n]          # 1/m = 0: kinematic
     x0 = np.asarray(model.initial_x[:n])
     spin = np.linalg.norm(np.asarray(model.initial_w[:n]), axis=1) * np.asarray(
         model.body_radius)
@@ -374,8 +373,7 @@ def pair_stability(model: Model, dt: float | None = None) -> tuple[list, float, 
     and laws.stiffest."""
     dt = model.dt if dt is None else dt
     n = model.n_bodies
-    moves = (np.ones(n, bool) if model.body_kinematic is None
-             else ~np.asarray(model.body_kinematic))
+    moves = ~model.body_static[:n]          # 1/m = 0: kinematic, a partner only
     wall_mats = set(np.asarray(model.wall_material).tolist()) | set(
         np.asarray(model.body_material[n:]).tolist())
     names = [m.name for m in model.materials]
