@@ -423,3 +423,41 @@ def test_an_empty_history_column_holds_no_stretch():
         filled = st.contact_partner != 0
         assert not (filled[:, 1:] & ~filled[:, :-1]).any()   # no gap before a filled column
     assert touched > 0 and be.skin_ctl[3] > 10
+
+
+def test_bucket_sort_is_a_stable_counting_sort_across_blocks():
+    # The CPU's counting sort sums the table in blocks of BUCKET_BLOCK buckets; with a
+    # table of several blocks, spheres in none (-1), empty blocks and a bucket in the
+    # last block, it is numpy's stable sort by bucket, and bucket_start the counts'
+    # running sum, whatever the thread count.
+    import numba
+
+    from dempipe.sim.kernels.cpu.grid import bucket_sort
+    from dempipe.sim.kernels.layout import BUCKET_BLOCK
+
+    rng = np.random.default_rng(5)
+    nbk = 5 * BUCKET_BLOCK + 17
+    grid = np.array([0, 0, 0, 0, 0, nbk], np.int64)
+    h = rng.integers(-1, 3 * BUCKET_BLOCK, 4000)
+    h[rng.integers(0, 4000, 300)] = nbk - 1
+    h[:50] = 7                                      # a crowded bucket
+    slot_of = rng.permutation(4000).astype(np.int32)
+    results = []
+    for threads in (1, numba.config.NUMBA_NUM_THREADS):
+        numba.set_num_threads(threads)
+        start = np.full(nbk + 1, 99, np.int64)     # stale values from a last sort
+        blocks = np.full(nbk // BUCKET_BLOCK + 1, 99, np.int64)
+        idx = np.full(4000, -5, np.int32)
+        slots = np.full(4000, -5, np.int32)
+        bucket_sort(h, slot_of, grid, start, blocks, idx, slots)
+        results.append((start.copy(), idx.copy(), slots.copy()))
+    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    kept = np.flatnonzero(h >= 0)
+    order = kept[np.argsort(h[kept], kind="stable")]
+    start, idx, slots = results[0]
+    assert np.array_equal(idx[: len(kept)], order)
+    assert np.array_equal(slots[: len(kept)], slot_of[order])
+    assert np.array_equal(np.diff(start), np.bincount(h[kept], minlength=nbk))
+    assert start[0] == 0 and start[nbk] == len(kept)
+    for other in results[1:]:
+        assert all(np.array_equal(a, b) for a, b in zip(results[0], other))

@@ -31,6 +31,10 @@ from dempipe.sim.state import CONTACT_SLOTS
 #: buckets (memory follows the spheres, never the bounding box).
 BUCKETS_PER_SPHERE = 8
 
+#: Buckets per block of the CPU's counting sort (kernels/cpu/grid.py bucket_sort):
+#: each block's running sum is one thread's, after a serial sum over the blocks.
+BUCKET_BLOCK = 4096
+
 
 def grid_table(n_spheres: int, extent_cells=None) -> np.ndarray:
     """Table layout (bx, by, mask_x, mask_y, mask_z, n_buckets) for the grid.
@@ -109,7 +113,8 @@ def cpu_scratch(model, friction: bool) -> dict:
         "body_v": ((nb, 3), f8), "body_w": ((nb, 3), f8),
         "sphere_x": ((ns, 3), f8), "sphere_v": ((ns, 3), f8), "sphere_r": ((ns, 3), f8),
         "sphere_key": ((ns,), i8), "sphere_hash": ((ns,), i8),
-        "bucket_start": ((table + 1,), i8), "bucket_fill": ((table,), i8),
+        "bucket_start": ((table + 1,), i8),
+        "bucket_blocks": ((table // BUCKET_BLOCK + 1,), i8),
         "body_key": ((nb,), i8),                 # each body's bucket (the slots' order)
         # the grid (stage_grid_sort): each position's sphere, slot, position, cell, body
         "grid_idx": ((ns,), i4), "grid_slot": ((ns,), i4), "grid_x": ((ns, 3), f8),
@@ -348,7 +353,7 @@ class Scratch(NamedTuple):
     sphere_key: Any
     sphere_hash: Any
     bucket_start: Any
-    bucket_fill: Any
+    bucket_blocks: Any
     body_key: Any
     grid_slot: Any
     sorted_idx: Any

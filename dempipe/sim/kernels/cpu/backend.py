@@ -216,7 +216,7 @@ class CpuBackend:
                           self.body_box, m.body_inv_mass, self.drive.body_start,
                           int(state.step), self.sphere_hash)
         stage_grid_sort(self.sphere_hash, state.body_x, 1.0 / cell_size(m.diameter), self.grid,
-                        m.body_sphere_start, self.bucket_start, self.bucket_fill, self.body_key,
+                        m.body_sphere_start, self.bucket_start, self.bucket_blocks, self.body_key,
                         self.sorted_idx, self.slot_of, self.grid_idx, self.grid_slot)
         stage_grid_gather(self.sorted_idx, self.grid_idx, self.bucket_start[self.grid[5]],
                           self.sphere_x, self.sphere_v, self.sphere_key, m.sphere_body,

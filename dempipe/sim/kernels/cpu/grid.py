@@ -29,15 +29,16 @@ from dempipe.sim.kernels.cpu.device import (
     static_body,
     wall_reach,
 )
+from dempipe.sim.kernels.layout import BUCKET_BLOCK
 from dempipe.sim.kernels.pairing import WALL_SLACK
 
 invalidate_stale_cache(__file__)
 
 
-@numba.njit(error_model="numpy", cache=True)
+@numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start, bucket_start,
-                    bucket_fill, body_key, sorted_idx, slot_of, grid_idx, grid_slot):
-    """Stage 2 at a rebuild: the slots, and the grid (serial, stable).
+                    bucket_blocks, body_key, sorted_idx, slot_of, grid_idx, grid_slot):
+    """Stage 2 at a rebuild: the slots, and the grid (stable).
 
     Slots in body order: the bodies sorted by the bucket of the cell their
     centre is in (stable: ties in body order), each body's spheres in
@@ -47,51 +48,78 @@ def stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start, buck
     stores, the second contact pass writes and the body stage reads each body's
     spheres in order (docs/performance.md, "Where a step goes").
 
-    The grid: a counting sort of the spheres by bucket, as CUDA's (k_scatter,
-    k_bucket_sort). bucket_start[h]:bucket_start[h+1] are the grid positions of
-    bucket h, grid_idx[g] the sphere at position g and grid_slot[g] its slot; within a bucket
-    the spheres stay in index order, which keeps everything downstream
-    independent of the thread count. Only the first grid[5] buckets are in use.
+    The grid: bucket_sort.
     """
     nb = body_sphere_start.shape[0] - 1
-    for b in range(nb):
+    for b in prange(nb):
         body_key[b] = morton_key(cell_coord(body_x[b, 0], inv_cell),
                                  cell_coord(body_x[b, 1], inv_cell),
                                  cell_coord(body_x[b, 2], inv_cell))
     order = np.argsort(body_key[:nb], kind="mergesort")
+    first = np.empty(nb, np.int64)          # each body's first slot, in slot order
     s = 0
     for k in range(nb):
+        first[k] = s
         b = order[k]
-        for i in range(body_sphere_start[b], body_sphere_start[b + 1]):
-            sorted_idx[s] = i
-            slot_of[i] = s
-            s += 1
-    bucket_sort(sphere_hash, slot_of, grid, bucket_start, bucket_fill, grid_idx, grid_slot)
+        s += body_sphere_start[b + 1] - body_sphere_start[b]
+    for k in prange(nb):
+        b = order[k]
+        i0 = body_sphere_start[b]
+        for i in range(i0, body_sphere_start[b + 1]):
+            sorted_idx[first[k] + i - i0] = i
+            slot_of[i] = first[k] + i - i0
+    bucket_sort(sphere_hash, slot_of, grid, bucket_start, bucket_blocks, grid_idx, grid_slot)
 
 
-@numba.njit(error_model="numpy", cache=True)
-def bucket_sort(sphere_hash, slot_of, grid, bucket_start, bucket_fill, grid_idx, grid_slot):
+@numba.njit(error_model="numpy", parallel=True, cache=True)
+def bucket_sort(sphere_hash, slot_of, grid, bucket_start, bucket_blocks, grid_idx, grid_slot):
     """The grid's counting sort of the spheres by bucket (sphere_hash, in sphere
-    order; serial, stable: spheres in index order within a bucket), with each
-    position's slot (slot_of); see stage_grid_sort. A sphere whose hash is -1
-    (broadphase.stage_near_others) goes into none."""
+    order), with each position's slot (slot_of), as CUDA's (k_scatter,
+    k_bucket_sort): bucket_start[h]:bucket_start[h+1] are the grid positions of
+    bucket h, grid_idx[g] the sphere at position g and grid_slot[g] its slot. Only
+    the first grid[5] buckets are in use. A sphere whose hash is -1
+    (broadphase.stage_near_others) goes into none.
+
+    Stable: within a bucket the spheres stay in index order, which keeps
+    everything downstream independent of the thread count. The table has
+    BUCKETS_PER_SPHERE buckets a sphere however few are in the grid, so its
+    passes are what costs: the counts go into bucket_start[h] and, per block of
+    BUCKET_BLOCK buckets, into bucket_blocks (serial, one read per sphere); the
+    blocks' starts are summed serially, and each block's running sum is done in
+    parallel, leaving bucket_start[h] = the end of bucket h; the spheres are
+    then placed from the last to the first, each at its bucket's end less one,
+    which leaves bucket_start[h] = the start of bucket h. Integer sums: the same
+    table whatever the thread count."""
     nbk = grid[5]
-    for h in range(nbk + 1):
-        bucket_start[h] = 0
+    n_blocks = (nbk + BUCKET_BLOCK - 1) // BUCKET_BLOCK
+    for c in prange(n_blocks):
+        bucket_blocks[c] = 0
+        for h in range(c * BUCKET_BLOCK, min(nbk, (c + 1) * BUCKET_BLOCK)):
+            bucket_start[h] = 0
     for i in range(sphere_hash.shape[0]):
-        if sphere_hash[i] >= 0:
-            bucket_start[sphere_hash[i] + 1] += 1
-    for h in range(nbk):
-        bucket_start[h + 1] += bucket_start[h]
-    for h in range(nbk):
-        bucket_fill[h] = bucket_start[h]
-    for i in range(sphere_hash.shape[0]):
+        h = sphere_hash[i]
+        if h >= 0:
+            bucket_start[h] += 1
+            bucket_blocks[h // BUCKET_BLOCK] += 1
+    total = 0
+    for c in range(n_blocks):               # each block's first position
+        n = bucket_blocks[c]
+        bucket_blocks[c] = total
+        total += n
+    for c in prange(n_blocks):
+        run = bucket_blocks[c]
+        for h in range(c * BUCKET_BLOCK, min(nbk, (c + 1) * BUCKET_BLOCK)):
+            run += bucket_start[h]
+            bucket_start[h] = run
+    bucket_start[nbk] = total
+    for i in range(sphere_hash.shape[0] - 1, -1, -1):
         h = sphere_hash[i]
         if h < 0:
             continue
-        grid_idx[bucket_fill[h]] = i
-        grid_slot[bucket_fill[h]] = slot_of[i]
-        bucket_fill[h] += 1
+        g = bucket_start[h] - 1
+        bucket_start[h] = g
+        grid_idx[g] = i
+        grid_slot[g] = slot_of[i]
 
 
 @numba.njit(error_model="numpy", parallel=True, cache=True)
@@ -176,7 +204,7 @@ def stage_slot_marks(body_sphere_start, slot_of, sorted_x, built_x, body_inv_mas
 
 @numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_grid_keep(built_x, sorted_body, slot_of, inv_cell, grid, sphere_key, sphere_hash,
-                    bucket_start, bucket_fill, grid_idx, grid_slot, grid_x, grid_key,
+                    bucket_start, bucket_blocks, grid_idx, grid_slot, grid_x, grid_key,
                     grid_body):
     """At a rebuild that keeps the slots: the grid of where each slot's list is
     built (built_x, after stage_slot_marks), as stage_grid_sort and stage_grid_gather
@@ -191,7 +219,7 @@ def stage_grid_keep(built_x, sorted_body, slot_of, inv_cell, grid, sphere_key, s
         cz = cell_coord(built_x[s, 2], inv_cell)
         sphere_key[i] = cell_key(cx, cy, cz)
         sphere_hash[i] = cell_hash(cx, cy, cz, grid)
-    bucket_sort(sphere_hash, slot_of, grid, bucket_start, bucket_fill, grid_idx, grid_slot)
+    bucket_sort(sphere_hash, slot_of, grid, bucket_start, bucket_blocks, grid_idx, grid_slot)
     for g in prange(ns):
         s = grid_slot[g]
         grid_x[g, 0] = built_x[s, 0]

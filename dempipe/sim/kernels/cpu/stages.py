@@ -5,8 +5,9 @@ with ``numba.njit(inline="always")``. ``run_steps`` loops over steps inside
 compiled code, so a frame of hundreds of steps costs one Python call.
 
 Determinism: every parallel loop writes only its own index (gather, no
-scatter, no atomics); the sorts of a rebuild are serial and stable; each body sums
-its spheres in index order. The output is bit-identical for any thread count.
+scatter, no atomics); the sorts of a rebuild are stable (integer counts, each
+bucket filled in sphere order); each body sums its spheres in index order. The
+output is bit-identical for any thread count.
 """
 
 from __future__ import annotations
@@ -407,7 +408,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
     (body_x, body_q, body_P, body_L, body_rest, contact_partner, contact_spring) = state
     (hist_partner, hist_spring, body_wake, body_still, built_bx, built_bq, seen_bx, seen_bq,
      body_reach, body_box, offset_t, body_v, body_w, sphere_x, sphere_v,
-     sphere_r, sphere_key, sphere_hash, bucket_start, bucket_fill, body_key, grid_slot,
+     sphere_r, sphere_key, sphere_hash, bucket_start, bucket_blocks, body_key, grid_slot,
      sorted_idx, slot_of, sorted_x, sorted_v, sorted_body, grid_idx, grid_x, grid_key,
      grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_e, pair_f, list_start, list_e,
      wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_tr, sphere_overlap,
@@ -523,7 +524,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
                     n_state_rows = n_held
             if keep:                            # the slots stay: only the marked lists
                 stage_grid_keep(built_x, sorted_body, slot_of, inv_cell, grid, sphere_key,
-                                sphere_hash, bucket_start, bucket_fill, grid_idx, grid_slot,
+                                sphere_hash, bucket_start, bucket_blocks, grid_idx, grid_slot,
                                 grid_x, grid_key, grid_body)
                 over = stage_neighbours_marked(1, 2, slot_mark, diameter, skin, grid,
                                                bucket_start, grid_idx, grid_x, grid_key,
@@ -545,7 +546,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
                                   body_x, body_q, body_sphere_start, body_reach, body_box,
                                   body_inv_mass, body_start, step, sphere_hash)
                 stage_grid_sort(sphere_hash, body_x, inv_cell, grid, body_sphere_start,
-                                bucket_start, bucket_fill, body_key, sorted_idx, slot_of,
+                                bucket_start, bucket_blocks, body_key, sorted_idx, slot_of,
                                 grid_idx, grid_slot)
                 if FRICTION and friction and step > first_step:
                     held_rows(held, n_held, slot_of, False, held)    # spheres to slots
