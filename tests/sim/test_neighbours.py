@@ -320,10 +320,14 @@ def test_the_skin_shrinks_back_when_rebuilds_are_rare():
     assert adapt_skin(up, SKIN_SHRINK_ABOVE + 1, SKIN, SKIN_MAX, False) == SKIN   # exactly
     # a dense set's range starts below SKIN and ends there exactly too
     from dempipe.sim.kernels.neighbours import SKIN_MAX_DENSE, SKIN_MIN_DENSE
-    up = adapt_skin(SKIN_MIN_DENSE, 1, SKIN_MIN_DENSE, SKIN_MAX_DENSE, True)
+    up = SKIN_MIN_DENSE
+    for _ in range(round((SKIN_MAX_DENSE - SKIN_MIN_DENSE) / SKIN_STEP)):
+        up = adapt_skin(up, 1, SKIN_MIN_DENSE, SKIN_MAX_DENSE, True)
     assert up == SKIN_MAX_DENSE or abs(up - SKIN_MAX_DENSE) < 1e-12
-    assert adapt_skin(up, SKIN_SHRINK_ABOVE + 1, SKIN_MIN_DENSE, SKIN_MAX_DENSE,
-                      False) == SKIN_MIN_DENSE
+    assert adapt_skin(up, 1, SKIN_MIN_DENSE, SKIN_MAX_DENSE, True) == up         # held
+    for _ in range(round((SKIN_MAX_DENSE - SKIN_MIN_DENSE) / SKIN_STEP)):
+        up = adapt_skin(up, SKIN_SHRINK_ABOVE + 1, SKIN_MIN_DENSE, SKIN_MAX_DENSE, False)
+    assert up == SKIN_MIN_DENSE
 
 
 def test_spheres_packed_closer_than_a_lattice_keep_the_skin_narrower():

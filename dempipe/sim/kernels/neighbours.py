@@ -48,12 +48,13 @@ SKIN_GROW_BELOW = 20
 SKIN_SHRINK_ABOVE = 100
 
 #: The CPU's skin range [diameters] where the bodies' spheres are packed closer than
-#: DENSE_SPACING d (surface sets: 0.3 d). The spheres a face of another body holds
-#: within reach, the busy ones every contact pass visits, grow with the skin ten
-#: times as fast as a lattice's, so a narrow skin costs less in the passes than its
-#: rebuilds add (``skin_range``; measured: docs/performance.md, "Surface sphere sets").
+#: DENSE_SPACING d (surface sets: 0.3 d). Ten times a lattice's spheres come within a
+#: list's reach of another body's face, and each is placed and tested at every step,
+#: so the skin starts narrower than a lattice's; but a rebuild places and sorts every
+#: sphere, eight times a lattice's, so it may grow past a lattice's smallest to keep
+#: rebuilds rare (``skin_range``; measured: docs/performance.md, "Surface sphere sets").
 SKIN_MIN_DENSE = 0.1
-SKIN_MAX_DENSE = 0.2
+SKIN_MAX_DENSE = 0.3
 DENSE_SPACING = 0.9
 
 #: A row of three cells holding more spheres than this is searched bucket by bucket,
