@@ -42,7 +42,7 @@ from cpu_bench import dense_pile  # noqa: E402
 
 from dempipe.sim.kernels.cpu import stages as cpu  # noqa: E402
 from dempipe.sim.kernels.layout import BodyScratch, body_model, glue_scratch  # noqa: E402
-from dempipe.sim.kernels.neighbours import SKIN, cell_size  # noqa: E402
+from dempipe.sim.kernels.neighbours import REST_SKIN, REST_STEPS, SKIN, cell_size  # noqa: E402
 from dempipe.sim.simulator import Simulator  # noqa: E402
 
 STAGES = ("1 body velocities (eq. 5-6)", "1 sphere positions into sorted slots (eq. 19-21)",
@@ -103,8 +103,8 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                                         m.sphere_offset, state.body_x, state.body_q, b.body_v,
                                         b.body_w, m.dt, b.body_still, m.body_inv_mass,
                                         b.built_bx, b.built_bq, b.body_reach, b.seen_bx,
-                                        b.seen_bq, b.busy, busy[0], b.busy_from, b.built_x, half,
-                                        b.sorted_x, b.sorted_v, b.sphere_r)
+                                        b.seen_bq, b.busy, busy[0], b.busy_from, b.built_x,
+                                        b.body_half, b.sorted_x, b.sorted_v, b.sphere_r)
         every = (
             lambda: k.stage_body_velocities(m.n_bodies, state.body_P, state.body_L, state.body_q,
                                             m.body_inv_mass, m.body_inv_inertia, b.body_v,
@@ -139,8 +139,13 @@ def stage_times(sim, state, steps: int) -> tuple[np.ndarray, int]:
                      or cpu.stage_pairs(b.nbr, b.nbr_n, b.sorted_idx, b.sorted_body,
                                         m.body_inv_mass, b.pair_start, b._pidx(), b.pair_e,
                                         b.pair_f.shape[0], b.list_start, b.list_e)
-                     or cpu.stage_wall_reach(m.diameter, SKIN, b.sorted_x, m.wall_normal,
-                                             m.wall_offset, m.wall_lo, m.wall_hi,
+                     or cpu.stage_rest_half(b.body_v, b.body_w, b.body_reach,
+                                            m.body_inv_mass, m.body_sphere_start, b.slot_of,
+                                            b.slot_mark, False, half,
+                                            0.5 * REST_SKIN * m.diameter, REST_STEPS * m.dt,
+                                            b.body_half)
+                     or cpu.stage_wall_reach(m.diameter, b.body_half, b.sorted_x,
+                                             m.wall_normal, m.wall_offset, m.wall_lo, m.wall_hi,
                                              m.wall_depth, b.wall_mask, b.wall_start,
                                              hp.shape[1] if fr else 0, b.wall_s.shape[0],
                                              b.drive.wall_motion, b.sorted_body,

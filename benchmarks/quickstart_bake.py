@@ -14,7 +14,10 @@ nearly nothing, and a change of dt auto shows only per bake (docs/performance.md
 ``--spheres surface`` bakes the same scene with surface sphere sets (``--spacing``: at
 that surface_spacing); ``--scene
 examples/column_drop.toml`` another scene of the repository, the same way (its path
-taken in each tree).
+taken in each tree). ``--cost-of-surface`` (tree A only) bakes the scene with surface
+sets and with the lattice, alternating, and prints the ratio of their wall times:
+
+    python benchmarks/quickstart_bake.py . --cost-of-surface --pairs 2
 """
 
 import argparse
@@ -72,27 +75,35 @@ def main() -> None:
                     help="the scene's surface_spacing (surface sets' shell spacing, in d)")
     ap.add_argument("--scene", default="examples/quickstart.toml",
                     help="a scene file, relative to each tree (default: the quickstart)")
+    ap.add_argument("--cost-of-surface", action="store_true",
+                    help="bake tree A's scene with surface sets and with the lattice, "
+                         "alternating: the ratio is surface sets' cost over the lattice's")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         return child(args.a, args.spheres, args.scene, args.spacing)
+    if args.cost_of_surface:
+        # one tree, its scene with surface sets (A) and with the lattice (B)
+        sides = [(args.a, "surface", "surface"), (args.a, "lattice", "lattice")]
+    else:
+        sides = [(args.a, args.spheres, args.a), (args.b, args.spheres, args.b)]
     ratios = []
     for k in range(args.pairs):
         walls = {}
-        for root in ((args.a, args.b) if k % 2 == 0 else (args.b, args.a)):
+        for root, spheres, name in (sides if k % 2 == 0 else sides[::-1]):
             r = subprocess.run([sys.executable, __file__, root, "--child", "--scene", args.scene]
-                               + (["--spheres", args.spheres] if args.spheres else [])
+                               + (["--spheres", spheres] if spheres else [])
                                + (["--spacing", str(args.spacing)] if args.spacing else []),
                                check=True, capture_output=True, text=True)
             res = json.loads(r.stdout.strip().splitlines()[-1])
-            walls[root] = res["wall"]
-            print(f"{root}: dt {res['dt']:.3e} s, {res['spf']} steps per frame, "
+            walls[name] = res["wall"]
+            print(f"{name}: dt {res['dt']:.3e} s, {res['spf']} steps per frame, "
                   f"{res['steps']} steps, wall {res['wall']:.2f} s, cpu {res['cpu']:.2f} s; "
                   f"largest speed {res['speed']:.2e} m/s, mean height {res['height']:.5f} m")
-        ratios.append(walls[args.a] / walls[args.b])
-        print(f"pair {k}: A/B {ratios[-1]:.3f}")
-    print(f"median A/B: {statistics.median(ratios):.3f} over {args.pairs} pairs (whole bake)")
-
+        ratios.append(walls[sides[0][2]] / walls[sides[1][2]])
+        what = "surface / lattice" if args.cost_of_surface else "A/B"
+        print(f"pair {k}: {what} {ratios[-1]:.3f}")
+    print(f"median {what}: {statistics.median(ratios):.3f} over {args.pairs} pairs (whole bake)")
 
 if __name__ == "__main__":
     main()

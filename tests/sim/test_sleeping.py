@@ -355,3 +355,32 @@ def test_a_carried_platform_that_starts_moving_wakes_what_sleeps_on_it():
             asleep_before |= bool(a.asleep(model.sleep_steps)[1:3].all())
     assert asleep_before and eager.span_ctl[0] > 0      # they slept; the active slots were used
     assert np.all(a.body_x[1:3, 2] > 0.0151 + 0.015)      # and rode up with it
+
+
+@pytest.mark.parametrize("sleep", [None, (None, None, 0.2)])
+def test_bodies_at_rest_rebuilt_at_a_narrower_distance_change_nothing(sleep):
+    # A body at rest at a rebuild is rebuilt when a sphere has moved REST_SKIN/2 d
+    # rather than half the skin, and marks only the walls that near
+    # (kernels.cpu.grid.stage_rest_half); a pile that came to rest between rebuilds
+    # gets one to narrow them (run_steps, REST_SHARE). Against a backend that narrows
+    # none (rest_skin at the largest skin), the same State bit for bit at every
+    # frame while the boxes settle, rest, and are hit by the ball at ~0.55 s, which
+    # wakes or shoves them past their narrow distances.
+    from dempipe.sim.kernels.neighbours import REST_SKIN
+
+    model = pile(sleep=sleep, ball_height=1.5, n_frames=37)
+    narrow, wide = Simulator(model).backend, Simulator(model).backend
+    wide.rest_skin = wide.skin_ctl[2]
+    a, b = model.initial_state(), model.initial_state()
+    narrowed = 0
+    for frame in range(36):
+        narrow.step(a, model.steps_per_frame)
+        wide.step(b, model.steps_per_frame)
+        assert_same_state(a, b, frame)
+        at_rest = narrow.body_half[:9] == 0.5 * REST_SKIN * D
+        narrowed = max(narrowed, int(at_rest.sum()))
+        assert np.all(wide.body_half[:9] > 0.5 * REST_SKIN * D), frame
+    assert narrowed >= 8                                 # the pile at rest was narrowed
+    assert narrow.skin_ctl[3] > wide.skin_ctl[3]        # and its rebuilds came sooner
+    moved = np.linalg.norm(a.body_x[:9] - model.initial_x[:9], axis=1)
+    assert moved.max() > D                               # the boxes did fall and get hit

@@ -151,6 +151,9 @@ def cpu_scratch(model, friction: bool) -> dict:
         # and the farthest of its spheres from its centre [m]
         "built_bx": ((nb, 3), f8), "built_bq": ((nb, 4), f8),
         "seen_bx": ((nb, 3), f8), "seen_bq": ((nb, 4), f8), "body_reach": ((nb,), f8),
+        # how far its spheres may move from where their lists were built before a
+        # rebuild [m] (cpu/grid.py stage_rest_half)
+        "body_half": ((nb,), f8),
         # and the box of its sphere centres in its frame, centre and half-extent [m];
         # the spheres' offsets by coordinate (kernels/cpu/broadphase.py)
         "body_box": ((nb, 6), f8), "offset_t": ((3, ns), f8),
@@ -394,6 +397,7 @@ class Scratch(NamedTuple):
     active_from: Any
     slot_touch: Any
     sphere_engaged: Any
+    body_half: Any
 
 
 class ContactModel(NamedTuple):

@@ -57,6 +57,18 @@ SKIN_MIN_DENSE = 0.1
 SKIN_MAX_DENSE = 0.3
 DENSE_SPACING = 0.9
 
+#: A dynamic body at rest at a rebuild, whose spheres move slower than REST_SKIN/2 d
+#: in REST_STEPS steps (|v| + |ω| R, R its farthest sphere), is rebuilt when one of
+#: them has moved REST_SKIN/2 d instead of half the skin, and so marks only the walls
+#: within that of its spheres, with slack (the CPU's; kernels/cpu/grid.py
+#: stage_rest_half). A surface set's flat face rounds into its edges: a chess piece
+#: standing on a board has a ring of spheres round its foot's 0.02 d above the floor,
+#: within a skin's wall margin but not this one, so while it stands the contact
+#: passes and stage 1 leave that ring out. A body that starts moving forces a rebuild
+#: sooner, which gives it half the skin again.
+REST_SKIN = 0.02
+REST_STEPS = 500
+
 #: A row of three cells holding more spheres than this is searched bucket by bucket,
 #: each bucket that holds only the searching sphere's own body skipped whole (a
 #: surface set's shell fills the cells round most of its spheres); a shorter row is

@@ -45,7 +45,7 @@ from dempipe.sim.kernels.layout import (
     static_extent,
     step_model,
 )
-from dempipe.sim.kernels.neighbours import SKIN, cell_size, skin_range
+from dempipe.sim.kernels.neighbours import REST_SKIN, SKIN, cell_size, skin_range
 from dempipe.sim.kernels.pairing import LIST_COLS, PAIR_COLS
 from dempipe.spheres.inscribed import all_own
 
@@ -99,6 +99,9 @@ class CpuBackend:
         #: At such a rebuild, the share of half the skin a body must have moved for its
         #: lists to be searched again (run_steps); 0: any move (the same State).
         self.keep_move = KEEP_MOVE
+        #: A body at rest's skin [d] (neighbours.REST_SKIN: its rebuild distance is half
+        #: this, run_steps); at or above the largest skin, none is narrowed (the same State).
+        self.rest_skin = REST_SKIN
         if not self.features.friction:   # the histories in sorted-slot order, within a call
             self.hist_partner, self.hist_spring = self._no_partner, self._no_spring
         #: What a step reads of the Model (layout.StepModel), one structured argument.
@@ -137,7 +140,8 @@ class CpuBackend:
         while left > 0:
             done, computed = self.k.run_steps(
                 left, int(state.step), self.grid, float(self.quiet_share),
-                float(self.keep_share), float(self.keep_move), int(self.broadphase_spheres),
+                float(self.keep_share), float(self.keep_move), float(self.rest_skin),
+                int(self.broadphase_spheres),
                 self.step_model,
                 StepState(state.body_x, state.body_q, state.body_P, state.body_L,
                           self.rest(state), partner, spring),
@@ -222,6 +226,7 @@ class CpuBackend:
                           self.sphere_x, self.sphere_v, self.sphere_key, m.sphere_body,
                           self.sorted_x, self.sorted_v, self.sorted_body, self.grid_x,
                           self.grid_key, self.grid_body)
+        self.body_half[:] = 0.5 * SKIN * m.diameter
         while (stage_neighbours(m.diameter, SKIN, self.grid, self.bucket_start, self.grid_idx,
                                 self.grid_x, self.grid_key, self.grid_body, self.grid_slot,
                                 self.sorted_idx, self.sorted_x, self.sorted_body,
@@ -230,7 +235,7 @@ class CpuBackend:
                or stage_pairs(self.nbr, self.nbr_n, self.sorted_idx, self.sorted_body,
                               m.body_inv_mass, self.pair_start, self._pidx(), self.pair_e,
                               self.pair_f.shape[0], self.list_start, self.list_e) > 0
-               or stage_wall_reach(m.diameter, SKIN, self.sorted_x, m.wall_normal,
+               or stage_wall_reach(m.diameter, self.body_half, self.sorted_x, m.wall_normal,
                                    m.wall_offset, m.wall_lo, m.wall_hi, m.wall_depth,
                                    self.wall_mask, self.wall_start,
                                    self.hist_partner.shape[1] if self.features.friction else 0,

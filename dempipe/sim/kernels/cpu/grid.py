@@ -26,6 +26,7 @@ from dempipe.sim.kernels.cpu.device import (
     pair_slots,
     pairs_to_rows,
     rows_to_pairs,
+    sqrt,
     static_body,
     wall_reach,
 )
@@ -150,10 +151,11 @@ def stage_grid_gather(sorted_idx, grid_idx, n_grid, sphere_x, sphere_v, sphere_k
 
 @numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_slot_marks(body_sphere_start, slot_of, sorted_x, built_x, body_inv_mass, nbr, nbr_n,
-                     moved2, slot_mark):
+                     moved2, body_half, slot_mark):
     """At a rebuild that may keep the slots (run_steps): slot_mark[s] = 1 for each
-    slot of a body one of whose spheres is farther than sqrt(moved2) [m] from where
-    its list was built (built_x; moved2 = 0, and for a static body always: not
+    slot of a body one of whose spheres is farther than sqrt(moved2) [m], or than
+    its body's rebuild distance (body_half, stage_rest_half) if that is less, from
+    where its list was built (built_x; moved2 = 0, and for a static body always: not
     where it was, bit for bit), whose built_x becomes where it is now: its lists
     are searched again from there. Else 2 when the slot's list holds one marked 1,
     else 0. A body below that distance keeps its lists and where they were built,
@@ -171,7 +173,7 @@ def stage_slot_marks(body_sphere_start, slot_of, sorted_x, built_x, body_inv_mas
         s0 = slot_of[i0]                # a body's slots are one run (stage_grid_sort)
         s1 = s0 + i1 - i0
         static = static_body(body_inv_mass[b])
-        limit = 0.0 if static else moved2
+        limit = 0.0 if static else min(moved2, body_half[b] * body_half[b])
         far = False
         for s in range(s0, s1):
             ex = sorted_x[s, 0] - built_x[s, 0]
@@ -352,22 +354,68 @@ def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, 
 
 
 @numba.njit(error_model="numpy", parallel=True, cache=True)
-def stage_wall_reach(diameter, skin, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
+def stage_rest_half(body_v, body_w, body_reach, body_inv_mass, body_sphere_start, slot_of,
+                    slot_mark, kept, half_skin, rest_half, rest_time, body_half):
+    """At a rebuild: each body's rebuild distance body_half[b] [m], how far its spheres
+    may move from where their lists were built before the next (stage 1,
+    stage_slot_marks) and how far past its spheres' reach walls are marked
+    (stage_wall_reach): half the skin, ``half_skin``, or ``rest_half`` for a dynamic
+    body at rest (neighbours.REST_SKIN), whose spheres' speed bound |v| + |ω| R (R
+    its farthest sphere, body_reach) would take more than ``rest_time`` [s] to
+    carry them that far. A body whose lists a rebuild that keeps the slots
+    (``kept``) leaves where they were built (not marked 1 by stage_slot_marks)
+    keeps its distance: its spheres are measured from there."""
+    for b in prange(body_half.shape[0]):
+        i0 = body_sphere_start[b]
+        if kept and body_sphere_start[b + 1] > i0 and slot_mark[slot_of[i0]] != 1:
+            continue
+        body_half[b] = half_skin
+        if not static_body(body_inv_mass[b]):
+            v = sqrt(body_v[b, 0] * body_v[b, 0] + body_v[b, 1] * body_v[b, 1]
+                     + body_v[b, 2] * body_v[b, 2])
+            w = sqrt(body_w[b, 0] * body_w[b, 0] + body_w[b, 1] * body_w[b, 1]
+                     + body_w[b, 2] * body_w[b, 2])
+            if (v + w * body_reach[b]) * rest_time < rest_half:
+                body_half[b] = min(rest_half, half_skin)
+
+
+@numba.njit(error_model="numpy", parallel=True, cache=True)
+def stage_rest_count(body_v, body_w, body_reach, body_inv_mass, body_start, step, rest_half,
+                     rest_time, body_half):
+    """How many dynamic bodies in the simulation are at rest now (stage_rest_half's
+    test) but keep a wider rebuild distance than ``rest_half`` from a rebuild that
+    found them moving: the bodies a rebuild would narrow (run_steps)."""
+    n = 0
+    for b in prange(body_half.shape[0]):
+        if static_body(body_inv_mass[b]) or body_start[b] > step or body_half[b] <= rest_half:
+            continue
+        v = sqrt(body_v[b, 0] * body_v[b, 0] + body_v[b, 1] * body_v[b, 1]
+                 + body_v[b, 2] * body_v[b, 2])
+        w = sqrt(body_w[b, 0] * body_w[b, 0] + body_w[b, 1] * body_w[b, 1]
+                 + body_w[b, 2] * body_w[b, 2])
+        if (v + w * body_reach[b]) * rest_time < rest_half:
+            n += 1
+    return n
+
+
+@numba.njit(error_model="numpy", parallel=True, cache=True)
+def stage_wall_reach(diameter, body_half, sorted_x, wall_normal, wall_offset, wall_lo, wall_hi,
                      wall_depth, wall_mask, wall_start, cap, rows, wall_motion, sorted_body,
                      body_start, step, sorted_idx, sphere_inscribed):
     """At a rebuild: each slot's walls within reach until the next (contacts.wall_reach),
-    for lists of reach (1 + skin) d, and its packed wall rows (contacts.py WALL_ROWS):
+    its sphere moving less than its body's rebuild distance (body_half [m],
+    stage_rest_half) from sorted_x, and its packed wall rows (contacts.py WALL_ROWS):
     wall_start[s] .. wall_start[s + 1] - 1, one per marked wall up to the ``cap``
     columns of a history row (none for a mask of -1: those search the row). A
     prefix sum, serial: a fixed order. Returns 0, or the rows needed when that is
     more than ``rows`` (the caller grows wall_s)."""
-    margin = WALL_SLACK * 0.5 * skin * diameter
     n = sorted_x.shape[0]
     for s in prange(n):
-        wall_reach(s, sorted_idx[s], 0.5 * diameter, margin, sorted_x, wall_normal,
-                   wall_offset, wall_lo, wall_hi, wall_depth, wall_motion, sphere_inscribed,
-                   wall_mask)
-        if body_start[sorted_body[s]] > step:
+        b = sorted_body[s]
+        wall_reach(s, sorted_idx[s], 0.5 * diameter, WALL_SLACK * body_half[b], sorted_x,
+                   wall_normal, wall_offset, wall_lo, wall_hi, wall_depth, wall_motion,
+                   sphere_inscribed, wall_mask)
+        if body_start[b] > step:
             wall_mask[s] = 0                # not emitted yet: no wall either
     wall_start[0] = 0
     for s in range(n):

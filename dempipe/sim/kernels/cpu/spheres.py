@@ -151,15 +151,16 @@ def body_moved(b, body_x, body_q, built_bx, built_bq, body_reach):
 def stage_spheres_busy(body_sphere_start, slot_of, sphere_body, sphere_offset, body_x, body_q,
                        body_v, body_w, h, body_still, body_inv_mass, built_bx, built_bq,
                        body_reach, seen_bx, seen_bq, busy, n_busy, busy_from, built_x,
-                       half_skin, sorted_x, sorted_v, sphere_r):
+                       body_half, sorted_x, sorted_v, sphere_r):
     """Stage 1 (eq. 19-21) between rebuilds, into the sorted slots of the last one,
     for the spheres a contact reads: the busy slots' (stage_busy; a list's partners
     list each other, so their partners are busy too) and a carried static body's
     (in no list, but a partner of busy ones). The others' forces are zero until
     the next rebuild, which places them again. Returns how many spheres have moved
-    half_skin [m] or more since that rebuild (then the lists must be rebuilt), the
-    count of the test on every sphere: a body that may hold such a sphere
-    (body_moved) has all its spheres placed and tested; a body that slept through
+    their body's rebuild distance (body_half [m], grid.stage_rest_half) or more since
+    that rebuild (then the lists must be rebuilt), the count of the test on every
+    sphere: a body that may hold such a sphere (body_moved) has all its spheres
+    placed and tested; a body that slept through
     the last step, or a static collider (body_still), none: it has not moved.
     Notes each body's pose in seen_bx, seen_bq (the end of a call places every
     sphere where this step saw it). With GLUE every sphere is placed: a bond reads
@@ -168,7 +169,6 @@ def stage_spheres_busy(body_sphere_start, slot_of, sphere_body, sphere_offset, b
     A body's slots are consecutive and in its spheres' order (stage_grid_sort), so
     its busy slots are one run of ``busy``, from busy_from[b] (stage_listed_from)."""
     moved = 0
-    rebuild_at2 = half_skin * half_skin
     for b in prange(body_reach.shape[0]):
         for a in range(3):
             seen_bx[b, a] = body_x[b, a]
@@ -178,8 +178,10 @@ def stage_spheres_busy(body_sphere_start, slot_of, sphere_body, sphere_offset, b
         i1 = body_sphere_start[b + 1]
         if body_still[b] != 0 or i0 == i1:
             continue
+        half = body_half[b]
         if GLUE or static_body(body_inv_mass[b]) or \
-                body_moved(b, body_x, body_q, built_bx, built_bq, body_reach) >= half_skin:
+                body_moved(b, body_x, body_q, built_bx, built_bq, body_reach) >= half:
+            rebuild_at2 = half * half
             for i in range(i0, i1):
                 x, y, z, vx, vy, vz, rx, ry, rz = sphere_state(i, sphere_body, sphere_offset,
                                                                body_x, body_q, body_v, body_w,

@@ -24,7 +24,7 @@ from dempipe.sim.kernels.compile import compile_formulas, invalidate_stale_cache
 from dempipe.sim.kernels.layout import (
     FLAGS, BodyModel, BodyScratch, ContactModel, ContactScratch)
 from dempipe.sim.kernels.contacts import CONTACT_CHUNK
-from dempipe.sim.kernels.neighbours import SKIN_GROW_BELOW, SKIN_SHRINK_ABOVE
+from dempipe.sim.kernels.neighbours import REST_STEPS, SKIN_GROW_BELOW, SKIN_SHRINK_ABOVE
 from dempipe.sim.kernels.cpu.broadphase import stage_near_others
 from dempipe.sim.kernels.cpu.device import adapt_skin, shrink_skin, static_body
 from dempipe.sim.kernels.cpu.spheres import (
@@ -34,8 +34,8 @@ from dempipe.sim.kernels.cpu.grid import (
     slot_busy, stage_grid_gather, stage_grid_keep, stage_grid_sort, stage_history_in,
     stage_history_out, stage_history_to_slots, stage_history_to_spheres, stage_mark_partners,
     stage_neighbours, stage_neighbours_marked, stage_pairs, stage_pairs_to_rows_busy,
-    stage_rows_to_pairs, stage_rows_to_pairs_busy, stage_slot_marks, stage_unsort,
-    stage_wall_reach)
+    stage_rest_count, stage_rest_half, stage_rows_to_pairs, stage_rows_to_pairs_busy,
+    stage_slot_marks, stage_unsort, stage_wall_reach)
 # Read by the functions of spheres.py, contacts.py, bodies.py and prescribed.py, which
 # kernels() compiles with this module's globals (compile.specialize):
 from dempipe.sim.kernels.cpu.spheres import body_moved  # noqa: F401
@@ -114,6 +114,11 @@ KEEP_SLOTS_SHARE = 0.25
 #: a few bodies still rolling across it re-lists those bodies and their partners,
 #: not the pile, each time one of them forces a rebuild.
 KEEP_MOVE = 0.5
+
+#: With this share of the dynamic bodies at rest but rebuilt while they moved (a pile
+#: come to rest between rebuilds), a rebuild comes once SKIN_SHRINK_ABOVE steps have
+#: gone without one, to narrow their rebuild distances (stage_rest_half).
+REST_SHARE = 0.25
 
 #: Rebuilds in a row that may keep the slots: then one sorts them again, so bodies
 #: that moved far get slots next to their new neighbours (memory order).
@@ -338,7 +343,7 @@ def held_rows(src, n, index, keep, dst):
         dst[k] = src[k] if keep else index[src[k]]
 
 
-def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
+def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move, rest_skin,
               broadphase_spheres, model, state, scratch, drive, gm, gs):
     """Advance up to ``n_steps`` steps of the eight stages; everything stays in
     compiled code. Returns (steps done, steps computed). Done is fewer than
@@ -348,8 +353,10 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
     begun. Computed is fewer than done when every body fell asleep.
 
     Stages 2-3 (grid, sort, 27-cell search) run only to rebuild the neighbour
-    lists: at the first step, when a sphere has moved skin/2 d since, and when a
-    wide skin has gone SKIN_SHRINK_ABOVE steps without one (to shrink it). The
+    lists: at the first step, when a sphere has moved its body's rebuild distance
+    since (half the skin, or rest_skin/2 d for a body at rest: stage_rest_half),
+    and when a wide skin, or a REST_SHARE of the bodies at rest with wider
+    distances than that, has gone SKIN_SHRINK_ABOVE steps without one. The
     skin (skin_ctl[0], [d]) adapts at each rebuild to how many steps came since
     the last (neighbours.adapt_skin, from skin_ctl[4] up to skin_ctl[2]); it
     changes which pairs are listed, never a force (the frames do not depend on
@@ -413,7 +420,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
      grid_body, built_x, nbr, nbr_n, pidx, pair_start, pair_e, pair_f, list_start, list_e,
      wall_mask, wall_start, wall_s, wall_f, sphere_f, sphere_t, sphere_tr, sphere_overlap,
      body_patch, skin_ctl, chunk_n, busy, active, span_ctl, slot_mark, state_rows, busy_from,
-     active_from, slot_touch, sphere_engaged) = scratch
+     active_from, slot_touch, sphere_engaged, body_half) = scratch
     # what the contact passes take (layout.ContactModel, ContactScratch): the same arrays
     cm = ContactModel(diameter, dt, onset_speed, body_inv_mass, body_material, pair_k,
                       pair_damp, pair_mu, kt_ratio, ks_ratio, friction, sleep_steps,
@@ -436,6 +443,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
     since = skin_ctl[1]
     inv_cell = 1.0 / ((1.0 + skin) * diameter)     # neighbours.cell_size, at this skin
     half_skin = 0.5 * skin * diameter
+    rest_half = 0.5 * rest_skin * diameter      # a body at rest's (stage_rest_half)
     rebuild = True
     moved = False
     computed = 0
@@ -473,11 +481,16 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
                                          sphere_offset, body_x, body_q, body_v, body_w, dt,
                                          body_still, body_inv_mass, built_bx, built_bq,
                                          body_reach, seen_bx, seen_bq, busy, n_busy,
-                                         busy_from, built_x, half_skin, sorted_x, sorted_v,
+                                         busy_from, built_x, body_half, sorted_x, sorted_v,
                                          sphere_r) > 0
             moved = rebuild
-            if not rebuild and skin > skin_ctl[4] and since > SKIN_SHRINK_ABOVE:
-                rebuild = True                  # at rest with a wide skin: shrink it
+            if not rebuild and since > SKIN_SHRINK_ABOVE and (
+                    skin > skin_ctl[4] or (
+                        int(since) % SKIN_SHRINK_ABOVE == 1 and REST_SHARE * n_bodies <=
+                        stage_rest_count(body_v, body_w, body_reach, body_inv_mass,
+                                         body_start, step, rest_half, REST_STEPS * dt,
+                                         body_half))):
+                rebuild = True      # at rest with a wide skin, or wide rebuild distances
         keep = False
         few = False
         if rebuild and moved and keep_share > 0.0 and kept_run < KEEP_SLOTS_RUN:
@@ -485,7 +498,7 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
                                  body_w, dt, sorted_x, sorted_v, sphere_r)
             n_moved, n_static_moved = stage_slot_marks(
                 body_sphere_start, slot_of, sorted_x, built_x, body_inv_mass, nbr, nbr_n,
-                (keep_move * half_skin) ** 2, slot_mark)
+                (keep_move * half_skin) ** 2, body_half, slot_mark)
             few = n_static_moved == 0 and n_moved <= keep_share * n_slots
             keep = few and (skin <= skin_ctl[4] or since < SKIN_GROW_BELOW)
         if rebuild:
@@ -565,11 +578,14 @@ def run_steps(n_steps, first_step, grid, quiet_share, keep_share, keep_move,
                                         grid_key, grid_body, grid_slot, sorted_idx, sorted_x,
                                         sorted_body, body_inv_mass, built_x, nbr, nbr_n,
                                         body_start, step, sphere_hash)
+            stage_rest_half(body_v, body_w, body_reach, body_inv_mass, body_sphere_start,
+                            slot_of, slot_mark, keep, half_skin, rest_half, REST_STEPS * dt,
+                            body_half)
             if over > 0 or \
                     stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass,
                                 pair_start, pidx, pair_e, pair_f.shape[0], list_start,
                                 list_e) > 0 or \
-                    (WALLS and stage_wall_reach(diameter, skin, built_x, wall_normal,
+                    (WALLS and stage_wall_reach(diameter, body_half, built_x, wall_normal,
                                                 wall_offset, wall_lo, wall_hi, wall_depth,
                                                 wall_mask, wall_start,
                                                 hist_partner.shape[1] if FRICTION and friction
