@@ -353,6 +353,17 @@ def stage_pairs(nbr, nbr_n, sorted_idx, sorted_body, body_inv_mass, pair_start, 
     return 0
 
 
+@numba.njit(inline="always", cache=True)
+def body_at_rest(b, body_v, body_w, body_reach, rest_half, rest_time):
+    """Whether body b's spheres would take more than rest_time [s] to move rest_half
+    [m] at their speed bound |v| + |ω| R (R its farthest sphere, body_reach)."""
+    v = sqrt(body_v[b, 0] * body_v[b, 0] + body_v[b, 1] * body_v[b, 1]
+             + body_v[b, 2] * body_v[b, 2])
+    w = sqrt(body_w[b, 0] * body_w[b, 0] + body_w[b, 1] * body_w[b, 1]
+             + body_w[b, 2] * body_w[b, 2])
+    return (v + w * body_reach[b]) * rest_time < rest_half
+
+
 @numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_rest_half(body_v, body_w, body_reach, body_inv_mass, body_sphere_start, slot_of,
                     slot_mark, kept, half_skin, rest_half, rest_time, body_half):
@@ -360,40 +371,30 @@ def stage_rest_half(body_v, body_w, body_reach, body_inv_mass, body_sphere_start
     may move from where their lists were built before the next (stage 1,
     stage_slot_marks) and how far past its spheres' reach walls are marked
     (stage_wall_reach): half the skin, ``half_skin``, or ``rest_half`` for a dynamic
-    body at rest (neighbours.REST_SKIN), whose spheres' speed bound |v| + |ω| R (R
-    its farthest sphere, body_reach) would take more than ``rest_time`` [s] to
-    carry them that far. A body whose lists a rebuild that keeps the slots
-    (``kept``) leaves where they were built (not marked 1 by stage_slot_marks)
-    keeps its distance: its spheres are measured from there."""
+    body at rest (body_at_rest, over ``rest_time`` [s]; neighbours.REST_SKIN). A
+    body whose lists a rebuild that keeps the slots (``kept``) leaves where they
+    were built (not marked 1 by stage_slot_marks) keeps its distance: its spheres
+    are measured from there."""
     for b in prange(body_half.shape[0]):
         i0 = body_sphere_start[b]
         if kept and body_sphere_start[b + 1] > i0 and slot_mark[slot_of[i0]] != 1:
             continue
         body_half[b] = half_skin
         if not static_body(body_inv_mass[b]):
-            v = sqrt(body_v[b, 0] * body_v[b, 0] + body_v[b, 1] * body_v[b, 1]
-                     + body_v[b, 2] * body_v[b, 2])
-            w = sqrt(body_w[b, 0] * body_w[b, 0] + body_w[b, 1] * body_w[b, 1]
-                     + body_w[b, 2] * body_w[b, 2])
-            if (v + w * body_reach[b]) * rest_time < rest_half:
+            if body_at_rest(b, body_v, body_w, body_reach, rest_half, rest_time):
                 body_half[b] = min(rest_half, half_skin)
 
 
 @numba.njit(error_model="numpy", parallel=True, cache=True)
 def stage_rest_count(body_v, body_w, body_reach, body_inv_mass, body_start, step, rest_half,
                      rest_time, body_half):
-    """How many dynamic bodies in the simulation are at rest now (stage_rest_half's
-    test) but keep a wider rebuild distance than ``rest_half`` from a rebuild that
+    """How many dynamic bodies in the simulation are at rest now (body_at_rest) but keep a wider rebuild distance than ``rest_half`` from a rebuild that
     found them moving: the bodies a rebuild would narrow (run_steps)."""
     n = 0
     for b in prange(body_half.shape[0]):
         if static_body(body_inv_mass[b]) or body_start[b] > step or body_half[b] <= rest_half:
             continue
-        v = sqrt(body_v[b, 0] * body_v[b, 0] + body_v[b, 1] * body_v[b, 1]
-                 + body_v[b, 2] * body_v[b, 2])
-        w = sqrt(body_w[b, 0] * body_w[b, 0] + body_w[b, 1] * body_w[b, 1]
-                 + body_w[b, 2] * body_w[b, 2])
-        if (v + w * body_reach[b]) * rest_time < rest_half:
+        if body_at_rest(b, body_v, body_w, body_reach, rest_half, rest_time):
             n += 1
     return n
 

@@ -160,9 +160,8 @@ def stage_spheres_busy(body_sphere_start, slot_of, sphere_body, sphere_offset, b
     their body's rebuild distance (body_half [m], grid.stage_rest_half) or more since
     that rebuild (then the lists must be rebuilt), the count of the test on every
     sphere: a body that may hold such a sphere (body_moved) has all its spheres
-    placed and tested; a body that slept through
-    the last step, or a static collider (body_still), none: it has not moved.
-    Notes each body's pose in seen_bx, seen_bq (the end of a call places every
+    placed and tested; a body that slept through the last step, or a static
+    collider (body_still), none: it has not moved. Notes each body's pose in seen_bx, seen_bq (the end of a call places every
     sphere where this step saw it). With GLUE every sphere is placed: a bond reads
     its two spheres, busy or not.
 
