@@ -95,7 +95,7 @@ MEMO_SIZE = 32
 _MEMO: dict = {}
 #: The fit's version, in the disk cache's keys: a change to what the functions below
 #: compute changes it, and old entries are never read.
-TORI_VERSION = 10
+TORI_VERSION = 11
 
 
 def wall_tori(centers, diameter: float, vertices, faces, *, surface: bool,
@@ -234,6 +234,11 @@ def inscribed_tori(centers, diameter: float, vertices, faces, *,
 WALL_SPACING = 0.6
 WALL_TOLERANCE = 0.002
 WALL_DIRECTIONS = 256
+#: wall_cover's second order: a kept sphere stands in only for neighbours whose normals
+#: lie within this angle [rad] of its own (its facet).
+WALL_FACET = np.radians(40.0)
+#: wall_cover: the spheres within this gap [d] of a wall's deepest touch it at rest.
+REST_GAP = 0.01
 #: Tilts [rad] of the rings of directions round each sphere's normal wall_cover tests.
 WALL_CONE = np.radians([2.0, 4.0, 6.0, 9.0, 13.0, 18.0, 25.0])
 #: Pairs × directions wall_cover evaluates at once (memory: 8 bytes each, twice).
@@ -252,16 +257,26 @@ def wall_cover(centers, rows, diameter: float, vertices, faces) -> np.ndarray:
     direction u as far as its contact does (contacts.inscribed_wall): its torus's
     support t·u + a |u × axis| + b, at most its own sphere's c·u + r plus its reach.
 
-    Spheres are kept greedily, in the set's order, WALL_SPACING d apart. Another is left
-    out where, in each direction tested, a kept sphere within 2 WALL_SPACING d reaches
-    within WALL_TOLERANCE d of as far: WALL_DIRECTIONS over the sphere and, where its
-    reach peaks, towards the mesh's closest point (its normal, an edge's bisector) and
-    WALL_CONE rings round it. So the envelope walls meet moves by at most about the
-    tolerance (0.004 d in 4,000 random directions: tests/sim/test_inscribed.py), and a
-    finite wall (a box's face) still finds a sphere at least every 2 WALL_SPACING d,
-    finer than a lattice's d. Where neighbours fall short the spheres stay: corners,
-    the polygon of a round edge a fit gives no torus (a chess piece's foot at 6
-    across), a small ball's tori past their reach."""
+    Spheres are kept greedily WALL_SPACING d apart. Another is left out where, in
+    each direction tested, a kept sphere within 2 WALL_SPACING d reaches within
+    WALL_TOLERANCE d of as far: WALL_DIRECTIONS over the sphere and, where its reach
+    peaks, towards the mesh's closest point (its normal, an edge's bisector) and
+    WALL_CONE rings round it. The ones that fall short get another round: kept among
+    themselves WALL_SPACING d apart, the rest tested again against every kept one,
+    until none is open. So the envelope walls meet moves by at most about the
+    tolerance (0.004-0.005 d in 4,000 random directions: tests/sim/test_inscribed.py),
+    and a finite wall (a box's face) still finds a sphere at least every 2
+    WALL_SPACING d, finer than a lattice's d. Where neighbours fall short the spheres
+    stay: corners, the polygon of a round edge a fit gives no torus (a chess piece's
+    foot at 6 across), a small ball's tori past their reach.
+
+    The greedy choice is made in two orders, and the one fewer of whose spheres touch
+    a resting face (within REST_GAP d of a wall along each of the mesh's face normals,
+    weighted by area) is returned: the set's order, which closes the most on flat
+    faces and balls; and the outermost first, each kept sphere standing in only for
+    neighbours whose normals lie within WALL_FACET of its own, which keeps the outer
+    polygon of a foot rather than its middle (a rook's at 6 across: 9 of the 27
+    spheres under its foot, not 17)."""
     from scipy.spatial import cKDTree
 
     from dempipe.spheres.surface import MeshQueries
@@ -273,18 +288,6 @@ def wall_cover(centers, rows, diameter: float, vertices, faces) -> np.ndarray:
     if n < 2:
         return out
     tree = cKDTree(c)
-    kept = np.zeros(n, dtype=bool)
-    near = np.zeros(n, dtype=bool)
-    for i in range(n):
-        if not near[i]:
-            kept[i] = True
-            near[tree.query_ball_point(c[i], WALL_SPACING * d)] = True
-    pairs = tree.query_pairs(2.0 * WALL_SPACING * d, output_type="ndarray")
-    pairs = np.concatenate([pairs, pairs[:, ::-1]])
-    pairs = pairs[kept[pairs[:, 1]] & ~kept[pairs[:, 0]]]
-    if pairs.shape[0] == 0:
-        return out
-    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
     # each sphere's normal: towards its closest point of the mesh
     gap, q = MeshQueries(np.asarray(vertices, dtype=np.float64), faces, 2.0 * d).closest(c)
     normal = np.where(np.isfinite(gap)[:, None], q - c, 0.0)
@@ -319,22 +322,85 @@ def wall_cover(centers, rows, diameter: float, vertices, faces) -> np.ndarray:
                     np.cos(phi) * e1 + np.sin(phi) * e2))
         return np.stack(out, axis=1)
 
-    # in blocks of candidates, each with all its pairs: memory ~ pairs × directions
-    start = np.flatnonzero(np.r_[True, pairs[1:, 0] != pairs[:-1, 0]])
-    bounds = np.r_[start, pairs.shape[0]]
-    step = max(1, int(WALL_BLOCK // max(1, pairs.shape[0] // max(1, start.size))))
-    for b0 in range(0, start.size, step):
-        part = pairs[bounds[b0]:bounds[min(b0 + step, start.size)]]
-        first = start[b0:b0 + step] - bounds[b0]
-        who = part[first, 0]
-        group = np.repeat(np.arange(who.size), np.diff(np.r_[first, part.shape[0]]))
-        ok = np.ones(who.size, dtype=bool)
-        for u in (spiral[None], cone(who)):
-            best = np.maximum.reduceat(reach(part[:, 1], u[group] if u.shape[0] > 1 else u),
-                                       first, axis=0)
-            ok &= np.all(best >= reach(who, u) - tol, axis=1)
-        out[who[ok]] = 1.0
-    return out
+    def covered(pairs):
+        """The candidates (column 0) that their pairs' kept spheres (column 1) reach
+        every wall for, within the tolerance; pairs sorted by candidate."""
+        done = np.zeros(0, dtype=np.int64)
+        if pairs.shape[0] == 0:
+            return done
+        # in blocks of candidates, each with all its pairs: memory ~ pairs × directions
+        start = np.flatnonzero(np.r_[True, pairs[1:, 0] != pairs[:-1, 0]])
+        bounds = np.r_[start, pairs.shape[0]]
+        step = max(1, int(WALL_BLOCK // max(1, pairs.shape[0] // max(1, start.size))))
+        for b0 in range(0, start.size, step):
+            part = pairs[bounds[b0]:bounds[min(b0 + step, start.size)]]
+            first = start[b0:b0 + step] - bounds[b0]
+            who = part[first, 0]
+            group = np.repeat(np.arange(who.size), np.diff(np.r_[first, part.shape[0]]))
+            ok = np.ones(who.size, dtype=bool)
+            for u in (spiral[None], cone(who)):
+                best = np.maximum.reduceat(
+                    reach(part[:, 1], u[group] if u.shape[0] > 1 else u), first, axis=0)
+                ok &= np.all(best >= reach(who, u) - tol, axis=1)
+            done = np.concatenate([done, who[ok]])
+        return done
+
+    pairs = tree.query_pairs(2.0 * WALL_SPACING * d, output_type="ndarray")
+    pairs = np.concatenate([pairs, pairs[:, ::-1]])
+    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    near_of = tree.query_ball_point(c, WALL_SPACING * d)
+
+    def cover(order, facet):
+        """Rounds until no sphere is open: the open ones kept greedily in ``order``
+        WALL_SPACING d apart (a kept one closing only its neighbours whose normals lie
+        within ``facet`` [rad] of its own; None: all of them), then each other open
+        one left out where the kept cover it."""
+        out = np.zeros(n)
+        kept = np.zeros(n, dtype=bool)
+        open_ = np.ones(n, dtype=bool)
+        while open_.any():
+            near = ~open_
+            for i in order[open_[order]]:
+                if not near[i]:
+                    kept[i] = True
+                    j = np.asarray(near_of[i], dtype=np.int64)
+                    if facet is not None:
+                        j = j[normal[j] @ normal[i] >= np.cos(facet)]
+                    near[j] = True
+            open_ &= ~kept
+            gone = covered(pairs[open_[pairs[:, 0]] & kept[pairs[:, 1]]])
+            out[gone] = 1.0
+            open_[gone] = False
+        return out
+
+    # the directions a body rests on a wall: its faces' outward normals, in bins of
+    # about a degree, with their area, where that is at least d² (a face that carries
+    # more than a sphere or two; a curved part touches a wall at one point anyway)
+    fv = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
+    fn = np.cross(fv[:, 1] - fv[:, 0], fv[:, 2] - fv[:, 0])
+    area = np.linalg.norm(fn, axis=1)
+    face_u, where = np.unique(np.round(fn[area > 0.0] / area[area > 0.0, None] * 50.0),
+                              axis=0, return_inverse=True)
+    face_w = 0.5 * np.bincount(where.ravel(), weights=area[area > 0.0],
+                               minlength=face_u.shape[0])
+    face_u = face_u[face_w >= d * d] / np.linalg.norm(face_u[face_w >= d * d], axis=1)[:, None]
+    face_w = face_w[face_w >= d * d]
+
+    def resting(out):
+        """The spheres a wall meets within REST_GAP d of the deepest, summed over the
+        faces' directions weighted by their area: what a face resting on a wall carries."""
+        live = np.flatnonzero(out == 0.0)
+        step = max(1, WALL_BLOCK * WALL_DIRECTIONS // max(1, live.size))
+        total = 0.0
+        for b0 in range(0, face_u.shape[0], step):
+            r = reach(live, face_u[None, b0:b0 + step])           # (live, directions)
+            total += float(face_w[b0:b0 + step]
+                           @ np.count_nonzero(r >= r.max(axis=0) - REST_GAP * d, axis=0))
+        return total
+
+    plain = cover(np.arange(n), None)
+    outer = cover(np.argsort(-np.linalg.norm(c, axis=1), kind="stable"), WALL_FACET)
+    return outer if resting(outer) < resting(plain) else plain
 
 
 def _shrinking_ball(points, inward, tau) -> np.ndarray:
