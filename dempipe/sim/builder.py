@@ -128,6 +128,12 @@ class ModelBuilder:
         inscribed = wall_tori(centers, self.diameter, verts, mesh.faces,
                               surface="surface" in getattr(sphere_set, "notes", ()),
                               cache=self.cache)
+        if inscribed.shape[0]:
+            # the spheres walls meet first, then those they never meet, each part in the
+            # set's order: a body's slots follow its spheres' order, so the spheres a
+            # resting face's wall contacts visit at every step lie together in memory
+            first = np.argsort(inscribed[:, COVERED], kind="stable")
+            centers, inscribed = frozen(centers[first]), inscribed[first]
         inscribed = frozen(inscribed) if (not all_own(inscribed, self.diameter)
                                           or np.any(inscribed[:, COVERED] != 0.0)) else None
         self._shapes.append(ShapeInstance(name, frozen(verts), frozen(mesh.faces, np.int32),

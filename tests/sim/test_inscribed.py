@@ -19,8 +19,9 @@ from dempipe.mesh.shapes import build_shape
 from dempipe.scene.build import build_model
 from dempipe.scene.load import parse_scene
 from dempipe.sim.simulator import Simulator
-from dempipe.spheres.inscribed import (SHRINK_SLACK, WALL_SPACING, WALL_TOLERANCE,
-                                       inscribed_tori, lattice_tori, wall_cover)
+from dempipe.spheres.inscribed import (COVERED, SHRINK_SLACK, WALL_SPACING, WALL_TOLERANCE,
+                                       inscribed_tori, lattice_tori, wall_cover,
+                                       wall_tori)
 from dempipe.spheres.options import BuildOptions
 from dempipe.spheres.sphere_set import build_sphere_set, diameter_for_resolution
 from bodies import body_energy
@@ -161,6 +162,28 @@ def test_a_foot_meets_walls_through_its_outer_polygon():
     # of its area), not the middle's (the spheres within 0.8 d of the axis: 59 %)
     area = ConvexHull(c[foot, :2]).volume
     assert ConvexHull(c[kept, :2]).volume >= 0.93 * area
+
+
+def test_a_body_lists_the_spheres_walls_meet_first():
+    # a body's slots follow its spheres' order, so the Model puts the spheres walls
+    # meet first (then those wall_cover leaves out, each part in the set's order):
+    # a resting face's contacts then lie together in memory. The same spheres, the
+    # tori rows moved with them
+    text = SLIDE.format(mode="surface").replace('builtin = "sphere"\ndiameter = 0.1',
+                                                'builtin = "rook"\nheight = 0.05')
+    model = build_model(parse_scene(text, "rook.toml"))
+    shape = model.shapes[0]
+    ins = np.asarray(model.sphere_inscribed)
+    assert 0 < np.count_nonzero(ins[:, COVERED]) < ins.shape[0]
+    assert np.all(np.diff(ins[:, COVERED]) >= 0.0)      # 0 (meets walls), then 1
+    assert np.array_equal(model.sphere_offset, shape.contact_centers)
+    # the same spheres and rows as the set's order, moved together
+    c = np.asarray(shape.sphere_set.centers)
+    assert c.shape[0] == ins.shape[0]                   # a shell: every sphere in contact
+    rows = wall_tori(c, model.diameter, shape.vertices, shape.faces, surface=True)
+    first = np.argsort(rows[:, COVERED], kind="stable")
+    assert np.array_equal(model.sphere_offset, c[first])
+    assert np.array_equal(ins, rows[first])
 
 
 def test_edges_and_corners_keep_their_own_spheres():
