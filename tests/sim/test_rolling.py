@@ -98,9 +98,11 @@ MODES = pytest.mark.parametrize("mode", [None, "surface"], ids=["default", "surf
 
 @MODES
 def test_ball_rolls_at_five_sevenths(tmp_path, mode):
+    # 8 spheres across, within 3 % of the closed form (measured: +0.01 % at the
+    # defaults, +0.09 % with surface sets)
     model, fr = bake(tmp_path, BALL, 0.0501, mode=mode)
     a = acceleration(fr)
-    assert a == pytest.approx(5.0 / 7.0 * G * math.sin(THETA), rel=0.05)
+    assert a == pytest.approx(5.0 / 7.0 * G * math.sin(THETA), rel=0.03)
     # rolling, not sliding: the contact point is at rest, v = w R
     v, w = fr.v[-1, 0, 0], fr.w[-1, 0, 1]
     assert v == pytest.approx(w * 0.05, rel=0.05)
@@ -114,8 +116,9 @@ ON_RIM = dict(rotation=ON_SIDE)
 
 @MODES
 def test_cylinder_on_its_side_rolls_at_two_thirds(tmp_path, mode):
+    # 8 across, within 3 % (measured: -0.18 % at the defaults, -0.97 % with surface sets)
     model, fr = bake(tmp_path, CYLINDER, 0.0501, mode=mode, **ON_RIM)
-    assert acceleration(fr) == pytest.approx(2.0 / 3.0 * G * math.sin(THETA), rel=0.05)
+    assert acceleration(fr) == pytest.approx(2.0 / 3.0 * G * math.sin(THETA), rel=0.03)
 
 
 @pytest.mark.parametrize("mode, d", [(None, None), ("surface", 0.0125)],
@@ -393,12 +396,14 @@ def test_a_ball_rolls_on_a_body_as_its_spheres_allow():
 
 @pytest.mark.slow
 @MODES
-def test_ball_and_cylinder_within_two_percent_at_sixteen_across(tmp_path, mode):
+def test_ball_and_cylinder_within_one_percent_at_sixteen_across(tmp_path, mode):
+    # measured: the ball +0.10 % and the cylinder -0.26 % at the defaults, +0.09 % and
+    # +0.01 % with surface sets
     d = 0.1 / 16
     model, fr = bake(tmp_path, BALL, 0.0501, d=d, mode=mode)
-    assert acceleration(fr) == pytest.approx(5.0 / 7.0 * G * math.sin(THETA), rel=0.02)
+    assert acceleration(fr) == pytest.approx(5.0 / 7.0 * G * math.sin(THETA), rel=0.01)
     model, fr = bake(tmp_path, CYLINDER, 0.0501, d=d, mode=mode, **ON_RIM)
-    assert acceleration(fr) == pytest.approx(2.0 / 3.0 * G * math.sin(THETA), rel=0.02)
+    assert acceleration(fr) == pytest.approx(2.0 / 3.0 * G * math.sin(THETA), rel=0.01)
 
 
 PILE = """
