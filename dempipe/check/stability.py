@@ -329,15 +329,33 @@ def falling_speeds(model: Model) -> np.ndarray:
     if n == 0:
         return out
     g = float(np.linalg.norm(model.gravity))
-    up = -np.asarray(model.gravity) / g if g > 0 else np.array([0.0, 0.0, 1.0])
     moves = ~model.body_static[:n]          # 1/m = 0: kinematic
-    x0 = np.asarray(model.initial_x[:n])
     spin = np.linalg.norm(np.asarray(model.initial_w[:n]), axis=1) * np.asarray(
         model.body_radius)
     v = np.linalg.norm(np.asarray(model.initial_v[:n]), axis=1)
     start = (np.zeros(n) if model.body_start_time is None
              else np.asarray(model.body_start_time, dtype=np.float64))
     t = np.maximum((model.n_frames - 1) / model.fps - start, 0.0)
+    floor, height = floor_below(model)
+    by_end = v + g * t
+    drop = np.where(np.isfinite(floor),
+                    np.maximum(height - np.asarray(model.body_radius) - floor, 0.0), 0.0)
+    at_floor = np.sqrt(v * v + 2.0 * g * drop)
+    out = np.where(np.isfinite(floor), np.minimum(at_floor, by_end), by_end) + spin
+    return np.where(moves, out, 0.0)
+
+
+def floor_below(model: Model) -> tuple[np.ndarray, np.ndarray]:
+    """(floor, height), each (n,) [m] along up (against gravity; +z without it): the
+    highest floor under each body's centre at the start, and the centre's height.
+    A floor is a ground-like plane collider (its normal within 60° of up) below the
+    centre, or the base of a box collider, a static mesh's bounds or a kinematic
+    body's bounding box whose horizontal extent holds the centre; -inf where there is
+    none."""
+    n = model.n_bodies
+    g = float(np.linalg.norm(model.gravity))
+    up = -np.asarray(model.gravity) / g if g > 0 else np.array([0.0, 0.0, 1.0])
+    x0 = np.asarray(model.initial_x[:n]).reshape(n, 3)
     height = x0 @ up
     floor = np.full(n, -np.inf)             # the highest floor under each body
     for p, nrm in zip(model.plane_point, model.plane_normal):
@@ -360,11 +378,7 @@ def falling_speeds(model: Model) -> np.ndarray:
                        & (flat <= np.maximum(lo_flat, hi_flat) + 1e-12), axis=1)
         base = min(float(lo @ up), float(hi @ up))
         floor = np.where(under & (base < height), np.maximum(floor, base), floor)
-    by_end = v + g * t
-    drop = np.maximum(height - np.asarray(model.body_radius) - floor, 0.0)
-    at_floor = np.sqrt(v * v + 2.0 * g * drop)
-    out = np.where(np.isfinite(floor), np.minimum(at_floor, by_end), by_end) + spin
-    return np.where(moves, out, 0.0)
+    return floor, height
 
 
 def pair_stability(model: Model, dt: float | None = None) -> tuple[list, float, float]:

@@ -261,8 +261,8 @@ def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, pro
     from dempipe.pipeline.checkpoint import (CHECKPOINT_SECONDS, BakeStore, model_fingerprint,
                                              read_meta)
     from dempipe.pipeline.check import (behind_box_findings, behind_plane_findings,
-                                        emission_finding, sinking_finding, spin_finding,
-                                        steps_finding)
+                                        emission_finding, nothing_below_findings,
+                                        sinking_finding, spin_finding, steps_finding)
     from dempipe.scene.build import build_model, initial_overlap_all_spheres
     from dempipe.scene.load import load_scene
     from dempipe.sim.simulator import BakeFailure, Simulator, resolve_device
@@ -305,7 +305,8 @@ def _bake_locked(scene_path, out, *, device, layout, frames, threads, cache, pro
                  emission_finding(model, src),     # emitted bodies: known before they start
                  sinking_finding(model, src),
                  *behind_plane_findings(model, scene, src),
-                 *behind_box_findings(model, scene, src)):
+                 *behind_box_findings(model, scene, src),
+                 *nothing_below_findings(model, scene, src)):
         if risk is not None and risk.level == ERROR and not force:
             raise StabilityError(f"{risk.message}. Fix: {risk.fix} (or bake with --force)")
         if risk is not None:

@@ -26,6 +26,7 @@ from dempipe.check.stability import (
     StabilityReport,
     analyze,
     expected_speeds,
+    floor_below,
     tunnelling,
 )
 from dempipe.errors import StabilityError
@@ -88,10 +89,12 @@ def _analyze_scene(path, cache, simulation) -> StabilityReport:
 
 def scene_findings(model, scene, src: str) -> list:
     """What only the scene's keys can name, whatever the time step: open meshes
-    (open_mesh_findings) and bodies wholly behind a plane (behind_plane_findings) or
-    a box's wall (behind_box_findings)."""
+    (open_mesh_findings), bodies wholly behind a plane (behind_plane_findings) or a
+    box's wall (behind_box_findings), and bodies dropped with nothing under them
+    (nothing_below_findings)."""
     return (open_mesh_findings(model, scene, src) + behind_plane_findings(model, scene, src)
-            + behind_box_findings(model, scene, src))
+            + behind_box_findings(model, scene, src)
+            + nothing_below_findings(model, scene, src))
 
 
 def spin_finding(model, src: str, dt_setting) -> Finding | None:
@@ -311,6 +314,41 @@ def behind_box_findings(model, scene, src: str) -> list:
                 f"pushes spheres out from) behind the wall's surface, where that wall "
                 f"never touches {it}",
                 fix))
+    return found
+
+
+def nothing_below_findings(model, scene, src: str) -> list:
+    """A warning per body group for its dynamic bodies that start with no velocity
+    across gravity and nothing under their centre (check.stability.floor_below: no
+    ground-like plane below, no box collider, static mesh or kinematic body whose
+    horizontal extent holds it): they fall for the whole shot. A body thrown sideways
+    may land on something elsewhere and is not named; without gravity nothing falls."""
+    n = model.n_bodies
+    g = float(np.linalg.norm(model.gravity))
+    if n == 0 or g == 0.0:
+        return []
+    up = -np.asarray(model.gravity) / g
+    v0 = np.asarray(model.initial_v[:n]).reshape(n, 3)
+    across = np.linalg.norm(v0 - np.outer(v0 @ up, up), axis=1)
+    floor, _ = floor_below(model)
+    dropped = np.flatnonzero(~np.asarray(model.body_static[:n]) & np.isinf(floor)
+                             & (across == 0.0))
+    found = []
+    groups = np.asarray(model.body_group)[dropped]
+    t = (model.n_frames - 1) / model.fps
+    for gr in np.unique(groups):
+        count = int(np.count_nonzero(groups == gr))
+        who, verb = _who(model, int(gr), count)
+        it = "it" if count == 1 else "them"
+        found.append(Finding(
+            WARNING, "nothing-below",
+            f"{src}: {_group_key(scene, int(gr))}: {who} {verb} with nothing under "
+            f"{it} (no ground plane below, no box, static mesh or kinematic body under "
+            f"{'its' if count == 1 else 'their'} centre): "
+            f"{'it falls' if count == 1 else 'they fall'} for the whole shot, "
+            f"{g * t * t / 2:.3g} m in {t:.3g} s",
+            f"add a ground (a [[colliders]] entry with type = \"plane\") or move {it} over "
+            f"a collider"))
     return found
 
 

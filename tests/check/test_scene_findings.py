@@ -1,9 +1,9 @@
 """`dempipe check` names by their scene keys what only the scene can name: a mesh
-that is not watertight (a body's shape or a mesh collider) and bodies that start
-wholly behind a plane or a box collider's wall. Each is a counted warning finding
-with a fix, in the text and in the JSON; the bake's pre-flight warns of bodies
-behind a plane or a box's wall too. Real scene files and real OBJ meshes written by
-trimesh."""
+that is not watertight (a body's shape or a mesh collider), bodies that start
+wholly behind a plane or a box collider's wall, and bodies dropped with nothing
+under them. Each is a counted warning finding with a fix, in the text and in the
+JSON; the bake's pre-flight warns of the bodies too. Real scene files and real OBJ
+meshes written by trimesh."""
 
 import json
 import re
@@ -522,3 +522,71 @@ def test_a_body_launched_far_too_fast_is_a_long_bake_warning(tmp_path):
     said = []
     bake(p, tmp_path / "o.usda", device="cpu", cache=cache, frames="0:0", warn=said.append)
     assert any("steps per frame" in w and "fastest body" in w for w in said), said
+
+
+DROP = """
+[shapes.ball]
+builtin = "sphere"
+diameter = 0.05
+
+[[bodies]]
+name = "drop"
+shape = "ball"
+position = [{x}, 0.0, 0.5]
+{extra}
+"""
+
+UNDER = """
+[[colliders]]
+type = "box"
+name = "tray"
+min = [-0.3, -0.3, 0.0]
+max = [0.3, 0.3, 0.3]
+"""
+
+
+def test_a_body_dropped_with_nothing_under_it_is_a_warning(tmp_path, cache):
+    # no collider at all: the ball falls for the whole shot, g t²/2 = 1.23 m in 0.5 s
+    path = scene(tmp_path, DROP.format(x=0.0, extra=""))
+    report = analyze_scene(path, cache=cache)
+    (found,) = coded(report, "nothing-below")
+    assert found.message == (
+        "scene.toml: bodies[0] ('drop'): its body starts with nothing under it (no "
+        "ground plane below, no box, static mesh or kinematic body under its centre): "
+        "it falls for the whole shot, 1.23 m in 0.5 s")
+    assert found.fix == ('add a ground (a [[colliders]] entry with type = "plane") or '
+                         'move it over a collider')
+    assert_counted(report, found)
+    # beside the tray (its centre outside the box's extent): the same
+    report = analyze_scene(scene(tmp_path, DROP.format(x=0.5, extra="") + UNDER),
+                           cache=cache)
+    assert len(coded(report, "nothing-below")) == 1
+
+
+@pytest.mark.parametrize("extra, colliders, gravity", [
+    ("", PLANE, ""),                                        # a ground plane
+    ("", UNDER, ""),                                        # over the tray
+    ("velocity = [1.0, 0.0, 0.0]", "", ""),                 # thrown: may land elsewhere
+    ("", "", "gravity = [0.0, 0.0, 0.0]\n"),                # nothing falls
+], ids=["plane", "box", "thrown", "weightless"])
+def test_a_body_over_a_collider_thrown_or_weightless_is_not_named(tmp_path, cache, extra,
+                                                                   colliders, gravity):
+    path = tmp_path / "scene.toml"
+    path.write_text(HEAD + gravity + DROP.format(x=0.0, extra=extra) + colliders)
+    assert not coded(analyze_scene(path, cache=cache), "nothing-below")
+
+
+def test_bake_preflight_warns_of_a_body_with_nothing_under_it(tmp_path, cache):
+    from dempipe.pipeline.bake import bake
+
+    class Stop(Exception):
+        pass
+
+    def warn(msg):              # stop at the pre-flight's warning: nothing to simulate
+        if "nothing under" in msg:
+            raise Stop(msg)
+
+    with pytest.raises(Stop, match="bodies\\[0\\] \\('drop'\\): its body starts with "
+                                   "nothing under it"):
+        bake(scene(tmp_path, DROP.format(x=0.0, extra="")), tmp_path / "o.usdc",
+             device="cpu", cache=cache, warn=warn)

@@ -177,8 +177,9 @@ position = [0.0, 0.0, 0.1]
 def test_a_long_free_fall_with_nothing_to_hit_bakes_whole(tmp_path):
     # One box and no colliders: dt "auto" is the free-flight step (1/240 s) whatever the
     # speed, and there is nothing to pass through. The check says so (no closing-pair
-    # finding) and the bake agrees: 2 s of fall, to 19.6 m/s (8 diameters per step),
-    # with no refusal, no warning and no guard tripping.
+    # finding; only that the box falls for the whole shot, nothing being under it) and
+    # the bake agrees: 2 s of fall, to 19.6 m/s (8 diameters per step), with no
+    # refusal, no per-step warning and no guard tripping.
     import dempipe
     from dempipe.pipeline.check import analyze_scene
     from dempipe.spheres.cache import SphereCache
@@ -188,7 +189,9 @@ def test_a_long_free_fall_with_nothing_to_hit_bakes_whole(tmp_path):
     cache = SphereCache(tmp_path / "c")
     report = analyze_scene(scene, cache=cache)
     assert report.ok and report.dt == pytest.approx(1.0 / 240.0)
-    assert not report.pairs and not report.findings, report.format()
+    assert not report.pairs, report.format()
+    assert [f.code for f in report.findings] == ["nothing-below"], report.format()
+    assert "19.6 m in 2 s" in report.findings[0].message
     said = []
     result = dempipe.bake(scene, tmp_path / "fall.usdc", device="cpu", cache=cache,
                           warn=said.append, checkpoints=False)
