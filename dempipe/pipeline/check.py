@@ -321,8 +321,9 @@ def nothing_below_findings(model, scene, src: str) -> list:
     """A warning per body group for its dynamic bodies that start with no velocity
     across gravity and nothing under their centre (check.stability.floor_below: no
     ground-like plane below, no box collider, static mesh or kinematic body whose
-    horizontal extent holds it): they fall for the whole shot. A body thrown sideways
-    may land on something elsewhere and is not named; without gravity nothing falls."""
+    horizontal extent holds it): they fall for the whole shot, from their start time
+    on. A body thrown sideways may land on something elsewhere and is not named;
+    without gravity nothing falls."""
     n = model.n_bodies
     g = float(np.linalg.norm(model.gravity))
     if n == 0 or g == 0.0:
@@ -335,9 +336,12 @@ def nothing_below_findings(model, scene, src: str) -> list:
                              & (across == 0.0))
     found = []
     groups = np.asarray(model.body_group)[dropped]
-    t = (model.n_frames - 1) / model.fps
+    start = (np.zeros(n) if model.body_start_time is None
+             else np.asarray(model.body_start_time, dtype=np.float64))
+    falls = np.maximum((model.n_frames - 1) / model.fps - start[dropped], 0.0)
     for gr in np.unique(groups):
         count = int(np.count_nonzero(groups == gr))
+        t = float(falls[groups == gr].max())    # the longest fall: an emitter's first
         who, verb = _who(model, int(gr), count)
         it = "it" if count == 1 else "them"
         found.append(Finding(

@@ -570,3 +570,10 @@ def test_bake_preflight_warns_of_a_body_with_nothing_under_it(tmp_path, cache):
     path = scene(tmp_path, DROP.format(x=0.0, extra=""))
     assert "bodies[0] ('drop'): its body starts with nothing under it" in \
         preflight_warning(path, tmp_path, cache, "nothing under")
+
+
+def test_an_emitted_body_falls_from_its_start_time(tmp_path, cache):
+    # started at 0.3 s of the 0.5 s shot: g t²/2 over the 0.2 s left, 0.196 m
+    path = scene(tmp_path, DROP.format(x=0.0, extra="start_time = 0.3"))
+    (found,) = coded(analyze_scene(path, cache=cache), "nothing-below")
+    assert found.message.endswith("it falls for the whole shot, 0.196 m in 0.2 s")
